@@ -1,0 +1,230 @@
+"""Typed configuration: YAML decoded into Structs, unknown keys rejected, bounds checked.
+
+Errors name the YAML path (`$.pools.vo.policy`) and what was expected. The
+defaults here are the defaults; configs/default.yaml documents every key and a
+test keeps the two equal.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import msgspec
+import yaml
+
+from trapflow.errors import ConfigError
+from trapflow.policy import Policy, parse_policy
+
+
+class _Section(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    pass
+
+
+Positive = Annotated[float, msgspec.Meta(gt=0)]
+
+
+class SourceConfig(_Section):
+    """Where pairs come from and how they are encoded."""
+
+    kind: str = "synthetic"
+    uri: str = ""
+    rate_hz: Annotated[float, msgspec.Meta(gt=0, le=240)] = 15.0
+    width: Annotated[int, msgspec.Meta(ge=16, le=8192)] = 1280
+    height: Annotated[int, msgspec.Meta(ge=16, le=8192)] = 720
+    encoding: Literal["jpeg", "raw"] = "jpeg"
+    jpeg_quality: Annotated[int, msgspec.Meta(ge=1, le=100)] = 90
+    seed: int = 0
+    moving: bool = False
+    loop: bool = False
+    options: dict[str, Any] = {}
+
+
+class RigConfig(_Section):
+    """The stereo rig: baseline and field of view (or a calibration file)."""
+
+    baseline_m: Annotated[float, msgspec.Meta(gt=0, le=10)] = 0.12
+    hfov_deg: Annotated[float, msgspec.Meta(gt=1, lt=179)] = 70.0
+    calibration: str | None = None
+
+
+class PoolConfig(_Section):
+    """One pool of identical worker processes running one algorithm."""
+
+    count: Annotated[int, msgspec.Meta(ge=0, le=64)] = 1
+    plugin: str = ""  # registry name or module:Class; empty means the pool's own name
+    policy: str = "latest"
+    nice: Annotated[int, msgspec.Meta(ge=0, le=19)] = 0
+    affinity: list[Annotated[int, msgspec.Meta(ge=0)]] = []
+    credit: Annotated[int, msgspec.Meta(ge=1, le=64)] = 1
+    timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 10.0
+    params: dict[str, Any] = {}
+    debug: bool = False
+    save: bool = False
+    time: bool = False
+
+    def __post_init__(self) -> None:
+        parse_policy(self.policy)  # raises ValueError, reported with the key path
+
+    @property
+    def parsed_policy(self) -> Policy:
+        """The policy as an object."""
+        return parse_policy(self.policy)
+
+
+class NormalizerConfig(_Section):
+    """The sink that writes one JSON object per result."""
+
+    results_file: str = "results.jsonl"
+    flush_interval_s: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.5
+    fsync_interval_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 5.0
+    decimals: Annotated[int, msgspec.Meta(ge=0, le=9)] = 3
+
+
+class SupervisorConfig(_Section):
+    """Heartbeats, restarts and the stop ladder."""
+
+    heartbeat_interval_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 1.0
+    liveness_s: Annotated[float, msgspec.Meta(gt=0, le=600)] = 5.0
+    restart_backoff_s: Annotated[float, msgspec.Meta(ge=0, le=60)] = 0.5
+    restart_backoff_max_s: Annotated[float, msgspec.Meta(ge=0, le=600)] = 10.0
+    max_restarts: Annotated[int, msgspec.Meta(ge=0)] = 5
+    restart_window_s: Annotated[float, msgspec.Meta(gt=0)] = 60.0
+    stop_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=4)] = 2.0
+
+
+class NetworkConfig(_Section):
+    """Endpoints: ipc:// in the run directory on one host, or tcp:// on a loopback host."""
+
+    transport: Literal["ipc", "tcp"] = "ipc"
+    host: str = "127.0.0.1"
+    base_port: Annotated[int, msgspec.Meta(ge=1024, le=65000)] = 5550
+
+    def __post_init__(self) -> None:
+        try:
+            loopback = ipaddress.ip_address(self.host).is_loopback
+        except ValueError:
+            loopback = self.host == "localhost"
+        if not loopback:
+            raise ValueError(
+                f"expected a loopback host (127.0.0.1), got {self.host!r}: "
+                "binding beyond loopback needs CURVE keys, which this build does not configure"
+            )
+
+
+def _default_pools() -> dict[str, PoolConfig]:
+    return {
+        "mono": PoolConfig(count=1, policy="latest"),
+        "stereo": PoolConfig(count=1, policy="latest", nice=10),
+        "vo": PoolConfig(count=1, policy="ordered:16"),
+    }
+
+
+class Config(_Section):
+    """The whole pipeline."""
+
+    source: SourceConfig = msgspec.field(default_factory=SourceConfig)
+    rig: RigConfig = msgspec.field(default_factory=RigConfig)
+    pools: dict[str, PoolConfig] = msgspec.field(default_factory=_default_pools)
+    normalizer: NormalizerConfig = msgspec.field(default_factory=NormalizerConfig)
+    supervisor: SupervisorConfig = msgspec.field(default_factory=SupervisorConfig)
+    network: NetworkConfig = msgspec.field(default_factory=NetworkConfig)
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+
+    def __post_init__(self) -> None:
+        for name, pool in self.pools.items():
+            if not name.isidentifier():
+                raise ValueError(f"pool name {name!r} must be an identifier")
+            if pool.parsed_policy.kind == "ordered" and pool.count > 1:
+                raise ValueError(
+                    f"pool {name!r}: the ordered policy takes count 0 or 1, got {pool.count}"
+                )
+
+    def validated(self) -> Config:
+        """Re-run validation after programmatic changes."""
+        return from_data(msgspec.to_builtins(self), "config")
+
+    def plugin_of(self, pool: str) -> str:
+        """The plugin name a pool runs."""
+        return self.pools[pool].plugin or pool
+
+
+def from_data(data: Any, origin: str = "config") -> Config:
+    """Validate plain data (from YAML) into a Config; ConfigError names the bad key."""
+    if data is None:
+        data = {}
+    pools = data.get("pools") if isinstance(data, dict) else None
+    if isinstance(pools, dict):
+        # Validate pools one by one so that errors name the pool, not `$.pools[...]`.
+        for name, pool in pools.items():
+            try:
+                msgspec.convert(pool, PoolConfig, strict=True)
+            except msgspec.ValidationError as exc:
+                msg = str(exc).replace("`$", f"`$.pools.{name}")
+                if "- at `$" not in msg:
+                    msg += f" - at `$.pools.{name}`"
+                raise ConfigError(f"{origin}: {msg}") from None
+    try:
+        return msgspec.convert(data, Config, strict=True)
+    except msgspec.ValidationError as exc:
+        raise ConfigError(f"{origin}: {exc}") from None
+
+
+def load(path: str | Path | None = None) -> Config:
+    """Load a YAML config file, or the built-in defaults when path is None."""
+    if path is None:
+        return Config()
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"cannot read config {p}: {exc.strerror}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{p}: not valid YAML: {exc}") from None
+    return from_data(data, str(p))
+
+
+def parse_workers(text: str) -> dict[str, int]:
+    """Parse `NAME=COUNT[,NAME=COUNT...]` into a dict; ConfigError names the bad part."""
+    expected = "expected NAME=COUNT[,NAME=COUNT...]"
+    counts: dict[str, int] = {}
+    if not text.strip():
+        raise ConfigError(f"{expected}, got an empty string")
+    for part in text.split(","):
+        name, sep, num = part.strip().partition("=")
+        if not sep or not name.isidentifier():
+            raise ConfigError(f"{expected}, got {part!r}")
+        try:
+            count = int(num)
+        except ValueError:
+            raise ConfigError(f"{expected} with an integer COUNT, got {part!r}") from None
+        if count < 1:
+            raise ConfigError(f"worker count must be at least 1, got {part!r}")
+        if name in counts:
+            raise ConfigError(f"algorithm {name!r} given twice in {text!r}")
+        counts[name] = count
+    return counts
+
+
+def with_workers(cfg: Config, counts: dict[str, int], known: list[str]) -> Config:
+    """Run exactly the named pools with these counts; others are switched off.
+
+    A name that is not a configured pool but is a known plugin gets a default pool.
+    """
+    pools: dict[str, PoolConfig] = {}
+    for name, pool in cfg.pools.items():
+        pools[name] = msgspec.structs.replace(pool, count=counts.get(name, 0))
+    for name, count in counts.items():
+        if name not in pools:
+            if name not in known:
+                choices = ", ".join(sorted(set(known) | set(cfg.pools)))
+                raise ConfigError(f"unknown algorithm {name!r} in --workers: expected one of {choices}")
+            pools[name] = PoolConfig(count=count)
+    try:
+        return msgspec.structs.replace(cfg, pools=pools).validated()
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+

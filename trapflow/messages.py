@@ -1,0 +1,353 @@
+"""The only module that knows the byte format of what travels between processes.
+
+Every message is a msgspec Struct encoded with msgpack; image payloads travel in
+their own frames (sent with copy=False) so nothing large is ever re-serialised.
+Decoding never trusts the wire: every decoder raises ProtocolError with a reason.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, Literal, Union
+
+import msgspec
+
+from trapflow.errors import ProtocolError
+
+# Upper bounds that make a hostile or corrupt peer harmless.
+MAX_HEADER_BYTES = 4096
+MAX_RESULT_BYTES = 1 << 20
+MAX_SIDE = 8192
+ENCODINGS = ("jpeg", "raw")
+
+Buffer = Union[bytes, memoryview, Any]  # zmq.Frame or bytes-like
+
+
+class Msg(msgspec.Struct, frozen=True, kw_only=True, omit_defaults=True):
+    """Base of every message: frozen, keyword-only, compact on the wire."""
+
+
+# --- frames: capture -> broker -> workers ------------------------------------
+
+
+class StereoPair(Msg, tag="pair"):
+    """Header of one stereo pair; frames 1 and 2 carry the left and right image."""
+
+    seq: int
+    t_wall_ns: int  # wall clock at capture, a label only
+    t_mono_ns: int  # monotonic clock at capture, for latency and ordering
+    t_left_ns: int
+    t_right_ns: int
+    skew_ns: int
+    encoding: Literal["jpeg", "raw"]
+    width: int
+    height: int
+    source: str = "synthetic"
+
+
+class Job(Msg, tag="job"):
+    """Broker -> worker: a pair to process. gap counts pairs skipped since the last job."""
+
+    pool: str
+    gap: int = 0
+
+
+# --- results ------------------------------------------------------------------
+
+
+class Detection(Msg):
+    """One detected object: label, confidence and box x1, y1, x2, y2 in pixels."""
+
+    label: str
+    confidence: float
+    box: tuple[float, float, float, float]
+
+
+class MonoIR(Msg, tag="mono_ir"):
+    """Mono image recognition: the detections in the left image."""
+
+    detections: list[Detection] = []
+
+
+class StereoIR(Msg, tag="stereo_ir"):
+    """Stereo image recognition: one label for the pair."""
+
+    label: str
+    confidence: float
+
+
+class StereoVO(Msg, tag="stereo_vo"):
+    """Stereo visual odometry: motion since the previous pair as [R|t], and the pose."""
+
+    ok: bool
+    rotation: tuple[float, ...] = ()  # 3x3, row major
+    translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    pose: tuple[float, ...] = ()  # accumulated 3x4 [R|t], row major
+    inliers: int = 0
+    reinit: bool = False
+
+
+class Tag(Msg):
+    """One AprilTag: id, corners in pixels, pose (rotation 3x3 row major, translation)."""
+
+    id: int
+    corners: list[tuple[float, float]]
+    rotation: tuple[float, ...] = ()
+    translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    error: float = 0.0
+
+
+class Tags(Msg, tag="tags"):
+    """AprilTag detection with pose."""
+
+    tags: list[Tag] = []
+
+
+class Extra(Msg, tag="extra"):
+    """Result of a third-party algorithm: a name and flat JSON-able fields."""
+
+    name: str
+    fields: dict[str, Any] = {}
+
+
+Body = Union[MonoIR, StereoIR, StereoVO, Tags, Extra]
+
+
+class Result(Msg, tag="result"):
+    """Envelope of every result: which pair, which worker, how long it took."""
+
+    seq: int
+    t_wall_ns: int
+    t_mono_ns: int
+    pool: str
+    worker: str
+    proc_ns: int
+    body: Body
+
+
+# --- ground truth (synthetic sources only; never shown to algorithms) -------------
+
+
+class TruthObject(Msg):
+    """One animal or tag in the left image: label, box x1 y1 x2 y2 in pixels, depth in m."""
+
+    label: str
+    box: tuple[float, float, float, float]
+    depth_m: float = 0.0
+    id: int = -1  # track id of the animal, or the AprilTag id
+    occluded: float = 0.0  # fraction hidden
+
+
+class Truth(Msg, tag="truth"):
+    """What a synthetic pair really shows: left-camera pose (3x4 world<-camera), objects."""
+
+    seq: int
+    pose: tuple[float, ...]  # 3x4 [R|t], row major, camera-to-world
+    objects: list[TruthObject] = []
+    scene_label: str = "empty"
+
+
+# --- worker -> broker ---------------------------------------------------------
+
+
+class Ready(Msg, tag="ready"):
+    """A worker can take `credit` more jobs."""
+
+    worker: str
+    pool: str
+    credit: int = 1
+
+
+class Heartbeat(Msg, tag="heartbeat"):
+    """A node is alive; state is its lifecycle state, reason why it is not active."""
+
+    node: str
+    pid: int
+    state: str
+    reason: str = ""
+    counters: dict[str, int] = {}
+
+
+class Done(Msg, tag="done"):
+    """A worker finished a job; frame 1 is the encoded Result. Returns one credit."""
+
+    worker: str
+    pool: str
+    seq: int
+
+
+class Failed(Msg, tag="failed"):
+    """A worker could not process a pair (bad input, plugin error). Returns one credit."""
+
+    worker: str
+    pool: str
+    seq: int
+    reason: str
+
+
+WorkerMsg = Union[Ready, Heartbeat, Done, Failed]
+
+
+# --- stats and control ----------------------------------------------------------
+
+
+class PoolStats(Msg):
+    """Counters of one pool, as the broker sees them."""
+
+    workers: int = 0
+    received: int = 0
+    dispatched: int = 0
+    dropped: int = 0
+    in_flight: int = 0
+    pending: int = 0
+    processed: int = 0
+    errors: int = 0
+    lost: int = 0
+    rate: float = 0.0  # processed per second over the last interval
+
+
+class Stats(Msg, tag="stats"):
+    """Published once a second on the tap: the numbers every view reads."""
+
+    t_wall_ns: int
+    uptime_s: float
+    pairs_in: int
+    rate_in: float
+    malformed: int
+    pools: dict[str, PoolStats]
+
+
+class StatusRequest(Msg, tag="status"):
+    """Ask the supervisor for the pipeline's nodes, states and counters."""
+
+
+class StopRequest(Msg, tag="stop"):
+    """Ask the supervisor to stop the pipeline."""
+
+
+ControlRequest = Union[StatusRequest, StopRequest]
+
+
+# --- codecs ---------------------------------------------------------------------
+
+_enc = msgspec.msgpack.Encoder()
+_pair_dec = msgspec.msgpack.Decoder(StereoPair)
+_job_dec = msgspec.msgpack.Decoder(Job)
+_worker_dec = msgspec.msgpack.Decoder(WorkerMsg)
+_result_dec = msgspec.msgpack.Decoder(Result)
+_stats_dec = msgspec.msgpack.Decoder(Stats)
+_control_dec = msgspec.msgpack.Decoder(ControlRequest)
+_heartbeat_dec = msgspec.msgpack.Decoder(Heartbeat)
+
+
+def encode(msg: Msg) -> bytes:
+    """Encode any message struct to msgpack bytes."""
+    return _enc.encode(msg)
+
+
+def _decode(dec: msgspec.msgpack.Decoder[Any], data: Buffer, what: str, limit: int) -> Any:
+    buf = memoryview(data.buffer if hasattr(data, "buffer") else data)
+    if buf.nbytes > limit:
+        raise ProtocolError(f"{what}: expected at most {limit} bytes, got {buf.nbytes}")
+    try:
+        return dec.decode(buf)
+    except msgspec.DecodeError as exc:
+        raise ProtocolError(f"{what}: {exc}") from None
+
+
+def decode_pair_header(data: Buffer) -> StereoPair:
+    """Decode and sanity-check a StereoPair header frame."""
+    pair: StereoPair = _decode(_pair_dec, data, "pair header", MAX_HEADER_BYTES)
+    if not (0 < pair.width <= MAX_SIDE and 0 < pair.height <= MAX_SIDE):
+        raise ProtocolError(
+            f"pair header: expected width and height in 1..{MAX_SIDE}, "
+            f"got {pair.width}x{pair.height}"
+        )
+    if pair.seq < 0:
+        raise ProtocolError(f"pair header: expected seq >= 0, got {pair.seq}")
+    return pair
+
+
+def raw_size(pair: StereoPair) -> int:
+    """Bytes of one raw BGR image of this pair."""
+    return pair.width * pair.height * 3
+
+
+def check_pair_frames(frames: Sequence[Buffer]) -> StereoPair:
+    """Validate a [header, left, right] message and return its header."""
+    if len(frames) != 3:
+        raise ProtocolError(f"pair: expected 3 frames [header, left, right], got {len(frames)}")
+    pair = decode_pair_header(frames[0])
+    limit = raw_size(pair)
+    for side, frame in (("left", frames[1]), ("right", frames[2])):
+        n = len(frame)
+        if pair.encoding == "raw" and n != limit:
+            raise ProtocolError(f"pair {pair.seq}: {side} raw image expected {limit} bytes, got {n}")
+        if pair.encoding == "jpeg" and not 0 < n <= limit:
+            raise ProtocolError(
+                f"pair {pair.seq}: {side} JPEG expected 1..{limit} bytes, got {n}"
+            )
+    return pair
+
+
+def decode_job(data: Buffer) -> Job:
+    """Decode the job frame a worker receives before a pair."""
+    job: Job = _decode(_job_dec, data, "job", MAX_HEADER_BYTES)
+    return job
+
+
+def decode_worker_msg(data: Buffer) -> Ready | Heartbeat | Done | Failed:
+    """Decode frame 0 of a message a worker sent to the broker."""
+    msg: Ready | Heartbeat | Done | Failed = _decode(
+        _worker_dec, data, "worker message", MAX_HEADER_BYTES
+    )
+    return msg
+
+
+def decode_result(data: Buffer) -> Result:
+    """Decode an encoded Result."""
+    res: Result = _decode(_result_dec, data, "result", MAX_RESULT_BYTES)
+    return res
+
+
+def decode_stats(data: Buffer) -> Stats:
+    """Decode a Stats message from the tap."""
+    stats: Stats = _decode(_stats_dec, data, "stats", MAX_RESULT_BYTES)
+    return stats
+
+
+def decode_heartbeat(data: Buffer) -> Heartbeat:
+    """Decode a Heartbeat a node sent to the supervisor."""
+    hb: Heartbeat = _decode(_heartbeat_dec, data, "heartbeat", MAX_HEADER_BYTES)
+    return hb
+
+
+_truth_dec = msgspec.msgpack.Decoder(Truth)
+
+
+def decode_truth(data: Buffer) -> Truth:
+    """Decode a Truth message from the tap."""
+    truth: Truth = _decode(_truth_dec, data, "truth", MAX_RESULT_BYTES)
+    return truth
+
+
+def decode_control(data: Buffer) -> StatusRequest | StopRequest:
+    """Decode a control request."""
+    req: StatusRequest | StopRequest = _decode(
+        _control_dec, data, "control request", MAX_HEADER_BYTES
+    )
+    return req
+
+
+# Tap topics: the first frame of every tap message.
+TOPIC_META = b"meta"  # [topic, pair header]
+TOPIC_IMAGE = b"image"  # [topic, pair header, left, right]
+TOPIC_STATS = b"stats"  # [topic, Stats]
+TOPIC_RESULT = b"result"  # [topic, JSON line] (published by the normalizer)
+TOPIC_TRUTH = b"truth"  # [topic, Truth] (published by capture, synthetic sources only)
+TAP_TOPICS = (TOPIC_META, TOPIC_IMAGE, TOPIC_STATS, TOPIC_RESULT, TOPIC_TRUTH)
+
+
+def to_builtins(msg: Msg) -> Any:
+    """Plain Python builtins (dicts, lists, numbers) for a message, for JSON output."""
+    return msgspec.to_builtins(msg)

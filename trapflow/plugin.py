@@ -1,0 +1,71 @@
+"""The interface every algorithm implements, with ROS-2-style lifecycle hooks.
+
+A worker process drives one Worker: configure -> activate -> process()* ->
+deactivate -> cleanup -> shutdown. Plugins never see sockets or bytes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from trapflow.camera import StereoRig
+from trapflow.messages import Body, StereoPair
+
+
+@dataclass(frozen=True)
+class Pair:
+    """A decoded stereo pair as a plugin sees it (BGR uint8 images)."""
+
+    header: StereoPair
+    left: np.ndarray
+    right: np.ndarray
+    gap: int = 0  # pairs dropped since the previous one this worker saw (ordered pools)
+
+
+@dataclass(frozen=True)
+class Context:
+    """What a plugin may know about where it runs."""
+
+    pool: str
+    worker: str
+    run_dir: Path
+    rig: StereoRig
+    debug: bool = False
+    save: bool = False
+    time: bool = False
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+
+class Worker:
+    """Base of every algorithm plugin. Override process(); the hooks default to no-ops.
+
+    configure() loads models and checks parameters; raise WorkerError (or any
+    exception) there and the node stays inactive with that reason.
+    """
+
+    #: whether process() needs decoded images; False skips JPEG decoding entirely
+    needs_images: bool = True
+
+    def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
+        """Load models, read parameters. Called once before activate()."""
+
+    def activate(self) -> None:
+        """Start accepting pairs."""
+
+    def process(self, pair: Pair) -> Body:
+        """Analyse one pair and return one result body."""
+        raise NotImplementedError
+
+    def deactivate(self) -> None:
+        """Stop accepting pairs; keep loaded resources."""
+
+    def cleanup(self) -> None:
+        """Release what configure() loaded."""
+
+    def shutdown(self) -> None:
+        """Final hook before the process exits."""

@@ -1,0 +1,56 @@
+"""Algorithm name -> plugin class. The runtime names workers only through this table.
+
+A pool's `plugin` is a name from BUILTIN, a name published by another package
+under the `trapflow.workers` entry-point group, or an import path `module:Class`.
+"""
+
+from __future__ import annotations
+
+import importlib
+from importlib.metadata import entry_points
+
+from trapflow.errors import WorkerError
+from trapflow.plugin import Worker
+
+BUILTIN: dict[str, str] = {
+    "mono": "trapflow_workers.blob_detector:BlobDetector",
+    "stereo": "trapflow_workers.histogram_classifier:HistogramClassifier",
+    "vo": "trapflow_workers.flow_vo:FlowOdometry",
+    "noop": "trapflow_workers.testing:Noop",
+    "slow": "trapflow_workers.testing:Slow",
+    "crash": "trapflow_workers.testing:Crash",
+}
+
+ENTRY_POINT_GROUP = "trapflow.workers"
+
+
+def known_names() -> list[str]:
+    """Every plugin name that resolve() accepts without an import path."""
+    names = set(BUILTIN)
+    names.update(ep.name for ep in entry_points(group=ENTRY_POINT_GROUP))
+    return sorted(names)
+
+
+def _target(name: str) -> str:
+    if ":" in name:
+        return name
+    if name in BUILTIN:
+        return BUILTIN[name]
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        if ep.name == name:
+            return str(ep.value)
+    raise WorkerError(f"unknown algorithm {name!r}: expected one of {', '.join(known_names())}")
+
+
+def resolve(name: str) -> type[Worker]:
+    """Import and return the Worker class for a plugin name or `module:Class` path."""
+    target = _target(name)
+    module_name, _, attr = target.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+        cls = getattr(module, attr)
+    except (ImportError, AttributeError) as exc:
+        raise WorkerError(f"cannot load algorithm {name!r} from {target!r}: {exc}") from exc
+    if not (isinstance(cls, type) and issubclass(cls, Worker)):
+        raise WorkerError(f"algorithm {name!r}: {target!r} is not a trapflow.plugin.Worker")
+    return cls

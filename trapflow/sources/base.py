@@ -1,0 +1,48 @@
+"""The source interface: something that yields time-stamped stereo frames."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from trapflow.camera import StereoRig
+from trapflow.errors import TrapflowError
+from trapflow.messages import Truth
+
+
+class SourceError(TrapflowError):
+    """A source cannot open or stopped delivering frames (camera gone, file unreadable)."""
+
+
+@dataclass
+class Frames:
+    """One stereo capture: BGR uint8 images and their monotonic capture times."""
+
+    left: np.ndarray
+    right: np.ndarray
+    t_left_ns: int
+    t_right_ns: int
+    truth: Truth | None = None  # only synthetic sources know it; seq is filled by capture
+
+
+class Source:
+    """Base of every source. Capture calls open(), then read() at its rate, then close()."""
+
+    #: a finite source (file, folder, recording) ends the run when read() returns None
+    finite: bool = False
+    #: live sources pace themselves (read() blocks); others are paced by capture's rate
+    paced: bool = False
+
+    def __init__(self, rig: StereoRig) -> None:
+        self.rig = rig
+
+    def open(self) -> None:
+        """Acquire the device or file; raise SourceError with a reason."""
+
+    def read(self) -> Frames | None:
+        """The next pair, or None when a finite source is exhausted."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Release the device or file."""

@@ -228,3 +228,12 @@ def with_workers(cfg: Config, counts: dict[str, int], known: list[str]) -> Confi
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
 
+
+
+def with_source(cfg: Config, **changes: Any) -> Config:
+    """Override source fields (from command-line flags), re-validated."""
+    if not changes:
+        return cfg
+    return msgspec.structs.replace(
+        cfg, source=msgspec.structs.replace(cfg.source, **changes)
+    ).validated()

@@ -168,6 +168,14 @@ class Heartbeat(Msg, tag="heartbeat"):
     counters: dict[str, int] = {}
 
 
+class Alive(Msg, tag="alive"):
+    """An idle worker's heartbeat to the broker, with how many jobs it could take now."""
+
+    worker: str
+    pool: str
+    free: int = 0
+
+
 class Done(Msg, tag="done"):
     """A worker finished a job; frame 1 is the encoded Result. Returns one credit."""
 
@@ -185,7 +193,7 @@ class Failed(Msg, tag="failed"):
     reason: str
 
 
-WorkerMsg = Union[Ready, Heartbeat, Done, Failed]
+WorkerMsg = Union[Ready, Alive, Done, Failed]
 
 
 # --- stats and control ----------------------------------------------------------
@@ -230,7 +238,17 @@ ControlRequest = Union[StatusRequest, StopRequest]
 
 # --- codecs ---------------------------------------------------------------------
 
-_enc = msgspec.msgpack.Encoder()
+
+
+def _enc_hook(obj: Any) -> Any:
+    # numpy scalars (np.float32 from OpenCV, np.int64 from indexing) become Python numbers.
+    item = getattr(obj, "item", None)
+    if item is not None and getattr(obj, "shape", None) == ():
+        return item()
+    raise NotImplementedError(f"cannot encode {type(obj).__name__}")
+
+
+_enc = msgspec.msgpack.Encoder(enc_hook=_enc_hook)
 _pair_dec = msgspec.msgpack.Decoder(StereoPair)
 _job_dec = msgspec.msgpack.Decoder(Job)
 _worker_dec = msgspec.msgpack.Decoder(WorkerMsg)
@@ -296,9 +314,9 @@ def decode_job(data: Buffer) -> Job:
     return job
 
 
-def decode_worker_msg(data: Buffer) -> Ready | Heartbeat | Done | Failed:
+def decode_worker_msg(data: Buffer) -> Ready | Alive | Done | Failed:
     """Decode frame 0 of a message a worker sent to the broker."""
-    msg: Ready | Heartbeat | Done | Failed = _decode(
+    msg: Ready | Alive | Done | Failed = _decode(
         _worker_dec, data, "worker message", MAX_HEADER_BYTES
     )
     return msg

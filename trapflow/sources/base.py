@@ -25,6 +25,10 @@ class Frames:
     t_right_ns: int
     truth: Truth | None = None  # only synthetic sources know it; seq is filled by capture
 
+    def right_minus_left_ns(self) -> int:
+        """Capture-time skew between the two cameras."""
+        return self.t_right_ns - self.t_left_ns
+
 
 class Source:
     """Base of every source. Capture calls open(), then read() at its rate, then close()."""

@@ -1,0 +1,192 @@
+"""The broker process: translates sockets to BrokerState events and actions to sends.
+
+Owns: PULL from capture, ROUTER to workers, PUSH of results to the normalizer,
+PUB tap (frame metadata, images, stats once a second). Image frames are
+forwarded as received (zero-copy); only the small header is decoded.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+import msgspec
+import zmq
+
+from trapflow import messages
+from trapflow.broker_state import BrokerState, Dispatch, Evicted, PoolSpec, Release
+from trapflow.errors import ProtocolError
+from trapflow.node import ACTIVE, Node, NodeSpec
+from trapflow.ratelog import RateLimitedLog
+from trapflow.transport import SocketSpec, open_socket
+
+log = logging.getLogger(__name__)
+
+STATS_INTERVAL_S = 1.0
+TICK_INTERVAL_S = 0.1
+
+
+class BrokerNode(Node):
+    """Distributes pairs to worker pools with back-pressure and per-pool policies."""
+
+    def __init__(self, spec: NodeSpec) -> None:
+        super().__init__(spec)
+        ep = self.endpoints
+        self.pull = open_socket(self.ctx, SocketSpec(zmq.PULL, ep.capture, bind=True, rcvhwm=8))
+        self.router = open_socket(
+            self.ctx, SocketSpec(zmq.ROUTER, ep.workers, bind=True, router_mandatory=True)
+        )
+        self.results = open_socket(self.ctx, SocketSpec(zmq.PUSH, ep.results, bind=True))
+        # A small high-water mark: a slow tap loses messages instead of holding the broker.
+        self.tap = open_socket(self.ctx, SocketSpec(zmq.PUB, ep.tap, bind=True, sndhwm=32))
+        pools = {
+            name: PoolSpec(p.parsed_policy, p.timeout_s)
+            for name, p in self.cfg.pools.items()
+            if p.count > 0
+        }
+        self.state = BrokerState(pools, idle_liveness_s=self.cfg.supervisor.liveness_s)
+        self.frames: dict[int, list[Any]] = {}
+        self.malformed = 0
+        self.unroutable = 0
+        self.ratelog = RateLimitedLog(log)
+        self.started = time.monotonic()
+        self._last_in = 0
+        self._last_processed: dict[str, int] = {}
+        self._last_stats = self.started
+
+    def counters(self) -> dict[str, int]:
+        return {"pairs_in": self.state.pairs_in, "malformed": self.malformed,
+                "held": self.state.held()}
+
+    def run(self) -> int:
+        self.set_state(ACTIVE)
+        poller = zmq.Poller()
+        poller.register(self.pull, zmq.POLLIN)
+        poller.register(self.router, zmq.POLLIN)
+        next_tick = time.monotonic()
+        while not self.stopping:
+            events = dict(poller.poll(int(TICK_INTERVAL_S * 1000)))
+            if self.router in events:
+                self._drain_workers()
+            if self.pull in events:
+                self._drain_capture()
+            now = time.monotonic()
+            if now >= next_tick:
+                next_tick = now + TICK_INTERVAL_S
+                self._apply(self.state.tick(now))
+                if now - self._last_stats >= STATS_INTERVAL_S:
+                    self._publish_stats(now)
+                self.beat()
+        return 0
+
+    # --- capture side ---------------------------------------------------------------
+
+    def _drain_capture(self) -> None:
+        # Take what is queued now, then go back to the workers: results never starve.
+        for _ in range(64):
+            try:
+                frames = self.pull.recv_multipart(zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                return
+            if len(frames) == 2 and frames[0].bytes == messages.TOPIC_TRUTH:
+                self._publish(messages.TOPIC_TRUTH, frames[1])  # out of band, for the tap only
+                continue
+            try:
+                pair = messages.check_pair_frames(frames)
+            except ProtocolError as exc:
+                self.malformed += 1
+                self.ratelog.warning("capture", "dropped malformed pair message: %s", exc)
+                continue
+            if pair.seq in self.frames:
+                self.malformed += 1
+                self.ratelog.warning("dup", "dropped pair with duplicate seq %d", pair.seq)
+                continue
+            self.frames[pair.seq] = frames
+            self._publish(messages.TOPIC_META, frames[0])
+            self._publish(messages.TOPIC_IMAGE, *frames)
+            self._apply(self.state.pair_arrived(pair.seq, time.monotonic()))
+
+    # --- worker side ----------------------------------------------------------------
+
+    def _drain_workers(self) -> None:
+        for _ in range(256):
+            try:
+                frames = self.router.recv_multipart(zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                return
+            ident = frames[0].bytes
+            try:
+                if len(frames) < 2:
+                    raise ProtocolError(f"worker message: expected 2 or 3 frames, got {len(frames)}")
+                msg = messages.decode_worker_msg(frames[1])
+                self._on_worker_msg(ident, msg, frames)
+            except ProtocolError as exc:
+                self.malformed += 1
+                self.ratelog.warning("worker", "dropped malformed worker message: %s", exc)
+
+    def _on_worker_msg(self, ident: bytes, msg: Any, frames: list[Any]) -> None:
+        now = time.monotonic()
+        if isinstance(msg, messages.Ready):
+            self._apply(self.state.worker_ready(ident, msg.pool, msg.credit, now))
+        elif isinstance(msg, messages.Alive):
+            self._apply(self.state.worker_seen(ident, msg.pool, msg.free, now))
+        elif isinstance(msg, messages.Done):
+            if len(frames) != 3:
+                raise ProtocolError(f"done: expected 3 frames [id, done, result], got {len(frames)}")
+            self.results.send(frames[2], copy=False)
+            self._apply(self.state.job_done(ident, msg.pool, msg.seq, True, now))
+        elif isinstance(msg, messages.Failed):
+            self.ratelog.warning(
+                "failed:" + msg.pool, "%s failed pair %d: %s", msg.worker, msg.seq, msg.reason
+            )
+            self._apply(self.state.job_done(ident, msg.pool, msg.seq, False, now))
+
+    # --- actions --------------------------------------------------------------------
+
+    def _apply(self, actions: list[Any]) -> None:
+        for action in actions:
+            if isinstance(action, Dispatch):
+                job = messages.encode(messages.Job(pool=action.pool, gap=action.gap))
+                try:
+                    self.router.send_multipart(
+                        [action.worker, job, *self.frames[action.seq]], copy=False
+                    )
+                except zmq.ZMQError as exc:  # EHOSTUNREACH: the worker vanished
+                    self.unroutable += 1
+                    self.ratelog.warning("route", "cannot reach worker %r: %s", action.worker, exc)
+                    self._apply(self.state.worker_gone(action.worker, "unreachable",
+                                                       time.monotonic()))
+            elif isinstance(action, Release):
+                self.frames.pop(action.seq, None)
+            elif isinstance(action, Evicted):
+                log.warning(
+                    "evicted worker %s of pool %s (%s); pairs lost: %s",
+                    action.worker.decode(errors="replace"), action.pool, action.reason,
+                    list(action.lost) or "none",
+                )
+
+    def _publish(self, topic: bytes, *frames: Any) -> None:
+        try:
+            self.tap.send_multipart([topic, *frames], zmq.NOBLOCK, copy=False)
+        except zmq.Again:
+            pass  # a slow subscriber loses tap messages; the pipeline never waits
+
+    def _publish_stats(self, now: float) -> None:
+        dt = now - self._last_stats
+        self._last_stats = now
+        pools = self.state.pool_stats()
+        for name, ps in pools.items():
+            prev = self._last_processed.get(name, 0)
+            self._last_processed[name] = ps.processed
+            pools[name] = msgspec.structs.replace(ps, rate=round((ps.processed - prev) / dt, 2))
+        stats = messages.Stats(
+            t_wall_ns=time.time_ns(),
+            uptime_s=round(now - self.started, 3),
+            pairs_in=self.state.pairs_in,
+            rate_in=round((self.state.pairs_in - self._last_in) / dt, 2),
+            malformed=self.malformed,
+            pools=pools,
+        )
+        self._last_in = self.state.pairs_in
+        self._publish(messages.TOPIC_STATS, messages.encode(stats))

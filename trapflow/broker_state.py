@@ -1,0 +1,244 @@
+"""The broker's decisions, pure: events in (pair arrived, worker ready, job done, tick),
+actions out (dispatch, release). No sockets, no clocks: callers pass `now` in seconds.
+
+Every pair that reaches a pool ends in exactly one counter: processed, failed,
+dropped (by the pool's policy) or lost (its worker died or timed out).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+from trapflow.messages import PoolStats
+from trapflow.policy import Pending, Policy
+
+# A worker that has said nothing for this long while idle is presumed dead.
+IDLE_LIVENESS_S = 5.0
+
+
+@dataclass(frozen=True)
+class Dispatch:
+    """Send pair `seq` to `worker`; gap = pairs this pool skipped since its last dispatch."""
+
+    worker: bytes
+    pool: str
+    seq: int
+    gap: int
+
+
+@dataclass(frozen=True)
+class Release:
+    """No pool holds `seq` any more: its buffers can go."""
+
+    seq: int
+
+
+@dataclass(frozen=True)
+class Evicted:
+    """A worker was forgotten; `lost` are the pairs it held."""
+
+    worker: bytes
+    pool: str
+    lost: tuple[int, ...]
+    reason: str
+
+
+Action = Dispatch | Release | Evicted
+
+
+@dataclass(frozen=True)
+class PoolSpec:
+    """What the state machine needs to know about a pool."""
+
+    policy: Policy
+    timeout_s: float
+
+
+@dataclass
+class _Worker:
+    ident: bytes
+    pool: str
+    credit: int = 0
+    in_flight: dict[int, float] = field(default_factory=dict)  # seq -> dispatch time
+    last_seen: float = 0.0
+
+
+@dataclass
+class _Pool:
+    name: str
+    spec: PoolSpec
+    pending: Pending
+    workers: dict[bytes, _Worker] = field(default_factory=dict)
+    last_seq: int = -1  # last seq dispatched (ordered pools report gaps from it)
+    received: int = 0
+    dispatched: int = 0
+    dropped: int = 0
+    processed: int = 0
+    errors: int = 0
+    lost: int = 0
+    rr: int = 0
+
+
+class BrokerState:
+    """Pending buffers, worker credits and pair reference counts for every pool."""
+
+    def __init__(self, pools: Mapping[str, PoolSpec], idle_liveness_s: float = IDLE_LIVENESS_S):
+        self._pools = {n: _Pool(n, s, Pending(s.policy)) for n, s in pools.items()}
+        self._holders: dict[int, int] = {}  # seq -> number of pools holding it
+        self._idle_liveness = idle_liveness_s
+        self.pairs_in = 0
+
+    # --- events -------------------------------------------------------------------
+
+    def pair_arrived(self, seq: int, now: float) -> list[Action]:
+        """A new pair from capture: queue it in every pool, dispatch what can go."""
+        self.pairs_in += 1
+        actions: list[Action] = []
+        if not self._pools:
+            return [Release(seq)]
+        self._holders[seq] = len(self._pools)
+        for pool in self._pools.values():
+            pool.received += 1
+            for old in pool.pending.push(seq):
+                pool.dropped += 1
+                actions.extend(self._unhold(old))
+            actions.extend(self._dispatch(pool, now))
+        return actions
+
+    def worker_ready(self, ident: bytes, pool_name: str, credit: int, now: float) -> list[Action]:
+        """A worker announces `credit` more free slots."""
+        pool = self._pools.get(pool_name)
+        if pool is None or credit < 1:
+            return []
+        w = pool.workers.setdefault(ident, _Worker(ident, pool_name))
+        w.credit += credit
+        w.last_seen = now
+        return self._dispatch(pool, now)
+
+    def worker_seen(self, ident: bytes, pool_name: str, free: int, now: float) -> list[Action]:
+        """A heartbeat. An unknown worker (evicted while alive) rejoins with its free slots."""
+        pool = self._pools.get(pool_name)
+        if pool is None:
+            return []
+        w = pool.workers.get(ident)
+        if w is not None:
+            w.last_seen = now
+            return []
+        return self.worker_ready(ident, pool_name, free, now) if free > 0 else []
+
+    def job_done(self, ident: bytes, pool_name: str, seq: int, ok: bool, now: float) -> list[Action]:
+        """A worker finished (ok) or failed a pair; one credit comes back."""
+        pool = self._pools.get(pool_name)
+        if pool is None:
+            return []
+        w = pool.workers.get(ident)
+        actions: list[Action] = []
+        if w is None:
+            # Evicted earlier (its pair was counted lost); it is alive, so it rejoins.
+            w = pool.workers.setdefault(ident, _Worker(ident, pool_name))
+        elif seq in w.in_flight:
+            del w.in_flight[seq]
+            if ok:
+                pool.processed += 1
+            else:
+                pool.errors += 1
+            actions.extend(self._unhold(seq))
+        w.credit += 1
+        w.last_seen = now
+        actions.extend(self._dispatch(pool, now))
+        return actions
+
+    def tick(self, now: float) -> list[Action]:
+        """Evict workers whose job timed out or who went silent while idle."""
+        actions: list[Action] = []
+        for pool in self._pools.values():
+            for w in list(pool.workers.values()):
+                reason = ""
+                if w.in_flight and now - min(w.in_flight.values()) > pool.spec.timeout_s:
+                    reason = f"job older than timeout_s={pool.spec.timeout_s:g}"
+                elif not w.in_flight and now - w.last_seen > self._idle_liveness:
+                    reason = f"silent for more than {self._idle_liveness:g} s"
+                if reason:
+                    actions.extend(self._evict(pool, w, reason))
+        return actions
+
+    def worker_gone(self, ident: bytes, reason: str, now: float) -> list[Action]:
+        """The supervisor saw this worker exit: forget it now rather than at timeout."""
+        for pool in self._pools.values():
+            w = pool.workers.get(ident)
+            if w is not None:
+                return self._evict(pool, w, reason) + self._dispatch(pool, now)
+        return []
+
+    # --- queries ------------------------------------------------------------------
+
+    def held(self) -> int:
+        """Pairs still referenced by some pool (pending or in flight)."""
+        return len(self._holders)
+
+    def pool_stats(self) -> dict[str, PoolStats]:
+        """Counters of every pool."""
+        return {
+            p.name: PoolStats(
+                workers=len(p.workers),
+                received=p.received,
+                dispatched=p.dispatched,
+                dropped=p.dropped,
+                in_flight=sum(len(w.in_flight) for w in p.workers.values()),
+                pending=len(p.pending),
+                processed=p.processed,
+                errors=p.errors,
+                lost=p.lost,
+            )
+            for p in self._pools.values()
+        }
+
+    def drained(self) -> bool:
+        """Nothing pending or in flight anywhere."""
+        return not self._holders
+
+    # --- internals ----------------------------------------------------------------
+
+    def _unhold(self, seq: int) -> list[Action]:
+        n = self._holders.get(seq, 0) - 1
+        if n > 0:
+            self._holders[seq] = n
+            return []
+        self._holders.pop(seq, None)
+        return [Release(seq)]
+
+    def _pick(self, pool: _Pool) -> _Worker | None:
+        ready = [w for w in pool.workers.values() if w.credit > 0]
+        if not ready:
+            return None
+        # Least loaded first; round robin among equals so a pool shares work evenly.
+        pool.rr += 1
+        least = min(len(w.in_flight) for w in ready)
+        ties = [w for w in ready if len(w.in_flight) == least]
+        return ties[pool.rr % len(ties)]
+
+    def _dispatch(self, pool: _Pool, now: float) -> list[Action]:
+        actions: list[Action] = []
+        while len(pool.pending):
+            w = self._pick(pool)
+            if w is None:
+                break
+            seq = pool.pending.pop()
+            assert seq is not None
+            gap = seq - pool.last_seq - 1 if pool.last_seq >= 0 else 0
+            pool.last_seq = seq
+            w.credit -= 1
+            w.in_flight[seq] = now
+            pool.dispatched += 1
+            actions.append(Dispatch(w.ident, pool.name, seq, max(gap, 0)))
+        return actions
+
+    def _evict(self, pool: _Pool, w: _Worker, reason: str) -> list[Action]:
+        del pool.workers[w.ident]
+        lost = tuple(sorted(w.in_flight))
+        pool.lost += len(lost)
+        actions: list[Action] = [Evicted(w.ident, pool.name, lost, reason)]
+        for seq in lost:
+            actions.extend(self._unhold(seq))
+        return actions

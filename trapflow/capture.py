@@ -1,0 +1,150 @@
+"""The capture process: reads stereo frames from a source, encodes them once, pushes them.
+
+Owns a PUSH to the broker. Capture never waits for an algorithm: when the broker
+is not reading, the pair is dropped here and counted.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import cv2
+import msgspec
+import numpy as np
+import zmq
+
+from trapflow import messages
+from trapflow.camera import StereoRig
+from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
+from trapflow.sources import Frames, Source, SourceError, open_source
+from trapflow.transport import SocketSpec, open_socket
+
+log = logging.getLogger(__name__)
+
+RETRY_BACKOFF_S = (0.5, 1.0, 2.0, 5.0, 10.0)
+
+
+def rig_from_config(spec: NodeSpec) -> StereoRig:
+    """The rig the config describes, at the source's image size."""
+    c = spec.cfg
+    return StereoRig.from_fov(c.source.width, c.source.height, c.rig.hfov_deg, c.rig.baseline_m)
+
+
+class CaptureNode(Node):
+    """Paces a source, stamps and encodes each pair, and hands it to the broker."""
+
+    def __init__(self, spec: NodeSpec) -> None:
+        super().__init__(spec)
+        self.push = open_socket(
+            self.ctx, SocketSpec(zmq.PUSH, self.endpoints.capture, sndhwm=4)
+        )
+        self.src_cfg = self.cfg.source
+        self.source: Source = open_source(self.src_cfg, rig_from_config(spec))
+        self.seq = 0
+        self.produced = 0
+        self.dropped = 0
+        self.failures = 0
+        self.jpeg_params = [int(cv2.IMWRITE_JPEG_QUALITY), self.src_cfg.jpeg_quality]
+
+    def counters(self) -> dict[str, int]:
+        return {"produced": self.produced, "dropped": self.dropped, "failures": self.failures}
+
+    def _open(self) -> bool:
+        try:
+            self.source.open()
+        except SourceError as exc:
+            self.set_state(INACTIVE, f"source cannot open: {exc}")
+            return False
+        self.set_state(ACTIVE)
+        return True
+
+    def run(self) -> int:
+        attempt = 0
+        while not self.stopping and not self._open():
+            self._wait(RETRY_BACKOFF_S[min(attempt, len(RETRY_BACKOFF_S) - 1)])
+            attempt += 1
+        period_ns = int(1e9 / self.src_cfg.rate_hz)
+        next_ns = time.monotonic_ns()
+        while not self.stopping:
+            if not self.source.paced:
+                delay = next_ns - time.monotonic_ns()
+                if delay > 0:
+                    self._wait(delay / 1e9)
+                    continue
+                # Behind by more than a period (a slow frame): skip ahead, never burst.
+                next_ns = max(next_ns + period_ns, time.monotonic_ns() - period_ns)
+            try:
+                frames = self.source.read()
+            except SourceError as exc:
+                self.failures += 1
+                self.set_state(INACTIVE, f"source failed: {exc}")
+                self.source.close()
+                attempt = 0
+                while not self.stopping and not self._open():
+                    self._wait(RETRY_BACKOFF_S[min(attempt, len(RETRY_BACKOFF_S) - 1)])
+                    attempt += 1
+                continue
+            if frames is None:
+                if self.src_cfg.loop:
+                    self.source.close()
+                    self._open()
+                    continue
+                self.set_state(FINALIZED, "source exhausted")
+                self.beat()
+                return 0
+            self._send(frames)
+            self.beat()
+        self.source.close()
+        return 0
+
+    def _wait(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while not self.stopping and (left := end - time.monotonic()) > 0:
+            time.sleep(min(left, 0.05))
+            self.beat()
+
+    def _encode(self, img: np.ndarray) -> np.ndarray:
+        if self.src_cfg.encoding == "raw":
+            return np.ascontiguousarray(img)
+        ok, buf = cv2.imencode(".jpg", img, self.jpeg_params)
+        if not ok:
+            raise SourceError("JPEG encoding failed")
+        return buf
+
+    def _send(self, f: Frames) -> None:
+        h, w = f.left.shape[:2]
+        if f.right.shape != f.left.shape:
+            self.failures += 1
+            log.warning("left %s and right %s differ in shape; pair skipped",
+                        f.left.shape, f.right.shape)
+            return
+        left, right = self._encode(f.left), self._encode(f.right)
+        seq = self.seq
+        self.seq += 1
+        header = messages.StereoPair(
+            seq=seq,
+            t_wall_ns=time.time_ns(),
+            t_mono_ns=time.monotonic_ns(),  # stamped after encoding: transport latency
+            t_left_ns=f.t_left_ns,
+            t_right_ns=f.t_right_ns,
+            skew_ns=f.right_minus_left_ns(),
+            encoding=self.src_cfg.encoding,
+            width=w,
+            height=h,
+            source=self.src_cfg.kind,
+        )
+        try:
+            self.push.send_multipart([messages.encode(header), left, right],
+                                     zmq.NOBLOCK, copy=False)
+        except zmq.Again:
+            self.dropped += 1
+            return
+        self.produced += 1
+        if f.truth is not None:
+            truth = msgspec.structs.replace(f.truth, seq=seq)
+            try:
+                self.push.send_multipart([messages.TOPIC_TRUTH, messages.encode(truth)],
+                                         zmq.NOBLOCK)
+            except zmq.Again:
+                pass  # truth is for tests and viewers; never worth a wait

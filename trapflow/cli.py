@@ -1,0 +1,142 @@
+"""The `trapflow` command line: thin click commands that parse, load config, call one function."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+import click
+
+from trapflow import config as configmod
+from trapflow import registry
+from trapflow.errors import ConfigError, TrapflowError
+
+
+class WorkersType(click.ParamType):
+    """`NAME=COUNT[,NAME=COUNT...]`, rejected with click's usage error when malformed."""
+
+    name = "NAME=COUNT[,...]"
+
+    def convert(self, value: Any, param: click.Parameter | None,
+                ctx: click.Context | None) -> dict[str, int]:
+        if isinstance(value, dict):
+            return value
+        try:
+            return configmod.parse_workers(str(value))
+        except ConfigError as exc:
+            self.fail(str(exc), param, ctx)
+
+
+class SizeType(click.ParamType):
+    """`WIDTHxHEIGHT`."""
+
+    name = "WxH"
+
+    def convert(self, value: Any, param: click.Parameter | None,
+                ctx: click.Context | None) -> tuple[int, int]:
+        if isinstance(value, tuple):
+            return value
+        w, sep, h = str(value).lower().partition("x")
+        if not sep or not w.isdigit() or not h.isdigit():
+            self.fail(f"expected WIDTHxHEIGHT such as 1280x720, got {value!r}", param, ctx)
+        return int(w), int(h)
+
+
+def _fail(exc: TrapflowError) -> None:
+    click.echo(f"trapflow: error: {exc}", err=True)
+    sys.exit(2)
+
+
+@click.group()
+@click.version_option(package_name="trapflow")
+def main() -> None:
+    """trapflow: stereo capture, worker pools over ZeroMQ, compact results."""
+
+
+@main.command()
+@click.option("--config", "config_path", type=click.Path(dir_okay=False),
+              help="YAML config (default: built-in defaults, as in configs/default.yaml).")
+@click.option("--workers", type=WorkersType(),
+              help="Pools to run and their sizes, e.g. mono=2,stereo=1,vo=1 (others off).")
+@click.option("--duration", type=click.FloatRange(min=0, min_open=True),
+              help="Stop after this many seconds.")
+@click.option("--run-dir", type=click.Path(file_okay=False, path_type=Path),
+              help="Where results, logs and sockets go (default: runs/<timestamp>).")
+@click.option("--rate", type=click.FloatRange(min=0, min_open=True, max=240),
+              help="Capture rate in pairs/s.")
+@click.option("--size", type=SizeType(), help="Image size, e.g. 1280x720.")
+@click.option("--encoding", type=click.Choice(["jpeg", "raw"]), help="Pair payload.")
+@click.option("--seed", type=int, help="Seed of the synthetic world.")
+@click.option("--moving/--static", default=None, help="Synthetic rig moves or stands.")
+def start(config_path: str | None, workers: dict[str, int] | None, duration: float | None,
+          run_dir: Path | None, rate: float | None, size: tuple[int, int] | None,
+          encoding: str | None, seed: int | None, moving: bool | None) -> None:
+    """Run the pipeline: capture, broker, worker pools and normalizer."""
+    from trapflow.supervisor import start as run_pipeline
+
+    try:
+        cfg = configmod.load(config_path)
+        src: dict[str, Any] = {}
+        if rate is not None:
+            src["rate_hz"] = rate
+        if size is not None:
+            src["width"], src["height"] = size
+        if encoding is not None:
+            src["encoding"] = encoding
+        if seed is not None:
+            src["seed"] = seed
+        if moving is not None:
+            src["moving"] = moving
+        cfg = configmod.with_source(cfg, **src)
+        if workers is not None:
+            cfg = configmod.with_workers(cfg, workers, registry.known_names())
+        code = run_pipeline(cfg, run_dir, duration, announce=click.echo)
+    except TrapflowError as exc:
+        _fail(exc)
+    sys.exit(code)
+
+
+@main.command()
+@click.argument("what", type=click.Choice(["results", "frames", "stats", "truth", "all"]),
+                default="all")
+@click.option("--count", type=click.IntRange(min=1), help="Stop after N messages.")
+@click.option("--save-frames", type=click.Path(file_okay=False, path_type=Path),
+              help="Write the JPEG pairs seen into this folder.")
+@click.option("--run-dir", type=click.Path(file_okay=False, path_type=Path),
+              default=Path("runs/latest"), show_default=True)
+@click.option("--endpoint", multiple=True, help="Tap endpoint(s) instead of --run-dir.")
+@click.option("--timeout", type=click.FloatRange(min=0, min_open=True),
+              help="Give up after this many seconds.")
+def tap(what: str, count: int | None, save_frames: Path | None, run_dir: Path,
+        endpoint: tuple[str, ...], timeout: float | None) -> None:
+    """Attach to a running pipeline and print one line per message."""
+    from trapflow.tap import run_tap
+
+    try:
+        n = run_tap(what, run_dir, list(endpoint), count, save_frames, timeout)
+    except TrapflowError as exc:
+        _fail(exc)
+    sys.exit(0 if count is None or n >= count else 1)
+
+
+@main.command()
+@click.option("--run-dir", type=click.Path(file_okay=False, path_type=Path),
+              default=Path("runs/latest"), show_default=True)
+@click.option("--json", "as_json", is_flag=True, help="Print the raw JSON.")
+@click.option("--stop", is_flag=True, help="Ask the pipeline to stop.")
+@click.option("--timeout", type=click.FloatRange(min=0, min_open=True), default=3.0,
+              show_default=True)
+def status(run_dir: Path, as_json: bool, stop: bool, timeout: float) -> None:
+    """Show the running pipeline's nodes, lifecycle states and counters."""
+    from trapflow.control import format_status, request
+
+    try:
+        reply = request(run_dir, "stop" if stop else "status", timeout)
+    except TrapflowError as exc:
+        _fail(exc)
+    click.echo(format_status(reply, as_json))
+
+
+if __name__ == "__main__":
+    main()

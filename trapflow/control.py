@@ -1,0 +1,56 @@
+"""Client side of the supervisor's control socket: `trapflow status` and `--stop`."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import zmq
+
+from trapflow import config as configmod
+from trapflow import messages
+from trapflow.errors import StartupError
+from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
+
+
+def request(run_dir: Path, what: str, timeout_s: float = 3.0,
+            cfg: configmod.Config | None = None) -> dict[str, Any]:
+    """Send one control request and return the decoded JSON reply."""
+    cfg = cfg or configmod.Config()
+    if not run_dir.exists():
+        raise StartupError(f"no run directory {run_dir}: is a pipeline running there?")
+    ep = Endpoints.for_run(cfg.network, run_dir).control
+    ctx = new_context()
+    try:
+        sock = open_socket(ctx, SocketSpec(zmq.REQ, ep))
+        req = messages.StopRequest() if what == "stop" else messages.StatusRequest()
+        sock.send(messages.encode(req))
+        if not sock.poll(int(timeout_s * 1000), zmq.POLLIN):
+            raise StartupError(f"no answer from {ep} within {timeout_s:g} s: "
+                               "is a pipeline running in that run directory?")
+        reply: dict[str, Any] = json.loads(sock.recv())
+        return reply
+    finally:
+        ctx.destroy(linger=0)
+
+
+def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
+    """A human table of nodes and pool counters, or the JSON itself."""
+    if as_json or "nodes" not in reply:
+        return json.dumps(reply, indent=2)
+    lines = [f"run {reply['run_dir']}  up {reply['uptime_s']} s"]
+    lines.append(f"{'node':<22} {'pid':>7} {'state':<12} {'restarts':>8}  reason")
+    for n in reply["nodes"]:
+        lines.append(f"{n['name']:<22} {n['pid'] or '-':>7} {n['state']:<12} "
+                     f"{n['restarts']:>8}  {n['reason']}")
+    stats = reply.get("stats")
+    if stats:
+        lines.append(f"pairs in {stats['pairs_in']} ({stats['rate_in']}/s), "
+                     f"malformed {stats['malformed']}")
+        keys = ("workers", "received", "dispatched", "processed", "dropped", "in_flight",
+                "pending", "errors", "lost", "rate")
+        lines.append(f"{'pool':<10}" + "".join(f"{k:>11}" for k in keys))
+        for name, p in stats["pools"].items():
+            lines.append(f"{name:<10}" + "".join(f"{p.get(k, 0):>11}" for k in keys))
+    return "\n".join(lines)

@@ -1,0 +1,192 @@
+"""The process base class: title, signals, faulthandler, logging, heartbeats, lifecycle.
+
+Every pipeline process is a Node started by the supervisor with the spawn method;
+subclasses write only run(). Owns one socket: a PUSH of heartbeats to the supervisor.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import faulthandler
+import importlib
+import logging
+import logging.handlers
+import os
+import signal
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import zmq
+
+from trapflow import messages
+from trapflow.config import Config
+from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
+
+log = logging.getLogger(__name__)
+
+# ROS 2 lifecycle states.
+UNCONFIGURED = "unconfigured"
+INACTIVE = "inactive"
+ACTIVE = "active"
+FINALIZED = "finalized"
+
+# Exit code of a node that ended on purpose (finite source exhausted): not a crash.
+EXIT_FINISHED = 0
+# Exit code of a node whose main loop raised: the supervisor restarts it.
+EXIT_CRASHED = 1
+
+# Role -> Node class; the supervisor spawns nodes by role name.
+ROLES = {
+    "capture": "trapflow.capture:CaptureNode",
+    "broker": "trapflow.broker:BrokerNode",
+    "worker": "trapflow.worker:WorkerNode",
+    "normalizer": "trapflow.normalizer:NormalizerNode",
+}
+
+_PR_SET_PDEATHSIG = 1
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    """What the supervisor tells a node it spawns (picklable, crosses the spawn boundary)."""
+
+    role: str
+    name: str  # e.g. "worker:mono:1"
+    cfg: Config
+    run_dir: Path
+    pool: str = ""
+    index: int = 0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+class Node:
+    """Base of every pipeline process."""
+
+    def __init__(self, spec: NodeSpec) -> None:
+        self.spec = spec
+        self.cfg = spec.cfg
+        self.name = spec.name
+        self.endpoints = Endpoints.for_run(spec.cfg.network, spec.run_dir)
+        self.lifecycle = UNCONFIGURED
+        self.reason = ""
+        self.stopping = False
+        self.ctx = new_context()
+        self._hb = open_socket(
+            self.ctx, SocketSpec(zmq.PUSH, self.endpoints.heartbeat, sndhwm=10)
+        )
+        self._hb_interval_ns = int(spec.cfg.supervisor.heartbeat_interval_s * 1e9)
+        self._next_beat = 0
+
+    def set_state(self, state: str, reason: str = "") -> None:
+        """Move to a lifecycle state and tell the supervisor at once."""
+        if (state, reason) != (self.lifecycle, self.reason):
+            if reason:
+                log.warning("%s: %s (%s)", self.name, state, reason)
+            else:
+                log.info("%s: %s", self.name, state)
+        self.lifecycle, self.reason = state, reason
+        self._next_beat = 0
+
+    def counters(self) -> dict[str, int]:
+        """Counters sent with every heartbeat; subclasses override."""
+        return {}
+
+    def beat(self) -> None:
+        """Send a heartbeat if one is due (never blocks)."""
+        now = time.monotonic_ns()
+        if now < self._next_beat:
+            return
+        self._next_beat = now + self._hb_interval_ns
+        hb = messages.Heartbeat(
+            node=self.name, pid=os.getpid(), state=self.lifecycle, reason=self.reason,
+            counters=self.counters(),
+        )
+        try:
+            self._hb.send(messages.encode(hb), zmq.NOBLOCK)
+        except zmq.Again:
+            pass  # supervisor busy or gone; it judges liveness, not us
+
+    def run(self) -> int:
+        """The node's loop; return an exit code when self.stopping is set."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Release sockets (all of this process's sockets die with the context)."""
+        self.ctx.destroy(linger=0)
+
+
+def _die_with_parent() -> None:
+    """Ask Linux to SIGKILL us if the supervisor dies, so no orphan survives a kill -9."""
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+        except OSError:
+            pass
+
+
+def _set_title(title: str) -> None:
+    try:
+        import setproctitle
+
+        setproctitle.setproctitle(title)
+    except ImportError:  # optional nicety
+        pass
+
+
+def _report_death(spec: NodeSpec, node: Node | None, reason: str) -> None:
+    """Tell the supervisor why we die, so start-up failures read as one clear line."""
+    hb = messages.Heartbeat(node=spec.name, pid=os.getpid(), state=FINALIZED, reason=reason)
+    if node is not None:
+        node.lifecycle, node.reason = FINALIZED, reason
+        node._next_beat = 0
+        node.beat()
+        return
+    try:
+        ctx = new_context()
+        sock = open_socket(ctx, SocketSpec(
+            zmq.PUSH, Endpoints.for_run(spec.cfg.network, spec.run_dir).heartbeat))
+        sock.send(messages.encode(hb), zmq.NOBLOCK)
+        sock.close(linger=500)  # give the one message a moment to leave
+        ctx.term()
+    except Exception:  # best effort on the way out
+        pass
+
+
+def node_main(spec: NodeSpec, log_queue: Any, parent_pid: int) -> None:
+    """Entry point of every spawned node process."""
+    _die_with_parent()
+    if os.getppid() != parent_pid:  # the supervisor died before prctl took effect
+        os._exit(EXIT_CRASHED)
+    _set_title(f"trapflow:{spec.name}")
+    faulthandler.enable()
+    root = logging.getLogger()
+    root.handlers[:] = [logging.handlers.QueueHandler(log_queue)]
+    root.setLevel(spec.cfg.log_level)
+    # Ctrl-C reaches the whole process group; only the supervisor acts on it, in order.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    module_name, _, cls_name = ROLES[spec.role].partition(":")
+    cls = getattr(importlib.import_module(module_name), cls_name)
+    node: Node | None = None
+    code = EXIT_CRASHED
+    try:
+        node = cls(spec)
+
+        def _term(_signo: int, _frame: Any) -> None:
+            assert node is not None
+            node.stopping = True
+
+        signal.signal(signal.SIGTERM, _term)
+        code = node.run()
+    except Exception as exc:
+        log.exception("%s crashed", spec.name)
+        _report_death(spec, node, f"{type(exc).__name__}: {exc}")
+        code = EXIT_CRASHED
+    finally:
+        if node is not None:
+            node.close()
+        logging.shutdown()
+    sys.exit(code)

@@ -1,0 +1,75 @@
+"""Results -> compact JSON objects, the wire contract of the modem and results.jsonl.
+
+Shape: {"mono_ir": {"timestamp": "2025-07-07 12:52:43.120", "seq": 17, "label": "crab",
+"confidence": 0.71, "box": [5.4, 7.8, 15.6, 18.1]}} -- numbers as numbers, UTC times.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any
+
+import msgspec
+
+from trapflow import messages
+
+_json = msgspec.json.Encoder()
+
+
+def timestamp(t_wall_ns: int) -> str:
+    """UTC wall-clock label with milliseconds: '2025-07-07 12:52:43.120'."""
+    t = dt.datetime.fromtimestamp(t_wall_ns / 1e9, tz=dt.timezone.utc)
+    return t.strftime("%Y-%m-%d %H:%M:%S.") + f"{t.microsecond // 1000:03d}"
+
+
+def _r(x: float, nd: int) -> float:
+    return round(float(x), nd)
+
+
+def _rows(values: tuple[float, ...], nd: int) -> list[list[float]]:
+    return [[_r(v, nd) for v in values[i : i + 4]] for i in range(0, len(values), 4)]
+
+
+def normalize(res: messages.Result, decimals: int = 3) -> list[dict[str, Any]]:
+    """One JSON-able object per reported item of a result (one per detection or tag)."""
+    base: dict[str, Any] = {"timestamp": timestamp(res.t_wall_ns), "seq": res.seq}
+    b = res.body
+    nd = decimals
+    if isinstance(b, messages.MonoIR):
+        if not b.detections:
+            return [{"mono_ir": {**base, "label": "none", "confidence": 0.0, "box": []}}]
+        return [
+            {"mono_ir": {**base, "label": d.label, "confidence": _r(d.confidence, nd),
+                         "box": [_r(v, 1) for v in d.box]}}
+            for d in b.detections
+        ]
+    if isinstance(b, messages.StereoIR):
+        return [{"stereo_ir": {**base, "label": b.label, "confidence": _r(b.confidence, nd)}}]
+    if isinstance(b, messages.StereoVO):
+        out: dict[str, Any] = {**base, "ok": b.ok, "inliers": b.inliers}
+        if b.ok and len(b.rotation) == 9:
+            r, t = b.rotation, b.translation
+            rt = (*r[0:3], t[0], *r[3:6], t[1], *r[6:9], t[2])
+            out["Rt"] = _rows(rt, nd + 2)
+        if len(b.pose) == 12:
+            out["pose"] = _rows(b.pose, nd)
+        if b.reinit:
+            out["reinit"] = True
+        return [{"stereo_vo": out}]
+    if isinstance(b, messages.Tags):
+        return [
+            {"tags": {**base, "id": t.id, "corners": [[_r(x, 1), _r(y, 1)] for x, y in t.corners],
+                      "rotation": [_r(v, nd) for v in t.rotation],
+                      "translation": [_r(v, nd) for v in t.translation],
+                      "error": _r(t.error, nd)}}
+            for t in b.tags
+        ]
+    if isinstance(b, messages.Extra):
+        fields = {k: (_r(v, nd) if isinstance(v, float) else v) for k, v in b.fields.items()}
+        return [{b.name: {**base, **fields}}]
+    raise TypeError(f"unknown result body {type(b).__name__}")
+
+
+def dumps(obj: dict[str, Any]) -> bytes:
+    """Compact JSON bytes, no spaces, no newline."""
+    return _json.encode(obj)

@@ -1,0 +1,95 @@
+"""The normalizer process: every result becomes JSON lines in results.jsonl and on its tap.
+
+Owns a PULL of results from the broker and a PUB of JSON lines (`result` topic).
+The file is flushed at least every flush_interval_s and fsynced every fsync_interval_s.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from typing import IO
+
+import zmq
+
+from trapflow import messages
+from trapflow.errors import ProtocolError
+from trapflow.node import ACTIVE, FINALIZED, Node, NodeSpec
+from trapflow.normalize import dumps, normalize
+from trapflow.ratelog import RateLimitedLog
+from trapflow.transport import SocketSpec, open_socket
+
+log = logging.getLogger(__name__)
+
+
+class NormalizerNode(Node):
+    """Turns Result messages into compact JSON lines."""
+
+    def __init__(self, spec: NodeSpec) -> None:
+        super().__init__(spec)
+        ep = self.endpoints
+        self.pull = open_socket(self.ctx, SocketSpec(zmq.PULL, ep.results))
+        self.pub = open_socket(self.ctx, SocketSpec(zmq.PUB, ep.results_tap, bind=True,
+                                                    sndhwm=256))
+        ncfg = self.cfg.normalizer
+        self.path = spec.run_dir / ncfg.results_file
+        self.file: IO[bytes] = open(self.path, "ab")  # noqa: SIM115 - held for the process life
+        self.lines = 0
+        self.malformed = 0
+        self.ratelog = RateLimitedLog(log)
+
+    def counters(self) -> dict[str, int]:
+        return {"lines": self.lines, "malformed": self.malformed}
+
+    def run(self) -> int:
+        ncfg = self.cfg.normalizer
+        self.set_state(ACTIVE)
+        next_flush = next_sync = time.monotonic()
+        dirty = False
+        while not self.stopping:
+            if self.pull.poll(100, zmq.POLLIN):
+                for _ in range(256):
+                    try:
+                        data = self.pull.recv(zmq.NOBLOCK, copy=False)
+                    except zmq.Again:
+                        break
+                    dirty |= self._handle(data)
+            now = time.monotonic()
+            if dirty and now >= next_flush:
+                self.file.flush()
+                next_flush = now + ncfg.flush_interval_s
+                if now >= next_sync:
+                    os.fsync(self.file.fileno())
+                    next_sync = now + ncfg.fsync_interval_s
+                dirty = False
+            self.beat()
+        # Take what the broker already sent before closing the file.
+        while True:
+            try:
+                self._handle(self.pull.recv(zmq.NOBLOCK, copy=False))
+            except zmq.Again:
+                break
+        self.file.flush()
+        os.fsync(self.file.fileno())
+        self.file.close()
+        self.set_state(FINALIZED)
+        return 0
+
+    def _handle(self, data: zmq.Frame) -> bool:
+        try:
+            res = messages.decode_result(data)
+            objs = normalize(res, self.cfg.normalizer.decimals)
+        except (ProtocolError, TypeError) as exc:
+            self.malformed += 1
+            self.ratelog.warning("result", "dropped malformed result: %s", exc)
+            return False
+        for obj in objs:
+            line = dumps(obj)
+            self.file.write(line + b"\n")
+            self.lines += 1
+            try:
+                self.pub.send_multipart([messages.TOPIC_RESULT, line], zmq.NOBLOCK)
+            except zmq.Again:
+                pass
+        return True

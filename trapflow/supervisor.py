@@ -1,0 +1,449 @@
+"""The supervisor (`trapflow start`): boots the process graph, watches it, restarts, stops.
+
+Owns a PULL of heartbeats from every node, a REP control socket (status, stop)
+and a SUB of the broker's stats for the status line. The whole graph is in boot().
+"""
+
+from __future__ import annotations
+
+import fcntl
+import logging
+import logging.handlers
+import multiprocessing as mp
+import os
+import signal
+import sys
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import IO, Any
+
+import msgspec
+import zmq
+
+from trapflow import messages, registry
+from trapflow.config import Config
+from trapflow.errors import ProtocolError, StartupError, TrapflowError
+from trapflow.node import ACTIVE, FINALIZED, INACTIVE, NodeSpec, node_main
+from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
+
+log = logging.getLogger(__name__)
+
+# How long every node has to report its first state before start-up is declared failed.
+STARTUP_TIMEOUT_S = 60.0
+# Stop ladder: capture first (no new pairs), then workers and broker, the normalizer last.
+STOP_ORDER = ("capture", "worker", "broker", "normalizer")
+EXIT_OK, EXIT_FAILED, EXIT_STARTUP = 0, 1, 2
+LOCK_FILE = "supervisor.lock"
+
+
+@dataclass
+class Child:
+    """One supervised process and what the supervisor knows about it."""
+
+    spec: NodeSpec
+    liveness_s: float
+    proc: Any = None  # multiprocessing.Process
+    state: str = "unconfigured"
+    reason: str = ""
+    last_beat: float = 0.0
+    started: float = 0.0
+    counters: dict[str, int] = field(default_factory=dict)
+    restarts: deque[float] = field(default_factory=deque)
+    restart_total: int = 0
+    restart_at: float | None = None
+    gave_up: bool = False
+    finished: bool = False
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.is_alive()
+
+
+def default_run_dir(base: Path = Path("runs")) -> Path:
+    """A fresh timestamped run directory under ./runs."""
+    return base / datetime.now().strftime("%Y%m%d-%H%M%S-%f")[:-3]
+
+
+def _link_latest(run_dir: Path) -> None:
+    latest = run_dir.parent / "latest"
+    try:
+        if latest.is_symlink():
+            latest.unlink()
+        if not latest.exists():
+            latest.symlink_to(run_dir.name)
+    except OSError:
+        pass  # a convenience only
+
+
+class Supervisor:
+    """Lifecycle manager of one pipeline."""
+
+    def __init__(self, cfg: Config, run_dir: Path, duration: float | None = None,
+                 out: IO[str] | None = None) -> None:
+        self.cfg = cfg
+        self.run_dir = run_dir
+        self.duration = duration
+        self.out = out or sys.stdout
+        self.mp = mp.get_context("spawn")
+        self.children: list[Child] = []
+        self.stop_requested = False
+        self.exit_code = EXIT_OK
+        self.stats: messages.Stats | None = None
+        self.t0 = time.monotonic()
+
+    # --- the process graph --------------------------------------------------------------
+
+    def boot(self) -> None:
+        """Consumers first, so nothing capture sends is lost: normalizer, broker, workers, capture."""
+        sup = self.cfg.supervisor
+        self._add(NodeSpec("normalizer", "normalizer", self.cfg, self.run_dir), sup.liveness_s)
+        self._add(NodeSpec("broker", "broker", self.cfg, self.run_dir), sup.liveness_s)
+        for pool, pcfg in self.cfg.pools.items():
+            for i in range(pcfg.count):
+                spec = NodeSpec("worker", f"worker:{pool}:{i}", self.cfg, self.run_dir,
+                                pool=pool, index=i)
+                self._add(spec, max(sup.liveness_s, pcfg.timeout_s))
+        self._add(NodeSpec("capture", "capture", self.cfg, self.run_dir), sup.liveness_s)
+        for child in self.children:
+            self._spawn(child)
+
+    def _add(self, spec: NodeSpec, liveness_s: float) -> None:
+        self.children.append(Child(spec, liveness_s))
+
+    def _spawn(self, child: Child) -> None:
+        child.proc = self.mp.Process(
+            target=node_main, args=(child.spec, self.log_queue, os.getpid()),
+            name=child.name, daemon=False,
+        )
+        child.proc.start()
+        now = time.monotonic()
+        child.started = child.last_beat = now
+        child.state, child.reason, child.restart_at = "unconfigured", "", None
+
+    # --- main loop ---------------------------------------------------------------------
+
+    def run(self) -> int:
+        """Start, supervise until stopped, stop; return the exit status."""
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        lock = self._lock_run_dir()
+        self._preflight()
+        self.endpoints = Endpoints.for_run(self.cfg.network, self.run_dir)
+        self.ctx = new_context()
+        self._start_logging()
+        try:
+            self.hb = open_socket(self.ctx, SocketSpec(zmq.PULL, self.endpoints.heartbeat,
+                                                       bind=True))
+            self.control = open_socket(self.ctx, SocketSpec(zmq.REP, self.endpoints.control,
+                                                            bind=True))
+            self.stats_sub = open_socket(self.ctx, SocketSpec(
+                zmq.SUB, self.endpoints.tap, subscribe=(messages.TOPIC_STATS,), rcvhwm=4))
+            self._install_signals()
+            self.boot()
+            self._wait_started()
+            self._supervise()
+        finally:
+            self._stop_all()
+            self._print_totals()
+            self.ctx.destroy(linger=0)
+            self._stop_logging()
+            lock.close()
+        return self.exit_code
+
+    def _lock_run_dir(self) -> IO[str]:
+        f = open(self.run_dir / LOCK_FILE, "a+")  # noqa: SIM115 - held while running
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.seek(0)
+            other = f.read().strip() or "?"
+            f.close()
+            raise StartupError(
+                f"run directory {self.run_dir} is in use by another trapflow (pid {other})"
+            ) from None
+        f.seek(0)
+        f.truncate()
+        f.write(str(os.getpid()))
+        f.flush()
+        return f
+
+    def _preflight(self) -> None:
+        """Fail before spawning anything when a pool names an algorithm that cannot load."""
+        for pool, pcfg in self.cfg.pools.items():
+            if pcfg.count > 0:
+                try:
+                    registry.resolve(self.cfg.plugin_of(pool))
+                except TrapflowError as exc:
+                    raise StartupError(f"pool {pool!r}: {exc}") from None
+
+    def _install_signals(self) -> None:
+        def _stop(signo: int, _frame: Any) -> None:
+            if not self.stop_requested:
+                log.info("received %s, stopping", signal.Signals(signo).name)
+            self.stop_requested = True
+
+        signal.signal(signal.SIGINT, _stop)
+        signal.signal(signal.SIGTERM, _stop)
+
+    def _wait_started(self) -> None:
+        """Every node must report active (or, for a finished source, finalized) in time."""
+        deadline = time.monotonic() + STARTUP_TIMEOUT_S
+        while not self.stop_requested:
+            self._poll(0.05)
+            for c in self.children:
+                if c.state == INACTIVE and c.reason:
+                    raise StartupError(f"{c.name} cannot start: {c.reason}")
+                if not c.alive():
+                    if c.spec.role == "capture" and c.proc.exitcode == 0:
+                        c.finished = True  # a tiny finite source may end during start-up
+                        continue
+                    self._poll(0.2)  # the dying node's last heartbeat carries its reason
+                    why = c.reason or f"exited with status {c.proc.exitcode}"
+                    raise StartupError(f"{c.name} cannot start: {why}")
+            if all(c.state in (ACTIVE, FINALIZED) for c in self.children):
+                log.info("all %d nodes active", len(self.children))
+                return
+            if time.monotonic() > deadline:
+                slow = [c.name for c in self.children if c.state != ACTIVE]
+                raise StartupError(f"nodes not active after {STARTUP_TIMEOUT_S:g} s: {slow}")
+
+    def _supervise(self) -> None:
+        end = self.t0 + self.duration if self.duration else None
+        next_status = time.monotonic() + 1.0
+        drain_until: float | None = None
+        while not self.stop_requested:
+            self._poll(0.1)
+            now = time.monotonic()
+            self._watch(now)
+            if end is not None and now >= end:
+                log.info("duration of %g s reached", self.duration)
+                break
+            capture = self._child("capture")
+            if capture.finished and drain_until is None:
+                log.info("source exhausted; draining the pools")
+                drain_until = now + max(p.timeout_s for p in self.cfg.pools.values()) + 2
+            if drain_until is not None and (self._drained() or now > drain_until):
+                break
+            if now >= next_status:
+                next_status = now + 1.0
+                self._status_line()
+
+    def _drained(self) -> bool:
+        s = self.stats
+        return s is not None and all(p.pending == 0 and p.in_flight == 0 for p in s.pools.values())
+
+    def _child(self, role: str) -> Child:
+        return next(c for c in self.children if c.spec.role == role)
+
+    # --- watching ----------------------------------------------------------------------
+
+    def _poll(self, timeout_s: float) -> None:
+        poller = zmq.Poller()
+        for s in (self.hb, self.control, self.stats_sub):
+            poller.register(s, zmq.POLLIN)
+        events = dict(poller.poll(int(timeout_s * 1000)))
+        if self.hb in events:
+            while True:
+                try:
+                    data = self.hb.recv(zmq.NOBLOCK)
+                except zmq.Again:
+                    break
+                self._on_heartbeat(data)
+        if self.stats_sub in events:
+            while True:
+                try:
+                    _topic, data = self.stats_sub.recv_multipart(zmq.NOBLOCK)
+                    self.stats = messages.decode_stats(data)
+                except zmq.Again:
+                    break
+                except (ValueError, ProtocolError) as exc:
+                    log.warning("bad stats message: %s", exc)
+        if self.control in events:
+            self._on_control(self.control.recv())
+
+    def _on_heartbeat(self, data: bytes) -> None:
+        try:
+            hb = messages.decode_heartbeat(data)
+        except ProtocolError as exc:
+            log.warning("dropped malformed heartbeat: %s", exc)
+            return
+        for c in self.children:
+            if c.name == hb.node and c.proc is not None and c.proc.pid == hb.pid:
+                c.last_beat = time.monotonic()
+                c.state, c.reason, c.counters = hb.state, hb.reason, hb.counters
+                return
+
+    def _watch(self, now: float) -> None:
+        sup = self.cfg.supervisor
+        for c in self.children:
+            if c.gave_up or c.finished:
+                continue
+            if c.restart_at is not None:
+                if now >= c.restart_at:
+                    log.warning("restarting %s (restart %d)", c.name, c.restart_total)
+                    self._spawn(c)
+                continue
+            if c.alive():
+                if now - c.last_beat > c.liveness_s:
+                    log.error("%s silent for %.1f s; killing it", c.name, now - c.last_beat)
+                    c.proc.kill()
+                continue
+            code = c.proc.exitcode
+            if code == 0 and c.spec.role == "capture" and c.state == FINALIZED:
+                c.finished = True
+                continue
+            # A crash (or an unexpected exit): restart with back-off inside a budget.
+            while c.restarts and now - c.restarts[0] > sup.restart_window_s:
+                c.restarts.popleft()
+            if len(c.restarts) >= sup.max_restarts:
+                c.gave_up = True
+                c.state, c.reason = FINALIZED, (
+                    f"gave up after {len(c.restarts)} restarts in {sup.restart_window_s:g} s "
+                    f"(last exit status {code})")
+                log.error("%s: %s", c.name, c.reason)
+                if c.spec.role != "worker":
+                    log.error("%s is essential; stopping the pipeline", c.name)
+                    self.exit_code = EXIT_FAILED
+                    self.stop_requested = True
+                continue
+            c.restarts.append(now)
+            c.restart_total += 1
+            delay = min(sup.restart_backoff_s * 2 ** (len(c.restarts) - 1),
+                        sup.restart_backoff_max_s)
+            c.state, c.reason = INACTIVE, f"exited with status {code}; restart in {delay:.1f} s"
+            log.warning("%s %s", c.name, c.reason)
+            c.restart_at = now + delay
+
+    # --- control and status --------------------------------------------------------------
+
+    def status(self) -> dict[str, Any]:
+        """Everything `trapflow status` shows, as JSON-able builtins."""
+        now = time.monotonic()
+        return {
+            "run_dir": str(self.run_dir),
+            "uptime_s": round(now - self.t0, 1),
+            "nodes": [
+                {"name": c.name, "pid": c.proc.pid if c.proc else None, "state": c.state,
+                 "reason": c.reason, "restarts": c.restart_total,
+                 "last_beat_s": round(now - c.last_beat, 1), "counters": c.counters}
+                for c in self.children
+            ],
+            "stats": messages.to_builtins(self.stats) if self.stats else None,
+        }
+
+    def _on_control(self, data: bytes) -> None:
+        try:
+            req = messages.decode_control(data)
+        except ProtocolError as exc:
+            self.control.send(msgspec.json.encode({"error": str(exc)}))
+            return
+        if isinstance(req, messages.StopRequest):
+            self.stop_requested = True
+            self.control.send(msgspec.json.encode({"stopping": True}))
+        else:
+            self.control.send(msgspec.json.encode(self.status()))
+
+    def _pool_restarts(self, pool: str) -> int:
+        return sum(c.restart_total for c in self.children if c.spec.pool == pool)
+
+    def status_text(self) -> str:
+        """One line: time, pairs/s in, per pool processed/s, dropped, restarts."""
+        up = time.monotonic() - self.t0
+        s = self.stats
+        if s is None:
+            return f"{up:6.1f}s | waiting for stats"
+        cap = self._child("capture")
+        parts = [f"{up:6.1f}s | in {s.rate_in:5.1f}/s ({s.pairs_in})"]
+        if cap.counters.get("dropped"):
+            parts[0] += f" capture-drop {cap.counters['dropped']}"
+        for name, p in s.pools.items():
+            parts.append(
+                f"{name} {p.workers}w {p.rate:5.1f}/s drop {p.dropped} "
+                f"err {p.errors} lost {p.lost} rst {self._pool_restarts(name)}"
+            )
+        return " | ".join(parts)
+
+    def _status_line(self) -> None:
+        line = self.status_text()
+        if self.out.isatty():
+            self.out.write("\r\x1b[K" + line)
+        else:
+            self.out.write(line + "\n")
+        self.out.flush()
+
+    def _print_totals(self) -> None:
+        if self.out.isatty():
+            self.out.write("\n")
+        s = self.stats
+        if s is not None:
+            self.out.write(f"totals: {s.pairs_in} pairs in\n")
+            for name, p in s.pools.items():
+                self.out.write(
+                    f"  {name}: processed {p.processed}, dropped {p.dropped}, errors {p.errors}, "
+                    f"lost {p.lost}, restarts {self._pool_restarts(name)}\n")
+        self.out.write(f"results: {self.run_dir / self.cfg.normalizer.results_file}\n")
+        self.out.flush()
+
+    # --- stopping -------------------------------------------------------------------------
+
+    def _stop_all(self) -> None:
+        """The stop ladder: ask (SIGTERM) by role in order, wait, kill what is left, join."""
+        timeout = self.cfg.supervisor.stop_timeout_s
+        for role in STOP_ORDER:
+            group = [c for c in self.children if c.spec.role == role and c.alive()]
+            for c in group:
+                c.proc.terminate()
+            deadline = time.monotonic() + (timeout if role != "capture" else timeout / 2)
+            for c in group:
+                c.proc.join(max(0.0, deadline - time.monotonic()))
+                if c.proc.is_alive():
+                    log.warning("%s did not stop in time; killing it", c.name)
+                    c.proc.kill()
+                    c.proc.join(1.0)
+            if role == "worker":
+                self._poll(0.0)  # take the last stats the broker published
+        for c in self.children:
+            if c.proc is not None and c.proc.is_alive():
+                c.proc.kill()
+                c.proc.join(1.0)
+
+    # --- logging -----------------------------------------------------------------------------
+
+    def _start_logging(self) -> None:
+        self.log_queue = self.mp.Queue()
+        fmt = logging.Formatter("%(asctime)s %(processName)s %(name)s %(levelname)s %(message)s")
+        fileh = logging.FileHandler(self.run_dir / "trapflow.log")
+        fileh.setFormatter(fmt)
+        errh = logging.StreamHandler(sys.stderr)
+        errh.setLevel(logging.WARNING)
+        errh.setFormatter(logging.Formatter("%(levelname)s %(message)s"))
+        self.listener = logging.handlers.QueueListener(
+            self.log_queue, fileh, errh, respect_handler_level=True)
+        root = logging.getLogger()
+        root.setLevel(self.cfg.log_level)
+        self._root_handlers = root.handlers[:]
+        root.handlers[:] = [logging.handlers.QueueHandler(self.log_queue)]
+        self.listener.start()
+
+    def _stop_logging(self) -> None:
+        self.listener.stop()
+        logging.getLogger().handlers[:] = self._root_handlers
+        self.log_queue.close()
+
+
+def start(cfg: Config, run_dir: Path | None = None, duration: float | None = None,
+          out: IO[str] | None = None, announce: Callable[[str], None] | None = None) -> int:
+    """Run a pipeline until duration, a signal, or the end of a finite source."""
+    if run_dir is None:
+        run_dir = default_run_dir()
+        run_dir.mkdir(parents=True, exist_ok=True)
+        _link_latest(run_dir)
+    if announce:
+        announce(f"run directory: {run_dir}")
+    return Supervisor(cfg, run_dir, duration, out).run()

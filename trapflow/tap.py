@@ -1,0 +1,94 @@
+"""`trapflow tap`: subscribe to a pipeline's taps, decode through messages.py, print.
+
+Owns a SUB socket connected to the broker's tap and the normalizer's result tap.
+PUB sockets drop for slow subscribers, so a tap never slows the pipeline.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import zmq
+
+from trapflow import config as configmod
+from trapflow import messages
+from trapflow.errors import ProtocolError, StartupError
+from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
+
+TOPICS = {
+    "results": (messages.TOPIC_RESULT,),
+    "frames": (messages.TOPIC_META,),
+    "stats": (messages.TOPIC_STATS,),
+    "truth": (messages.TOPIC_TRUTH,),
+    "all": (messages.TOPIC_RESULT, messages.TOPIC_META, messages.TOPIC_STATS,
+            messages.TOPIC_TRUTH),
+}
+
+
+def describe(frames: list[bytes]) -> str:
+    """One printable line for a tap message."""
+    topic = frames[0]
+    if topic == messages.TOPIC_RESULT:
+        return "result " + frames[1].decode("utf-8", "replace")
+    if topic in (messages.TOPIC_META, messages.TOPIC_IMAGE):
+        p = messages.decode_pair_header(frames[1])
+        lat_ms = (time.monotonic_ns() - p.t_mono_ns) / 1e6
+        sizes = f" {len(frames[2])}+{len(frames[3])} B" if len(frames) == 4 else ""
+        return (f"frame seq={p.seq} {p.width}x{p.height} {p.encoding}{sizes} "
+                f"skew={p.skew_ns / 1e6:.2f}ms age={lat_ms:.1f}ms source={p.source}")
+    if topic == messages.TOPIC_STATS:
+        s = messages.decode_stats(frames[1])
+        pools = " ".join(f"{n}:{p.processed}/{p.dropped}d/{p.rate}Hz" for n, p in s.pools.items())
+        return f"stats up={s.uptime_s:.0f}s in={s.pairs_in} ({s.rate_in}/s) {pools}"
+    if topic == messages.TOPIC_TRUTH:
+        t = messages.decode_truth(frames[1])
+        objs = ", ".join(f"{o.label}@{[round(v) for v in o.box]}" for o in t.objects)
+        return f"truth seq={t.seq} scene={t.scene_label} [{objs}]"
+    raise ProtocolError(f"unknown tap topic {topic[:20]!r}")
+
+
+def run_tap(what: str, run_dir: Path, endpoints: list[str], count: int | None = None,
+            save_frames: Path | None = None, timeout_s: float | None = None,
+            cfg: configmod.Config | None = None) -> int:
+    """Print tap messages until count, timeout or Ctrl-C; return how many were printed."""
+    topics = list(TOPICS[what])
+    if save_frames is not None:
+        save_frames.mkdir(parents=True, exist_ok=True)
+        topics = [t for t in topics if t != messages.TOPIC_META] + [messages.TOPIC_IMAGE]
+    if not endpoints:
+        if not run_dir.exists():
+            raise StartupError(f"no run directory {run_dir}: is a pipeline running there?")
+        ep = Endpoints.for_run((cfg or configmod.Config()).network, run_dir)
+        endpoints = [ep.tap, ep.results_tap]
+    ctx = new_context()
+    n = 0
+    deadline = time.monotonic() + timeout_s if timeout_s else None
+    try:
+        sub = open_socket(ctx, SocketSpec(zmq.SUB, endpoints[0], subscribe=tuple(topics),
+                                          rcvhwm=100))
+        for extra in endpoints[1:]:
+            sub.connect(extra)
+        while count is None or n < count:
+            wait_ms = 200 if deadline is None else int(max(0.0, deadline - time.monotonic()) * 1000)
+            if deadline is not None and wait_ms == 0:
+                break
+            if not sub.poll(min(wait_ms, 200), zmq.POLLIN):
+                continue
+            frames = sub.recv_multipart()
+            try:
+                line = describe(frames)
+            except ProtocolError as exc:
+                line = f"malformed tap message: {exc}"
+            if save_frames is not None and frames[0] == messages.TOPIC_IMAGE and len(frames) == 4:
+                p = messages.decode_pair_header(frames[1])
+                ext = "jpg" if p.encoding == "jpeg" else "bgr"
+                (save_frames / f"{p.seq:08d}_left.{ext}").write_bytes(frames[2])
+                (save_frames / f"{p.seq:08d}_right.{ext}").write_bytes(frames[3])
+            print(line, flush=True)
+            n += 1
+    except KeyboardInterrupt:
+        pass
+    finally:
+        ctx.destroy(linger=0)
+    return n

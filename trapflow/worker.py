@@ -1,0 +1,172 @@
+"""The worker process: runs one algorithm plugin through its lifecycle on pairs it pulls.
+
+Owns a DEALER to the broker: READY with a credit, then one job at a time per
+credit, each answered by DONE (+ result) or FAILED. Bad input fails one pair,
+never the process.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from typing import Any
+
+import cv2
+import numpy as np
+import psutil
+import zmq
+
+from trapflow import messages, registry
+from trapflow.capture import rig_from_config
+from trapflow.errors import ProtocolError, WorkerError
+from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
+from trapflow.plugin import Context, Pair, Worker
+from trapflow.ratelog import RateLimitedLog
+from trapflow.transport import SocketSpec, open_socket
+
+log = logging.getLogger(__name__)
+
+
+def decode_image(frame: Any, pair: messages.StereoPair, side: str) -> np.ndarray:
+    """A BGR uint8 image from a JPEG or raw frame; ProtocolError if it is not one."""
+    buf = np.frombuffer(frame.buffer if hasattr(frame, "buffer") else frame, dtype=np.uint8)
+    if pair.encoding == "raw":
+        return buf.reshape(pair.height, pair.width, 3)
+    img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+    if img is None:
+        raise ProtocolError(f"pair {pair.seq}: {side} image is not a decodable JPEG "
+                            f"({buf.size} bytes)")
+    if img.shape[:2] != (pair.height, pair.width):
+        raise ProtocolError(
+            f"pair {pair.seq}: {side} image expected {pair.width}x{pair.height}, "
+            f"got {img.shape[1]}x{img.shape[0]}"
+        )
+    return img
+
+
+def apply_priority(nice: int, affinity: list[int]) -> None:
+    """Lower this process's CPU priority and pin it, as the pool's config says."""
+    if nice:
+        os.nice(nice)
+    if affinity:
+        usable = set(range(psutil.cpu_count() or 1))
+        cores = [c for c in affinity if c in usable]
+        if cores:
+            psutil.Process().cpu_affinity(cores)
+        else:
+            log.warning("affinity %s names no core of this machine; not pinned", affinity)
+
+
+class WorkerNode(Node):
+    """One process of a pool."""
+
+    def __init__(self, spec: NodeSpec) -> None:
+        super().__init__(spec)
+        self.pool = spec.pool
+        self.pcfg = self.cfg.pools[self.pool]
+        self.ident = f"{self.pool}:{spec.index}:{os.getpid()}"
+        self.dealer = open_socket(
+            self.ctx,
+            SocketSpec(zmq.DEALER, self.endpoints.workers, identity=self.ident.encode()),
+        )
+        self.plugin: Worker | None = None
+        self.processed = 0
+        self.failed = 0
+        self.free = self.pcfg.credit
+        self.ratelog = RateLimitedLog(log)
+        if self.pcfg.debug:
+            logging.getLogger().setLevel(logging.DEBUG)
+
+    def counters(self) -> dict[str, int]:
+        return {"processed": self.processed, "failed": self.failed}
+
+    def _configure(self) -> bool:
+        try:
+            cls = registry.resolve(self.cfg.plugin_of(self.pool))
+            plugin = cls()
+            ctx = Context(
+                pool=self.pool, worker=self.ident, run_dir=self.spec.run_dir,
+                rig=rig_from_config(self.spec), debug=self.pcfg.debug, save=self.pcfg.save,
+                time=self.pcfg.time,
+            )
+            plugin.configure(self.pcfg.params, ctx)
+            self.set_state(INACTIVE)
+            plugin.activate()
+        except Exception as exc:  # any plugin failure keeps the node up, inactive, with a reason
+            why = str(exc) if isinstance(exc, WorkerError) else f"{type(exc).__name__}: {exc}"
+            self.set_state(INACTIVE, f"cannot start algorithm: {why}")
+            return False
+        self.plugin = plugin
+        self.set_state(ACTIVE)
+        return True
+
+    def run(self) -> int:
+        apply_priority(self.pcfg.nice, self.pcfg.affinity)
+        if not self._configure():
+            while not self.stopping:  # stay visible to status with the reason; no restart loop
+                self.beat()
+                time.sleep(0.1)
+            return 0
+        self._send([messages.Ready(worker=self.ident, pool=self.pool, credit=self.pcfg.credit)])
+        next_alive = 0.0
+        while not self.stopping:
+            if self.dealer.poll(100, zmq.POLLIN):
+                frames = self.dealer.recv_multipart(copy=False)
+                self.free -= 1
+                self._handle(frames)
+                self.free += 1
+            now = time.monotonic()
+            if now >= next_alive:
+                next_alive = now + self.cfg.supervisor.heartbeat_interval_s
+                self._send([messages.Alive(worker=self.ident, pool=self.pool,
+                                           free=max(self.free, 0))])
+            self.beat()
+        assert self.plugin is not None
+        self.plugin.deactivate()
+        self.set_state(INACTIVE)
+        self.plugin.cleanup()
+        self.plugin.shutdown()
+        self.set_state(FINALIZED)
+        return 0
+
+    def _send(self, msgs: list[Any]) -> None:
+        self.dealer.send_multipart(
+            [m if isinstance(m, bytes) else messages.encode(m) for m in msgs]
+        )
+
+    def _handle(self, frames: list[Any]) -> None:
+        assert self.plugin is not None
+        seq = -1
+        try:
+            if len(frames) != 4:
+                raise ProtocolError(f"job: expected 4 frames [job, header, left, right], "
+                                    f"got {len(frames)}")
+            job = messages.decode_job(frames[0])
+            header = messages.check_pair_frames(frames[1:])
+            seq = header.seq
+            if self.plugin.needs_images:
+                left = decode_image(frames[2], header, "left")
+                right = decode_image(frames[3], header, "right")
+            else:
+                left = right = np.empty((0, 0, 3), np.uint8)
+            t0 = time.monotonic_ns()
+            body = self.plugin.process(Pair(header=header, left=left, right=right, gap=job.gap))
+            proc_ns = time.monotonic_ns() - t0
+        except Exception as exc:  # one bad pair fails, the worker goes on
+            self.failed += 1
+            reason = str(exc) if isinstance(exc, (ProtocolError, WorkerError)) else (
+                f"{type(exc).__name__}: {exc}")
+            self.ratelog.warning("fail", "%s: pair %d failed: %s", self.ident, seq, reason)
+            self._send([messages.Failed(worker=self.ident, pool=self.pool, seq=seq,
+                                        reason=reason[:300])])
+            return
+        self.processed += 1
+        result = messages.Result(
+            seq=header.seq, t_wall_ns=header.t_wall_ns, t_mono_ns=header.t_mono_ns,
+            pool=self.pool, worker=self.ident, proc_ns=proc_ns, body=body,
+        )
+        if self.pcfg.time:
+            log.info("%s: pair %d in %.1f ms", self.ident, header.seq, proc_ns / 1e6)
+        self._send([messages.Done(worker=self.ident, pool=self.pool, seq=header.seq),
+                    messages.encode(result)])

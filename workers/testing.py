@@ -1,0 +1,50 @@
+"""Plugins for tests and benchmarks: no-op, deliberately slow, deliberately crashing."""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Mapping
+from typing import Any
+
+from trapflow.messages import Extra
+from trapflow.plugin import Context, Pair, Worker
+
+
+class Noop(Worker):
+    """Touches nothing, returns at once: measures the transport alone."""
+
+    needs_images = False
+
+    def process(self, pair: Pair) -> Extra:
+        return Extra(name="noop", fields={"gap": pair.gap})
+
+
+class Slow(Worker):
+    """Takes `delay_s` per pair (default 1 s) and reports which pair and gap it saw."""
+
+    needs_images = False
+
+    def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
+        self.delay = float(params.get("delay_s", 1.0))
+
+    def process(self, pair: Pair) -> Extra:
+        time.sleep(self.delay)
+        return Extra(name="slow", fields={"gap": pair.gap})
+
+
+class Crash(Worker):
+    """Exits the process hard after `after` pairs, or fails configure when `fail` is set."""
+
+    needs_images = False
+
+    def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
+        if params.get("fail"):
+            raise RuntimeError(str(params["fail"]))
+        self.left = int(params.get("after", 5))
+
+    def process(self, pair: Pair) -> Extra:
+        self.left -= 1
+        if self.left < 0:
+            os._exit(3)
+        return Extra(name="crash", fields={"left": self.left})

@@ -118,7 +118,8 @@ class BrokerNode(Node):
             ident = frames[0].bytes
             try:
                 if len(frames) < 2:
-                    raise ProtocolError(f"worker message: expected 2 or 3 frames, got {len(frames)}")
+                    raise ProtocolError(
+                        f"worker message: expected 2 or 3 frames, got {len(frames)}")
                 msg = messages.decode_worker_msg(frames[1])
                 self._on_worker_msg(ident, msg, frames)
             except ProtocolError as exc:
@@ -133,7 +134,8 @@ class BrokerNode(Node):
             self._apply(self.state.worker_seen(ident, msg.pool, msg.free, now))
         elif isinstance(msg, messages.Done):
             if len(frames) != 3:
-                raise ProtocolError(f"done: expected 3 frames [id, done, result], got {len(frames)}")
+                raise ProtocolError(
+                    f"done: expected 3 frames [id, done, result], got {len(frames)}")
             self.results.send(frames[2], copy=False)
             self._apply(self.state.job_done(ident, msg.pool, msg.seq, True, now))
         elif isinstance(msg, messages.Failed):

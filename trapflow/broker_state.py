@@ -127,7 +127,9 @@ class BrokerState:
             return []
         return self.worker_ready(ident, pool_name, free, now) if free > 0 else []
 
-    def job_done(self, ident: bytes, pool_name: str, seq: int, ok: bool, now: float) -> list[Action]:
+    def job_done(
+        self, ident: bytes, pool_name: str, seq: int, ok: bool, now: float
+    ) -> list[Action]:
         """A worker finished (ok) or failed a pair; one credit comes back."""
         pool = self._pools.get(pool_name)
         if pool is None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import Any
 
 import cv2
 import msgspec
@@ -135,8 +136,8 @@ class CaptureNode(Node):
             source=self.src_cfg.kind,
         )
         try:
-            self.push.send_multipart([messages.encode(header), left, right],
-                                     zmq.NOBLOCK, copy=False)
+            payload: list[Any] = [messages.encode(header), left, right]
+            self.push.send_multipart(payload, zmq.NOBLOCK, copy=False)
         except zmq.Again:
             self.dropped += 1
             return

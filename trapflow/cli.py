@@ -13,7 +13,7 @@ from trapflow import registry
 from trapflow.errors import ConfigError, TrapflowError
 
 
-class WorkersType(click.ParamType):
+class WorkersType(click.ParamType):  # type: ignore[type-arg]
     """`NAME=COUNT[,NAME=COUNT...]`, rejected with click's usage error when malformed."""
 
     name = "NAME=COUNT[,...]"
@@ -28,7 +28,7 @@ class WorkersType(click.ParamType):
             self.fail(str(exc), param, ctx)
 
 
-class SizeType(click.ParamType):
+class SizeType(click.ParamType):  # type: ignore[type-arg]
     """`WIDTHxHEIGHT`."""
 
     name = "WxH"

@@ -221,7 +221,8 @@ def with_workers(cfg: Config, counts: dict[str, int], known: list[str]) -> Confi
         if name not in pools:
             if name not in known:
                 choices = ", ".join(sorted(set(known) | set(cfg.pools)))
-                raise ConfigError(f"unknown algorithm {name!r} in --workers: expected one of {choices}")
+                raise ConfigError(
+                    f"unknown algorithm {name!r} in --workers: expected one of {choices}")
             pools[name] = PoolConfig(count=count)
     try:
         return msgspec.structs.replace(cfg, pools=pools).validated()

@@ -30,7 +30,7 @@ class Msg(msgspec.Struct, frozen=True, kw_only=True, omit_defaults=True):
 # --- frames: capture -> broker -> workers ------------------------------------
 
 
-class StereoPair(Msg, tag="pair"):
+class StereoPair(Msg, frozen=True, tag="pair"):
     """Header of one stereo pair; frames 1 and 2 carry the left and right image."""
 
     seq: int
@@ -45,7 +45,7 @@ class StereoPair(Msg, tag="pair"):
     source: str = "synthetic"
 
 
-class Job(Msg, tag="job"):
+class Job(Msg, frozen=True, tag="job"):
     """Broker -> worker: a pair to process. gap counts pairs skipped since the last job."""
 
     pool: str
@@ -55,7 +55,7 @@ class Job(Msg, tag="job"):
 # --- results ------------------------------------------------------------------
 
 
-class Detection(Msg):
+class Detection(Msg, frozen=True):
     """One detected object: label, confidence and box x1, y1, x2, y2 in pixels."""
 
     label: str
@@ -63,20 +63,20 @@ class Detection(Msg):
     box: tuple[float, float, float, float]
 
 
-class MonoIR(Msg, tag="mono_ir"):
+class MonoIR(Msg, frozen=True, tag="mono_ir"):
     """Mono image recognition: the detections in the left image."""
 
     detections: list[Detection] = []
 
 
-class StereoIR(Msg, tag="stereo_ir"):
+class StereoIR(Msg, frozen=True, tag="stereo_ir"):
     """Stereo image recognition: one label for the pair."""
 
     label: str
     confidence: float
 
 
-class StereoVO(Msg, tag="stereo_vo"):
+class StereoVO(Msg, frozen=True, tag="stereo_vo"):
     """Stereo visual odometry: motion since the previous pair as [R|t], and the pose."""
 
     ok: bool
@@ -87,7 +87,7 @@ class StereoVO(Msg, tag="stereo_vo"):
     reinit: bool = False
 
 
-class Tag(Msg):
+class Tag(Msg, frozen=True):
     """One AprilTag: id, corners in pixels, pose (rotation 3x3 row major, translation)."""
 
     id: int
@@ -97,13 +97,13 @@ class Tag(Msg):
     error: float = 0.0
 
 
-class Tags(Msg, tag="tags"):
+class Tags(Msg, frozen=True, tag="tags"):
     """AprilTag detection with pose."""
 
     tags: list[Tag] = []
 
 
-class Extra(Msg, tag="extra"):
+class Extra(Msg, frozen=True, tag="extra"):
     """Result of a third-party algorithm: a name and flat JSON-able fields."""
 
     name: str
@@ -113,7 +113,7 @@ class Extra(Msg, tag="extra"):
 Body = Union[MonoIR, StereoIR, StereoVO, Tags, Extra]
 
 
-class Result(Msg, tag="result"):
+class Result(Msg, frozen=True, tag="result"):
     """Envelope of every result: which pair, which worker, how long it took."""
 
     seq: int
@@ -128,7 +128,7 @@ class Result(Msg, tag="result"):
 # --- ground truth (synthetic sources only; never shown to algorithms) -------------
 
 
-class TruthObject(Msg):
+class TruthObject(Msg, frozen=True):
     """One animal or tag in the left image: label, box x1 y1 x2 y2 in pixels, depth in m."""
 
     label: str
@@ -138,7 +138,7 @@ class TruthObject(Msg):
     occluded: float = 0.0  # fraction hidden
 
 
-class Truth(Msg, tag="truth"):
+class Truth(Msg, frozen=True, tag="truth"):
     """What a synthetic pair really shows: left-camera pose (3x4 world<-camera), objects."""
 
     seq: int
@@ -150,7 +150,7 @@ class Truth(Msg, tag="truth"):
 # --- worker -> broker ---------------------------------------------------------
 
 
-class Ready(Msg, tag="ready"):
+class Ready(Msg, frozen=True, tag="ready"):
     """A worker can take `credit` more jobs."""
 
     worker: str
@@ -158,7 +158,7 @@ class Ready(Msg, tag="ready"):
     credit: int = 1
 
 
-class Heartbeat(Msg, tag="heartbeat"):
+class Heartbeat(Msg, frozen=True, tag="heartbeat"):
     """A node is alive; state is its lifecycle state, reason why it is not active."""
 
     node: str
@@ -168,7 +168,7 @@ class Heartbeat(Msg, tag="heartbeat"):
     counters: dict[str, int] = {}
 
 
-class Alive(Msg, tag="alive"):
+class Alive(Msg, frozen=True, tag="alive"):
     """An idle worker's heartbeat to the broker, with how many jobs it could take now."""
 
     worker: str
@@ -176,7 +176,7 @@ class Alive(Msg, tag="alive"):
     free: int = 0
 
 
-class Done(Msg, tag="done"):
+class Done(Msg, frozen=True, tag="done"):
     """A worker finished a job; frame 1 is the encoded Result. Returns one credit."""
 
     worker: str
@@ -184,7 +184,7 @@ class Done(Msg, tag="done"):
     seq: int
 
 
-class Failed(Msg, tag="failed"):
+class Failed(Msg, frozen=True, tag="failed"):
     """A worker could not process a pair (bad input, plugin error). Returns one credit."""
 
     worker: str
@@ -199,7 +199,7 @@ WorkerMsg = Union[Ready, Alive, Done, Failed]
 # --- stats and control ----------------------------------------------------------
 
 
-class PoolStats(Msg):
+class PoolStats(Msg, frozen=True):
     """Counters of one pool, as the broker sees them."""
 
     workers: int = 0
@@ -214,7 +214,7 @@ class PoolStats(Msg):
     rate: float = 0.0  # processed per second over the last interval
 
 
-class Stats(Msg, tag="stats"):
+class Stats(Msg, frozen=True, tag="stats"):
     """Published once a second on the tap: the numbers every view reads."""
 
     t_wall_ns: int
@@ -225,11 +225,11 @@ class Stats(Msg, tag="stats"):
     pools: dict[str, PoolStats]
 
 
-class StatusRequest(Msg, tag="status"):
+class StatusRequest(Msg, frozen=True, tag="status"):
     """Ask the supervisor for the pipeline's nodes, states and counters."""
 
 
-class StopRequest(Msg, tag="stop"):
+class StopRequest(Msg, frozen=True, tag="stop"):
     """Ask the supervisor to stop the pipeline."""
 
 
@@ -300,7 +300,8 @@ def check_pair_frames(frames: Sequence[Buffer]) -> StereoPair:
     for side, frame in (("left", frames[1]), ("right", frames[2])):
         n = len(frame)
         if pair.encoding == "raw" and n != limit:
-            raise ProtocolError(f"pair {pair.seq}: {side} raw image expected {limit} bytes, got {n}")
+            raise ProtocolError(
+                f"pair {pair.seq}: {side} raw image expected {limit} bytes, got {n}")
         if pair.encoding == "jpeg" and not 0 < n <= limit:
             raise ProtocolError(
                 f"pair {pair.seq}: {side} JPEG expected 1..{limit} bytes, got {n}"

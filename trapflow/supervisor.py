@@ -101,7 +101,7 @@ class Supervisor:
     # --- the process graph --------------------------------------------------------------
 
     def boot(self) -> None:
-        """Consumers first, so nothing capture sends is lost: normalizer, broker, workers, capture."""
+        """Consumers first so nothing sent is lost: normalizer, broker, workers, capture."""
         sup = self.cfg.supervisor
         self._add(NodeSpec("normalizer", "normalizer", self.cfg, self.run_dir), sup.liveness_s)
         self._add(NodeSpec("broker", "broker", self.cfg, self.run_dir), sup.liveness_s)

@@ -54,7 +54,8 @@ class SyntheticSource(Source):
             for img, shift in ((left, 0), (right, -disp_obj + d)):
                 centre = (int(cx + shift), int(cy))
                 cv2.ellipse(img, centre, (int(r), int(r * 0.6)), 0, 0, 360, (30, 40, 150), -1)
-            box = (max(cx - r, 0.0), max(cy - r * 0.6, 0.0), min(cx + r, w - 1.0), min(cy + r * 0.6, h - 1.0))
+            box = (max(cx - r, 0.0), max(cy - r * 0.6, 0.0),
+                   min(cx + r, w - 1.0), min(cy + r * 0.6, h - 1.0))
             if box[2] > box[0]:
                 objects.append(TruthObject(label="crab", box=box, depth_m=_FLOOR_DEPTH_M, id=k))
         now = time.monotonic_ns()

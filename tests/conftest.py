@@ -1,0 +1,157 @@
+"""Shared test harness: short run directories, a pipeline launcher that cleans up after
+itself and proves nothing leaked, socket helpers that never block, and poll_for."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import psutil
+import pytest
+import yaml
+import zmq
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def poll_for(predicate: Callable[[], Any], timeout: float, interval: float = 0.05,
+             what: str = "condition") -> Any:
+    """Call predicate until it returns something truthy; fail after timeout."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(interval)
+
+
+def recv(sock: zmq.Socket[bytes], timeout: float = 2.0) -> list[bytes]:
+    """Receive one multipart message or fail after timeout (never blocks forever)."""
+    if not sock.poll(int(timeout * 1000), zmq.POLLIN):
+        raise AssertionError(f"nothing received within {timeout} s")
+    return sock.recv_multipart()
+
+
+@pytest.fixture
+def run_dir() -> Iterator[Path]:
+    """A short run directory (ipc socket paths are limited to 107 bytes)."""
+    d = Path(tempfile.mkdtemp(prefix="tf-"))
+    yield d / "run"
+    subprocess.run(["rm", "-rf", str(d)], check=False)
+
+
+@pytest.fixture
+def zctx() -> Iterator[zmq.Context[zmq.Socket[bytes]]]:
+    """A context whose sockets must all be closed (linger 0) by the end of the test."""
+    ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context()
+    yield ctx
+    open_socks = [s for s in ctx._sockets if not s.closed] if hasattr(ctx, "_sockets") else []
+    ctx.destroy(linger=0)
+    assert not open_socks, f"test left sockets open: {open_socks}"
+
+
+def write_config(path: Path, data: dict[str, Any]) -> Path:
+    """Write a YAML config for a test."""
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+class Pipeline:
+    """A `trapflow start` subprocess in its own session, with its descendants tracked."""
+
+    def __init__(self, args: list[str], run_dir: Path, env: dict[str, str] | None = None):
+        self.run_dir = run_dir
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "trapflow", "start", "--run-dir", str(run_dir), *args],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            start_new_session=True, env={**os.environ, **(env or {})}, cwd=REPO,
+        )
+        self.seen: dict[int, psutil.Process] = {}
+
+    def track(self) -> list[psutil.Process]:
+        """Remember every descendant seen so far (to prove later that all are gone)."""
+        try:
+            kids = psutil.Process(self.proc.pid).children(recursive=True)
+        except psutil.NoSuchProcess:
+            return []
+        for k in kids:
+            self.seen.setdefault(k.pid, k)
+        return kids
+
+    def results(self) -> list[dict[str, Any]]:
+        path = self.run_dir / "results.jsonl"
+        if not path.exists():
+            return []
+        lines = path.read_text().splitlines()
+        return [json.loads(line) for line in lines if line.strip()]
+
+    def status(self) -> dict[str, Any] | None:
+        out = subprocess.run(
+            [sys.executable, "-m", "trapflow", "status", "--json", "--run-dir",
+             str(self.run_dir), "--timeout", "2"],
+            capture_output=True, text=True, timeout=20, cwd=REPO,
+        )
+        if out.returncode != 0:
+            return None
+        data: dict[str, Any] = json.loads(out.stdout)
+        return data
+
+    def wait(self, timeout: float) -> tuple[int, str, str]:
+        out, err = self.proc.communicate(timeout=timeout)
+        return self.proc.returncode, out, err
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> tuple[int, str, str]:
+        self.track()
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+        return self.wait(timeout)
+
+    def leftovers(self) -> list[int]:
+        alive = []
+        for p in self.seen.values():
+            try:
+                if p.is_running() and p.status() != psutil.STATUS_ZOMBIE:
+                    alive.append(p.pid)
+            except psutil.NoSuchProcess:
+                pass
+        return alive
+
+    def kill_all(self) -> None:
+        for p in [*self.seen.values()]:
+            try:
+                p.kill()
+            except psutil.NoSuchProcess:
+                pass
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(5)
+
+
+@pytest.fixture
+def spawn() -> Iterator[Callable[..., Pipeline]]:
+    """Start pipelines; at teardown kill what is left and assert nothing leaked."""
+    started: list[Pipeline] = []
+
+    def _spawn(args: list[str], run_dir: Path, **kw: Any) -> Pipeline:
+        p = Pipeline(args, run_dir, **kw)
+        started.append(p)
+        return p
+
+    yield _spawn
+    leaked = []
+    for p in started:
+        if p.proc.poll() is None:
+            p.stop(signal.SIGTERM, timeout=10)
+        leaked += p.leftovers()
+        p.kill_all()
+    assert not leaked, f"processes left behind: {leaked}"

@@ -1,0 +1,187 @@
+"""The broker's decisions without sockets: policies, credits, gaps, eviction, accounting."""
+
+from __future__ import annotations
+
+import random
+
+import pytest
+
+from trapflow.broker_state import BrokerState, Dispatch, Evicted, PoolSpec, Release
+from trapflow.policy import parse_policy
+
+W1, W2 = b"w1", b"w2"
+
+
+def state(**pools: str) -> BrokerState:
+    return BrokerState({n: PoolSpec(parse_policy(p), timeout_s=10.0) for n, p in pools.items()},
+                       idle_liveness_s=5.0)
+
+
+def dispatched(actions: list[object]) -> list[tuple[bytes, int, int]]:
+    return [(a.worker, a.seq, a.gap) for a in actions if isinstance(a, Dispatch)]
+
+
+def released(actions: list[object]) -> list[int]:
+    return [a.seq for a in actions if isinstance(a, Release)]
+
+
+def test_no_worker_no_dispatch_latest_keeps_newest() -> None:
+    s = state(slow="latest")
+    for seq in range(5):
+        acts = s.pair_arrived(seq, 0.0)
+        assert not dispatched(acts)
+        if seq:
+            assert released(acts) == [seq - 1]  # the older pending pair is dropped
+    acts = s.worker_ready(W1, "slow", 1, 0.0)
+    assert dispatched(acts) == [(W1, 4, 0)]
+    st = s.pool_stats()["slow"]
+    assert (st.received, st.dropped, st.dispatched, st.in_flight) == (5, 4, 1, 1)
+
+
+def test_fifo_drops_oldest_when_full() -> None:
+    s = state(p="fifo:3")
+    for seq in range(5):
+        s.pair_arrived(seq, 0.0)
+    acts = s.worker_ready(W1, "p", 3, 0.0)
+    assert [d[1] for d in dispatched(acts)] == [2, 3, 4]
+    assert s.pool_stats()["p"].dropped == 2
+
+
+def test_ordered_reports_gaps_and_keeps_order() -> None:
+    s = state(vo="ordered:2")
+    s.worker_ready(W1, "vo", 1, 0.0)
+    assert dispatched(s.pair_arrived(0, 0.0)) == [(W1, 0, 0)]
+    for seq in (1, 2, 3):  # worker busy: 1 is dropped when 3 arrives (bound 2)
+        s.pair_arrived(seq, 0.0)
+    acts = s.job_done(W1, "vo", 0, True, 0.1)
+    assert dispatched(acts) == [(W1, 2, 1)]  # one pair (1) missing before 2
+    assert dispatched(s.job_done(W1, "vo", 2, True, 0.2)) == [(W1, 3, 0)]
+
+
+def test_capture_side_hole_is_a_gap() -> None:
+    s = state(vo="ordered")
+    s.worker_ready(W1, "vo", 1, 0.0)
+    s.pair_arrived(0, 0.0)
+    s.job_done(W1, "vo", 0, True, 0.0)
+    assert dispatched(s.pair_arrived(5, 0.0)) == [(W1, 5, 4)]
+
+
+def test_fan_out_releases_after_last_pool() -> None:
+    s = state(a="latest", b="latest")
+    s.worker_ready(W1, "a", 1, 0.0)
+    s.worker_ready(W2, "b", 1, 0.0)
+    acts = s.pair_arrived(0, 0.0)
+    assert len(dispatched(acts)) == 2 and not released(acts)
+    assert not released(s.job_done(W1, "a", 0, True, 0.0))
+    assert released(s.job_done(W2, "b", 0, True, 0.0)) == [0]
+    assert s.drained()
+
+
+def test_least_loaded_worker_first() -> None:
+    s = state(p="fifo:10")
+    s.worker_ready(W1, "p", 2, 0.0)
+    s.worker_ready(W2, "p", 2, 0.0)
+    acts = [a for seq in range(4) for a in s.pair_arrived(seq, 0.0)]
+    workers = [d[0] for d in dispatched(acts)]
+    assert workers.count(W1) == 2 and workers.count(W2) == 2
+
+
+def test_timeout_evicts_and_counts_lost() -> None:
+    s = state(p="latest")
+    s.worker_ready(W1, "p", 1, 0.0)
+    s.pair_arrived(0, 0.0)
+    assert not [a for a in s.tick(9.0) if isinstance(a, Evicted)]
+    acts = s.tick(10.5)
+    ev = [a for a in acts if isinstance(a, Evicted)]
+    assert ev and ev[0].lost == (0,) and "timeout" in ev[0].reason
+    assert released(acts) == [0]
+    assert s.pool_stats()["p"].lost == 1 and s.pool_stats()["p"].workers == 0
+
+
+def test_idle_silent_worker_evicted_then_rejoins_on_heartbeat() -> None:
+    s = state(p="latest")
+    s.worker_ready(W1, "p", 1, 0.0)
+    ev = [a for a in s.tick(6.0) if isinstance(a, Evicted)]
+    assert ev and ev[0].lost == ()
+    s.pair_arrived(0, 6.0)
+    assert dispatched(s.worker_seen(W1, "p", 1, 6.1)) == [(W1, 0, 0)]
+
+
+def test_done_from_evicted_worker_counts_once_and_rejoins() -> None:
+    s = state(p="latest")
+    s.worker_ready(W1, "p", 1, 0.0)
+    s.pair_arrived(0, 0.0)
+    s.tick(11.0)  # evicted: pair 0 lost
+    s.pair_arrived(1, 11.0)
+    acts = s.job_done(W1, "p", 0, True, 11.5)
+    assert dispatched(acts) == [(W1, 1, 0)]
+    st = s.pool_stats()["p"]
+    assert (st.processed, st.lost) == (0, 1)
+
+
+def test_worker_gone_frees_its_pairs_now() -> None:
+    s = state(p="latest")
+    s.worker_ready(W1, "p", 1, 0.0)
+    s.pair_arrived(0, 0.0)
+    acts = s.worker_gone(W1, "exited", 0.5)
+    assert released(acts) == [0] and s.pool_stats()["p"].lost == 1
+
+
+@pytest.mark.parametrize(("pool", "credit"), [("nosuch", 1), ("p", 0), ("p", -3)])
+def test_bad_ready_ignored(pool: str, credit: int) -> None:
+    s = state(p="latest")
+    s.pair_arrived(0, 0.0)
+    assert s.worker_ready(W1, pool, credit, 0.0) == []
+
+
+def test_no_pools_releases_at_once() -> None:
+    assert BrokerState({}).pair_arrived(0, 0.0) == [Release(0)]
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_every_pair_ends_in_exactly_one_counter(seed: int) -> None:
+    """Random event sequences: received = processed + errors + dropped + lost + pending + in flight,
+    and every seq released exactly once, once no pool holds it."""
+    rng = random.Random(seed)
+    pools = {"a": "latest", "b": "fifo:3", "c": "ordered:4"}
+    s = state(**pools)
+    workers = {"a": [b"a1", b"a2"], "b": [b"b1"], "c": [b"c1"]}
+    in_flight: dict[bytes, list[int]] = {w: [] for ws in workers.values() for w in ws}
+    pool_of = {w: p for p, ws in workers.items() for w in ws}
+    released_seqs: list[int] = []
+    now, seq = 0.0, 0
+
+    def take(acts: list[object]) -> None:
+        for a in acts:
+            if isinstance(a, Dispatch):
+                in_flight[a.worker].append(a.seq)
+            elif isinstance(a, Release):
+                released_seqs.append(a.seq)
+            elif isinstance(a, Evicted):
+                in_flight[a.worker].clear()
+
+    for w, p in pool_of.items():
+        take(s.worker_ready(w, p, rng.choice([1, 2]), now))
+    for _ in range(400):
+        now += rng.uniform(0.0, 0.5)
+        r = rng.random()
+        if r < 0.45:
+            take(s.pair_arrived(seq, now))
+            seq += 1
+        elif r < 0.9:
+            w = rng.choice(list(in_flight))
+            if in_flight[w]:
+                done = in_flight[w].pop(0)
+                take(s.job_done(w, pool_of[w], done, rng.random() < 0.9, now))
+        elif r < 0.95:
+            take(s.tick(now + rng.choice([0.0, 20.0])))
+        else:
+            w = rng.choice(list(in_flight))
+            take(s.worker_gone(w, "test", now))
+            take(s.worker_ready(w, pool_of[w], 1, now))
+    for name, st in s.pool_stats().items():
+        total = st.processed + st.errors + st.dropped + st.lost + st.pending + st.in_flight
+        assert st.received == seq, name
+        assert total == st.received, (name, st)
+    assert len(released_seqs) == len(set(released_seqs))
+    assert len(released_seqs) + s.held() == seq

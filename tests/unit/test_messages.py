@@ -1,0 +1,92 @@
+"""Wire format: round trips, and every malformed shape rejected with a reason."""
+
+from __future__ import annotations
+
+import msgspec
+import numpy as np
+import pytest
+
+from tests import builders
+from trapflow import messages
+from trapflow.errors import ProtocolError
+
+
+def test_pair_roundtrip() -> None:
+    frames = builders.pair_frames(seq=5)
+    pair = messages.check_pair_frames(frames)
+    assert pair.seq == 5 and pair.width == 64 and pair.encoding == "jpeg"
+
+
+def test_result_roundtrip_every_body() -> None:
+    bodies: list[messages.Body] = [
+        messages.MonoIR(detections=[messages.Detection(label="crab", confidence=0.5,
+                                                       box=(1, 2, 3, 4))]),
+        messages.StereoIR(label="scallop", confidence=0.9),
+        messages.StereoVO(ok=True, rotation=(1.0,) * 9, translation=(0.1, 0, 0)),
+        messages.Tags(tags=[messages.Tag(id=3, corners=[(0, 0), (1, 0), (1, 1), (0, 1)])]),
+        messages.Extra(name="x", fields={"a": 1}),
+    ]
+    for body in bodies:
+        res = builders.result(body)
+        assert messages.decode_result(messages.encode(res)) == res
+
+
+def test_numpy_scalars_encode_as_numbers() -> None:
+    det = messages.Detection(label="crab", confidence=np.float32(0.5),  # type: ignore[arg-type]
+                             box=(np.float64(1), 2, 3, 4))  # type: ignore[arg-type]
+    out = msgspec.msgpack.decode(messages.encode(det))
+    assert out["confidence"] == 0.5 and out["box"][0] == 1.0
+
+
+def _header(**kw: object) -> bytes:
+    fields = msgspec.structs.asdict(builders.pair_header())
+    fields.update(kw)
+    return msgspec.msgpack.encode({"type": "pair", **fields})
+
+
+GOOD = builders.pair_frames()
+
+
+@pytest.mark.parametrize(
+    ("frames", "error"),
+    [
+        (GOOD[:2], "expected 3 frames"),
+        ([*GOOD, b"extra"], "expected 3 frames"),
+        ([b"\x85garbage", GOOD[1], GOOD[2]], "pair header"),
+        ([GOOD[0][:-5], GOOD[1], GOOD[2]], "pair header"),
+        ([b"x" * 5000, GOOD[1], GOOD[2]], "at most 4096 bytes"),
+        ([_header(seq="one"), GOOD[1], GOOD[2]], "Expected `int`"),
+        ([_header(width=0), GOOD[1], GOOD[2]], "width and height"),
+        ([_header(width=100000), GOOD[1], GOOD[2]], "width and height"),
+        ([_header(seq=-1), GOOD[1], GOOD[2]], "seq >= 0"),
+        ([_header(encoding="png"), GOOD[1], GOOD[2]], "Invalid enum value .png."),
+        ([GOOD[0], b"", GOOD[2]], "left JPEG expected"),
+        ([_header(encoding="raw"), b"x" * 10, GOOD[2]], "left raw image expected 9216"),
+        ([messages.encode(messages.Ready(worker="a", pool="b")), GOOD[1], GOOD[2]],
+         "pair header"),
+    ],
+)
+def test_malformed_pairs_rejected(frames: list[bytes], error: str) -> None:
+    with pytest.raises(ProtocolError, match=error):
+        messages.check_pair_frames(frames)
+
+
+@pytest.mark.parametrize(
+    ("data", "error"),
+    [
+        (b"", "worker message"),
+        (b"\xc1", "worker message"),
+        (msgspec.msgpack.encode({"type": "nope"}), "Invalid value 'nope'"),
+        (msgspec.msgpack.encode({"type": "done", "worker": "w", "pool": "p"}),
+         "missing required field `seq`"),
+        (msgspec.msgpack.encode([1, 2, 3]), "Expected `object`"),
+    ],
+)
+def test_malformed_worker_messages_rejected(data: bytes, error: str) -> None:
+    with pytest.raises(ProtocolError, match=error):
+        messages.decode_worker_msg(data)
+
+
+def test_result_size_limit() -> None:
+    with pytest.raises(ProtocolError, match="at most"):
+        messages.decode_result(b"\x00" * (messages.MAX_RESULT_BYTES + 1))

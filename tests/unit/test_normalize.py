@@ -1,0 +1,60 @@
+"""The modem/disk JSON is a wire contract: golden lines and a size budget."""
+
+from __future__ import annotations
+
+import json
+
+from tests import builders
+from trapflow import messages
+from trapflow.normalize import dumps, normalize, timestamp
+
+T = 1751892763120000000  # 2025-07-07 12:52:43.120 UTC
+
+GOLDEN = [
+    (messages.MonoIR(detections=[messages.Detection(label="crab", confidence=0.71234,
+                                                    box=(5.43, 7.81, 15.6, 18.14))]),
+     '{"mono_ir":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"label":"crab",'
+     '"confidence":0.712,"box":[5.4,7.8,15.6,18.1]}}'),
+    (messages.MonoIR(),
+     '{"mono_ir":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"label":"none",'
+     '"confidence":0.0,"box":[]}}'),
+    (messages.StereoIR(label="scallop", confidence=0.9),
+     '{"stereo_ir":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"label":"scallop",'
+     '"confidence":0.9}}'),
+    (messages.StereoVO(ok=True, rotation=(1, 0, 0, 0, 1, 0, 0, 0, 1), translation=(0.1, 0, 0.25),
+                       inliers=120),
+     '{"stereo_vo":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"ok":true,"inliers":120,'
+     '"Rt":[[1.0,0.0,0.0,0.1],[0.0,1.0,0.0,0.0],[0.0,0.0,1.0,0.25]]}}'),
+    (messages.StereoVO(ok=False, reinit=True),
+     '{"stereo_vo":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"ok":false,"inliers":0,'
+     '"reinit":true}}'),
+    (messages.Extra(name="brightness", fields={"mean": 0.123456, "n": 3}),
+     '{"brightness":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"mean":0.123,"n":3}}'),
+]
+
+
+def test_golden_lines() -> None:
+    for body, line in GOLDEN:
+        out = [dumps(o).decode() for o in normalize(builders.result(body, t_wall_ns=T))]
+        assert out == [line]
+        assert json.loads(line)  # and it is JSON, numbers as numbers
+
+
+def test_one_object_per_detection_and_tag() -> None:
+    dets = [messages.Detection(label="crab", confidence=0.5, box=(0, 0, 1, 1))] * 3
+    assert len(normalize(builders.result(messages.MonoIR(detections=dets)))) == 3
+    tags = messages.Tags(tags=[messages.Tag(id=i, corners=[(0, 0)] * 4) for i in range(2)])
+    out = normalize(builders.result(tags))
+    assert [o["tags"]["id"] for o in out] == [0, 1]
+
+
+def test_size_budget() -> None:
+    """A detection line stays small enough for an acoustic modem's store-and-forward."""
+    body = messages.MonoIR(detections=[messages.Detection(
+        label="crab", confidence=0.712345678, box=(1234.5678, 718.123, 1279.99, 719.99))])
+    line = dumps(normalize(builders.result(body, seq=10**9))[0])
+    assert len(line) <= 140, line
+
+
+def test_timestamp_is_utc_with_millis() -> None:
+    assert timestamp(T) == "2025-07-07 12:52:43.120"

@@ -116,15 +116,10 @@ class Pipeline:
             self.proc.send_signal(sig)
         return self.wait(timeout)
 
-    def leftovers(self) -> list[int]:
-        alive = []
-        for p in self.seen.values():
-            try:
-                if p.is_running() and p.status() != psutil.STATUS_ZOMBIE:
-                    alive.append(p.pid)
-            except psutil.NoSuchProcess:
-                pass
-        return alive
+    def leftovers(self, grace: float = 3.0) -> list[int]:
+        """Descendants still running after a short grace (helpers exit right after us)."""
+        _gone, alive = psutil.wait_procs(list(self.seen.values()), timeout=grace)
+        return [p.pid for p in alive if p.status() != psutil.STATUS_ZOMBIE]
 
     def kill_all(self) -> None:
         for p in [*self.seen.values()]:

@@ -138,6 +138,8 @@ class BrokerNode(Node):
                     f"done: expected 3 frames [id, done, result], got {len(frames)}")
             self.results.send(frames[2], copy=False)
             self._apply(self.state.job_done(ident, msg.pool, msg.seq, True, now))
+        elif isinstance(msg, messages.Gone):
+            self._apply(self.state.worker_gone(msg.worker.encode(), msg.reason, now))
         elif isinstance(msg, messages.Failed):
             self.ratelog.warning(
                 "failed:" + msg.pool, "%s failed pair %d: %s", msg.worker, msg.seq, msg.reason

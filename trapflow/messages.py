@@ -176,6 +176,13 @@ class Alive(Msg, frozen=True, tag="alive"):
     free: int = 0
 
 
+class Gone(Msg, frozen=True, tag="gone"):
+    """Supervisor -> broker: this worker process exited; its pairs are lost now."""
+
+    worker: str
+    reason: str = ""
+
+
 class Done(Msg, frozen=True, tag="done"):
     """A worker finished a job; frame 1 is the encoded Result. Returns one credit."""
 
@@ -193,7 +200,7 @@ class Failed(Msg, frozen=True, tag="failed"):
     reason: str
 
 
-WorkerMsg = Union[Ready, Alive, Done, Failed]
+WorkerMsg = Union[Ready, Alive, Done, Failed, Gone]
 
 
 # --- stats and control ----------------------------------------------------------
@@ -315,9 +322,9 @@ def decode_job(data: Buffer) -> Job:
     return job
 
 
-def decode_worker_msg(data: Buffer) -> Ready | Alive | Done | Failed:
-    """Decode frame 0 of a message a worker sent to the broker."""
-    msg: Ready | Alive | Done | Failed = _decode(
+def decode_worker_msg(data: Buffer) -> Ready | Alive | Done | Failed | Gone:
+    """Decode frame 0 of a message a worker (or the supervisor) sent to the broker."""
+    msg: Ready | Alive | Done | Failed | Gone = _decode(
         _worker_dec, data, "worker message", MAX_HEADER_BYTES
     )
     return msg
@@ -356,6 +363,11 @@ def decode_control(data: Buffer) -> StatusRequest | StopRequest:
         _control_dec, data, "control request", MAX_HEADER_BYTES
     )
     return req
+
+
+def worker_identity(pool: str, index: int, pid: int) -> str:
+    """The routing identity of one worker process (new with every restart)."""
+    return f"{pool}:{index}:{pid}"
 
 
 # Tap topics: the first frame of every tap message.

@@ -142,6 +142,9 @@ class Supervisor:
                                                        bind=True))
             self.control = open_socket(self.ctx, SocketSpec(zmq.REP, self.endpoints.control,
                                                             bind=True))
+            # Tells the broker at once when a worker process dies (its pairs are lost).
+            self.to_broker = open_socket(self.ctx, SocketSpec(
+                zmq.DEALER, self.endpoints.workers, identity=b"supervisor", sndhwm=100))
             self.stats_sub = open_socket(self.ctx, SocketSpec(
                 zmq.SUB, self.endpoints.tap, subscribe=(messages.TOPIC_STATS,), rcvhwm=4))
             self._install_signals()
@@ -298,6 +301,8 @@ class Supervisor:
             if code == 0 and c.spec.role == "capture" and c.state == FINALIZED:
                 c.finished = True
                 continue
+            if c.spec.role == "worker":
+                self._tell_broker_gone(c, f"process exited with status {code}")
             # A crash (or an unexpected exit): restart with back-off inside a budget.
             while c.restarts and now - c.restarts[0] > sup.restart_window_s:
                 c.restarts.popleft()
@@ -319,6 +324,14 @@ class Supervisor:
             c.state, c.reason = INACTIVE, f"exited with status {code}; restart in {delay:.1f} s"
             log.warning("%s %s", c.name, c.reason)
             c.restart_at = now + delay
+
+    def _tell_broker_gone(self, c: Child, reason: str) -> None:
+        ident = messages.worker_identity(c.spec.pool, c.spec.index, c.proc.pid)
+        try:
+            self.to_broker.send(messages.encode(messages.Gone(worker=ident, reason=reason)),
+                                zmq.NOBLOCK)
+        except zmq.Again:
+            pass  # the broker's own timeout will evict it
 
     # --- control and status --------------------------------------------------------------
 

@@ -65,7 +65,7 @@ class WorkerNode(Node):
         super().__init__(spec)
         self.pool = spec.pool
         self.pcfg = self.cfg.pools[self.pool]
-        self.ident = f"{self.pool}:{spec.index}:{os.getpid()}"
+        self.ident = messages.worker_identity(self.pool, spec.index, os.getpid())
         self.dealer = open_socket(
             self.ctx,
             SocketSpec(zmq.DEALER, self.endpoints.workers, identity=self.ident.encode()),

@@ -1,0 +1,96 @@
+"""End to end with real processes: start, results from every pool, tap, status, clean stop."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import psutil
+import pytest
+
+from tests.conftest import REPO, Pipeline, poll_for
+
+SMALL = ["--size", "320x240", "--rate", "15"]
+
+
+@pytest.mark.timeout(90)
+def test_start_runs_every_pool_and_writes_results(spawn, run_dir: Path) -> None:
+    p: Pipeline = spawn(["--workers", "mono=2,stereo=1,vo=1", "--duration", "8", *SMALL],
+                        run_dir)
+    poll_for(lambda: p.track() and len(p.track()) >= 6, 30, what="6 node processes")
+    code, out, err = p.wait(60)
+    assert code == 0, err
+    assert f"run directory: {run_dir}" in out
+    assert "totals:" in out and "mono 2w" in out
+    rows = p.results()
+    by_pool: dict[str, list[int]] = defaultdict(list)
+    for row in rows:
+        (key, body), = row.items()
+        assert isinstance(body["seq"], int) and isinstance(body["timestamp"], str)
+        by_pool[key].append(body["seq"])
+    assert set(by_pool) == {"mono_ir", "stereo_ir", "stereo_vo"}
+    produced = max(max(s) for s in by_pool.values()) + 1
+    assert produced >= 30  # about 15 pairs/s for several seconds
+    vo = by_pool["stereo_vo"]
+    assert vo == sorted(vo) and len(vo) == len(set(vo))  # ordered pool: in order, once each
+    assert len(set(by_pool["stereo_ir"])) == len(by_pool["stereo_ir"])
+    assert all(0 <= s < produced for seqs in by_pool.values() for s in seqs)
+    assert not p.leftovers()
+
+
+@pytest.mark.timeout(90)
+def test_tap_and_status_attach_to_a_running_pipeline(spawn, run_dir: Path) -> None:
+    p: Pipeline = spawn(["--workers", "mono=1,vo=1", *SMALL], run_dir)
+    status = poll_for(lambda: (s := p.status()) and s.get("stats") and s, 40, what="status")
+    names = {n["name"]: n for n in status["nodes"]}
+    assert set(names) >= {"capture", "broker", "normalizer", "worker:mono:0", "worker:vo:0"}
+    assert all(n["state"] == "active" for n in names.values())
+    assert status["stats"]["pools"]["vo"]["received"] > 0
+    tap = subprocess.run(
+        [sys.executable, "-m", "trapflow", "tap", "all", "--count", "12", "--timeout", "20",
+         "--run-dir", str(run_dir)], capture_output=True, text=True, timeout=40, cwd=REPO)
+    assert tap.returncode == 0, tap.stderr
+    lines = tap.stdout.splitlines()
+    assert len(lines) == 12
+    kinds = {line.split()[0] for line in lines}
+    assert {"frame", "result"} <= kinds
+    saved = run_dir.parent / "frames"
+    tap = subprocess.run(
+        [sys.executable, "-m", "trapflow", "tap", "frames", "--count", "2", "--timeout", "20",
+         "--save-frames", str(saved), "--run-dir", str(run_dir)],
+        capture_output=True, text=True, timeout=40, cwd=REPO)
+    assert tap.returncode == 0, tap.stderr
+    import cv2
+
+    jpgs = sorted(saved.glob("*_left.jpg"))
+    assert len(jpgs) == 2 and cv2.imread(str(jpgs[0])).shape == (240, 320, 3)
+    code, _, err = p.stop(signal.SIGINT)
+    assert code == 0, err
+
+
+@pytest.mark.timeout(60)
+def test_sigterm_stops_everything_within_5s(spawn, run_dir: Path) -> None:
+    p: Pipeline = spawn(["--workers", "mono=2,stereo=1,vo=1", *SMALL], run_dir)
+    poll_for(lambda: (s := p.status()) and s.get("stats"), 40, what="pipeline up")
+    kids = p.track()
+    assert len(kids) >= 6
+    t0 = time.monotonic()
+    code, _, err = p.stop(signal.SIGTERM, timeout=10)
+    assert time.monotonic() - t0 < 5.0
+    assert code == 0, err
+    assert not p.leftovers()
+
+
+@pytest.mark.timeout(60)
+def test_supervisor_killed_leaves_no_orphans(spawn, run_dir: Path) -> None:
+    p: Pipeline = spawn(["--workers", "mono=1,vo=1", *SMALL], run_dir)
+    poll_for(lambda: (s := p.status()) and s.get("stats"), 40, what="pipeline up")
+    kids = p.track()
+    p.proc.kill()
+    p.proc.wait(5)
+    gone, alive = psutil.wait_procs(kids, timeout=5)
+    assert not alive, [k.pid for k in alive]

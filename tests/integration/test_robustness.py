@@ -1,0 +1,196 @@
+"""Back-pressure, crashes, restarts and hostile input against a real pipeline."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import msgspec
+import pytest
+import zmq
+
+from tests import builders
+from tests.conftest import Pipeline, poll_for, recv, write_config
+from trapflow import messages
+
+SMALL = {"width": 320, "height": 240, "rate_hz": 15.0}
+
+
+def _node(status: dict, name: str) -> dict:
+    return next(n for n in status["nodes"] if n["name"] == name)
+
+
+@pytest.mark.timeout(90)
+def test_slow_latest_pool_drops_while_fast_ordered_pool_gets_everything(
+        spawn, run_dir: Path) -> None:
+    cfg = write_config(run_dir.parent / "bp.yaml", {
+        "source": SMALL,
+        "pools": {
+            "slow": {"plugin": "slow", "policy": "latest", "params": {"delay_s": 1.0}},
+            "fast": {"plugin": "noop", "policy": "ordered:64"},
+        },
+    })
+    p: Pipeline = spawn(["--config", str(cfg), "--duration", "9"], run_dir)
+    s1 = poll_for(lambda: (s := p.status()) and s.get("stats") and s, 40, what="pipeline up")
+    t1 = time.monotonic()
+    time.sleep(3)
+    s2 = p.status()
+    t2 = time.monotonic()
+    code, out, err = p.wait(60)
+    assert code == 0, err
+    assert s2 is not None
+    produced = [_node(s, "capture")["counters"]["produced"] for s in (s1, s2)]
+    # Capture keeps its rate while a pool is saturated, and never drops at the source.
+    assert (produced[1] - produced[0]) / (t2 - t1) > 0.6 * SMALL["rate_hz"]
+    assert _node(s2, "capture")["counters"]["dropped"] == 0
+    seqs: dict[str, list[int]] = defaultdict(list)
+    for row in p.results():
+        (key, body), = row.items()
+        seqs[key].append(body["seq"])
+    fast, slow = seqs["noop"], seqs["slow"]
+    assert fast == list(range(len(fast))) and len(fast) > 60  # every pair, in order
+    assert 3 <= len(slow) <= 12
+    # `latest` hands the slow worker the newest pair each time: big jumps, never a backlog.
+    jumps = [b - a for a, b in zip(slow[1:], slow[2:])]
+    assert jumps and min(jumps) >= 8, slow
+    assert "slow: processed" in out and "dropped 0" not in out.split("slow:")[1].splitlines()[0]
+
+
+@pytest.mark.timeout(90)
+def test_kill_9_worker_is_replaced_and_the_run_goes_on(spawn, run_dir: Path) -> None:
+    p: Pipeline = spawn(["--workers", "mono=2,vo=1", "--size", "320x240"], run_dir)
+    s = poll_for(lambda: (s := p.status()) and s.get("stats") and s, 40, what="pipeline up")
+    victim = _node(s, "worker:mono:1")
+    os.kill(victim["pid"], signal.SIGKILL)
+    lines_before = len(p.results())
+
+    def replaced() -> dict | None:
+        st = p.status()
+        if not st or not st.get("stats"):
+            return None
+        n = _node(st, "worker:mono:1")
+        ok = (n["pid"] != victim["pid"] and n["state"] == "active" and n["restarts"] == 1
+              and st["stats"]["pools"]["mono"]["workers"] == 2)
+        return st if ok else None
+
+    st = poll_for(replaced, 20, interval=0.3, what="worker replaced and pool back to size 2")
+    assert _node(st, "worker:mono:0")["restarts"] == 0
+    poll_for(lambda: len(p.results()) > lines_before + 20, 20, what="results keep coming")
+    code, out, err = p.stop(signal.SIGINT)
+    assert code == 0, err
+    assert "rst 1" in out
+
+
+@pytest.mark.timeout(90)
+def test_crash_loop_gives_up_loudly_and_keeps_the_rest(spawn, run_dir: Path) -> None:
+    cfg = write_config(run_dir.parent / "crash.yaml", {
+        "source": SMALL,
+        "supervisor": {"max_restarts": 2, "restart_backoff_s": 0.1},
+        "pools": {"bad": {"plugin": "crash", "params": {"after": 3}},
+                  "vo": {"policy": "ordered"}},
+    })
+    p: Pipeline = spawn(["--config", str(cfg)], run_dir)
+
+    def gave_up() -> dict | None:
+        st = p.status()
+        if st and _node(st, "worker:bad:0")["state"] == "finalized":
+            return st
+        return None
+
+    st = poll_for(gave_up, 40, interval=0.3, what="supervisor gives up on the crashing pool")
+    assert "gave up after 2 restarts" in _node(st, "worker:bad:0")["reason"]
+    assert _node(st, "worker:vo:0")["state"] == "active"
+    n = len(p.results())
+    poll_for(lambda: len(p.results()) > n + 10, 20, what="other pools keep working")
+    code, _, err = p.stop(signal.SIGINT)
+    assert code == 0
+    assert "gave up" in err
+
+
+@pytest.mark.timeout(90)
+def test_malformed_messages_on_every_bound_socket(spawn, run_dir: Path, zctx) -> None:
+    p: Pipeline = spawn(["--workers", "mono=1", "--size", "320x240"], run_dir)
+    poll_for(lambda: (s := p.status()) and s.get("stats"), 40, what="pipeline up")
+    ep = lambda name: f"ipc://{run_dir.resolve() / name}"  # noqa: E731
+    cap = zctx.socket(zmq.PUSH)
+    cap.connect(ep("capture.sock"))
+    good = builders.pair_frames(seq=10**6, width=320, height=240)
+    for bad in ([b"garbage"], [good[0][:-3], good[1], good[2]], [*good, b"x"],
+                [good[0], b"\xff\xd8not-a-jpeg", good[2]]):
+        cap.send_multipart(bad)
+    dealer = zctx.socket(zmq.DEALER)
+    dealer.connect(ep("workers.sock"))
+    dealer.send_multipart([b"\x00\x01"])
+    dealer.send_multipart([messages.encode(messages.Done(worker="x", pool="mono", seq=1))])
+    dealer.send_multipart([msgspec.msgpack.encode({"type": "ready", "pool": 3})])
+    hb = zctx.socket(zmq.PUSH)
+    hb.connect(ep("heartbeat.sock"))
+    hb.send(b"\x93garbage")
+    ctl = zctx.socket(zmq.REQ)
+    ctl.connect(ep("control.sock"))
+    ctl.send(b"not a request")
+    reply = recv(ctl, 5)
+    assert b"error" in reply[0] and b"control request" in reply[0]
+    for s in (cap, dealer, hb, ctl):
+        s.close(linger=0)
+
+    def counted() -> dict | None:
+        st = p.status()
+        return st if st and st["stats"] and st["stats"]["malformed"] >= 5 else None
+
+    st = poll_for(counted, 10, what="malformed messages counted")
+    assert all(n["state"] == "active" for n in st["nodes"])
+    assert all(n["restarts"] == 0 for n in st["nodes"])
+    # The corrupt JPEG passed the broker's size checks and failed in the worker, counted.
+    poll_for(lambda: (s := p.status()) and s["stats"]["pools"]["mono"]["errors"] >= 1, 10,
+             what="corrupt JPEG counted as an error")
+    n = len(p.results())
+    poll_for(lambda: len(p.results()) > n + 10, 20, what="results keep coming")
+
+
+@pytest.mark.timeout(60)
+def test_plugin_that_cannot_start_fails_the_start_with_one_line(spawn, run_dir: Path) -> None:
+    cfg = write_config(run_dir.parent / "bad.yaml", {
+        "source": SMALL,
+        "pools": {"mono": {"plugin": "crash", "params": {"fail": "model file missing: x.onnx"}}},
+    })
+    p: Pipeline = spawn(["--config", str(cfg), "--duration", "30"], run_dir)
+    code, _, err = p.wait(45)
+    assert code == 2
+    errors = [line for line in err.splitlines() if line.startswith("trapflow: error:")]
+    assert errors == ["trapflow: error: worker:mono:0 cannot start: cannot start algorithm: "
+                      "RuntimeError: model file missing: x.onnx"]
+
+
+@pytest.mark.timeout(60)
+def test_run_dir_in_use_is_refused(spawn, run_dir: Path) -> None:
+    first: Pipeline = spawn(["--workers", "vo=1", "--size", "320x240"], run_dir)
+    poll_for(lambda: (s := first.status()) and s.get("stats"), 40, what="first pipeline up")
+    second: Pipeline = spawn(["--workers", "vo=1", "--duration", "5"], run_dir)
+    code, _, err = second.wait(30)
+    assert code == 2 and "is in use by another trapflow" in err
+    assert first.proc.poll() is None
+
+
+@pytest.mark.timeout(60)
+def test_tcp_port_in_use_is_reported(spawn, run_dir: Path) -> None:
+    blocker = socket.socket()
+    blocker.bind(("127.0.0.1", 0))
+    blocker.listen()
+    port = blocker.getsockname()[1]
+    try:
+        # The broker's capture endpoint is base_port + 0.
+        cfg = write_config(run_dir.parent / "tcp.yaml", {
+            "source": SMALL, "network": {"transport": "tcp", "base_port": port},
+            "pools": {"vo": {"policy": "ordered"}},
+        })
+        p: Pipeline = spawn(["--config", str(cfg), "--duration", "10"], run_dir)
+        code, _, err = p.wait(45)
+    finally:
+        blocker.close()
+    assert code == 2
+    assert "cannot start" in err and "address already in use" in err

@@ -38,8 +38,12 @@ class BrokerNode(Node):
             self.ctx, SocketSpec(zmq.ROUTER, ep.workers, bind=True, router_mandatory=True)
         )
         self.results = open_socket(self.ctx, SocketSpec(zmq.PUSH, ep.results, bind=True))
-        # A small high-water mark: a slow tap loses messages instead of holding the broker.
-        self.tap = open_socket(self.ctx, SocketSpec(zmq.PUB, ep.tap, bind=True, sndhwm=32))
+        # XPUB tells us what taps subscribe to, so nothing is published that nobody reads;
+        # a small high-water mark: a slow tap loses messages instead of holding the broker.
+        self.tap = open_socket(self.ctx, SocketSpec(zmq.XPUB, ep.tap, bind=True, sndhwm=32))
+        self.subscriptions: set[bytes] = set()
+        self.wanted: dict[bytes, bool] = {}
+        self._jobs: dict[tuple[str, int], bytes] = {}
         pools = {
             name: PoolSpec(p.parsed_policy, p.timeout_s)
             for name, p in self.cfg.pools.items()
@@ -64,6 +68,7 @@ class BrokerNode(Node):
         poller = zmq.Poller()
         poller.register(self.pull, zmq.POLLIN)
         poller.register(self.router, zmq.POLLIN)
+        poller.register(self.tap, zmq.POLLIN)
         next_tick = time.monotonic()
         while not self.stopping:
             events = dict(poller.poll(int(TICK_INTERVAL_S * 1000)))
@@ -71,6 +76,8 @@ class BrokerNode(Node):
                 self._drain_workers()
             if self.pull in events:
                 self._drain_capture()
+            if self.tap in events:
+                self._on_subscriptions()
             now = time.monotonic()
             if now >= next_tick:
                 next_tick = now + TICK_INTERVAL_S
@@ -103,8 +110,10 @@ class BrokerNode(Node):
                 self.ratelog.warning("dup", "dropped pair with duplicate seq %d", pair.seq)
                 continue
             self.frames[pair.seq] = frames
-            self._publish(messages.TOPIC_META, frames[0])
-            self._publish(messages.TOPIC_IMAGE, *frames)
+            if self.wanted.get(messages.TOPIC_META):
+                self._publish(messages.TOPIC_META, frames[0])
+            if self.wanted.get(messages.TOPIC_IMAGE):
+                self._publish(messages.TOPIC_IMAGE, *frames)
             self._apply(self.state.pair_arrived(pair.seq, time.monotonic()))
 
     # --- worker side ----------------------------------------------------------------
@@ -151,7 +160,12 @@ class BrokerNode(Node):
     def _apply(self, actions: list[Any]) -> None:
         for action in actions:
             if isinstance(action, Dispatch):
-                job = messages.encode(messages.Job(pool=action.pool, gap=action.gap))
+                key = (action.pool, action.gap)
+                job = self._jobs.get(key)
+                if job is None:  # almost always gap 0: encode each pool's job frame once
+                    job = messages.encode(messages.Job(pool=action.pool, gap=action.gap))
+                    if action.gap == 0:
+                        self._jobs[key] = job
                 try:
                     self.router.send_multipart(
                         [action.worker, job, *self.frames[action.seq]], copy=False
@@ -169,6 +183,20 @@ class BrokerNode(Node):
                     action.worker.decode(errors="replace"), action.pool, action.reason,
                     list(action.lost) or "none",
                 )
+
+    def _on_subscriptions(self) -> None:
+        # XPUB passes the first subscribe and the last unsubscribe of each topic prefix.
+        while True:
+            try:
+                msg = self.tap.recv(zmq.NOBLOCK)
+            except zmq.Again:
+                break
+            if msg[:1] == b"\x01":
+                self.subscriptions.add(msg[1:])
+            elif msg[:1] == b"\x00":
+                self.subscriptions.discard(msg[1:])
+        self.wanted = {t: any(t.startswith(p) for p in self.subscriptions)
+                       for t in messages.TAP_TOPICS}
 
     def _publish(self, topic: bytes, *frames: Any) -> None:
         try:
@@ -193,4 +221,4 @@ class BrokerNode(Node):
             pools=pools,
         )
         self._last_in = self.state.pairs_in
-        self._publish(messages.TOPIC_STATS, messages.encode(stats))
+        self._publish(messages.TOPIC_STATS, messages.encode(stats))  # cheap: once a second

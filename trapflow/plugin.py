@@ -19,7 +19,8 @@ from trapflow.messages import Body, StereoPair
 
 @dataclass(frozen=True)
 class Pair:
-    """A decoded stereo pair as a plugin sees it (BGR uint8 images)."""
+    """A stereo pair as a plugin sees it: BGR uint8 images, or, for a plugin whose
+    needs_images is False, the encoded payload bytes as 1-D uint8 views (zero-copy)."""
 
     header: StereoPair
     left: np.ndarray

@@ -45,6 +45,10 @@ def decode_image(frame: Any, pair: messages.StereoPair, side: str) -> np.ndarray
     return img
 
 
+def _as_bytes(frame: Any) -> np.ndarray:
+    return np.frombuffer(frame.buffer if hasattr(frame, "buffer") else frame, dtype=np.uint8)
+
+
 def apply_priority(nice: int, affinity: list[int]) -> None:
     """Lower this process's CPU priority and pin it, as the pool's config says."""
     if nice:
@@ -148,8 +152,8 @@ class WorkerNode(Node):
             if self.plugin.needs_images:
                 left = decode_image(frames[2], header, "left")
                 right = decode_image(frames[3], header, "right")
-            else:
-                left = right = np.empty((0, 0, 3), np.uint8)
+            else:  # the encoded bytes, zero-copy: plugins that never look at pixels
+                left, right = _as_bytes(frames[2]), _as_bytes(frames[3])
             t0 = time.monotonic_ns()
             body = self.plugin.process(Pair(header=header, left=left, right=right, gap=job.gap))
             proc_ns = time.monotonic_ns() - t0

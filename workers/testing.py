@@ -11,13 +11,22 @@ from trapflow.messages import Extra
 from trapflow.plugin import Context, Pair, Worker
 
 
+# One read per memory page, as a real consumer would touch its input.
+PAGE = 4096
+
+
 class Noop(Worker):
-    """Touches nothing, returns at once: measures the transport alone."""
+    """Touches every page of the payload without decoding it: measures the transport.
+
+    Reports the capture-to-worker latency (monotonic clocks are system-wide).
+    """
 
     needs_images = False
 
     def process(self, pair: Pair) -> Extra:
-        return Extra(name="noop", fields={"gap": pair.gap})
+        lat_ns = time.monotonic_ns() - pair.header.t_mono_ns
+        touched = int(pair.left[::PAGE].sum()) + int(pair.right[::PAGE].sum())
+        return Extra(name="noop", fields={"gap": pair.gap, "lat_ns": lat_ns, "sum": touched})
 
 
 class Slow(Worker):

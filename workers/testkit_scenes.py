@@ -133,19 +133,11 @@ def tag_image(
     cam = (tag_to_cam[:3, :3] @ corners3d.T).T + tag_to_cam[:3, 3]
     px = (rig.K @ cam.T).T
     px = px[:, :2] / px[:, 2:3]
-    src = np.array(
-        [
-            [margin, margin],
-            [margin + side, margin],
-            [margin + side, margin + side],
-            [margin, margin + side],
-        ],
-        np.float32,
-    )
+    # Pixel centres sit at integer coordinates, so the black square's edges are at -0.5.
+    lo, hi = margin - 0.5, margin + side - 0.5
+    src = np.array([[lo, lo], [hi, lo], [hi, hi], [lo, hi]], np.float32)
     hmg = cv2.getPerspectiveTransform(src, px.astype(np.float32))
-    # Pixel centres: marker pixel k spans [k, k+1), so corners sit at pixel edges.
-    shift = np.array([[1, 0, -0.5], [0, 1, -0.5], [0, 0, 1]])
     img = cv2.warpPerspective(
-        canvas, shift @ hmg, (rig.width, rig.height), flags=cv2.INTER_LINEAR, borderValue=background
+        canvas, hmg, (rig.width, rig.height), flags=cv2.INTER_LINEAR, borderValue=background
     )
     return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR), px

@@ -1,0 +1,176 @@
+"""Benchmark of the four algorithm plugins: processing time per pair, alone and all together,
+VO speed at 1280x720 and 640x480 on one core, and VO drift over a long rendered path.
+
+Writes bench_algorithms.json and bench_algorithms.md into --out. Uses the packaged demo
+models when present, else tiny stand-in ONNX models (then only pre/post-processing is timed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from trapflow_workers.apriltags import AprilTags
+from trapflow_workers.common import MODELS_DIR
+from trapflow_workers.crab_detector import CrabDetector
+from trapflow_workers.scene_classifier import SceneClassifier
+from trapflow_workers.stereo_vo import StereoOdometry
+from trapflow_workers.testkit import make_context, make_pair
+from trapflow_workers.testkit_scenes import FloorWorld, circle_path, pose, rot_x, tag_image
+from trapflow_workers.vo_metrics import as_4x4, drift_percent, end_drift_percent, path_length
+
+from trapflow.camera import StereoRig
+from trapflow.plugin import Worker
+
+PLUGINS: dict[str, type[Worker]] = {
+    "mono": CrabDetector,
+    "stereo": SceneClassifier,
+    "vo": StereoOdometry,
+    "tags": AprilTags,
+}
+
+
+def _models(tmp: Path) -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
+    """Params per pool and where each model came from."""
+    from trapflow_workers.testkit_onnx import colour_classifier, constant_detector, yolo_tensor
+
+    params: dict[str, dict[str, Any]] = {"mono": {}, "stereo": {}, "vo": {}, "tags": {}}
+    origin = {"mono": "demo model", "stereo": "demo model", "vo": "-", "tags": "-"}
+    if not (MODELS_DIR / "crab_detector.onnx").is_file():
+        out = yolo_tensor("yolov8", [(100, 100, 200, 200)], [0], [0.9], 1, (640, 640), n=8400)
+        params["mono"]["model"] = str(constant_detector(tmp / "det.onnx", out, (640, 640)))
+        origin["mono"] = "stand-in (decoding only)"
+    if not (MODELS_DIR / "scene_classifier.onnx").is_file():
+        params["stereo"]["model"] = str(colour_classifier(tmp / "clf.onnx", (224, 224)))
+        origin["stereo"] = "stand-in (tiny)"
+    return params, origin
+
+
+def _frames(name: str, rig: StereoRig, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    if name == "tags":
+        out = []
+        for i in range(n):
+            t = pose(rot_x(np.pi + 0.3 * np.sin(i / 7)), np.array([0.1 * np.sin(i / 5), 0, 1.2]))
+            img, _ = tag_image(rig, i % 50, 0.12, t)
+            out.append((img, img))
+        return out
+    world = FloorWorld.square(rig, 12.0, res_m=0.003, seed=1)
+    return [world.render(p) for p in circle_path(n * 0.04, n, 4.0)]
+
+
+def _time(
+    name: str, rig: StereoRig, params: dict[str, Any], n: int, start: Any = None
+) -> dict[str, float]:
+    cv2.setNumThreads(1)
+    frames = _frames(name, rig, n)
+    worker = PLUGINS[name]()
+    worker.configure(params, make_context(rig, pool=name))
+    if start is not None:
+        start.wait()
+    times = []
+    t0 = time.perf_counter()
+    for i, (left, right) in enumerate(frames):
+        t = time.perf_counter()
+        worker.process(make_pair(left, right, seq=i))
+        times.append(time.perf_counter() - t)
+    wall = time.perf_counter() - t0
+    ms = np.array(times) * 1000
+    return {
+        "frames": n,
+        "mean_ms": float(ms.mean()),
+        "p95_ms": float(np.percentile(ms, 95)),
+        "pairs_per_s": n / wall,
+    }
+
+
+def _together(rig: StereoRig, params: dict[str, dict[str, Any]], n: int) -> dict[str, Any]:
+    ctx = mp.get_context("spawn")
+    start = ctx.Manager().Barrier(len(PLUGINS))
+    with ctx.Pool(len(PLUGINS)) as pool:
+        jobs = {k: pool.apply_async(_time, (k, rig, params[k], n, start)) for k in PLUGINS}
+        return {k: j.get(timeout=600) for k, j in jobs.items()}
+
+
+def _drift(rig: StereoRig, length_m: float, steps: int) -> dict[str, float]:
+    cv2.setNumThreads(1)
+    radius = length_m / 6.0
+    world = FloorWorld.square(rig, 2 * radius + 5, res_m=0.003, seed=2)
+    vo = StereoOdometry()
+    vo.configure({}, make_context(rig, pool="vo"))
+    truth, est, ok = [], [], 0
+    for i, p in enumerate(circle_path(length_m, steps, radius)):
+        res = vo.process(make_pair(*world.render(p), seq=i))
+        truth.append(p)
+        est.append(as_4x4(res.pose))
+        ok += res.ok
+    segments = [length_m * f for f in (0.2, 0.4, 0.6, 0.8)]
+    return {
+        "path_m": float(path_length(truth)[-1]),
+        "pairs": steps,
+        "ok": ok,
+        "segment_drift_pct": drift_percent(truth, est, segments),
+        "end_drift_pct": end_drift_percent(truth, est),
+    }
+
+
+def _table(rows: list[tuple[str, str, dict[str, float]]]) -> str:
+    lines = [
+        "| algorithm | run | analysed frames | mean ms | p95 ms | pairs/s |",
+        "|---|---|---:|---:|---:|---:|",
+    ]
+    for name, run, r in rows:
+        lines.append(
+            f"| {name} | {run} | {r['frames']} | {r['mean_ms']:.1f} | "
+            f"{r['p95_ms']:.1f} | {r['pairs_per_s']:.1f} |"
+        )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--out", default="bench-results", help="folder for the JSON and markdown")
+    ap.add_argument("--frames", type=int, default=120, help="pairs per algorithm run")
+    ap.add_argument("--path-m", type=float, default=30.0, help="VO drift path length")
+    ap.add_argument("--steps", type=int, default=600, help="pairs along the drift path")
+    args = ap.parse_args()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    hd, vga = StereoRig.from_fov(1280, 720, 70.0, 0.12), StereoRig.from_fov(640, 480, 70.0, 0.12)
+    with tempfile.TemporaryDirectory() as tmp:
+        params, origin = _models(Path(tmp))
+        alone = {k: _time(k, hd, params[k], args.frames) for k in PLUGINS}
+        vo_vga = _time("vo", vga, {}, args.frames)
+        together = _together(hd, params, args.frames)
+    drift = _drift(hd, args.path_m, args.steps)
+    rows = [(k, "alone 1280x720", alone[k]) for k in PLUGINS]
+    rows.append(("vo", "alone 640x480", vo_vga))
+    rows += [(k, "all together 1280x720", together[k]) for k in PLUGINS]
+    report = {
+        "alone": alone,
+        "vo_640x480": vo_vga,
+        "together": together,
+        "drift": drift,
+        "models": origin,
+        "threads": 1,
+    }
+    (out / "bench_algorithms.json").write_text(json.dumps(report, indent=2))
+    md = (
+        f"{_table(rows)}\n\nModels: {', '.join(f'{k}: {v}' for k, v in origin.items())}. "
+        "One OpenCV / onnxruntime thread per process.\n\n"
+        f"VO drift over a {drift['path_m']:.1f} m rendered path ({drift['pairs']} pairs at "
+        f"1280x720, {drift['ok']} ok): {drift['segment_drift_pct']:.3f} % (segment metric), "
+        f"{drift['end_drift_pct']:.3f} % at the end.\n"
+    )
+    (out / "bench_algorithms.md").write_text(md)
+    print(md)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,119 @@
+"""The mono_ir detector plugin with real ONNX models run by onnxruntime."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from trapflow_workers.crab_detector import CrabDetector
+from trapflow_workers.onnx_session import open_session
+from trapflow_workers.testkit import make_context, make_pair
+from trapflow_workers.testkit_onnx import constant_detector, yolo_tensor
+
+from trapflow.errors import WorkerError
+
+HW = (320, 320)
+# Boxes in model input pixels; a 640x480 frame is scaled by 0.5 and padded 40 px top.
+INPUT_BOXES = [(40.0, 60.0, 120.0, 140.0), (200.0, 100.0, 260.0, 160.0)]
+IMAGE_BOXES = [(80.0, 40.0, 240.0, 200.0), (400.0, 120.0, 520.0, 240.0)]
+
+
+def _model(tmp_path: Path, layout: str, n: int = 500, **kw: Any) -> Path:
+    out = yolo_tensor(layout, INPUT_BOXES, [0, 1], [0.9, 0.6], nc=2, input_hw=HW, n=n)  # type: ignore[arg-type]
+    return constant_detector(tmp_path / f"{layout}.onnx", out, HW, **kw)
+
+
+def _run(params: dict[str, Any]) -> list[Any]:
+    det = CrabDetector()
+    det.configure(params, make_context(pool="mono"))
+    frame = np.zeros((480, 640, 3), np.uint8)
+    return det.process(make_pair(frame)).detections
+
+
+@pytest.mark.parametrize("layout", ["yolov8", "yolov5", "yolox"])
+def test_detects_known_boxes_in_image_pixels(tmp_path: Path, layout: str) -> None:
+    labels = tmp_path / "labels.txt"
+    labels.write_text("crab\nfish\n")
+    dets = _run({"model": str(_model(tmp_path, layout)), "labels": str(labels)})
+    assert [d.label for d in dets] == ["crab", "fish"]
+    assert [d.confidence for d in dets] == pytest.approx([0.9, 0.6])
+    np.testing.assert_allclose([d.box for d in dets], IMAGE_BOXES, atol=0.01)
+
+
+def test_labels_from_ultralytics_metadata_and_layout_override(tmp_path: Path) -> None:
+    # 6 rows: with 2 classes [1, 6, 6] is ambiguous by shape alone, names settle it.
+    meta = {"names": "{0: 'crab', 1: 'scallop'}", "imgsz": "[320, 320]"}
+    path = _model(tmp_path, "yolov8", n=6, metadata=meta, dynamic=True)
+    dets = _run({"model": str(path), "confidence": 0.7})
+    assert [d.label for d in dets] == ["crab"]
+    np.testing.assert_allclose(dets[0].box, IMAGE_BOXES[0], atol=0.01)
+
+
+def test_dynamic_input_size_from_params(tmp_path: Path) -> None:
+    path = _model(tmp_path, "yolov5", dynamic=True)
+    dets = _run({"model": str(path), "input_size": [320, 320], "layout": "yolov5"})
+    np.testing.assert_allclose([d.box for d in dets], IMAGE_BOXES, atol=0.01)
+    assert [d.label for d in dets] == ["class0", "class1"]
+
+
+def test_provider_fallback_logs_the_provider_used(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = _model(tmp_path, "yolov8")
+    with caplog.at_level(logging.INFO, logger="trapflow_workers.onnx_session"):
+        session = open_session(path, ["tensorrt", "cuda", "cpu"], threads=1)
+    assert session.provider in session.session.get_providers()
+    line = next(r.getMessage() for r in caplog.records if "runs on" in r.getMessage())
+    assert session.provider in line
+    if session.provider == "CPUExecutionProvider":
+        assert "TensorrtExecutionProvider" in line
+
+
+@pytest.mark.parametrize(
+    ("params", "setup", "error"),
+    [
+        ({"model": "{tmp}/missing.onnx"}, None, "model file not found"),
+        ({"model": "{tmp}/bad.onnx"}, "garbage", "cannot load ONNX model"),
+        ({"model": "{tmp}/yolov8.onnx", "threads": 0}, "yolov8", r"pools\.mono\.params\.threads"),
+        ({"model": "{tmp}/yolov8.onnx", "colour": "rgb"}, "yolov8", r"pools\.mono\.params\.colour"),
+        (
+            {"model": "{tmp}/yolov8.onnx", "providers": ["warp"]},
+            "yolov8",
+            "unknown execution provider",
+        ),
+        ({"model": "{tmp}/yolov8.onnx", "layout": "yolox"}, "yolov8", "does not fit layout yolox"),
+        ({"model": "{tmp}/yolov8.onnx", "labels": "{tmp}/three.txt"}, "yolov8", "for 3 classes"),
+        (
+            {"model": "{tmp}/yolov8.onnx", "input_size": [640, 640]},
+            "yolov8",
+            "fixed input of 320x320",
+        ),
+        ({"model": "{tmp}/odd.onnx"}, "odd", "matches no decoder"),
+    ],
+)
+def test_configure_rejects(
+    tmp_path: Path, params: dict[str, Any], setup: str | None, error: str
+) -> None:
+    if setup == "garbage":
+        (tmp_path / "bad.onnx").write_bytes(b"not a model")
+    elif setup == "odd":
+        constant_detector(tmp_path / "odd.onnx", np.zeros((1, 4, 3), np.float32), HW)
+    elif setup:
+        _model(tmp_path, setup)
+    (tmp_path / "three.txt").write_text("a\nb\nc\n")
+    params = {k: v.format(tmp=tmp_path) if isinstance(v, str) else v for k, v in params.items()}
+    with pytest.raises(WorkerError, match=error):
+        CrabDetector().configure(params, make_context(pool="mono"))
+
+
+def test_wrong_frame_size_is_a_worker_error(tmp_path: Path) -> None:
+    det = CrabDetector()
+    det.configure({"model": str(_model(tmp_path, "yolov8"))}, make_context(pool="mono"))
+    frame = np.zeros((480, 640, 3), np.uint8)
+    with pytest.raises(WorkerError, match="header says 1280x720"):
+        det.process(make_pair(frame, header_size=(1280, 720)))
+    with pytest.raises(WorkerError, match="BGR uint8"):
+        det.process(make_pair(frame[:, :, 0]))

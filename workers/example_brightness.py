@@ -1,0 +1,43 @@
+"""Example of a fifth algorithm: mean brightness of each image of the pair, as an Extra result.
+
+One module plus one registry line (`"brightness": "trapflow_workers.example_brightness:Brightness"`)
+or a pool with `plugin: trapflow_workers.example_brightness:Brightness`; docs/plugins.md explains.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Annotated, Any
+
+import msgspec
+import numpy as np
+from trapflow_workers.common import Params, check_frame, parse_params
+
+from trapflow.messages import Extra
+from trapflow.plugin import Context, Pair, Worker
+
+
+class BrightnessParams(Params):
+    """`pools.<pool>.params` of the example."""
+
+    dark_below: Annotated[float, msgspec.Meta(ge=0, le=255)] = 40.0
+    """Mean grey level under which the pair is reported as dark."""
+
+
+class Brightness(Worker):
+    """Reports mean left and right brightness and whether the scene is dark."""
+
+    def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
+        self.p = parse_params(params, BrightnessParams, ctx.pool)
+
+    def process(self, pair: Pair) -> Extra:
+        check_frame(pair)
+        left, right = float(np.mean(pair.left)), float(np.mean(pair.right))
+        return Extra(
+            name="brightness",
+            fields={
+                "left": round(left, 1),
+                "right": round(right, 1),
+                "dark": max(left, right) < self.p.dark_below,
+            },
+        )

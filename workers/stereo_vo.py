@@ -1,0 +1,282 @@
+"""stereo_vo: keyframe stereo visual odometry with OpenCV (FAST, pyramidal LK, PnP + RANSAC).
+
+At a keyframe, corners of the left image are matched into the right image along the
+row (rectified pair) and triangulated. Later pairs track those corners from the
+keyframe straight into the current left image (no chained pixel drift), seeded by a
+constant-velocity prediction, and solve PnP with RANSAC. A new keyframe is taken when
+too few points survive. Output per pair: motion since the last ok pair, accumulated pose.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+import cv2
+import msgspec
+import numpy as np
+from trapflow_workers.calibration import resolve_rig
+from trapflow_workers.common import Params, check_frame, floats, parse_params
+
+from trapflow.camera import StereoRig
+from trapflow.messages import StereoVO
+from trapflow.plugin import Context, Pair, Worker
+
+log = logging.getLogger(__name__)
+
+Pos = Annotated[float, msgspec.Meta(gt=0)]
+
+
+class VOParams(Params):
+    """`pools.vo.params`: every key is optional."""
+
+    calibration: str = ""
+    """KITTI calib.txt or YAML (fx, fy, cx, cy, baseline_m[, width, height]); overrides the rig."""
+    intrinsics: tuple[Pos, Pos, Pos, Pos] | None = None
+    """fx, fy, cx, cy in pixels, instead of the source's rig."""
+    baseline_m: Pos | None = None
+    """Stereo baseline in metres, instead of the source's rig."""
+    features: Annotated[int, msgspec.Meta(ge=20, le=10000)] = 500
+    """Corners triangulated at a keyframe (spread over a grid)."""
+    grid: tuple[
+        Annotated[int, msgspec.Meta(ge=1, le=64)], Annotated[int, msgspec.Meta(ge=1, le=64)]
+    ] = (8, 6)
+    """Columns and rows of the grid the corners are spread over."""
+    fast_threshold: Annotated[int, msgspec.Meta(ge=1, le=255)] = 12
+    """FAST corner threshold (grey levels)."""
+    window: Annotated[int, msgspec.Meta(ge=5, le=63)] = 21
+    """LK window side in pixels."""
+    levels: Annotated[int, msgspec.Meta(ge=0, le=6)] = 3
+    """LK pyramid levels above the image."""
+    max_fb_px: Pos = 1.0
+    """Largest forward-backward tracking error kept."""
+    max_row_px: Pos = 1.0
+    """Largest vertical offset of a stereo match (the pair is rectified)."""
+    min_disparity_px: Pos = 0.5
+    """Smaller disparities (far points) are not triangulated."""
+    ransac_px: Pos = 1.5
+    """RANSAC reprojection threshold."""
+    min_inliers: Annotated[int, msgspec.Meta(ge=6)] = 30
+    """Fewer PnP inliers make the pair not ok."""
+    keyframe_ratio: Annotated[float, msgspec.Meta(gt=0, lt=1)] = 0.6
+    """A new keyframe once inliers fall below this fraction of the keyframe's points."""
+    max_step_m: Pos = 1.0
+    """A motion larger than this between two pairs is rejected as wild."""
+    max_step_deg: Pos = 30.0
+    """A rotation larger than this between two pairs is rejected as wild."""
+    max_lost: Annotated[int, msgspec.Meta(ge=0)] = 3
+    """Consecutive not-ok pairs before tracking re-initialises."""
+
+
+@dataclass
+class Keyframe:
+    """Triangulated corners of one keyframe and where they are."""
+
+    image: np.ndarray  # grey left image
+    pts2d: np.ndarray  # (N, 2) float32 in the keyframe's left image
+    pts3d: np.ndarray  # (N, 3) float64 in the keyframe's camera frame
+    world: np.ndarray  # 4x4 keyframe camera -> world
+    initial: int  # points at creation
+
+
+def _inv(t: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    r = t[:3, :3].T
+    out[:3, :3], out[:3, 3] = r, -r @ t[:3, 3]
+    return out
+
+
+def _from_rt(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = cv2.Rodrigues(rvec)[0]
+    out[:3, 3] = tvec.ravel()
+    return out
+
+
+def _angle_deg(r: np.ndarray) -> float:
+    return math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(r)) - 1.0) / 2.0))))
+
+
+class StereoOdometry(Worker):
+    """Keyframe-based stereo VO; needs an `ordered` pool (one worker, pairs in order)."""
+
+    def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
+        p = parse_params(params, VOParams, ctx.pool)
+        self.p = p
+        self.rig: StereoRig = resolve_rig(p.calibration, p.intrinsics, p.baseline_m, ctx.rig)
+        self.K = self.rig.K
+        self.fast = cv2.FastFeatureDetector_create(p.fast_threshold, True)
+        self.win = (p.window, p.window)
+        self.lk_crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+        self.reset(np.eye(4))
+        self.first = True
+        log.info(
+            "stereo VO: fx=%.1f baseline=%.3f m, %dx%d",
+            self.rig.fx,
+            self.rig.baseline_m,
+            self.rig.width,
+            self.rig.height,
+        )
+
+    def reset(self, world: np.ndarray) -> None:
+        """Forget tracking; the next usable pair becomes a keyframe at pose `world`."""
+        self.key: Keyframe | None = None
+        self.world = world
+        self.key_to_prev = np.eye(4)  # previous ok pair's camera in the keyframe's frame
+        self.velocity = np.eye(4)  # last motion, for the prediction
+        self.lost = 0
+        self.prior_disp = self.rig.fx * self.rig.baseline_m / 2.0  # a point 2 m away
+
+    def _lk(
+        self, src: np.ndarray, dst: np.ndarray, pts: np.ndarray, guess: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        out, status, _ = cv2.calcOpticalFlowPyrLK(
+            src,
+            dst,
+            pts.reshape(-1, 1, 2),
+            guess.reshape(-1, 1, 2).copy(),
+            winSize=self.win,
+            maxLevel=self.p.levels,
+            criteria=self.lk_crit,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+        return out.reshape(-1, 2), status.ravel().astype(bool)
+
+    def _corners(self, gray: np.ndarray) -> np.ndarray:
+        kps = self.fast.detect(gray)
+        if not kps:
+            return np.zeros((0, 2), np.float32)
+        pts = np.array([k.pt for k in kps], np.float32)
+        resp = np.array([k.response for k in kps], np.float32)
+        h, w = gray.shape
+        m = self.p.window
+        inside = (pts[:, 0] >= m) & (pts[:, 0] < w - m) & (pts[:, 1] >= m) & (pts[:, 1] < h - m)
+        pts, resp = pts[inside], resp[inside]
+        cols, rows = self.p.grid
+        cell = (pts[:, 1] * rows / h).astype(int) * cols + (pts[:, 0] * cols / w).astype(int)
+        order = np.lexsort((-resp, cell))
+        pts, cell = pts[order], cell[order]
+        first = np.searchsorted(cell, cell)  # index of each cell's first (strongest) corner
+        rank = np.arange(len(cell)) - first
+        per_cell = max(1, self.p.features // (cols * rows))
+        return pts[rank < per_cell]
+
+    def _keyframe(self, left: np.ndarray, right: np.ndarray, world: np.ndarray) -> Keyframe | None:
+        pts = self._corners(left)
+        if len(pts) < self.p.min_inliers:
+            return None
+        guess = pts - np.array([self.prior_disp, 0], np.float32)
+        pr, ok = self._lk(left, right, pts, guess)
+        back, ok_b = self._lk(right, left, pr, pts)
+        disp = pts[:, 0] - pr[:, 0]
+        good = (
+            ok
+            & ok_b
+            & (np.abs(pr[:, 1] - pts[:, 1]) <= self.p.max_row_px)
+            & (np.linalg.norm(back - pts, axis=1) <= self.p.max_fb_px)
+            & (disp >= self.p.min_disparity_px)
+        )
+        if good.sum() < self.p.min_inliers:
+            return None
+        pts, disp = pts[good], disp[good].astype(np.float64)
+        self.prior_disp = float(np.median(disp))
+        z = self.rig.fx * self.rig.baseline_m / disp
+        x = (pts[:, 0] - self.rig.cx) * z / self.rig.fx
+        y = (pts[:, 1] - self.rig.cy) * z / self.rig.fy
+        return Keyframe(
+            image=left, pts2d=pts, pts3d=np.column_stack([x, y, z]), world=world, initial=len(pts)
+        )
+
+    def _track(self, key: Keyframe, left: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Pose of the current camera in the keyframe's frame and the inlier mask, or None."""
+        predicted = self.key_to_prev @ self.velocity
+        extr = _inv(predicted)
+        rvec = cv2.Rodrigues(extr[:3, :3])[0]
+        tvec = extr[:3, 3].reshape(3, 1).copy()
+        cam = key.pts3d @ extr[:3, :3].T + extr[:3, 3]
+        guess = cam[:, :2] / cam[:, 2:3] * [self.rig.fx, self.rig.fy] + [self.rig.cx, self.rig.cy]
+        cur, ok = self._lk(key.image, left, key.pts2d, guess.astype(np.float32))
+        back, ok_b = self._lk(left, key.image, cur, key.pts2d)
+        good = ok & ok_b & (np.linalg.norm(back - key.pts2d, axis=1) <= self.p.max_fb_px)
+        if good.sum() < self.p.min_inliers:
+            return None
+        idx = np.flatnonzero(good)
+        found, rvec, tvec, inl = cv2.solvePnPRansac(
+            key.pts3d[idx],
+            cur[idx].astype(np.float64),
+            self.K,
+            None,
+            rvec,
+            tvec,
+            useExtrinsicGuess=True,
+            iterationsCount=100,
+            reprojectionError=self.p.ransac_px,
+            confidence=0.999,
+            flags=cv2.SOLVEPNP_ITERATIVE,
+        )
+        if not found or inl is None or len(inl) < self.p.min_inliers:
+            return None
+        inl = idx[inl.ravel()]
+        rvec, tvec = cv2.solvePnPRefineLM(
+            key.pts3d[inl], cur[inl].astype(np.float64), self.K, None, rvec, tvec
+        )
+        mask = np.zeros(len(key.pts2d), bool)
+        mask[inl] = True
+        return _inv(_from_rt(rvec, tvec)), mask
+
+    def process(self, pair: Pair) -> StereoVO:
+        check_frame(pair, (self.rig.width, self.rig.height), "the calibration's image size")
+        left = cv2.cvtColor(pair.left, cv2.COLOR_BGR2GRAY)
+        reinit = self.key is None or pair.gap > 0
+        if reinit:
+            first, self.first = self.first, False
+            if pair.gap > 0:
+                log.debug("gap of %d pairs before %d: re-initialising", pair.gap, pair.header.seq)
+            self.reset(self.world)
+            right = cv2.cvtColor(pair.right, cv2.COLOR_BGR2GRAY)
+            self.key = self._keyframe(left, right, self.world)
+            ok = first and self.key is not None
+            return self._result(ok, np.eye(4), self.key.initial if self.key else 0, True)
+        key = self.key
+        assert key is not None
+        tracked = self._track(key, left)
+        if tracked is not None:
+            key_to_cur, mask = tracked
+            step = _inv(self.key_to_prev) @ key_to_cur
+            if (
+                np.linalg.norm(step[:3, 3]) > self.p.max_step_m
+                or _angle_deg(step[:3, :3]) > self.p.max_step_deg
+            ):
+                tracked = None
+        if tracked is None:
+            self.lost += 1
+            if self.lost > self.p.max_lost:
+                self.reset(self.world)
+            return self._result(False, np.eye(4), 0, False)
+        n = int(mask.sum())
+        self.lost = 0
+        self.velocity = step
+        self.key_to_prev = key_to_cur
+        self.world = key.world @ key_to_cur
+        if n < self.p.keyframe_ratio * key.initial:
+            right = cv2.cvtColor(pair.right, cv2.COLOR_BGR2GRAY)
+            new = self._keyframe(left, right, self.world)
+            if new is not None:
+                self.key, self.key_to_prev = new, np.eye(4)
+        else:
+            key.pts2d, key.pts3d = key.pts2d[mask], key.pts3d[mask]
+        return self._result(True, step, n, False)
+
+    def _result(self, ok: bool, step: np.ndarray, inliers: int, reinit: bool) -> StereoVO:
+        t = step[:3, 3]
+        return StereoVO(
+            ok=ok,
+            rotation=floats(step[:3, :3]),
+            translation=(float(t[0]), float(t[1]), float(t[2])),
+            pose=floats(self.world[:3, :4]),
+            inliers=inliers,
+            reinit=reinit,
+        )

@@ -371,7 +371,9 @@ def _decode(data: bytes, ctx: _Ctx) -> dict[str, Any]:
         return value
     spec = KINDS.get(data[0])
     if spec is None:
-        raise ProtocolError(f"expected a record kind in {sorted(KINDS)} or {GENERIC}, got {data[0]}")
+        raise ProtocolError(
+            f"expected a record kind in {sorted(KINDS)} or {GENERIC}, got {data[0]}"
+        )
     key, fields = spec
     r = Reader(data[1:])
     mask = r.uvarint()

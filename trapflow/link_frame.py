@@ -33,7 +33,9 @@ def frame(kind: int, payload: bytes) -> bytes:
     if kind not in FRAME_TYPES:
         raise ProtocolError(f"expected a frame type in {FRAME_TYPES}, got {kind}")
     if len(payload) > MAX_PAYLOAD:
-        raise ProtocolError(f"expected a payload of at most {MAX_PAYLOAD} bytes, got {len(payload)}")
+        raise ProtocolError(
+            f"expected a payload of at most {MAX_PAYLOAD} bytes, got {len(payload)}"
+        )
     body = bytes((len(payload), kind)) + payload
     return SYNC + body + crc16(body).to_bytes(2, "big")
 

@@ -6,6 +6,7 @@ use it, so a port that cannot be opened or disappears never raises into their lo
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import select
 import time
@@ -19,7 +20,9 @@ log = logging.getLogger(__name__)
 class LinkPort:
     """A pyserial port by URL (or an open port object) with reopen on failure."""
 
-    def __init__(self, port: str | Any, baudrate: int = 9600, reopen_interval_s: float = 2.0) -> None:
+    def __init__(
+        self, port: str | Any, baudrate: int = 9600, reopen_interval_s: float = 2.0
+    ) -> None:
         self.url = port if isinstance(port, str) else getattr(port, "port", "object")
         self._given = None if isinstance(port, str) else port
         self.baudrate = baudrate
@@ -71,10 +74,8 @@ class LinkPort:
     def close(self, reason: str = "closed") -> None:
         """Close the port (it will be reopened after reopen_interval_s)."""
         if self._port is not None and self._given is None:
-            try:
+            with contextlib.suppress(serial.SerialException, OSError):
                 self._port.close()
-            except (serial.SerialException, OSError):
-                pass
         self._port = None
         self._next_open = time.monotonic() + self.reopen_interval_s
         self._fail(reason)

@@ -347,7 +347,9 @@ class ModemSender:
         ack_airtime = 24 * BITS_PER_BYTE / self.cfg.bit_rate
         for cls, msg in batch:
             cls.queue.popleft()
-            wait = min(self.cfg.ack_timeout_s * self.cfg.backoff**msg.attempts, self.cfg.backoff_max_s)
+            wait = min(
+                self.cfg.ack_timeout_s * self.cfg.backoff**msg.attempts, self.cfg.backoff_max_s
+            )
             msg.deadline = self._link_free_at + ack_airtime + wait
             if msg.attempts:
                 self.counters["retransmits"] += 1

@@ -8,6 +8,7 @@ loose bytes) are lost, damaged or followed by noise with the set probabilities.
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import os
 import random
@@ -62,7 +63,7 @@ class LinkSimulator:
         mb, sb = self._pty()
         self.ends = (os.ttyname(sa), os.ttyname(sb))
         self.links = links
-        for link, end in zip(links, self.ends):
+        for link, end in zip(links, self.ends, strict=True):
             if link is not None:
                 tmp = Path(f"{link}.tmp{os.getpid()}")
                 tmp.unlink(missing_ok=True)
@@ -81,7 +82,8 @@ class LinkSimulator:
     @property
     def names(self) -> tuple[str, str]:
         """What clients open: the symlinks when given, else the pty devices."""
-        a, b = (str(link) if link is not None else end for link, end in zip(self.links, self.ends))
+        pairs = zip(self.links, self.ends, strict=True)
+        a, b = (str(link) if link is not None else end for link, end in pairs)
         return a, b
 
     def _schedule(self, d: _Direction, packet: bytes, now: float) -> None:
@@ -158,11 +160,9 @@ class LinkSimulator:
     def close(self) -> None:
         """Close both ptys and remove the symlinks."""
         for fd in self._fds:
-            try:
+            with contextlib.suppress(OSError):
                 os.close(fd)
-            except OSError:
-                pass
         self._fds = []
-        for link, end in zip(self.links, self.ends):
+        for link, end in zip(self.links, self.ends, strict=True):
             if link is not None and os.path.islink(link) and os.readlink(link) == end:
                 os.unlink(link)

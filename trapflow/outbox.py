@@ -197,7 +197,9 @@ class _Store:
     def counts(self) -> tuple[int, int, int]:
         """(last seq ever assigned, records stored, records still waiting to be sent)."""
         with self._lock:
-            row = self._db.execute("SELECT seq FROM sqlite_sequence WHERE name='records'").fetchone()
+            row = self._db.execute(
+                "SELECT seq FROM sqlite_sequence WHERE name='records'"
+            ).fetchone()
             stored = self._db.execute("SELECT COUNT(*) FROM records").fetchone()[0]
             resolved = self._db.execute(
                 "SELECT COUNT(*) FROM resolved JOIN records USING(seq)"
@@ -241,7 +243,9 @@ class _Store:
         """Records by seq (all records when seqs is None), checksums verified."""
         with self._lock:
             if seqs is None:
-                rows = self._db.execute("SELECT seq, t_ns, cls, body, crc FROM records ORDER BY seq")
+                rows = self._db.execute(
+                    "SELECT seq, t_ns, cls, body, crc FROM records ORDER BY seq"
+                )
                 return [_stored(r) for r in rows]
             out = []
             for seq in seqs:
@@ -366,7 +370,7 @@ class Outbox(_Store):
                 ).fetchone()
                 first = (int(row[0]) if row else 0) + 1
                 rows = []
-                for i, (rec, body) in enumerate(zip(records, bodies)):
+                for i, (rec, body) in enumerate(zip(records, bodies, strict=True)):
                     seq = first + i
                     cls = message_class(rec, self.cfg.class_fields)
                     rows.append((seq, t_ns, cls, body, record_crc(seq, t_ns, cls, body)))
@@ -437,7 +441,9 @@ class OutboxQueue(_Store):
             ).fetchone()
             if row[0] is not None:
                 return int(row[0])
-            row = self._db.execute("SELECT seq FROM sqlite_sequence WHERE name='records'").fetchone()
+            row = self._db.execute(
+                "SELECT seq FROM sqlite_sequence WHERE name='records'"
+            ).fetchone()
             return (int(row[0]) if row else 0) + 1
 
     def resolve(self, seqs: Iterable[int], state: int, now_ns: int | None = None) -> None:

@@ -6,6 +6,7 @@ has already written (retransmissions), decodes the rest and writes JSON lines.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
@@ -106,10 +107,9 @@ class SurfaceReceiver:
         now = time.monotonic()
         if sync or now - self._last_fsync >= self.fsync_interval_s:
             self._last_fsync = now
-            try:
+            # A pipe or terminal has nothing to sync.
+            with contextlib.suppress(OSError, ValueError, AttributeError):
                 os.fsync(self.out.fileno())
-            except (OSError, ValueError, AttributeError):
-                pass  # a pipe or terminal: nothing to sync
 
     def stats(self) -> dict[str, Any]:
         """Counters for display and tests."""

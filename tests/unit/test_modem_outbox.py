@@ -20,8 +20,15 @@ from trapflow.outbox import (
 
 
 def crab(seq: int) -> dict[str, object]:
-    return {"mono_ir": {"timestamp": "2025-07-07 12:52:43.120", "seq": seq, "label": "crab",
-                        "confidence": 0.71, "box": [5.4, 7.8, 15.6, 18.1]}}
+    return {
+        "mono_ir": {
+            "timestamp": "2025-07-07 12:52:43.120",
+            "seq": seq,
+            "label": "crab",
+            "confidence": 0.71,
+            "box": [5.4, 7.8, 15.6, 18.1],
+        }
+    }
 
 
 @pytest.mark.parametrize(
@@ -55,7 +62,9 @@ def test_append_read_resolve(tmp_path: Path) -> None:
     queue.resolve([2], EXPIRED)  # idempotent: the first resolution stands
     assert [s.seq for s in queue.pending("mono_ir/crab")] == [3, 4, 5]
     assert queue.floor() == 3
-    agg = queue.replace({"aggregate": {"class": "mono_ir/crab", "count": 2}}, "mono_ir/crab", [3, 4])
+    agg = queue.replace(
+        {"aggregate": {"class": "mono_ir/crab", "count": 2}}, "mono_ir/crab", [3, 4]
+    )
     assert agg == 6
     assert box.append(crab(9)) == 7  # the appender sees the sender's seq
     assert [s.seq for s in queue.pending("mono_ir/crab")] == [5, 6, 7]

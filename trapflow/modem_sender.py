@@ -95,6 +95,7 @@ class ModemSender:
         self._ledger_bytes = sum(b for _, b in self._ledger)
         self.counters = collections.Counter[str]()
         self.blocked = ""
+        self._backlog = 0
         # Worst case around a body in a DATA payload: floor, id delta (5 bytes each), length.
         self._max_body = self.cfg.max_frame_payload - 12
 
@@ -215,7 +216,7 @@ class ModemSender:
             cls.queue.append(_Msg(stored, body))
 
     def _housekeeping(self, now: float) -> None:
-        self._last_known = self.queue.counts()[0]
+        self._last_known, _, self._backlog = self.queue.counts()
         for name in self.queue.classes():
             self._class(name)
         wall = time.time_ns()
@@ -378,6 +379,7 @@ class ModemSender:
             "port": self.port.url,
             "bytes_last_hour": self._ledger_bytes,
             "bytes_per_hour": self.cfg.bytes_per_hour,
+            "backlog": self._backlog,
             "in_flight": len(self.by_id),
             "queued": {c.name: len(c.queue) for c in self.classes.values() if c.queue},
             "link": self.deframer.stats(),

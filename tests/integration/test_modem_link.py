@@ -154,3 +154,46 @@ def test_300_bits_10_percent_loss(tmp_path: Path, procs: list[subprocess.Popen[b
     assert stats["bytes"] * 10 / cfg.bit_rate <= elapsed + 4  # one frame of slack
     print(f"sender {stats}\nsurface {surface_stats}\nsim {sim_stats}\nelapsed {elapsed:.1f}s")
     box.close()
+
+
+@pytest.mark.timeout(90)
+def test_port_disappears_and_comes_back(
+    tmp_path: Path, procs: list[subprocess.Popen[bytes]]
+) -> None:
+    """The sink goes inactive with a reason, the outbox keeps filling, sending resumes."""
+    fast = ("--bit-rate", "19200", "--latency", "0.02")
+    sim = start_sim(tmp_path, procs, *fast)
+    out = tmp_path / "surface.jsonl"
+    surface = cli("surface", str(tmp_path / "b"), "-o", str(out))
+    procs.append(surface)
+    box = Outbox(tmp_path / "outbox.sqlite", OutboxConfig())
+    cfg = ModemConfig(bit_rate=19200.0, ack_timeout_s=0.3, reopen_interval_s=0.2)
+    sender = ModemSender(tmp_path / "outbox.sqlite", str(tmp_path / "a"), cfg)
+    halt = threading.Event()
+    thread = threading.Thread(target=sender.run, args=(halt,))
+    thread.start()
+
+    def scallop(i: int) -> dict[str, Any]:
+        return {"stereo_ir": {"timestamp": ts(i), "seq": i, "label": "scallop", "confidence": 0.8}}
+
+    try:
+        for i in range(5):
+            box.append(scallop(i))
+        poll_for(lambda: len(lines_of(out)) == 5, 30, "the first records at the surface")
+        stop(sim)
+        procs.remove(sim)
+        poll_for(lambda: sender.stats()["state"] == "inactive", 10, "the sender to notice")
+        assert str(tmp_path / "a") in sender.stats()["reason"]
+        for i in range(5, 12):
+            box.append(scallop(i))
+        assert box.counts()[2] == 7
+        start_sim(tmp_path, procs, *fast)
+        poll_for(lambda: box.counts()[2] == 0, 30, "sending to resume")
+        poll_for(lambda: len(lines_of(out)) == 12, 10, "the rest at the surface")
+    finally:
+        halt.set()
+        thread.join(timeout=10)
+    assert [r["stereo_ir"]["seq"] for r in lines_of(out)] == list(range(12))
+    assert sender.port.opens == 2
+    stop(surface)
+    box.close()

@@ -180,6 +180,7 @@ def test_port_disappears_and_comes_back(
         for i in range(5):
             box.append(scallop(i))
         poll_for(lambda: len(lines_of(out)) == 5, 30, "the first records at the surface")
+        poll_for(lambda: box.counts()[2] == 0, 10, "their acknowledgements")
         stop(sim)
         procs.remove(sim)
         poll_for(lambda: sender.stats()["state"] == "inactive", 10, "the sender to notice")

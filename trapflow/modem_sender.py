@@ -39,6 +39,7 @@ log = logging.getLogger(__name__)
 HOUR_NS = 3600 * 10**9
 LOAD_PER_CLASS = 64  # pending records of one class held in memory at once
 PURGE_INTERVAL_S = 60.0
+BACKLOG_INTERVAL_S = 5.0
 
 
 class _Msg:
@@ -89,6 +90,7 @@ class ModemSender:
         self._link_free_at = 0.0  # monotonic time the previous frame has left the modem
         self._next_housekeeping = 0.0
         self._next_purge = 0.0
+        self._next_backlog = 0.0
         self._ledger: collections.deque[tuple[int, int]] = collections.deque(
             self.queue.sent_since(time.time_ns() - HOUR_NS)
         )
@@ -150,16 +152,21 @@ class ModemSender:
                 acked.extend(parse_ack(payload))
             except ProtocolError:
                 self.counters["bad_acks"] += 1
-        done = [i for i in acked if i in self.by_id]
-        if not done:
+        if not acked:
             return
-        self.queue.resolve(done, ACKED)
+        # Every acknowledged id is on the surface, even one whose wait already timed out
+        # (or one sent before a restart): settle them all, so none is sent again.
+        self.queue.resolve(acked, ACKED)
+        done = set(acked)
         self.counters["acked"] += len(done)
-        for msg_id in done:
+        for msg_id in done & self.by_id.keys():
             msg = self.by_id.pop(msg_id)
             cls = self.classes.get(msg.stored.cls)
             if cls is not None and msg in cls.inflight:
                 cls.inflight.remove(msg)
+        for cls in self.classes.values():
+            if any(m.stored.seq in done for m in cls.queue):
+                cls.queue = collections.deque(m for m in cls.queue if m.stored.seq not in done)
         for no, (_, ids) in list(self._frames.items()):
             ids.difference_update(done)
             if not ids:
@@ -195,7 +202,9 @@ class ModemSender:
         room = LOAD_PER_CLASS - len(cls.queue) - len(cls.inflight)
         if room <= 0:
             return
-        for stored in self.queue.pending(cls.name, cls.cursor, room):
+        rows = self.queue.pending(cls.name, cls.cursor, room)
+        tried = self.queue.tried([s.seq for s in rows])
+        for stored in rows:
             cls.cursor = stored.seq
             if stored.seq in self.by_id:
                 continue  # in flight already (a reload after aggregation)
@@ -213,12 +222,19 @@ class ModemSender:
                 self.queue.resolve([stored.seq], REJECTED)
                 self.counters["too_large"] += 1
                 continue
-            cls.queue.append(_Msg(stored, body))
+            msg = _Msg(stored, body)
+            msg.attempts = int(stored.seq in tried)  # sent before a restart: may be up there
+            cls.queue.append(msg)
 
     def _housekeeping(self, now: float) -> None:
-        self._last_known, _, self._backlog = self.queue.counts()
-        for name in self.queue.classes():
-            self._class(name)
+        last = self.queue.last_seq()
+        if last != self._last_known:
+            for name in self.queue.classes(self._last_known):
+                self._class(name)
+            self._last_known = last
+        if now >= self._next_backlog:  # a full count: not on every pass
+            self._next_backlog = now + BACKLOG_INTERVAL_S
+            self._backlog = self.queue.counts()[2]
         wall = time.time_ns()
         for cls in list(self.classes.values()):
             self._expire(cls, wall)
@@ -249,7 +265,9 @@ class ModemSender:
         buckets: dict[int, list[_Msg]] = collections.defaultdict(list)
         for msg in cls.queue:
             bucket = msg.stored.t_ns // interval_ns
-            if bucket < current and not msg.stored.body.startswith(b'{"aggregate"'):
+            # A record sent once may already be on the surface: summarising it would count it twice.
+            fresh = not msg.attempts and not msg.stored.body.startswith(b'{"aggregate"')
+            if bucket < current and fresh:
                 buckets[bucket].append(msg)
         made = False
         for members in buckets.values():
@@ -344,7 +362,7 @@ class ModemSender:
         self._link_free_at = max(now, self._link_free_at) + airtime
         self._ledger.append((wall, len(wire)))
         self._ledger_bytes += len(wire)
-        self.queue.record_sent(len(wire), wall)
+        self.queue.record_sent(len(wire), [m.stored.seq for _, m in batch if not m.attempts], wall)
         ack_airtime = 24 * BITS_PER_BYTE / self.cfg.bit_rate
         for cls, msg in batch:
             cls.queue.popleft()

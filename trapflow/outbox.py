@@ -46,6 +46,9 @@ CREATE TABLE IF NOT EXISTS resolved(
     state INTEGER NOT NULL,
     t_ns INTEGER NOT NULL                   -- wall clock when resolved: retention
 );
+CREATE TABLE IF NOT EXISTS tried(           -- records sent at least once: never aggregated
+    seq INTEGER PRIMARY KEY
+);
 CREATE TABLE IF NOT EXISTS sent(            -- link ledger for the hourly byte budget
     t_ns INTEGER NOT NULL,
     bytes INTEGER NOT NULL
@@ -219,6 +222,10 @@ class _Store:
                     (cutoff,),
                 )
                 gone = cur.rowcount
+                self._db.execute(
+                    "DELETE FROM tried WHERE seq IN (SELECT seq FROM resolved WHERE t_ns < ?)",
+                    (cutoff,),
+                )
                 self._db.execute("DELETE FROM resolved WHERE t_ns < ?", (cutoff,))
                 self._db.execute("DELETE FROM sent WHERE t_ns < ?", (now_ns - 7200 * 10**9,))
                 self._db.execute("COMMIT")
@@ -415,13 +422,19 @@ class Outbox(_Store):
 class OutboxQueue(_Store):
     """The sending side: pending records per class, resolution, the link ledger."""
 
-    def classes(self) -> list[str]:
-        """Classes that have records waiting."""
+    def classes(self, after: int = 0) -> list[str]:
+        """Classes of the records with seq > after (the last seq seen: only new ones are read)."""
         with self._lock:
-            rows = self._db.execute(
-                "SELECT DISTINCT cls FROM records WHERE seq NOT IN (SELECT seq FROM resolved)"
-            )
+            rows = self._db.execute("SELECT DISTINCT cls FROM records WHERE seq > ?", (after,))
             return [r[0] for r in rows]
+
+    def last_seq(self) -> int:
+        """The last seq ever assigned."""
+        with self._lock:
+            row = self._db.execute(
+                "SELECT seq FROM sqlite_sequence WHERE name='records'"
+            ).fetchone()
+            return int(row[0]) if row else 0
 
     def pending(self, cls: str, after: int = 0, limit: int = 64) -> list[Stored]:
         """Up to limit unresolved records of one class with seq > after, oldest first."""
@@ -498,10 +511,30 @@ class OutboxQueue(_Store):
             self._maybe_sync()
         return seq
 
-    def record_sent(self, nbytes: int, now_ns: int | None = None) -> None:
-        """Add a transmission to the ledger the hourly budget is counted from."""
+    def record_sent(self, nbytes: int, seqs: Sequence[int] = (), now_ns: int | None = None) -> None:
+        """Add a transmission to the budget ledger and note the records it carried."""
         t = time.time_ns() if now_ns is None else now_ns
-        self._write("INSERT INTO sent(t_ns, bytes) VALUES (?,?)", [(t, nbytes)])
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                self._db.execute("INSERT INTO sent(t_ns, bytes) VALUES (?,?)", (t, nbytes))
+                self._db.executemany(
+                    "INSERT OR IGNORE INTO tried(seq) VALUES (?)", [(s,) for s in seqs]
+                )
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._dirty = True
+
+    def tried(self, seqs: Sequence[int]) -> set[int]:
+        """Which of these records were sent at least once (they may be on the surface)."""
+        with self._lock:
+            return {
+                s
+                for s in seqs
+                if self._db.execute("SELECT 1 FROM tried WHERE seq=?", (s,)).fetchone()
+            }
 
     def sent_since(self, since_ns: int) -> list[tuple[int, int]]:
         """(t_ns, bytes) of transmissions since a time, oldest first."""

@@ -56,6 +56,7 @@ def test_append_read_resolve(tmp_path: Path) -> None:
     assert box.durable_seq == 5
     queue = OutboxQueue(path, OutboxConfig())
     assert queue.classes() == ["mono_ir/crab"]
+    assert queue.classes(5) == [] and queue.last_seq() == 5
     assert [s.seq for s in queue.pending("mono_ir/crab")] == seqs
     assert queue.pending("mono_ir/crab")[2].record() == crab(2)
     queue.resolve([1, 2], ACKED)

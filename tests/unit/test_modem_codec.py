@@ -1,0 +1,175 @@
+"""Link framing, ARQ payloads and the compact codec: golden bytes, size budgets, bad input."""
+
+from __future__ import annotations
+
+import math
+import random
+from typing import Any
+
+import msgspec
+import pytest
+
+from trapflow.errors import ProtocolError
+from trapflow.link_codec import GENERIC, LinkCodec
+from trapflow.link_frame import (
+    ACK,
+    DATA,
+    Deframer,
+    Reader,
+    ack_payload,
+    data_payload,
+    frame,
+    parse_ack,
+    parse_data,
+    put_svarint,
+    put_uvarint,
+    split_packets,
+)
+
+TS = "2025-07-07 12:52:43.120"
+TH = 0.1
+C, S = round(math.cos(TH), 4), round(math.sin(TH), 4)
+RT = [[C, -S, 0.0, 0.05], [S, C, 0.0, -0.01], [0.0, 0.0, 1.0, 0.2]]
+RECORDS: list[tuple[dict[str, Any], int]] = [  # record, most link bytes allowed
+    ({"mono_ir": {"timestamp": TS, "seq": 17, "label": "crab", "confidence": 0.71,
+                  "box": [5.4, 7.8, 15.6, 18.1]}}, 20),
+    ({"stereo_ir": {"timestamp": TS, "seq": 18, "label": "scallop", "confidence": 0.93}}, 12),
+    ({"stereo_ir": {"timestamp": "2025-07-07 12:52:43", "seq": 1, "label": "new thing",
+                    "confidence": 0.5}}, 22),
+    ({"stereo_vo": {"timestamp": TS, "seq": 19, "ok": True, "Rt": RT, "inliers": 120}}, 24),
+    ({"stereo_vo": {"timestamp": TS, "seq": 20, "ok": False}}, 12),
+    ({"tags": {"timestamp": TS, "seq": 21, "id": 3,
+               "corners": [[100.5, 200.1], [150.2, 200.3], [150.0, 250.7], [100.1, 250.2]],
+               "rotation": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+               "translation": [0.1, 0.2, 1.5], "error": 0.4}}, 40),
+    ({"health": {"timestamp": TS, "uptime_s": 3600, "cpu_pct": 55.5, "load1": 1.25,
+                 "temp_c": 61.2, "mem_pct": 40.1, "disk_free_mb": 20000, "backlog": 12,
+                 "link": "active", "pools": {"mono": [4.5, 10], "stereo": [1.0, 200]}}}, 48),
+    ({"aggregate": {"class": "mono_ir/crab", "from": TS, "to": "2025-07-07 12:53:42.999",
+                    "count": 57, "best": [{"mono_ir": {"timestamp": TS, "seq": 17, "label": "crab",
+                                                       "confidence": 0.71,
+                                                       "box": [5.4, 7.8, 15.6, 18.1]}}]}}, 50),
+    ({"extra": {"name": "x", "fields": {"a": 1}}}, 40),
+]  # fmt: skip
+
+
+def test_golden_bytes() -> None:
+    """The link encoding is a wire contract with the surface: pinned byte for byte."""
+    rec, _ = RECORDS[0]
+    assert LinkCodec().encode(rec).hex() == "011fe1e7d9e8900a11018e6c9c01cc01ce01"
+    assert frame(DATA, b"\x01\x02").hex() == "a55a020101024deb"
+
+
+@pytest.mark.parametrize(("record", "budget"), RECORDS)
+def test_roundtrip_and_size(record: dict[str, Any], budget: int) -> None:
+    codec = LinkCodec()
+    data = codec.encode(record)
+    assert len(data) <= budget
+    assert len(data) < len(msgspec.json.encode(record))
+    back = codec.decode(data)
+    assert back == record
+
+
+@pytest.mark.parametrize(
+    "record",
+    [
+        {"mono_ir": {"timestamp": TS, "confidence": -0.5}},  # not representable: generic
+        {"mono_ir": {"timestamp": "yesterday"}},
+        {"mono_ir": {"timestamp": TS, "extra_key": 1}},
+        {"stereo_vo": {"Rt": [[1, 2], [3]]}},
+        {"a": 1, "b": 2},
+    ],
+)
+def test_unfit_records_travel_generic(record: dict[str, Any]) -> None:
+    data = LinkCodec().encode(record)
+    assert data[0] == GENERIC
+    assert LinkCodec().decode(data) == record
+
+
+@pytest.mark.parametrize(
+    ("data", "error"),
+    [
+        (b"", "expected a message body"),
+        (b"\x42", "expected a record kind"),
+        (b"\x02\x0f", "expected a varint"),
+        (b"\x02\x04\x63", "expected a label index up to"),
+        (b"\x02\x00\x00", "bytes of stereo_ir body"),
+        (bytes([GENERIC]) + b"\xc1", "expected a msgpack record"),
+        (bytes([GENERIC]) + msgspec.msgpack.encode([1]), "expected a msgpack map"),
+        (b"\x02\x04\x00\x05ab", "expected 5 bytes"),
+        (b"\x02\x01" + b"\xff" * 12, "at most 9 bytes"),
+    ],
+)
+def test_decode_rejects(data: bytes, error: str) -> None:
+    with pytest.raises(ProtocolError, match=error):
+        LinkCodec().decode(data)
+
+
+@pytest.mark.parametrize(
+    ("kind", "payload", "error"),
+    [(7, b"", "expected a frame type"), (DATA, b"x" * 256, "at most 255 bytes")],
+)
+def test_frame_rejects(kind: int, payload: bytes, error: str) -> None:
+    with pytest.raises(ProtocolError, match=error):
+        frame(kind, payload)
+
+
+@pytest.mark.parametrize("value", [0, 1, 127, 128, 300, 2**40, -1, -64, -(2**40)])
+def test_varints(value: int) -> None:
+    out = bytearray()
+    put_svarint(out, value)
+    assert Reader(bytes(out)).svarint() == value
+    if value >= 0:
+        out = bytearray()
+        put_uvarint(out, value)
+        assert Reader(bytes(out)).uvarint() == value
+
+
+def test_arq_payloads() -> None:
+    msgs = [(105, b"abc"), (300, b""), (101, b"\x00" * 40)]
+    assert parse_data(data_payload(100, msgs)) == (100, msgs)
+    assert parse_ack(ack_payload([9, 3, 1000, 3])) == [3, 9, 1000]
+
+
+def test_deframer_recovers_frames_from_garbage() -> None:
+    rng = random.Random(3)
+    frames = [frame(DATA, bytes(rng.randrange(256) for _ in range(rng.randrange(60))))
+              for _ in range(50)]  # fmt: skip
+    stream = bytearray()
+    garbage = 0
+    for f in frames:
+        junk = bytes(rng.randrange(256) for _ in range(rng.randrange(8)))
+        stream += junk + f
+        garbage += len(junk)
+    d = Deframer()
+    got: list[tuple[int, bytes]] = []
+    for i in range(0, len(stream), 7):  # arbitrary read sizes
+        got += d.feed(bytes(stream[i : i + 7]))
+    assert [frame(k, p) for k, p in got] == frames
+    assert d.garbage_bytes == garbage
+
+
+def test_deframer_drops_damaged_frame_and_keeps_the_next() -> None:
+    good = frame(ACK, b"\x05")
+    bad = bytearray(frame(DATA, b"hello"))
+    bad[5] ^= 0x10
+    d = Deframer()
+    assert d.feed(bytes(bad) + good) == [(ACK, b"\x05")]
+    assert d.crc_errors >= 1
+
+
+def test_deframer_never_raises_on_noise() -> None:
+    rng = random.Random(5)
+    d = Deframer()
+    for _ in range(200):
+        d.feed(bytes(rng.randrange(256) for _ in range(rng.randrange(64))) + b"\xa5\x5a")
+    assert d.frames <= 1 and d.garbage_bytes > 6000
+
+
+def test_split_packets_cuts_frames_and_loose_bytes() -> None:
+    f1, f2 = frame(DATA, b"abc"), frame(ACK, b"")
+    buf = bytearray(b"xx" + f1 + f2[:3])
+    assert split_packets(buf) == [b"xx", f1]
+    buf += f2[3:]
+    assert split_packets(buf) == [f2]
+    assert not buf

@@ -1,0 +1,100 @@
+"""Modem configuration and the sender's behaviour without a port."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import pytest
+
+from trapflow.health import HealthConfig, HealthMonitor
+from trapflow.link_codec import LinkCodec
+from trapflow.modem_config import ModemConfig
+from trapflow.modem_sender import ModemSender
+from trapflow.outbox import Outbox, OutboxConfig
+
+
+@pytest.mark.parametrize(
+    ("data", "error"),
+    [
+        ({}, None),
+        ({"bit_rate": 0}, "Expected `float` > 0.0 - at `$.bit_rate`"),
+        ({"max_frame_payload": 300}, "Expected `int` <= 255 - at `$.max_frame_payload`"),
+        ({"ttl_s": {"stereo_vo": -1}}, "Expected `float` >= 0.0"),
+        ({"priorities": "scallop"}, "Expected `array`, got `str` - at `$.priorities`"),
+        ({"bitrate": 300}, "Object contains unknown field `bitrate`"),
+    ],
+)
+def test_modem_config_table(data: dict[str, Any], error: str | None) -> None:
+    if error is None:
+        assert msgspec.convert(data, ModemConfig) == ModemConfig()
+        return
+    with pytest.raises(msgspec.ValidationError) as exc:
+        msgspec.convert(data, ModemConfig)
+    assert error in str(exc.value)
+
+
+@pytest.mark.parametrize(
+    ("data", "error"),
+    [
+        ({"fsync_interval_s": 0}, "Expected `float` > 0.0 - at `$.fsync_interval_s`"),
+        ({"quota_bytes": 10}, "Expected `int` >= 65536 - at `$.quota_bytes`"),
+        ({"path": 3}, "Expected `str`, got `int` - at `$.path`"),
+    ],
+)
+def test_outbox_config_rejects(data: dict[str, Any], error: str) -> None:
+    with pytest.raises(msgspec.ValidationError, match=error.replace("$", r"\$")):
+        msgspec.convert(data, OutboxConfig)
+
+
+@pytest.mark.parametrize(
+    ("cls", "rank", "ttl", "aggregated"),
+    [
+        ("stereo_ir/scallop", 0, 0.0, False),
+        ("mono_ir/crab", 1, 0.0, True),
+        ("health", 2, 3600.0, False),
+        ("mono_ir/fish", 5, 0.0, True),
+        ("stereo_vo", 6, 600.0, True),
+        ("whatever", 7, 0.0, False),
+    ],
+)
+def test_class_policy(cls: str, rank: int, ttl: float, aggregated: bool) -> None:
+    cfg = ModemConfig()
+    assert (cfg.priority_of(cls), cfg.ttl_of(cls), cfg.aggregates(cls)) == (rank, ttl, aggregated)
+
+
+@pytest.mark.parametrize(
+    ("port", "reason"),
+    [("", "no port configured"), ("/nonexistent/tty", "cannot open /nonexistent/tty")],
+)
+def test_sender_inactive_with_reason_while_outbox_fills(
+    tmp_path: Path, port: str, reason: str
+) -> None:
+    path = tmp_path / "outbox.sqlite"
+    box = Outbox(path, OutboxConfig())
+    sender = ModemSender(path, port, ModemConfig(reopen_interval_s=0.05))
+    sender.step()
+    for i in range(3):
+        box.append({"stereo_ir": {"seq": i, "label": "scallop", "confidence": 0.9}})
+    sender.step()
+    stats = sender.stats()
+    assert stats["state"] == "inactive"
+    assert stats["reason"].startswith(reason)
+    assert box.counts()[2] == 3
+    sender.close()
+    box.close()
+
+
+def test_health_record_fits_the_link(tmp_path: Path) -> None:
+    monitor = HealthMonitor(HealthConfig(interval_s=60), tmp_path, lambda: {"mono": (4.5, 10)})
+    first = monitor({"backlog": 7, "state": "active"})
+    assert first is not None and monitor({"backlog": 7}) is None  # once per interval
+    body = first["health"]
+    assert (
+        body["backlog"] == 7 and body["link"] == "active" and body["pools"] == {"mono": [4.5, 10]}
+    )
+    assert 0 <= body["mem_pct"] <= 100 and body["disk_free_mb"] > 0
+    data = LinkCodec().encode(first)
+    assert len(data) <= 48
+    assert LinkCodec().decode(data) == first

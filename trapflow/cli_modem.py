@@ -1,0 +1,187 @@
+"""Click commands for the modem link: `surface` (ship end), `modem-sim` (simulator), `modem-send`.
+
+Thin commands: each parses, builds one library object and runs it until SIGINT/SIGTERM.
+`python -m trapflow.cli_modem` runs them without the main `trapflow` group.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import signal
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import IO
+
+import click
+
+from trapflow.link_codec import DEFAULT_LABELS
+from trapflow.modem_config import ModemConfig
+from trapflow.outbox import OutboxConfig
+
+
+def _stop_on_signals() -> threading.Event:
+    stop = threading.Event()
+
+    def handler(signum: int, frame: object) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    return stop
+
+
+def _labels(text: str | None) -> list[str]:
+    return list(DEFAULT_LABELS) if not text else [s.strip() for s in text.split(",") if s.strip()]
+
+
+@contextlib.contextmanager
+def _output(path: Path | None) -> Iterator[IO[bytes]]:
+    if path is None:
+        yield sys.stdout.buffer
+    else:
+        with open(path, "ab") as out:
+            yield out
+
+
+@click.command("surface")
+@click.argument("port")
+@click.option(
+    "-o",
+    "--output",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="JSON lines file to append to (default: standard output).",
+)
+@click.option("--baudrate", type=click.IntRange(50, 4_000_000), default=9600, show_default=True)
+@click.option("--labels", default=None, help="Comma-separated label table (must match the box).")
+def surface(port: str, output: Path | None, baudrate: int, labels: str | None) -> None:
+    """Receive results from the modem link on PORT, acknowledge them, write JSON lines."""
+    from trapflow.surface import SurfaceReceiver
+
+    stop = _stop_on_signals()
+    with _output(output) as out:
+        receiver = SurfaceReceiver(port, out, _labels(labels), baudrate)
+        receiver.run(stop)
+    click.echo(json.dumps(receiver.stats()), err=True)
+
+
+@click.command("modem-sim")
+@click.option("--bit-rate", type=click.FloatRange(min=1), default=300.0, show_default=True)
+@click.option(
+    "--latency",
+    type=click.FloatRange(min=0),
+    default=0.5,
+    show_default=True,
+    help="Seconds a packet travels after its airtime.",
+)
+@click.option(
+    "--loss",
+    type=click.FloatRange(0, 1),
+    default=0.0,
+    show_default=True,
+    help="Probability a packet is lost.",
+)
+@click.option(
+    "--corrupt",
+    type=click.FloatRange(0, 1),
+    default=0.0,
+    show_default=True,
+    help="Probability a packet has one bit flipped.",
+)
+@click.option(
+    "--noise",
+    type=click.FloatRange(0, 1),
+    default=0.0,
+    show_default=True,
+    help="Probability a packet is followed by random bytes.",
+)
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option(
+    "--link-a",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="Symlink to create for the box end.",
+)
+@click.option(
+    "--link-b",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="Symlink to create for the surface end.",
+)
+def modem_sim(
+    bit_rate: float,
+    latency: float,
+    loss: float,
+    corrupt: float,
+    noise: float,
+    seed: int,
+    link_a: Path | None,
+    link_b: Path | None,
+) -> None:
+    """Simulate an acoustic modem between two pseudo-terminals; prints both ends."""
+    from trapflow.modem_sim import LinkSimulator
+
+    stop = _stop_on_signals()
+    sim = LinkSimulator(bit_rate, latency, loss, corrupt, noise, seed, (link_a, link_b))
+    a, b = sim.names
+    click.echo(f"box end: {a}")
+    click.echo(f"surface end: {b}")
+    sys.stdout.flush()
+    sim.run(stop)
+    click.echo(json.dumps(sim.stats()), err=True)
+
+
+@click.command("modem-send")
+@click.argument("outbox", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("port")
+@click.option("--bit-rate", type=click.FloatRange(min=1), default=300.0, show_default=True)
+@click.option("--bytes-per-hour", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--ack-timeout", type=click.FloatRange(min=0.01), default=3.0, show_default=True)
+@click.option("--no-aggregate", is_flag=True, help="Never summarise classes that are behind.")
+@click.option("--no-ttl", is_flag=True, help="Never expire records.")
+def modem_send(
+    outbox: Path,
+    port: str,
+    bit_rate: float,
+    bytes_per_hour: int,
+    ack_timeout: float,
+    no_aggregate: bool,
+    no_ttl: bool,
+) -> None:
+    """Send the records waiting in OUTBOX over the modem link on PORT (outside a pipeline)."""
+    from trapflow.modem_sender import ModemSender
+
+    cfg = ModemConfig(
+        enabled=True,
+        port=port,
+        bit_rate=bit_rate,
+        bytes_per_hour=bytes_per_hour,
+        ack_timeout_s=ack_timeout,
+        reopen_interval_s=0.5,
+    )
+    if no_aggregate:
+        cfg.aggregate = []
+    if no_ttl:
+        cfg.ttl_s = {}
+    stop = _stop_on_signals()
+    sender = ModemSender(outbox, port, cfg, OutboxConfig())
+    sender.run(stop)
+    click.echo(json.dumps(sender.stats()), err=True)
+
+
+COMMANDS = (surface, modem_sim, modem_send)
+
+
+@click.group()
+def main() -> None:
+    """Modem link commands."""
+
+
+for _cmd in COMMANDS:
+    main.add_command(_cmd)
+
+if __name__ == "__main__":
+    main()

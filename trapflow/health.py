@@ -1,0 +1,98 @@
+"""Health telemetry: a small record (uptime, CPU, temperature, memory, disk, backlog, pools).
+
+Sized for the modem link (about 40 bytes encoded); sampled with psutil on an interval.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, Any
+
+import msgspec
+import psutil
+
+PoolRates = dict[str, tuple[float, int]]  # pool -> (results per second, drops so far)
+
+
+class HealthConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """The periodic health message."""
+
+    enabled: bool = True
+    """Send health records."""
+    interval_s: Annotated[float, msgspec.Meta(ge=1, le=86400)] = 600.0
+    """Seconds between two health records."""
+
+
+def _timestamp(t: float) -> str:
+    ms = int(t * 1000) % 1000
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(t)) + f".{ms:03d}"
+
+
+def _temperature() -> float | None:
+    try:
+        sensors = psutil.sensors_temperatures()
+    except (AttributeError, OSError):
+        return None
+    for name in ("cpu_thermal", "coretemp", "k10temp", "soc_thermal", "thermal_zone0"):
+        if sensors.get(name):
+            return float(sensors[name][0].current)
+    for readings in sensors.values():
+        if readings:
+            return float(readings[0].current)
+    return None
+
+
+class HealthMonitor:
+    """Builds health records; as a callable, returns one per interval (for ModemSender)."""
+
+    def __init__(
+        self,
+        cfg: HealthConfig | None = None,
+        disk_path: str | Path = ".",
+        pool_rates: Callable[[], PoolRates] | None = None,
+    ) -> None:
+        self.cfg = cfg or HealthConfig()
+        self.disk_path = Path(disk_path)
+        self.pool_rates = pool_rates
+        self._next = 0.0
+        psutil.cpu_percent(None)  # prime: the next call reports usage since now
+
+    def sample(
+        self, backlog: int = 0, link: str = "", pools: PoolRates | None = None
+    ) -> dict[str, Any]:
+        """One health record now."""
+        now = time.time()
+        body: dict[str, Any] = {
+            "timestamp": _timestamp(now),
+            "uptime_s": int(now - psutil.boot_time()),
+            "cpu_pct": round(psutil.cpu_percent(None), 1),
+            "load1": round(psutil.getloadavg()[0], 2),
+        }
+        temp = _temperature()
+        if temp is not None:
+            body["temp_c"] = round(temp, 1)
+        body["mem_pct"] = round(psutil.virtual_memory().percent, 1)
+        body["disk_free_mb"] = shutil.disk_usage(self.disk_path).free >> 20
+        body["backlog"] = backlog
+        if link:
+            body["link"] = link
+        if pools is None and self.pool_rates is not None:
+            pools = self.pool_rates()
+        if pools:
+            body["pools"] = {
+                name: [round(rate, 1), int(drops)] for name, (rate, drops) in pools.items()
+            }
+        return {"health": body}
+
+    def __call__(self, sender_stats: dict[str, Any]) -> dict[str, Any] | None:
+        """A record when the interval has passed, else None."""
+        if not self.cfg.enabled:
+            return None
+        now = time.monotonic()
+        if now < self._next:
+            return None
+        self._next = now + self.cfg.interval_s
+        return self.sample(int(sender_stats.get("backlog", 0)), str(sender_stats.get("state", "")))

@@ -1,0 +1,235 @@
+"""Byte framing on the modem link: sync, length, type, payload, CRC-16; and the ARQ payloads.
+
+The one module (with link_codec) that knows the link's byte format. A frame is
+`A5 5A | len | type | payload[len] | crc16` with the CRC (CCITT) over len, type and
+payload. The deframer resynchronises on garbage, counts what it throws away, and
+never raises on bad input.
+"""
+
+from __future__ import annotations
+
+import binascii
+from collections.abc import Iterable
+
+from trapflow.errors import ProtocolError
+
+SYNC = b"\xa5\x5a"
+HEADER = len(SYNC) + 2  # sync, len, type
+OVERHEAD = HEADER + 2  # plus the CRC
+MAX_PAYLOAD = 255
+
+DATA = 0x01  # box -> surface: floor, then (msg id, body) pairs
+ACK = 0x02  # surface -> box: message ids received
+FRAME_TYPES = (DATA, ACK)
+
+
+def crc16(data: bytes) -> int:
+    """CRC-16/CCITT-FALSE."""
+    return binascii.crc_hqx(data, 0xFFFF)
+
+
+def frame(kind: int, payload: bytes) -> bytes:
+    """One frame on the wire."""
+    if kind not in FRAME_TYPES:
+        raise ProtocolError(f"expected a frame type in {FRAME_TYPES}, got {kind}")
+    if len(payload) > MAX_PAYLOAD:
+        raise ProtocolError(
+            f"expected a payload of at most {MAX_PAYLOAD} bytes, got {len(payload)}"
+        )
+    body = bytes((len(payload), kind)) + payload
+    return SYNC + body + crc16(body).to_bytes(2, "big")
+
+
+class Deframer:
+    """Turns a byte stream into (type, payload) frames; garbage is dropped and counted."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+        self.frames = 0
+        self.garbage_bytes = 0
+        self.crc_errors = 0
+
+    def feed(self, data: bytes) -> list[tuple[int, bytes]]:
+        """Add bytes; returns the complete, valid frames they finish."""
+        self._buf += data
+        out: list[tuple[int, bytes]] = []
+        buf = self._buf
+        while True:
+            start = buf.find(SYNC)
+            if start < 0:
+                # Keep a trailing first sync byte: the next read may complete the marker.
+                keep = 1 if buf.endswith(SYNC[:1]) else 0
+                self.garbage_bytes += len(buf) - keep
+                del buf[: len(buf) - keep]
+                break
+            if start:
+                self.garbage_bytes += start
+                del buf[:start]
+            if len(buf) < HEADER:
+                break
+            size = buf[2]
+            end = HEADER + size + 2
+            if len(buf) < end:
+                break
+            body = bytes(buf[2 : HEADER + size])
+            crc = int.from_bytes(buf[HEADER + size : end], "big")
+            if crc != crc16(body) or body[1] not in FRAME_TYPES:
+                # A false or damaged sync: skip one byte and look for the next marker.
+                self.crc_errors += 1
+                self.garbage_bytes += 1
+                del buf[:1]
+                continue
+            del buf[:end]
+            self.frames += 1
+            out.append((body[1], body[2:]))
+        return out
+
+    def stats(self) -> dict[str, int]:
+        """Counters for the stats topic."""
+        return {
+            "frames": self.frames,
+            "garbage_bytes": self.garbage_bytes,
+            "crc_errors": self.crc_errors,
+        }
+
+
+def split_packets(buf: bytearray) -> list[bytes]:
+    """Cut complete frame-shaped packets (unchecked) and loose garbage off the front of buf.
+
+    The simulator uses this to drop or damage whole packets as an acoustic modem does;
+    an incomplete frame is left in buf for the next read.
+    """
+    out: list[bytes] = []
+    while buf:
+        start = buf.find(SYNC)
+        if start < 0:
+            keep = 1 if buf.endswith(SYNC[:1]) else 0
+            if len(buf) > keep:
+                out.append(bytes(buf[: len(buf) - keep]))
+                del buf[: len(buf) - keep]
+            break
+        if start:
+            out.append(bytes(buf[:start]))
+            del buf[:start]
+        if len(buf) < HEADER:
+            break
+        end = HEADER + buf[2] + 2
+        if len(buf) < end:
+            break
+        out.append(bytes(buf[:end]))
+        del buf[:end]
+    return out
+
+
+# --- varints ------------------------------------------------------------------
+
+
+def put_uvarint(out: bytearray, value: int) -> None:
+    """Append an unsigned LEB128 varint."""
+    if value < 0:
+        raise ProtocolError(f"expected an unsigned integer, got {value}")
+    while value >= 0x80:
+        out.append((value & 0x7F) | 0x80)
+        value >>= 7
+    out.append(value)
+
+
+def put_svarint(out: bytearray, value: int) -> None:
+    """Append a zigzag-encoded signed varint."""
+    put_uvarint(out, value * 2 if value >= 0 else -value * 2 - 1)
+
+
+class Reader:
+    """Reads varints and bytes from a payload; ProtocolError when it runs short."""
+
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+        self.pos = 0
+
+    def done(self) -> bool:
+        """True when every byte has been read."""
+        return self.pos >= len(self.data)
+
+    def uvarint(self) -> int:
+        """Read an unsigned varint."""
+        shift = value = 0
+        while True:
+            if self.pos >= len(self.data):
+                raise ProtocolError(f"expected a varint at byte {self.pos}, got the end of data")
+            byte = self.data[self.pos]
+            self.pos += 1
+            value |= (byte & 0x7F) << shift
+            if byte < 0x80:
+                return value
+            shift += 7
+            if shift > 63:
+                raise ProtocolError(f"expected a varint of at most 9 bytes at byte {self.pos}")
+
+    def svarint(self) -> int:
+        """Read a zigzag-encoded signed varint."""
+        raw = self.uvarint()
+        return (raw >> 1) ^ -(raw & 1)
+
+    def take(self, n: int) -> bytes:
+        """Read n raw bytes."""
+        if self.pos + n > len(self.data):
+            raise ProtocolError(
+                f"expected {n} bytes at byte {self.pos}, got {len(self.data) - self.pos}"
+            )
+        chunk = self.data[self.pos : self.pos + n]
+        self.pos += n
+        return chunk
+
+
+# --- ARQ payloads -----------------------------------------------------------------
+
+
+def data_payload(floor: int, messages: Iterable[tuple[int, bytes]]) -> bytes:
+    """DATA: the sender's floor (every id below it is settled), then (id, body) pairs."""
+    out = bytearray()
+    put_uvarint(out, floor)
+    for msg_id, body in messages:
+        put_uvarint(out, msg_id - floor)
+        put_uvarint(out, len(body))
+        out += body
+    return bytes(out)
+
+
+def message_cost(floor: int, msg_id: int, body: bytes) -> int:
+    """Bytes one message adds to a DATA payload."""
+    out = bytearray()
+    put_uvarint(out, msg_id - floor)
+    put_uvarint(out, len(body))
+    return len(out) + len(body)
+
+
+def parse_data(payload: bytes) -> tuple[int, list[tuple[int, bytes]]]:
+    """Inverse of data_payload; ProtocolError on a malformed payload."""
+    r = Reader(payload)
+    floor = r.uvarint()
+    messages = []
+    while not r.done():
+        msg_id = floor + r.uvarint()
+        messages.append((msg_id, r.take(r.uvarint())))
+    return floor, messages
+
+
+def ack_payload(ids: Iterable[int]) -> bytes:
+    """ACK: message ids, sorted and delta-coded."""
+    out = bytearray()
+    prev = 0
+    for msg_id in sorted(set(ids)):
+        put_uvarint(out, msg_id - prev)
+        prev = msg_id
+    return bytes(out)
+
+
+def parse_ack(payload: bytes) -> list[int]:
+    """Inverse of ack_payload."""
+    r = Reader(payload)
+    ids = []
+    prev = 0
+    while not r.done():
+        prev += r.uvarint()
+        ids.append(prev)
+    return ids

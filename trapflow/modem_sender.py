@@ -1,0 +1,405 @@
+"""The modem sender: outbox -> prioritised, rate-limited, acknowledged frames on a serial link.
+
+Runs as its own process beside the normalizer, sharing the outbox file. Per class it
+is stop-and-wait (one batch in flight, resent until acknowledged or expired), so each
+class arrives in order; classes interleave by priority up to `window` frames in flight.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import msgspec
+
+from trapflow.errors import ProtocolError
+from trapflow.link_codec import LinkCodec
+from trapflow.link_frame import (
+    ACK,
+    DATA,
+    OVERHEAD,
+    Deframer,
+    data_payload,
+    frame,
+    message_cost,
+    parse_ack,
+    put_uvarint,
+)
+from trapflow.link_port import LinkPort
+from trapflow.modem_config import BITS_PER_BYTE, ModemConfig
+from trapflow.outbox import ACKED, REJECTED, OutboxConfig, OutboxQueue, Stored
+
+log = logging.getLogger(__name__)
+
+HOUR_NS = 3600 * 10**9
+LOAD_PER_CLASS = 64  # pending records of one class held in memory at once
+PURGE_INTERVAL_S = 60.0
+BACKLOG_INTERVAL_S = 5.0
+
+
+class _Msg:
+    """A record on its way: encoded body, class, attempts, ack deadline."""
+
+    __slots__ = ("stored", "body", "attempts", "deadline")
+
+    def __init__(self, stored: Stored, body: bytes) -> None:
+        self.stored = stored
+        self.body = body
+        self.attempts = 0
+        self.deadline = 0.0
+
+
+class _Class:
+    """Per-class queue: loaded pending records (oldest first) and the batch in flight."""
+
+    def __init__(self, name: str, rank: int) -> None:
+        self.name = name
+        self.rank = rank
+        self.queue: collections.deque[_Msg] = collections.deque()
+        self.cursor = 0  # highest seq loaded from the outbox
+        self.inflight: list[_Msg] = []
+
+
+class ModemSender:
+    """Sends outbox records over a serial link; call step() in a loop, or run(stop)."""
+
+    def __init__(
+        self,
+        outbox_path: str | Path,
+        port: str | Any,
+        cfg: ModemConfig | None = None,
+        outbox_cfg: OutboxConfig | None = None,
+        health: Callable[[dict[str, Any]], dict[str, Any] | None] | None = None,
+    ) -> None:
+        self.cfg = cfg or ModemConfig()
+        self.queue = OutboxQueue(outbox_path, outbox_cfg or OutboxConfig())
+        self.port = LinkPort(port, self.cfg.baudrate, self.cfg.reopen_interval_s)
+        self.codec = LinkCodec(self.cfg.labels)
+        self.deframer = Deframer()
+        self.health = health
+        self.classes: dict[str, _Class] = {}
+        self.by_id: dict[int, _Msg] = {}
+        self._frames: dict[int, tuple[float, set[int]]] = {}  # frame no -> (deadline, ids unacked)
+        self._frame_no = 0
+        self._last_known = 0
+        self._link_free_at = 0.0  # monotonic time the previous frame has left the modem
+        self._next_housekeeping = 0.0
+        self._next_purge = 0.0
+        self._next_backlog = 0.0
+        self._ledger: collections.deque[tuple[int, int]] = collections.deque(
+            self.queue.sent_since(time.time_ns() - HOUR_NS)
+        )
+        self._ledger_bytes = sum(b for _, b in self._ledger)
+        self.counters = collections.Counter[str]()
+        self.blocked = ""
+        self._backlog = 0
+        # Worst case around a body in a DATA payload: floor, id delta (5 bytes each), length.
+        self._max_body = self.cfg.max_frame_payload - 12
+
+    # --- the loop -----------------------------------------------------------------
+
+    def run(self, stop: threading.Event) -> None:
+        """Step until stop is set, sleeping on the port between steps."""
+        try:
+            while not stop.is_set():
+                delay = self.step()
+                self.port.wait_readable(delay)
+        finally:
+            self.close()
+
+    def step(self, now: float | None = None) -> float:
+        """One pass: acks in, timeouts, housekeeping, at most one frame out.
+
+        Returns how long the caller may wait before the next step.
+        """
+        now = time.monotonic() if now is None else now
+        if not self.port.ensure_open(now):
+            self._requeue_all()
+            return min(0.2, self.cfg.reopen_interval_s)
+        self._receive()
+        self._timeouts(now)
+        if now >= self._next_housekeeping:
+            self._next_housekeeping = now + self.cfg.housekeeping_s
+            self._housekeeping(now)
+        sent = self._send(now)
+        self.queue.tick()
+        if sent:
+            return 0.0
+        return max(0.0, min(0.1, self._link_free_at - now)) if self._link_free_at > now else 0.1
+
+    def close(self) -> None:
+        """Close the port and the outbox connection."""
+        self.port.close("stopped")
+        self.queue.close()
+
+    # --- acknowledgements and timeouts ---------------------------------------------------
+
+    def _receive(self) -> None:
+        data = self.port.read()
+        if not data:
+            return
+        acked: list[int] = []
+        for kind, payload in self.deframer.feed(data):
+            if kind != ACK:
+                self.counters["unexpected_frames"] += 1
+                continue
+            try:
+                acked.extend(parse_ack(payload))
+            except ProtocolError:
+                self.counters["bad_acks"] += 1
+        if not acked:
+            return
+        # Every acknowledged id is on the surface, even one whose wait already timed out
+        # (or one sent before a restart): settle them all, so none is sent again.
+        self.queue.resolve(acked, ACKED)
+        done = set(acked)
+        self.counters["acked"] += len(done)
+        for msg_id in done & self.by_id.keys():
+            msg = self.by_id.pop(msg_id)
+            cls = self.classes.get(msg.stored.cls)
+            if cls is not None and msg in cls.inflight:
+                cls.inflight.remove(msg)
+        for cls in self.classes.values():
+            if any(m.stored.seq in done for m in cls.queue):
+                cls.queue = collections.deque(m for m in cls.queue if m.stored.seq not in done)
+        for no, (_, ids) in list(self._frames.items()):
+            ids.difference_update(done)
+            if not ids:
+                del self._frames[no]
+
+    def _timeouts(self, now: float) -> None:
+        self._frames = {no: f for no, f in self._frames.items() if f[0] > now}
+        for cls in self.classes.values():
+            if cls.inflight and min(m.deadline for m in cls.inflight) <= now:
+                self.counters["timeouts"] += 1
+                for msg in reversed(cls.inflight):
+                    self.by_id.pop(msg.stored.seq, None)
+                    cls.queue.appendleft(msg)
+                cls.inflight = []
+
+    def _requeue_all(self) -> None:
+        for cls in self.classes.values():
+            for msg in reversed(cls.inflight):
+                self.by_id.pop(msg.stored.seq, None)
+                cls.queue.appendleft(msg)
+            cls.inflight = []
+        self._frames.clear()
+
+    # --- loading, expiry, aggregation ---------------------------------------------------
+
+    def _class(self, name: str) -> _Class:
+        cls = self.classes.get(name)
+        if cls is None:
+            cls = self.classes[name] = _Class(name, self.cfg.priority_of(name))
+        return cls
+
+    def _load(self, cls: _Class) -> None:
+        room = LOAD_PER_CLASS - len(cls.queue) - len(cls.inflight)
+        if room <= 0:
+            return
+        rows = self.queue.pending(cls.name, cls.cursor, room)
+        tried = self.queue.tried([s.seq for s in rows])
+        for stored in rows:
+            cls.cursor = stored.seq
+            if stored.seq in self.by_id:
+                continue  # in flight already (a reload after aggregation)
+            if not stored.intact:
+                self.queue.resolve([stored.seq], REJECTED)
+                self.counters["corrupt"] += 1
+                continue
+            try:
+                body = self.codec.encode(stored.record())
+            except (ValueError, msgspec.DecodeError):
+                self.queue.resolve([stored.seq], REJECTED)
+                self.counters["undecodable"] += 1
+                continue
+            if len(body) > self._max_body:
+                self.queue.resolve([stored.seq], REJECTED)
+                self.counters["too_large"] += 1
+                continue
+            msg = _Msg(stored, body)
+            msg.attempts = int(stored.seq in tried)  # sent before a restart: may be up there
+            cls.queue.append(msg)
+
+    def _housekeeping(self, now: float) -> None:
+        last = self.queue.last_seq()
+        if last != self._last_known:
+            for name in self.queue.classes(self._last_known):
+                self._class(name)
+            self._last_known = last
+        if now >= self._next_backlog:  # a full count: not on every pass
+            self._next_backlog = now + BACKLOG_INTERVAL_S
+            self._backlog = self.queue.counts()[2]
+        wall = time.time_ns()
+        for cls in list(self.classes.values()):
+            self._expire(cls, wall)
+            self._load(cls)
+            if self.cfg.aggregates(cls.name) and len(cls.queue) > self.cfg.aggregate_backlog:
+                self._aggregate(cls, wall)
+        if self.health is not None:
+            record = self.health(self.stats())
+            if record is not None:
+                self.queue.replace(record, "health", [])
+        if now >= self._next_purge:
+            self._next_purge = now + PURGE_INTERVAL_S
+            self.queue.purge()
+
+    def _expire(self, cls: _Class, wall_ns: int) -> None:
+        ttl = self.cfg.ttl_of(cls.name)
+        if ttl <= 0:
+            return
+        before = wall_ns - int(ttl * 1e9)
+        gone = self.queue.expire(cls.name, before, keep=[m.stored.seq for m in cls.inflight])
+        if gone:
+            self.counters["expired"] += gone
+            cls.queue = collections.deque(m for m in cls.queue if m.stored.t_ns >= before)
+
+    def _aggregate(self, cls: _Class, wall_ns: int) -> None:
+        interval_ns = int(self.cfg.aggregate_interval_s * 1e9)
+        current = wall_ns // interval_ns
+        buckets: dict[int, list[_Msg]] = collections.defaultdict(list)
+        for msg in cls.queue:
+            bucket = msg.stored.t_ns // interval_ns
+            # A record sent once may already be on the surface: summarising it would count it twice.
+            fresh = not msg.attempts and not msg.stored.body.startswith(b'{"aggregate"')
+            if bucket < current and fresh:
+                buckets[bucket].append(msg)
+        made = False
+        for members in buckets.values():
+            if len(members) < 2:
+                continue
+            record = self._summary(cls.name, [m.stored.record() for m in members])
+            self.queue.replace(record, cls.name, [m.stored.seq for m in members])
+            self.counters["aggregated"] += len(members)
+            self.counters["aggregates"] += 1
+            made = True
+        if made:
+            # Reload from the outbox: the aggregates take their place in seq order.
+            cls.queue.clear()
+            cls.cursor = 0
+            self._load(cls)
+
+    def _summary(self, name: str, records: list[dict[str, Any]]) -> dict[str, Any]:
+        bodies = [next(iter(r.values())) for r in records]
+        stamps = sorted(b["timestamp"] for b in bodies if isinstance(b.get("timestamp"), str))
+
+        def score(rec: dict[str, Any]) -> float:
+            value = next(iter(rec.values())).get("confidence", 0.0)
+            return float(value) if isinstance(value, (int, float)) else 0.0
+
+        best = sorted(records, key=score, reverse=True)[: self.cfg.aggregate_best]
+        summary: dict[str, Any] = {"class": name}
+        if stamps:
+            summary["from"], summary["to"] = stamps[0], stamps[-1]
+        summary["count"] = len(records)
+        summary["best"] = best
+        record = {"aggregate": summary}
+        # Keep the summary inside one frame: drop the weakest best records until it fits.
+        while best and len(self.codec.encode(record)) > self._max_body:
+            best.pop()
+        return record
+
+    # --- sending ----------------------------------------------------------------------
+
+    def floor(self) -> int:
+        """Lowest seq the surface may still receive as new (everything below is settled)."""
+        heads = [self._last_known + 1]
+        for cls in self.classes.values():
+            heads.extend(m.stored.seq for m in cls.inflight[:1])
+            heads.extend(m.stored.seq for m in list(cls.queue)[:1])
+        return min(heads)
+
+    def _budget_ok(self, nbytes: int, wall_ns: int) -> bool:
+        while self._ledger and self._ledger[0][0] < wall_ns - HOUR_NS:
+            self._ledger_bytes -= self._ledger.popleft()[1]
+        if self.cfg.bytes_per_hour and self._ledger_bytes + nbytes > self.cfg.bytes_per_hour:
+            self.blocked = "hourly byte budget spent"
+            return False
+        return True
+
+    def _send(self, now: float) -> bool:
+        if now < self._link_free_at:
+            self.blocked = "bit rate"
+            return False
+        if len(self._frames) >= self.cfg.window:
+            self.blocked = "window full"
+            return False
+        ready = sorted(
+            (c for c in self.classes.values() if c.queue and not c.inflight),
+            key=lambda c: (c.rank, c.queue[0].stored.seq),
+        )
+        if not ready:
+            self.blocked = ""
+            return False
+        floor = self.floor()
+        head = bytearray()
+        put_uvarint(head, floor)
+        size = len(head)
+        batch: list[tuple[_Class, _Msg]] = []
+        for cls in ready:
+            for msg in cls.queue:
+                cost = message_cost(floor, msg.stored.seq, msg.body)
+                if size + cost > self.cfg.max_frame_payload:
+                    break
+                batch.append((cls, msg))
+                size += cost
+        if not batch:
+            return False
+        nbytes = size + OVERHEAD
+        wall = time.time_ns()
+        if not self._budget_ok(nbytes, wall):
+            return False
+        wire = frame(DATA, data_payload(floor, ((m.stored.seq, m.body) for _, m in batch)))
+        if not self.port.write(wire):
+            self._requeue_all()
+            return False
+        airtime = len(wire) * BITS_PER_BYTE / self.cfg.bit_rate
+        self._link_free_at = max(now, self._link_free_at) + airtime
+        self._ledger.append((wall, len(wire)))
+        self._ledger_bytes += len(wire)
+        self.queue.record_sent(len(wire), [m.stored.seq for _, m in batch if not m.attempts], wall)
+        ack_airtime = 24 * BITS_PER_BYTE / self.cfg.bit_rate
+        for cls, msg in batch:
+            cls.queue.popleft()
+            wait = min(
+                self.cfg.ack_timeout_s * self.cfg.backoff**msg.attempts, self.cfg.backoff_max_s
+            )
+            msg.deadline = self._link_free_at + ack_airtime + wait
+            if msg.attempts:
+                self.counters["retransmits"] += 1
+            msg.attempts += 1
+            cls.inflight.append(msg)
+            self.by_id[msg.stored.seq] = msg
+        self._frame_no += 1
+        self._frames[self._frame_no] = (
+            max(m.deadline for _, m in batch),
+            {m.stored.seq for _, m in batch},
+        )
+        self.counters["frames"] += 1
+        self.counters["bytes"] += len(wire)
+        self.counters["messages"] += len(batch)
+        self.blocked = ""
+        return True
+
+    # --- stats ------------------------------------------------------------------------
+
+    def stats(self) -> dict[str, Any]:
+        """State, reason and counters for the stats topic."""
+        return {
+            "state": "active" if self.port.is_open else "inactive",
+            "reason": self.port.reason,
+            "blocked": self.blocked,
+            "port": self.port.url,
+            "bytes_last_hour": self._ledger_bytes,
+            "bytes_per_hour": self.cfg.bytes_per_hour,
+            "backlog": self._backlog,
+            "in_flight": len(self.by_id),
+            "queued": {c.name: len(c.queue) for c in self.classes.values() if c.queue},
+            "link": self.deframer.stats(),
+            **dict(self.counters),
+        }

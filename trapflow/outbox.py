@@ -1,0 +1,556 @@
+"""Durable store-and-forward outbox: every result lands here before anything is sent.
+
+One SQLite file in WAL mode shared by the appender (the normalizer) and the modem
+sender, each its own process. Records are append-only and checksummed; the sender
+marks them resolved (acknowledged, expired, aggregated) in a separate table.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import sqlite3
+import struct
+import threading
+import time
+import zlib
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Annotated, Any
+
+import msgspec
+
+from trapflow.errors import TrapflowError
+
+log = logging.getLogger(__name__)
+
+# Values of resolved.state: why a record no longer waits to be sent.
+ACKED = 1
+EXPIRED = 2
+AGGREGATED = 3
+REJECTED = 4  # too large for the link, or its checksum failed
+STATE_NAMES = {ACKED: "acked", EXPIRED: "expired", AGGREGATED: "aggregated", REJECTED: "rejected"}
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS records(
+    seq INTEGER PRIMARY KEY AUTOINCREMENT,  -- monotonic, never reused (AUTOINCREMENT)
+    t_ns INTEGER NOT NULL,                  -- wall clock at append: TTL and retention
+    cls TEXT NOT NULL,                      -- message class, e.g. stereo_ir/scallop
+    body BLOB NOT NULL,                     -- the record as JSON
+    crc INTEGER NOT NULL                    -- crc32 of seq, t_ns, cls and body
+);
+CREATE INDEX IF NOT EXISTS records_cls ON records(cls, seq);
+CREATE TABLE IF NOT EXISTS resolved(
+    seq INTEGER PRIMARY KEY,
+    state INTEGER NOT NULL,
+    t_ns INTEGER NOT NULL                   -- wall clock when resolved: retention
+);
+CREATE TABLE IF NOT EXISTS tried(           -- records sent at least once: never aggregated
+    seq INTEGER PRIMARY KEY
+);
+CREATE TABLE IF NOT EXISTS sent(            -- link ledger for the hourly byte budget
+    t_ns INTEGER NOT NULL,
+    bytes INTEGER NOT NULL
+);
+"""
+
+_PACK = struct.Struct("<qq")
+
+
+class OutboxConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """The durable outbox between the normalizer and the modem sender."""
+
+    path: str = "outbox.sqlite"
+    """SQLite file, relative to the run directory."""
+    fsync_interval_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 1.0
+    """At most this long between an append and its fsync (what survives a power cut)."""
+    retention_s: Annotated[float, msgspec.Meta(ge=0)] = 7 * 86400.0
+    """Resolved (acknowledged, expired, aggregated) records are deleted this long after."""
+    quota_bytes: Annotated[int, msgspec.Meta(ge=1 << 16)] = 256 << 20
+    """The outbox never grows past this; resolved records go first, then appends are refused."""
+    min_free_bytes: Annotated[int, msgspec.Meta(ge=0)] = 64 << 20
+    """Appends are refused when the disk has less free space than this."""
+    max_record_bytes: Annotated[int, msgspec.Meta(ge=64, le=1 << 20)] = 16384
+    """A record whose JSON is larger is refused."""
+    class_fields: dict[str, str] = msgspec.field(
+        default_factory=lambda: {"mono_ir": "label", "stereo_ir": "label"}
+    )
+    """Message class = the record's key, plus '/' and this field's value for these keys."""
+
+
+class OutboxFull(TrapflowError):
+    """The outbox is at its quota (or the disk is nearly full): the record was not stored."""
+
+
+class Stored(msgspec.Struct, frozen=True):
+    """One record as read back from the outbox."""
+
+    seq: int
+    t_ns: int
+    cls: str
+    body: bytes
+    intact: bool
+
+    def record(self) -> dict[str, Any]:
+        """The record as a dict (the normalizer's JSON shape)."""
+        value = msgspec.json.decode(self.body)
+        if not isinstance(value, dict):
+            raise ValueError(f"expected a JSON object in record {self.seq}, got {type(value)}")
+        return value
+
+
+def message_class(record: dict[str, Any], class_fields: dict[str, str]) -> str:
+    """The class a record is prioritised by: `stereo_ir/scallop`, `health`, `stereo_vo`..."""
+    if len(record) != 1:
+        return "other"
+    key, body = next(iter(record.items()))
+    if not isinstance(body, dict):
+        return str(key)
+    if key == "aggregate" and isinstance(body.get("class"), str):
+        return str(body["class"])
+    field = class_fields.get(key)
+    if field is not None and isinstance(body.get(field), str):
+        return f"{key}/{body[field]}"
+    return str(key)
+
+
+def record_crc(seq: int, t_ns: int, cls: str, body: bytes) -> int:
+    """The checksum stored with every record."""
+    return zlib.crc32(body, zlib.crc32(cls.encode(), zlib.crc32(_PACK.pack(seq, t_ns))))
+
+
+def _connect(path: Path) -> sqlite3.Connection:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    db = sqlite3.connect(str(path), isolation_level=None, timeout=10.0, check_same_thread=False)
+    db.execute("PRAGMA journal_mode=WAL")
+    # NORMAL in WAL mode: a commit is written (survives a process crash) but not fsynced;
+    # the outbox fsyncs the WAL itself on a bounded interval, and checkpoints stay safe.
+    db.execute("PRAGMA synchronous=NORMAL")
+    db.execute("PRAGMA journal_size_limit=4194304")
+    db.executescript(_SCHEMA)
+    return db
+
+
+class _Store:
+    """A connection to the outbox file plus the interval fsync of its WAL."""
+
+    def __init__(self, path: str | Path, cfg: OutboxConfig) -> None:
+        self.path = Path(path)
+        self.cfg = cfg
+        self._db = _connect(self.path)
+        self._lock = threading.RLock()
+        self._dirty = False
+        self._last_sync = time.monotonic()
+        self.syncs = 0
+        self._fsync_dir()
+
+    def _fsync_dir(self) -> None:
+        # A new file is only durable once its directory entry is.
+        fd = os.open(self.path.parent, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+    def sync(self) -> None:
+        """fsync the WAL now: everything committed so far survives a power cut."""
+        with self._lock:
+            for suffix in ("-wal", ""):
+                try:
+                    fd = os.open(str(self.path) + suffix, os.O_RDONLY)
+                except FileNotFoundError:
+                    continue
+                try:
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+            self._dirty = False
+            self._last_sync = time.monotonic()
+            self.syncs += 1
+
+    def _maybe_sync(self) -> None:
+        if self._dirty and time.monotonic() - self._last_sync >= self.cfg.fsync_interval_s:
+            self.sync()
+
+    def _write(self, sql: str, rows: Iterable[Sequence[Any]]) -> None:
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                self._db.executemany(sql, rows)
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._dirty = True
+            self._maybe_sync()
+
+    def used_bytes(self) -> int:
+        """Bytes the outbox occupies: live pages plus the WAL."""
+        with self._lock:
+            pages = self._db.execute("PRAGMA page_count").fetchone()[0]
+            free = self._db.execute("PRAGMA freelist_count").fetchone()[0]
+            size = self._db.execute("PRAGMA page_size").fetchone()[0]
+        try:
+            wal = os.path.getsize(str(self.path) + "-wal")
+        except OSError:
+            wal = 0
+        return int((pages - free) * size + wal)
+
+    def counts(self) -> tuple[int, int, int]:
+        """(last seq ever assigned, records stored, records still waiting to be sent)."""
+        with self._lock:
+            row = self._db.execute(
+                "SELECT seq FROM sqlite_sequence WHERE name='records'"
+            ).fetchone()
+            stored = self._db.execute("SELECT COUNT(*) FROM records").fetchone()[0]
+            resolved = self._db.execute(
+                "SELECT COUNT(*) FROM resolved JOIN records USING(seq)"
+            ).fetchone()[0]
+        return (int(row[0]) if row else 0, int(stored), int(stored - resolved))
+
+    def purge(self, now_ns: int | None = None, keep_s: float | None = None) -> int:
+        """Delete resolved records older than the retention; returns how many went."""
+        now_ns = time.time_ns() if now_ns is None else now_ns
+        keep = self.cfg.retention_s if keep_s is None else keep_s
+        cutoff = now_ns - int(keep * 1e9)
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                cur = self._db.execute(
+                    "DELETE FROM records WHERE seq IN (SELECT seq FROM resolved WHERE t_ns < ?)",
+                    (cutoff,),
+                )
+                gone = cur.rowcount
+                self._db.execute(
+                    "DELETE FROM tried WHERE seq IN (SELECT seq FROM resolved WHERE t_ns < ?)",
+                    (cutoff,),
+                )
+                self._db.execute("DELETE FROM resolved WHERE t_ns < ?", (cutoff,))
+                self._db.execute("DELETE FROM sent WHERE t_ns < ?", (now_ns - 7200 * 10**9,))
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._dirty = True
+        return int(gone)
+
+    def integrity_check(self) -> list[str]:
+        """SQLite's own check plus every record's checksum; empty when all is well."""
+        with self._lock:
+            problems = [r[0] for r in self._db.execute("PRAGMA integrity_check") if r[0] != "ok"]
+            for seq, t_ns, cls, body, crc in self._db.execute(
+                "SELECT seq, t_ns, cls, body, crc FROM records"
+            ):
+                if record_crc(seq, t_ns, cls, bytes(body)) != crc:
+                    problems.append(f"record {seq}: checksum mismatch")
+        return problems
+
+    def read(self, seqs: Sequence[int] | None = None) -> list[Stored]:
+        """Records by seq (all records when seqs is None), checksums verified."""
+        with self._lock:
+            if seqs is None:
+                rows = self._db.execute(
+                    "SELECT seq, t_ns, cls, body, crc FROM records ORDER BY seq"
+                )
+                return [_stored(r) for r in rows]
+            out = []
+            for seq in seqs:
+                row = self._db.execute(
+                    "SELECT seq, t_ns, cls, body, crc FROM records WHERE seq=?", (seq,)
+                ).fetchone()
+                if row is not None:
+                    out.append(_stored(row))
+            return out
+
+    def close(self) -> None:
+        """Fsync what is pending and close the file."""
+        with self._lock:
+            if self._dirty:
+                self.sync()
+            self._db.close()
+
+
+def _stored(row: tuple[int, int, str, bytes, int]) -> Stored:
+    seq, t_ns, cls, body, crc = row
+    body = bytes(body)
+    return Stored(seq, t_ns, cls, body, record_crc(seq, t_ns, cls, body) == crc)
+
+
+class Outbox(_Store):
+    """The appending side, used in-process by the normalizer.
+
+    `append()` returns the record's seq once the record is committed: from then on it
+    survives a crash of any trapflow process (kill -9). It is *acknowledged as stored*
+    (survives a power cut) once `durable_seq >= seq`, at most `fsync_interval_s` later:
+    a background thread fsyncs the WAL on that interval whenever something is pending.
+    """
+
+    def __init__(self, path: str | Path, cfg: OutboxConfig | None = None) -> None:
+        super().__init__(path, cfg or OutboxConfig())
+        self.appended = 0
+        self.refused = 0
+        self.quota_alarm = ""
+        self._last_seq = self.counts()[0]
+        self._durable_seq = self._last_seq
+        self._quota_checked = 0.0
+        self._used_estimate = 0
+        self._stop = threading.Event()
+        self._flusher = threading.Thread(target=self._flush_loop, name="outbox-fsync", daemon=True)
+        self._flusher.start()
+
+    @property
+    def durable_seq(self) -> int:
+        """Every record with seq up to this one has been fsynced."""
+        return self._durable_seq
+
+    def sync(self) -> None:
+        with self._lock:
+            last = self._last_seq
+            super().sync()
+            self._durable_seq = last
+
+    def _flush_loop(self) -> None:
+        while not self._stop.wait(self.cfg.fsync_interval_s / 2):
+            with self._lock:
+                self._maybe_sync()
+
+    def _check_quota(self, incoming: int) -> None:
+        # Measure at most once a second, unless the estimate since the last measure nears the quota.
+        now = time.monotonic()
+        self._used_estimate += incoming + 64
+        if (
+            not self.quota_alarm
+            and now - self._quota_checked < 1.0
+            and self._used_estimate < self.cfg.quota_bytes * 0.9
+        ):
+            return
+        self._quota_checked = now
+        used = self._used_estimate = self.used_bytes()
+        free = shutil.disk_usage(self.path.parent).free
+        if used + incoming <= self.cfg.quota_bytes and free - incoming >= self.cfg.min_free_bytes:
+            self.quota_alarm = ""
+            return
+        # Resolved records go first, whatever their age: they already reached the surface.
+        gone = self.purge(keep_s=0.0)
+        with self._lock:
+            # Hand the freed pages back and shrink the WAL, which counts against the quota.
+            self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        used = self._used_estimate = self.used_bytes()
+        if used + incoming <= self.cfg.quota_bytes and free - incoming >= self.cfg.min_free_bytes:
+            self.quota_alarm = ""
+            return
+        self.quota_alarm = (
+            f"outbox at {used} of {self.cfg.quota_bytes} bytes, {free} bytes free on disk "
+            f"(minimum {self.cfg.min_free_bytes}); purged {gone} resolved records"
+        )
+        raise OutboxFull(self.quota_alarm)
+
+    def append(self, record: dict[str, Any]) -> int:
+        """Store one record; returns its seq. Raises OutboxFull (counted) at the quota."""
+        return self.append_many([record])[-1]
+
+    def append_many(self, records: Sequence[dict[str, Any]]) -> list[int]:
+        """Store records in one transaction; returns their seqs in order."""
+        if not records:
+            return []
+        bodies = [msgspec.json.encode(r) for r in records]
+        for body in bodies:
+            if len(body) > self.cfg.max_record_bytes:
+                self.refused += len(records)
+                raise OutboxFull(
+                    f"expected a record of at most {self.cfg.max_record_bytes} bytes of JSON, "
+                    f"got {len(body)}"
+                )
+        try:
+            self._check_quota(sum(len(b) for b in bodies))
+        except OutboxFull:
+            self.refused += len(records)
+            raise
+        t_ns = time.time_ns()
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                # Read the counter inside the write lock: the sender also appends (aggregates).
+                row = self._db.execute(
+                    "SELECT seq FROM sqlite_sequence WHERE name='records'"
+                ).fetchone()
+                first = (int(row[0]) if row else 0) + 1
+                rows = []
+                for i, (rec, body) in enumerate(zip(records, bodies, strict=True)):
+                    seq = first + i
+                    cls = message_class(rec, self.cfg.class_fields)
+                    rows.append((seq, t_ns, cls, body, record_crc(seq, t_ns, cls, body)))
+                self._db.executemany(
+                    "INSERT INTO records(seq, t_ns, cls, body, crc) VALUES (?,?,?,?,?)", rows
+                )
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._last_seq = first + len(records) - 1
+            self._dirty = True
+            self.appended += len(records)
+            self._maybe_sync()
+        return [r[0] for r in rows]
+
+    def stats(self) -> dict[str, Any]:
+        """Counters for the stats topic."""
+        last, stored, backlog = self.counts()
+        return {
+            "last_seq": last,
+            "durable_seq": self._durable_seq,
+            "appended": self.appended,
+            "refused": self.refused,
+            "stored": stored,
+            "backlog": backlog,
+            "used_bytes": self.used_bytes(),
+            "quota_bytes": self.cfg.quota_bytes,
+            "quota_alarm": self.quota_alarm,
+            "syncs": self.syncs,
+        }
+
+    def close(self) -> None:
+        self._stop.set()
+        self._flusher.join(timeout=2)
+        with self._lock:
+            if self._dirty:
+                self.sync()
+            self._db.close()
+
+
+class OutboxQueue(_Store):
+    """The sending side: pending records per class, resolution, the link ledger."""
+
+    def classes(self, after: int = 0) -> list[str]:
+        """Classes of the records with seq > after (the last seq seen: only new ones are read)."""
+        with self._lock:
+            rows = self._db.execute("SELECT DISTINCT cls FROM records WHERE seq > ?", (after,))
+            return [r[0] for r in rows]
+
+    def last_seq(self) -> int:
+        """The last seq ever assigned."""
+        with self._lock:
+            row = self._db.execute(
+                "SELECT seq FROM sqlite_sequence WHERE name='records'"
+            ).fetchone()
+            return int(row[0]) if row else 0
+
+    def pending(self, cls: str, after: int = 0, limit: int = 64) -> list[Stored]:
+        """Up to limit unresolved records of one class with seq > after, oldest first."""
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT seq, t_ns, cls, body, crc FROM records WHERE cls=? AND seq>? "
+                "AND seq NOT IN (SELECT seq FROM resolved) ORDER BY seq LIMIT ?",
+                (cls, after, limit),
+            )
+            return [_stored(r) for r in rows]
+
+    def floor(self) -> int:
+        """The lowest unresolved seq (last seq + 1 when nothing waits)."""
+        with self._lock:
+            row = self._db.execute(
+                "SELECT MIN(seq) FROM records WHERE seq NOT IN (SELECT seq FROM resolved)"
+            ).fetchone()
+            if row[0] is not None:
+                return int(row[0])
+            row = self._db.execute(
+                "SELECT seq FROM sqlite_sequence WHERE name='records'"
+            ).fetchone()
+            return (int(row[0]) if row else 0) + 1
+
+    def resolve(self, seqs: Iterable[int], state: int, now_ns: int | None = None) -> None:
+        """Mark records acknowledged, expired, aggregated or rejected (idempotent)."""
+        t = time.time_ns() if now_ns is None else now_ns
+        self._write(
+            "INSERT OR IGNORE INTO resolved(seq, state, t_ns) VALUES (?,?,?)",
+            [(s, state, t) for s in seqs],
+        )
+
+    def expire(self, cls: str, before_ns: int, keep: Iterable[int] = ()) -> int:
+        """Resolve as expired every waiting record of cls appended before before_ns."""
+        kept = set(keep)
+        with self._lock:
+            seqs = [
+                r[0]
+                for r in self._db.execute(
+                    "SELECT seq FROM records WHERE cls=? AND t_ns<? "
+                    "AND seq NOT IN (SELECT seq FROM resolved)",
+                    (cls, before_ns),
+                )
+                if r[0] not in kept
+            ]
+        if seqs:
+            self.resolve(seqs, EXPIRED)
+        return len(seqs)
+
+    def replace(self, record: dict[str, Any], cls: str, covered: Sequence[int]) -> int:
+        """Append an aggregate and resolve what it covers in one transaction; returns its seq."""
+        body = msgspec.json.encode(record)
+        t_ns = time.time_ns()
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                row = self._db.execute(
+                    "SELECT seq FROM sqlite_sequence WHERE name='records'"
+                ).fetchone()
+                seq = (int(row[0]) if row else 0) + 1
+                self._db.execute(
+                    "INSERT INTO records(seq, t_ns, cls, body, crc) VALUES (?,?,?,?,?)",
+                    (seq, t_ns, cls, body, record_crc(seq, t_ns, cls, body)),
+                )
+                self._db.executemany(
+                    "INSERT OR IGNORE INTO resolved(seq, state, t_ns) VALUES (?,?,?)",
+                    [(s, AGGREGATED, t_ns) for s in covered],
+                )
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._dirty = True
+            self._maybe_sync()
+        return seq
+
+    def record_sent(self, nbytes: int, seqs: Sequence[int] = (), now_ns: int | None = None) -> None:
+        """Add a transmission to the budget ledger and note the records it carried."""
+        t = time.time_ns() if now_ns is None else now_ns
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                self._db.execute("INSERT INTO sent(t_ns, bytes) VALUES (?,?)", (t, nbytes))
+                self._db.executemany(
+                    "INSERT OR IGNORE INTO tried(seq) VALUES (?)", [(s,) for s in seqs]
+                )
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._dirty = True
+
+    def tried(self, seqs: Sequence[int]) -> set[int]:
+        """Which of these records were sent at least once (they may be on the surface)."""
+        with self._lock:
+            return {
+                s
+                for s in seqs
+                if self._db.execute("SELECT 1 FROM tried WHERE seq=?", (s,)).fetchone()
+            }
+
+    def sent_since(self, since_ns: int) -> list[tuple[int, int]]:
+        """(t_ns, bytes) of transmissions since a time, oldest first."""
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT t_ns, bytes FROM sent WHERE t_ns>=? ORDER BY t_ns", (since_ns,)
+            )
+            return [(int(a), int(b)) for a, b in rows]
+
+    def states(self) -> dict[str, int]:
+        """How many records are resolved in each way."""
+        with self._lock:
+            rows = self._db.execute("SELECT state, COUNT(*) FROM resolved GROUP BY state")
+            return {STATE_NAMES.get(s, str(s)): int(n) for s, n in rows}
+
+    def tick(self) -> None:
+        """Fsync if the interval has passed (the sender calls this from its loop)."""
+        with self._lock:
+            self._maybe_sync()

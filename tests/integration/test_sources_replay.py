@@ -1,0 +1,178 @@
+"""Replay of trapflow recordings and of ROS 2 bags written with rosbags (sqlite3 and MCAP)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from trapflow.camera import StereoRig
+from trapflow.config import SourceConfig
+from trapflow.messages import StereoPair
+from trapflow.recorder import Recorder
+from trapflow.sources import SourceError, open_source
+from trapflow.sources.base import Frames, Source
+from trapflow.sources.replay import ReplaySource
+
+W, H = 64, 48
+RIG = StereoRig.from_fov(W, H, 70.0, 0.12)
+T0 = 1_700_000_000_000_000_000
+PERIOD = 50_000_000
+TS = get_typestore(Stores.ROS2_HUMBLE)
+
+
+def img(i: int, side: int) -> np.ndarray:
+    return np.full((H, W, 3), (10 + 20 * i + 100 * side, 40, 200 - 10 * i), np.uint8)
+
+
+def level(im: np.ndarray, side: int) -> int:
+    return int(round((float(im[:, :, 0].mean()) - 10 - 100 * side) / 20))
+
+
+def make(path: Path, **options: Any) -> Source:
+    loop = options.pop("loop", False)
+    return open_source(SourceConfig(kind="replay", uri=str(path), loop=loop,
+                                    options={"rate": 0, **options}), RIG)
+
+
+def drain(src: Source, limit: int = 100) -> list[Frames]:
+    src.open()
+    try:
+        out = []
+        while len(out) < limit and (f := src.read()) is not None:
+            out.append(f)
+        return out
+    finally:
+        src.close()
+
+
+def write_trapflow(path: Path, n: int) -> None:
+    with Recorder(path) as rec:
+        for i in range(n):
+            t_mono = 10**9 + i * PERIOD
+            h = StereoPair(seq=i, t_wall_ns=T0 + i * PERIOD, t_mono_ns=t_mono, t_left_ns=t_mono,
+                           t_right_ns=t_mono + 3_000_000, skew_ns=3_000_000, encoding="jpeg",
+                           width=W, height=H)
+            jl = cv2.imencode(".jpg", img(i, 0))[1].tobytes()
+            jr = cv2.imencode(".jpg", img(i, 1))[1].tobytes()
+            rec.add_pair(h, jl, jr)
+            rec.add_result(f'{{"mono_ir": {{"seq": {i}, "label": "crab"}}}}')
+
+
+def header(t: int, frame: str) -> Any:
+    Time = TS.types["builtin_interfaces/msg/Time"]
+    Header = TS.types["std_msgs/msg/Header"]
+    return Header(stamp=Time(sec=t // 10**9, nanosec=t % 10**9), frame_id=frame)
+
+
+def raw_image(t: int, im: np.ndarray, encoding: str = "bgr8") -> Any:
+    Image = TS.types["sensor_msgs/msg/Image"]
+    data = cv2.cvtColor(im, cv2.COLOR_BGR2RGB) if encoding == "rgb8" else im
+    return Image(header=header(t, "cam"), height=H, width=W, encoding=encoding, is_bigendian=0,
+                 step=W * 3, data=np.ascontiguousarray(data).reshape(-1))
+
+
+def write_bag(path: Path, n: int, plugin: StoragePlugin, drop_right: int = -1) -> None:
+    with Writer(path, version=8, storage_plugin=plugin) as w:
+        cl = w.add_connection("/cam0/image_raw", "sensor_msgs/msg/Image", typestore=TS)
+        cr = w.add_connection("/cam1/image_raw", "sensor_msgs/msg/Image", typestore=TS)
+        other = w.add_connection("/imu", "std_msgs/msg/String", typestore=TS)
+        String = TS.types["std_msgs/msg/String"]
+        for i in range(n):
+            t = T0 + i * PERIOD
+            left = raw_image(t, img(i, 0), "rgb8")
+            w.write(cl, t, TS.serialize_cdr(left, "sensor_msgs/msg/Image"))
+            if i != drop_right:  # the right camera skips a frame: that pair is lost, not misaligned
+                tr = t + 4_000_000
+                w.write(cr, tr, TS.serialize_cdr(raw_image(tr, img(i, 1)), "sensor_msgs/msg/Image"))
+            w.write(other, t, TS.serialize_cdr(String(data="x"), "std_msgs/msg/String"))
+
+
+def test_replays_a_trapflow_recording(tmp_path: Path) -> None:
+    write_trapflow(tmp_path / "run.mcap", 6)
+    src = make(tmp_path / "run.mcap")
+    got = drain(src)
+    assert [level(f.left, 0) for f in got] == list(range(6))
+    assert [level(f.right, 1) for f in got] == list(range(6))
+    assert all(f.t_right_ns - f.t_left_ns == 3_000_000 for f in got)
+    assert isinstance(src, ReplaySource) and src.pairs_read == 6
+    assert src.skew.skew_max_ns == 3_000_000
+    assert ReplaySource(src.cfg, RIG).count_pairs() == 6
+
+
+@pytest.mark.parametrize("plugin", [StoragePlugin.SQLITE3, StoragePlugin.MCAP])
+def test_replays_a_ros2_bag_pairing_by_stamp(tmp_path: Path, plugin: StoragePlugin) -> None:
+    write_bag(tmp_path / "bag", 8, plugin, drop_right=3)
+    src = make(tmp_path / "bag")
+    got = drain(src)
+    assert [level(f.left, 0) for f in got] == [0, 1, 2, 4, 5, 6, 7]
+    assert [level(f.right, 1) for f in got] == [0, 1, 2, 4, 5, 6, 7]
+    assert isinstance(src, ReplaySource)
+    assert src.skew.dropped_left == 1 and src.skew.pairs == 7
+
+
+def test_replay_keeps_original_timing(tmp_path: Path) -> None:
+    write_bag(tmp_path / "bag", 5, StoragePlugin.SQLITE3)
+    got = drain(make(tmp_path / "bag", rate=4.0))
+    span = got[-1].t_left_ns - got[0].t_left_ns
+    assert span >= 4 * PERIOD / 4.0 * 0.95  # never faster than the scaled original timing
+
+
+def test_replay_loops(tmp_path: Path) -> None:
+    write_trapflow(tmp_path / "run.mcap", 3)
+    got = drain(make(tmp_path / "run.mcap", loop=True), limit=7)
+    assert [level(f.left, 0) for f in got] == [0, 1, 2, 0, 1, 2, 0]
+
+
+def test_custom_stereo_message_with_user_definition(tmp_path: Path) -> None:
+    msgdef = "sensor_msgs/Image left\nsensor_msgs/Image right\n"
+    (tmp_path / "StereoImage.msg").write_text(msgdef)
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    store.register(get_types_from_msg(msgdef, "trap_msgs/msg/StereoImage"))
+    Stereo = store.types["trap_msgs/msg/StereoImage"]
+    with Writer(tmp_path / "bag", version=8) as w:
+        c = w.add_connection("/stereo", "trap_msgs/msg/StereoImage", typestore=store)
+        for i in range(4):
+            t = T0 + i * PERIOD
+            m = Stereo(left=raw_image(t, img(i, 0)), right=raw_image(t + 1000, img(i, 1)))
+            w.write(c, t, store.serialize_cdr(m, "trap_msgs/msg/StereoImage"))
+    got = drain(make(tmp_path / "bag", msg_type="trap_msgs/msg/StereoImage",
+                     msg_def=str(tmp_path / "StereoImage.msg")))
+    assert [level(f.right, 1) for f in got] == [0, 1, 2, 3]
+    assert all(f.t_right_ns - f.t_left_ns == 1000 for f in got)
+
+
+def no_images(d: Path) -> Path:
+    with Writer(d / "bag", version=8) as w:
+        c = w.add_connection("/chatter", "std_msgs/msg/String", typestore=TS)
+        w.write(c, T0, TS.serialize_cdr(TS.types["std_msgs/msg/String"](data="hi"),
+                                        "std_msgs/msg/String"))
+    return d / "bag"
+
+
+@pytest.mark.parametrize(
+    ("setup", "options", "error"),
+    [
+        (lambda d: d / "missing.mcap", {}, "recording not found"),
+        (lambda d: (d / "junk.mcap").write_bytes(b"\0" * 100) and d / "junk.mcap", {},
+         "cannot read .* as a ROS 2 bag"),
+        (no_images, {}, "no image topics .* /chatter \\(std_msgs/msg/String\\)"),
+        (lambda d: (write_bag(d / "b", 2, StoragePlugin.SQLITE3), d / "b")[1],
+         {"left_topic": "/left", "right_topic": "/cam1/image_raw"}, "image topic '/left' not in"),
+        (lambda d: (write_bag(d / "b", 2, StoragePlugin.SQLITE3), d / "b")[1],
+         {"msg_type": "x/msg/Stereo"}, "no topic of type x/msg/Stereo"),
+    ],
+)
+def test_bad_recordings_fail_with_one_clear_reason(
+    tmp_path: Path, setup: Any, options: dict[str, Any], error: str
+) -> None:
+    src = make(setup(tmp_path), **options)
+    with pytest.raises(SourceError, match=error):
+        src.open()
+        src.read()
+    src.close()

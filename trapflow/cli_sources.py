@@ -1,0 +1,171 @@
+"""Click commands for sources and recordings: calibrate, record, replay.
+
+Thin: each parses its options, then calls one library function.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from pathlib import Path
+from typing import Any
+
+import click
+import msgspec
+
+from trapflow.errors import TrapflowError
+from trapflow.messages import Stats
+
+TAP_SOCKET = "tap.sock"  # TODO(lead): take the tap endpoint from transport once it exists
+
+
+class PatternType(click.ParamType[tuple[int, int]]):
+    """COLSxROWS inner corners of a checkerboard."""
+
+    name = "COLSxROWS"
+
+    def convert(self, value: Any, param: click.Parameter | None,
+                ctx: click.Context | None) -> tuple[int, int]:
+        if isinstance(value, tuple):
+            return value
+        from trapflow.calibrate import parse_pattern
+
+        try:
+            return parse_pattern(str(value))
+        except ValueError as exc:
+            self.fail(str(exc), param, ctx)
+
+
+class SourceSpecType(click.ParamType[tuple[str, str]]):
+    """KIND:ARGS, e.g. video:left.mp4,right.mp4."""
+
+    name = "KIND:ARGS"
+
+    def convert(self, value: Any, param: click.Parameter | None,
+                ctx: click.Context | None) -> tuple[str, str]:
+        if isinstance(value, tuple):
+            return value
+        from trapflow.sources.spec import parse_source_spec
+
+        try:
+            return parse_source_spec(str(value))
+        except TrapflowError as exc:
+            self.fail(str(exc), param, ctx)
+
+
+@click.command()
+@click.argument("left_glob")
+@click.argument("right_glob")
+@click.option("--pattern", type=PatternType(), default="9x6", show_default=True,
+              help="Inner corners per row x per column.")
+@click.option("--square", type=click.FloatRange(min=0, min_open=True), default=0.025,
+              show_default=True, help="Side of one square in metres.")
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path),
+              default=Path("calib.yaml"), show_default=True)
+def calibrate(left_glob: str, right_glob: str, pattern: tuple[int, int], square: float,
+              output: Path) -> None:
+    """Stereo checkerboard calibration from LEFT_GLOB and RIGHT_GLOB image pairs."""
+    from trapflow.calibrate import calibrate_stereo, expand
+    from trapflow.calibration import save_calibration
+
+    try:
+        report = calibrate_stereo(expand(left_glob), expand(right_glob), pattern, square)
+        save_calibration(report.calibration, output)
+    except (TrapflowError, OSError) as exc:
+        raise click.ClickException(str(exc)) from None
+    c = report.calibration
+    click.echo(f"RMS reprojection error: {report.rms_px:.3f} px over {len(report.used)} views")
+    click.echo(f"views rejected ({len(report.rejected)}): {', '.join(report.rejected) or 'none'}")
+    click.echo(f"baseline: {c.baseline_m:.4f} m, fx left {c.K1[0][0]:.1f}, right {c.K2[0][0]:.1f}")
+    click.echo(f"written: {output}")
+
+
+def _stop_on_signals() -> threading.Event:
+    stop = threading.Event()
+
+    def handler(signum: int, frame: object) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    return stop
+
+
+@click.command()
+@click.option("--run-dir", type=click.Path(file_okay=False, path_type=Path), default=Path("run"),
+              show_default=True, help="Run directory of the pipeline to attach to.")
+@click.option("--endpoint", default=None, help="Tap endpoint (overrides --run-dir).")
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="MCAP file to write.")
+def record(run_dir: Path, endpoint: str | None, output: Path) -> None:
+    """Record image pairs and results from a running pipeline to an MCAP rosbag2 file."""
+    from trapflow.recorder import record as record_tap
+
+    endpoint = endpoint or f"ipc://{run_dir.resolve() / TAP_SOCKET}"
+    stop = _stop_on_signals()
+    click.echo(f"recording {endpoint} to {output}; Ctrl-C to stop", err=True)
+    try:
+        counts = record_tap(endpoint, output, stop)
+    except (TrapflowError, OSError) as exc:
+        raise click.ClickException(str(exc)) from None
+    per_algo = ", ".join(f"{k} {v}" for k, v in sorted(counts.results.items())) or "none"
+    click.echo(f"{output}: {counts.pairs} pairs, results: {per_algo}, malformed {counts.malformed}")
+
+
+def lossless_problems(pairs_read: int, stats: Stats) -> list[str]:
+    """Why a replay was not lossless: pairs that did not enter, or a pool that missed some."""
+    problems = []
+    if stats.pairs_in != pairs_read:
+        problems.append(f"read {pairs_read} pairs from the recording, {stats.pairs_in} entered")
+    for name, pool in sorted(stats.pools.items()):
+        if pool.workers and pool.processed != pairs_read:
+            problems.append(f"pool {name}: processed {pool.processed} of {pairs_read} "
+                            f"(dropped {pool.dropped}, lost {pool.lost}, errors {pool.errors})")
+    return problems
+
+
+@click.command()
+@click.argument("path", type=click.Path(path_type=Path))
+@click.option("--rate", type=click.FloatRange(min=0), default=1.0, show_default=True,
+              help="Speed relative to the original timing; 0 = as fast as possible.")
+@click.option("--loop", is_flag=True, help="Start over at the end instead of stopping.")
+@click.option("--assert-lossless", is_flag=True,
+              help="Fail unless every pair read reached every pool.")
+@click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False), default=None)
+@click.option("--option", "options", multiple=True, metavar="KEY=VALUE",
+              help="Replay option (left_topic, right_topic, tolerance_s, msg_type, msg_def...).")
+def replay(path: Path, rate: float, loop: bool, assert_lossless: bool,
+           config_path: str | None, options: tuple[str, ...]) -> None:
+    """Feed a trapflow recording or a ROS 2 bag through the pipeline."""
+    from trapflow import config as config_mod
+    from trapflow.camera import StereoRig
+    from trapflow.sources.replay import ReplaySource
+
+    if assert_lossless and loop:
+        raise click.UsageError("--assert-lossless needs a finite replay; drop --loop")
+    opts: dict[str, Any] = {"rate": rate}
+    for item in options:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise click.BadParameter(f"expected KEY=VALUE, got {item!r}", param_hint="--option")
+        opts[key] = value
+    try:
+        cfg = config_mod.load(config_path)
+        source = msgspec.structs.replace(cfg.source, kind="replay", uri=str(path), loop=loop,
+                                         options={**cfg.source.options, **opts})
+        cfg = msgspec.structs.replace(cfg, source=source).validated()
+        rig = StereoRig.from_fov(cfg.source.width, cfg.source.height, cfg.rig.hfov_deg,
+                                 cfg.rig.baseline_m)
+        pairs = ReplaySource(cfg.source, rig).count_pairs()  # also: one clear error up front
+    except TrapflowError as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(f"replay {path}: {pairs} pairs at rate {rate:g}", err=True)
+    from trapflow.supervisor import run  # TODO(lead): run(cfg) -> final Stats
+
+    stats = run(cfg)
+    if isinstance(stats, Stats):
+        click.echo(f"pairs read {pairs}, delivered {stats.pairs_in}")
+        if assert_lossless and (problems := lossless_problems(pairs, stats)):
+            raise click.ClickException("replay was not lossless: " + "; ".join(problems))
+    elif assert_lossless:
+        raise click.ClickException("--assert-lossless: the pipeline returned no final stats")

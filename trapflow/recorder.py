@@ -1,0 +1,214 @@
+"""Recordings: MCAP files with the ros2 profile that ROS 2 tools read as a rosbag2.
+
+Left and right images are sensor_msgs/msg/CompressedImage, pair headers and results are
+std_msgs/msg/String JSON (one results topic per algorithm), every message stamped with its
+pair's capture time. The file is written as OUT.part and renamed on close, so an
+interrupted recording never leaves a half-written OUT behind. record() owns one SUB socket.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import cv2
+import numpy as np
+import zmq
+from mcap_ros2.writer import Writer
+
+from trapflow.errors import ProtocolError, TrapflowError
+from trapflow.messages import (
+    MAX_RESULT_BYTES,
+    TOPIC_IMAGE,
+    TOPIC_RESULT,
+    StereoPair,
+    check_pair_frames,
+    to_builtins,
+)
+
+log = logging.getLogger(__name__)
+
+TOPIC_LEFT = "/trapflow/left/image/compressed"
+TOPIC_RIGHT = "/trapflow/right/image/compressed"
+TOPIC_PAIRS = "/trapflow/pairs"
+RESULTS_PREFIX = "/trapflow/results/"
+FRAME_LEFT = "trapflow_left"
+FRAME_RIGHT = "trapflow_right"
+RAW_JPEG_QUALITY = 90
+_SEQ_MEMORY = 4096  # pairs whose capture time a late result can still find
+
+# The standard ROS 2 definitions, flattened the way rosbag2 stores them in MCAP schemas.
+_TIME_DEF = "int32 sec\nuint32 nanosec\n"
+_HEADER_DEF = "builtin_interfaces/Time stamp\nstring frame_id\n"
+_SEP = "=" * 80 + "\n"
+COMPRESSED_IMAGE_DEF = (
+    "std_msgs/Header header\nstring format\nuint8[] data\n"
+    + _SEP + "MSG: std_msgs/Header\n" + _HEADER_DEF
+    + _SEP + "MSG: builtin_interfaces/Time\n" + _TIME_DEF
+)
+STRING_DEF = "string data\n"
+
+
+class RecorderError(TrapflowError):
+    """A recording cannot be written (bad path, disk full) or an input is unusable."""
+
+
+def _stamp(t_ns: int) -> dict[str, int]:
+    return {"sec": t_ns // 1_000_000_000, "nanosec": t_ns % 1_000_000_000}
+
+
+@dataclass
+class RecordCounts:
+    """What a recording holds so far."""
+
+    pairs: int = 0
+    results: dict[str, int] = field(default_factory=dict)
+    malformed: int = 0
+
+    @property
+    def total_results(self) -> int:
+        """All results over all algorithms."""
+        return sum(self.results.values())
+
+
+class Recorder:
+    """Writes pairs and results to an MCAP recording; close() finishes and publishes the file."""
+
+    def __init__(self, out: str | Path) -> None:
+        self.out = Path(out)
+        self.part = self.out.with_name(self.out.name + ".part")
+        try:
+            self._file: IO[bytes] = open(self.part, "wb")  # noqa: SIM115 - closed in close()
+        except OSError as exc:
+            raise RecorderError(f"cannot write recording {self.out}: {exc.strerror}") from None
+        self._writer = Writer(self._file)
+        self._image_schema = self._writer.register_msgdef(
+            "sensor_msgs/msg/CompressedImage", COMPRESSED_IMAGE_DEF
+        )
+        self._string_schema = self._writer.register_msgdef("std_msgs/msg/String", STRING_DEF)
+        self._seq_time: OrderedDict[int, int] = OrderedDict()
+        self.counts = RecordCounts()
+        self.closed = False
+
+    def add_pair(
+        self, header: StereoPair, left: bytes | memoryview, right: bytes | memoryview
+    ) -> None:
+        """Record one pair; raw BGR payloads are JPEG-encoded first."""
+        if header.encoding == "raw":
+            left, right = (self._jpeg(header, b) for b in (left, right))
+        # Each eye keeps its own capture time, carried to the wall clock of the pair.
+        t_left = header.t_wall_ns + (header.t_left_ns - header.t_mono_ns)
+        t_right = header.t_wall_ns + (header.t_right_ns - header.t_mono_ns)
+        for topic, frame_id, t, data in (
+            (TOPIC_LEFT, FRAME_LEFT, t_left, left), (TOPIC_RIGHT, FRAME_RIGHT, t_right, right)
+        ):
+            msg = {"header": {"stamp": _stamp(t), "frame_id": frame_id},
+                   "format": "jpeg", "data": bytes(data)}
+            self._writer.write_message(topic, self._image_schema, msg, log_time=t,
+                                       publish_time=t, sequence=header.seq)
+        meta = json.dumps(to_builtins(header), separators=(",", ":"))
+        self._writer.write_message(TOPIC_PAIRS, self._string_schema, {"data": meta},
+                                   log_time=t_left, publish_time=t_left, sequence=header.seq)
+        self._seq_time[header.seq] = t_left
+        if len(self._seq_time) > _SEQ_MEMORY:
+            self._seq_time.popitem(last=False)
+        self.counts.pairs += 1
+
+    @staticmethod
+    def _jpeg(header: StereoPair, data: bytes | memoryview) -> bytes:
+        img = np.frombuffer(data, dtype=np.uint8).reshape(header.height, header.width, 3)
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, RAW_JPEG_QUALITY])
+        if not ok:
+            raise RecorderError(f"pair {header.seq}: JPEG encoding failed")
+        return bytes(buf.tobytes())
+
+    def add_result(self, line: str | bytes) -> None:
+        """Record one normalized result line `{"<algorithm>": {..., "seq": N}}`."""
+        text = line.decode("utf-8") if isinstance(line, bytes) else line
+        try:
+            obj: Any = json.loads(text)
+        except ValueError as exc:
+            raise RecorderError(
+                f"result: expected one JSON object, got {text[:60]!r}: {exc}"
+            ) from None
+        if not isinstance(obj, dict) or len(obj) != 1:
+            raise RecorderError(
+                f"result: expected one {{algorithm: {{...}}}} object, got {text[:60]!r}"
+            )
+        (algo, body), = obj.items()
+        if not isinstance(algo, str) or not algo.isidentifier():
+            raise RecorderError(f"result: expected an algorithm name as key, got {algo!r}")
+        seq = body.get("seq") if isinstance(body, dict) else None
+        t = self._seq_time.get(seq, time.time_ns()) if isinstance(seq, int) else time.time_ns()
+        self._writer.write_message(RESULTS_PREFIX + algo, self._string_schema,
+                                   {"data": text.strip()}, log_time=t, publish_time=t,
+                                   sequence=seq if isinstance(seq, int) and seq >= 0 else 0)
+        self.counts.results[algo] = self.counts.results.get(algo, 0) + 1
+
+    def close(self) -> None:
+        """Write the MCAP summary and footer, then move OUT.part to OUT. Idempotent."""
+        if self.closed:
+            return
+        self.closed = True
+        try:
+            self._writer.finish()  # type: ignore[no-untyped-call]
+        finally:
+            self._file.close()
+        self.part.replace(self.out)
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def record(endpoint: str, out: str | Path, stop: threading.Event,
+           counts: RecordCounts | None = None, poll_ms: int = 100) -> RecordCounts:
+    """Attach to the tap at endpoint and record image pairs and results until stop is set.
+
+    counts (optional) is updated live so a caller can watch progress; it is also returned.
+    Malformed tap messages are counted and skipped. The file is closed cleanly however
+    the loop ends (stop, Ctrl-C, an error).
+    """
+    rec = Recorder(out)
+    if counts is not None:
+        rec.counts = counts
+    ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context.instance()
+    sub = ctx.socket(zmq.SUB)
+    sub.setsockopt(zmq.LINGER, 0)
+    sub.setsockopt(zmq.RCVHWM, 1000)
+    try:
+        sub.setsockopt(zmq.SUBSCRIBE, TOPIC_IMAGE)
+        sub.setsockopt(zmq.SUBSCRIBE, TOPIC_RESULT)
+        sub.connect(endpoint)
+        while not stop.is_set():
+            if not sub.poll(poll_ms):
+                continue
+            frames = sub.recv_multipart(copy=False)
+            topic = frames[0].bytes
+            try:
+                if topic == TOPIC_IMAGE:
+                    header = check_pair_frames(frames[1:])
+                    rec.add_pair(header, frames[2].buffer, frames[3].buffer)
+                elif topic == TOPIC_RESULT:
+                    if len(frames) != 2 or len(frames[1]) > MAX_RESULT_BYTES:
+                        raise ProtocolError(
+                            f"result: expected [topic, JSON line], got {len(frames)} frames"
+                        )
+                    rec.add_result(frames[1].bytes)
+            except (ProtocolError, RecorderError) as exc:
+                if rec.counts.malformed == 0:
+                    log.warning("record: skipping malformed tap message: %s", exc)
+                rec.counts.malformed += 1
+    finally:
+        sub.close(linger=0)
+        rec.close()
+    log.info("record: %d pairs, %d results in %s", rec.counts.pairs, rec.counts.total_results, out)
+    return rec.counts

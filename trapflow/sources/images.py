@@ -1,0 +1,151 @@
+"""Image folder sources: DIR/left + DIR/right, or the KITTI odometry layout with calib.txt.
+
+Pairs by file name when both sides use the same names, else by sorted index; times come
+from times.txt (seconds, one line per pair) when present, else from the configured rate.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from trapflow.camera import StereoRig
+from trapflow.config import SourceConfig
+from trapflow.sources.base import Frames, Source, SourceError
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm"}
+LAYOUTS = (("left", "right"), ("image_0", "image_1"), ("image_2", "image_3"))
+
+
+def list_images(folder: Path) -> list[Path]:
+    """Image files in a folder, sorted by name."""
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def read_times(path: Path) -> list[int]:
+    """times.txt (one time in seconds per line) as nanoseconds; SourceError names a bad line."""
+    out = []
+    for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            out.append(int(round(float(line.split()[0]) * 1e9)))
+        except ValueError:
+            raise SourceError(f"images: {path} line {n}: expected seconds, got {line!r}") from None
+    return out
+
+
+def read_kitti_calib(path: Path, width: int, height: int) -> StereoRig:
+    """The rig from a KITTI calib.txt: intrinsics from P0, baseline from P1."""
+    rows: dict[str, list[float]] = {}
+    for line in path.read_text(encoding="utf-8").splitlines():
+        key, sep, rest = line.partition(":")
+        if sep:
+            try:
+                rows[key.strip()] = [float(v) for v in rest.split()]
+            except ValueError:
+                raise SourceError(f"images: {path}: row {key!r} is not numbers") from None
+    for key in ("P0", "P1"):
+        if len(rows.get(key, [])) != 12:
+            raise SourceError(f"images: {path}: expected a {key}: row of 12 numbers")
+    p0 = np.array(rows["P0"]).reshape(3, 4)
+    p1 = np.array(rows["P1"]).reshape(3, 4)
+    if p1[0, 0] == 0:
+        raise SourceError(f"images: {path}: P1 has a zero focal length")
+    return StereoRig(width=width, height=height, fx=float(p0[0, 0]), fy=float(p0[1, 1]),
+                     cx=float(p0[0, 2]), cy=float(p0[1, 2]),
+                     baseline_m=float(-p1[0, 3] / p1[0, 0]))
+
+
+def pair_files(left: list[Path], right: list[Path]) -> list[tuple[Path, Path]]:
+    """Pair by identical names when the sides share them, else by sorted position."""
+    rnames = {p.name: p for p in right}
+    common = [p for p in left if p.name in rnames]
+    if common and len(common) >= min(len(left), len(right)) // 2:
+        return [(p, rnames[p.name]) for p in common]
+    if len(left) != len(right):
+        log.warning("images: %d left and %d right images; pairing the first %d by position",
+                    len(left), len(right), min(len(left), len(right)))
+    n = min(len(left), len(right))
+    return list(zip(left[:n], right[:n], strict=True))
+
+
+class ImagesSource(Source):
+    """`images:DIR` with left/ and right/ (or KITTI image_0/ image_1/, times.txt, calib.txt)."""
+
+    finite = True
+
+    def __init__(self, cfg: SourceConfig, rig: StereoRig) -> None:
+        super().__init__(rig)
+        self.cfg = cfg
+        self.loop = cfg.loop
+        self.finite = not cfg.loop
+        self.root = Path(cfg.uri)
+        self.pairs: list[tuple[Path, Path]] = []
+        self.times: list[int] | None = None
+        self._i = 0
+        self._index = 0
+        self._t0 = 0
+        self._period_ns = int(1e9 / cfg.rate_hz)
+
+    def open(self) -> None:
+        root = self.root
+        if not root.is_dir():
+            raise SourceError(f"images: folder not found: {root}")
+        sides = next(((root / a, root / b) for a, b in LAYOUTS
+                      if (root / a).is_dir() and (root / b).is_dir()), None)
+        if sides is None:
+            names = " or ".join(f"{a}/ and {b}/" for a, b in LAYOUTS)
+            raise SourceError(f"images: {root} has no {names} subfolders")
+        self.pairs = pair_files(list_images(sides[0]), list_images(sides[1]))
+        if not self.pairs:
+            raise SourceError(f"images: no images in {sides[0]} and {sides[1]}")
+        times_path = root / "times.txt"
+        if times_path.is_file():
+            self.times = read_times(times_path)
+            if len(self.times) < len(self.pairs):
+                raise SourceError(f"images: {times_path} has {len(self.times)} times "
+                                  f"for {len(self.pairs)} pairs")
+        calib = root / "calib.txt"
+        if calib.is_file():
+            first = self._load(self.pairs[0][0])
+            self.rig = read_kitti_calib(calib, first.shape[1], first.shape[0])
+            log.info("images: rig from %s: fx %.1f, baseline %.3f m",
+                     calib, self.rig.fx, self.rig.baseline_m)
+        self._t0 = time.monotonic_ns()
+
+    @staticmethod
+    def _load(path: Path) -> np.ndarray:
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if img is None:
+            raise SourceError(f"images: cannot read {path} (missing or not an image)")
+        return img
+
+    def _time(self, i: int) -> int:
+        if self.times is None:
+            return self._index * self._period_ns
+        lap = self._index // len(self.pairs)  # loops continue after the last time
+        span = self.times[len(self.pairs) - 1] - self.times[0] + self._period_ns
+        return lap * span + self.times[i] - self.times[0]
+
+    def read(self) -> Frames | None:
+        if not self.pairs:
+            raise SourceError("images: read() before open()")
+        if self._i >= len(self.pairs):
+            if not self.loop:
+                return None
+            self._i = 0
+        lp, rp = self.pairs[self._i]
+        left, right = self._load(lp), self._load(rp)
+        if left.shape != right.shape:
+            raise SourceError(f"images: {lp.name} and {rp.name} differ in size")
+        t = self._t0 + self._time(self._i)
+        self._i += 1
+        self._index += 1
+        return Frames(left=left, right=right, t_left_ns=t, t_right_ns=t)

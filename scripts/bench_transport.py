@@ -217,7 +217,7 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
             if isinstance(r.body, messages.Extra):
                 lats.append(int(r.body.fields["lat_ns"]))
     dt = time.monotonic() - t0
-    cpu = [cpu_s(p) - c for p, c in zip(pids, c0)]
+    cpu = [cpu_s(p) - c for p, c in zip(pids, c0, strict=False)]
     rss = {"harness": peak_rss_mb(os.getpid()), "broker": peak_rss_mb(procs[0].pid)}
     for i, p in enumerate(procs[1:]):
         rss[f"worker{i}"] = peak_rss_mb(p.pid)
@@ -230,10 +230,9 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
     return {"pairs": int(per_pool), "pairs_s": per_pool / dt, "lost": sent - int(per_pool),
             "lat_us": _pcts(lats),
             "cpu_us_per_pair": sum(cpu) / max(per_pool, 1) * 1e6,
-            "cpu_us_per_pair_by_process": {
-                name: round(c / max(per_pool, 1) * 1e6, 1)
-                for name, c in zip(["harness", "broker"] + [f"worker{i}" for i in
-                                                            range(len(procs) - 1)], cpu)},
+            "cpu_us_per_pair_by_process": dict(zip(
+                ["harness", "broker"] + [f"worker{i}" for i in range(len(procs) - 1)],
+                [round(c / max(per_pool, 1) * 1e6, 1) for c in cpu], strict=True)),
             "broker_cpu_pct": cpu[1] / dt * 100, "rss_mb": rss}
 
 
@@ -259,7 +258,7 @@ def main() -> None:
             "latency_30hz": {"pyzmq_push_pull": base30, "trapflow": tf30,
                              "ratio_p50": tf30["lat_us"]["p50"] / base30["lat_us"]["p50"]},
         }
-    print(f"[bench] raw: fan-out to 3 pools", file=sys.stderr)
+    print("[bench] raw: fan-out to 3 pools", file=sys.stderr)
     out["raw"]["fanout3"] = trapflow_path("raw", args.seconds, None, 1, tmp, pools=3)
     print(json.dumps(out, indent=1))
 

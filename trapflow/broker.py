@@ -85,6 +85,7 @@ class BrokerNode(Node):
                 if now - self._last_stats >= STATS_INTERVAL_S:
                     self._publish_stats(now)
                 self.beat()
+        self._publish_stats(time.monotonic())  # the run's totals, for the supervisor
         return 0
 
     # --- capture side ---------------------------------------------------------------

@@ -27,7 +27,9 @@ RETRY_BACKOFF_S = (0.5, 1.0, 2.0, 5.0, 10.0)
 
 
 def rig_from_config(spec: NodeSpec) -> StereoRig:
-    """The rig the config describes, at the source's image size."""
+    """The source's own rig when the supervisor found one, else the configured field of view."""
+    if spec.rig is not None:
+        return spec.rig
     c = spec.cfg
     return StereoRig.from_fov(c.source.width, c.source.height, c.rig.hfov_deg, c.rig.baseline_m)
 
@@ -41,7 +43,8 @@ class CaptureNode(Node):
             self.ctx, SocketSpec(zmq.PUSH, self.endpoints.capture, sndhwm=4)
         )
         self.src_cfg = self.cfg.source
-        self.source: Source = open_source(self.src_cfg, rig_from_config(spec))
+        self.source: Source = open_source(self.src_cfg, rig_from_config(spec),
+                                          self.cfg.rig.calibration)
         self.seq = 0
         self.produced = 0
         self.dropped = 0
@@ -49,7 +52,13 @@ class CaptureNode(Node):
         self.jpeg_params = [int(cv2.IMWRITE_JPEG_QUALITY), self.src_cfg.jpeg_quality]
 
     def counters(self) -> dict[str, int]:
-        return {"produced": self.produced, "dropped": self.dropped, "failures": self.failures}
+        out = {"produced": self.produced, "dropped": self.dropped, "failures": self.failures}
+        sync = getattr(self.source, "sync", None)  # live cameras paired by timestamp
+        if sync is not None:
+            for k, v in sync.stats.as_dict().items():
+                key = f"sync_{k[:-3]}_us" if k.endswith("_ms") else f"sync_{k}"
+                out[key] = int(v * 1000) if k.endswith("_ms") else int(v)
+        return out
 
     def _open(self) -> bool:
         try:

@@ -10,10 +10,11 @@ import click
 
 from trapflow import config as configmod
 from trapflow import registry
+from trapflow.cli_sources import SourceSpecType
 from trapflow.errors import ConfigError, TrapflowError
 
 
-class WorkersType(click.ParamType):  # type: ignore[type-arg]
+class WorkersType(click.ParamType[dict[str, int]]):
     """`NAME=COUNT[,NAME=COUNT...]`, rejected with click's usage error when malformed."""
 
     name = "NAME=COUNT[,...]"
@@ -28,7 +29,7 @@ class WorkersType(click.ParamType):  # type: ignore[type-arg]
             self.fail(str(exc), param, ctx)
 
 
-class SizeType(click.ParamType):  # type: ignore[type-arg]
+class SizeType(click.ParamType[tuple[int, int]]):
     """`WIDTHxHEIGHT`."""
 
     name = "WxH"
@@ -69,9 +70,14 @@ def main() -> None:
 @click.option("--encoding", type=click.Choice(["jpeg", "raw"]), help="Pair payload.")
 @click.option("--seed", type=int, help="Seed of the synthetic world.")
 @click.option("--moving/--static", default=None, help="Synthetic rig moves or stands.")
+@click.option("--source", "source_spec", type=SourceSpecType(),
+              help="KIND:ARGS, e.g. video:l.mp4,r.mp4, images:DIR, v4l2:/dev/video0,/dev/video2, "
+                   "replay:rec.mcap (default: the synthetic world).")
+@click.option("--loop", is_flag=True, default=None, help="Restart a finite source at its end.")
 def start(config_path: str | None, workers: dict[str, int] | None, duration: float | None,
           run_dir: Path | None, rate: float | None, size: tuple[int, int] | None,
-          encoding: str | None, seed: int | None, moving: bool | None) -> None:
+          encoding: str | None, seed: int | None, moving: bool | None,
+          source_spec: tuple[str, str] | None, loop: bool | None) -> None:
     """Run the pipeline: capture, broker, worker pools and normalizer."""
     from trapflow.supervisor import start as run_pipeline
 
@@ -88,6 +94,10 @@ def start(config_path: str | None, workers: dict[str, int] | None, duration: flo
             src["seed"] = seed
         if moving is not None:
             src["moving"] = moving
+        if source_spec is not None:
+            src["kind"], src["uri"] = source_spec
+        if loop:
+            src["loop"] = True
         cfg = configmod.with_source(cfg, **src)
         if workers is not None:
             cfg = configmod.with_workers(cfg, workers, registry.known_names())
@@ -137,6 +147,16 @@ def status(run_dir: Path, as_json: bool, stop: bool, timeout: float) -> None:
         _fail(exc)
     click.echo(format_status(reply, as_json))
 
+
+def _add_commands() -> None:
+    from trapflow import cli_modem, cli_sources
+
+    for cmd in (*cli_modem.COMMANDS, cli_sources.calibrate, cli_sources.record,
+                cli_sources.replay):
+        main.add_command(cmd)
+
+
+_add_commands()
 
 if __name__ == "__main__":
     main()

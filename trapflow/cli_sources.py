@@ -16,8 +16,6 @@ import msgspec
 from trapflow.errors import TrapflowError
 from trapflow.messages import Stats
 
-TAP_SOCKET = "tap.sock"  # TODO(lead): take the tap endpoint from transport once it exists
-
 
 class PatternType(click.ParamType[tuple[int, int]]):
     """COLSxROWS inner corners of a checkerboard."""
@@ -92,8 +90,9 @@ def _stop_on_signals() -> threading.Event:
 
 
 @click.command()
-@click.option("--run-dir", type=click.Path(file_okay=False, path_type=Path), default=Path("run"),
-              show_default=True, help="Run directory of the pipeline to attach to.")
+@click.option("--run-dir", type=click.Path(file_okay=False, path_type=Path),
+              default=Path("runs/latest"), show_default=True,
+              help="Run directory of the pipeline to attach to.")
 @click.option("--endpoint", default=None, help="Tap endpoint (overrides --run-dir).")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="MCAP file to write.")
@@ -101,7 +100,11 @@ def record(run_dir: Path, endpoint: str | None, output: Path) -> None:
     """Record image pairs and results from a running pipeline to an MCAP rosbag2 file."""
     from trapflow.recorder import record as record_tap
 
-    endpoint = endpoint or f"ipc://{run_dir.resolve() / TAP_SOCKET}"
+    if endpoint is None:
+        from trapflow.config import Config
+        from trapflow.transport import Endpoints
+
+        endpoint = Endpoints.for_run(Config().network, run_dir).tap
     stop = _stop_on_signals()
     click.echo(f"recording {endpoint} to {output}; Ctrl-C to stop", err=True)
     try:
@@ -160,9 +163,14 @@ def replay(path: Path, rate: float, loop: bool, assert_lossless: bool,
     except TrapflowError as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(f"replay {path}: {pairs} pairs at rate {rate:g}", err=True)
-    from trapflow.supervisor import run  # TODO(lead): run(cfg) -> final Stats
+    from trapflow.supervisor import run
 
-    stats = run(cfg)
+    try:
+        code, stats = run(cfg, announce=click.echo)
+    except TrapflowError as exc:
+        raise click.ClickException(str(exc)) from None
+    if code != 0:
+        raise click.ClickException(f"the pipeline stopped with status {code}")
     if isinstance(stats, Stats):
         click.echo(f"pairs read {pairs}, delivered {stats.pairs_in}")
         if assert_lossless and (problems := lossless_problems(pairs, stats)):

@@ -15,6 +15,10 @@ import msgspec
 import yaml
 
 from trapflow.errors import ConfigError
+from trapflow.events import EventsConfig
+from trapflow.health import HealthConfig
+from trapflow.modem_config import ModemConfig
+from trapflow.outbox import OutboxConfig
 from trapflow.policy import Policy, parse_policy
 
 
@@ -118,6 +122,7 @@ def _default_pools() -> dict[str, PoolConfig]:
         "mono": PoolConfig(count=1, policy="latest"),
         "stereo": PoolConfig(count=1, policy="latest", nice=10),
         "vo": PoolConfig(count=1, policy="ordered:16"),
+        "tags": PoolConfig(count=0, policy="latest"),
     }
 
 
@@ -130,6 +135,10 @@ class Config(_Section):
     normalizer: NormalizerConfig = msgspec.field(default_factory=NormalizerConfig)
     supervisor: SupervisorConfig = msgspec.field(default_factory=SupervisorConfig)
     network: NetworkConfig = msgspec.field(default_factory=NetworkConfig)
+    outbox: OutboxConfig = msgspec.field(default_factory=OutboxConfig)
+    modem: ModemConfig = msgspec.field(default_factory=ModemConfig)
+    health: HealthConfig = msgspec.field(default_factory=HealthConfig)
+    events: EventsConfig = msgspec.field(default_factory=EventsConfig)
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
 
     def __post_init__(self) -> None:

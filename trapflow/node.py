@@ -22,6 +22,7 @@ from typing import Any
 import zmq
 
 from trapflow import messages
+from trapflow.camera import StereoRig
 from trapflow.config import Config
 from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
 
@@ -44,6 +45,8 @@ ROLES = {
     "broker": "trapflow.broker:BrokerNode",
     "worker": "trapflow.worker:WorkerNode",
     "normalizer": "trapflow.normalizer:NormalizerNode",
+    "modem": "trapflow.modem_node:ModemNode",
+    "events": "trapflow.events_node:EventsNode",
 }
 
 _PR_SET_PDEATHSIG = 1
@@ -59,6 +62,7 @@ class NodeSpec:
     run_dir: Path
     pool: str = ""
     index: int = 0
+    rig: StereoRig | None = None  # the source's rig (calibration), when it knows one
     extra: dict[str, Any] = field(default_factory=dict)
 
 

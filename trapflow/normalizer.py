@@ -17,6 +17,7 @@ from trapflow import messages
 from trapflow.errors import ProtocolError
 from trapflow.node import ACTIVE, FINALIZED, Node, NodeSpec
 from trapflow.normalize import dumps, normalize
+from trapflow.outbox import Outbox, OutboxFull
 from trapflow.ratelog import RateLimitedLog
 from trapflow.transport import SocketSpec, open_socket
 
@@ -35,12 +36,17 @@ class NormalizerNode(Node):
         ncfg = self.cfg.normalizer
         self.path = spec.run_dir / ncfg.results_file
         self.file: IO[bytes] = open(self.path, "ab")  # noqa: SIM115 - held for the process life
+        # With a modem, every result is stored durably before anything tries to send it.
+        self.outbox: Outbox | None = None
+        if self.cfg.modem.enabled:
+            self.outbox = Outbox(spec.run_dir / self.cfg.outbox.path, self.cfg.outbox)
+        self.refused = 0
         self.lines = 0
         self.malformed = 0
         self.ratelog = RateLimitedLog(log)
 
     def counters(self) -> dict[str, int]:
-        return {"lines": self.lines, "malformed": self.malformed}
+        return {"lines": self.lines, "malformed": self.malformed, "outbox_refused": self.refused}
 
     def run(self) -> int:
         ncfg = self.cfg.normalizer
@@ -73,6 +79,8 @@ class NormalizerNode(Node):
         self.file.flush()
         os.fsync(self.file.fileno())
         self.file.close()
+        if self.outbox is not None:
+            self.outbox.close()
         self.set_state(FINALIZED)
         return 0
 
@@ -84,6 +92,12 @@ class NormalizerNode(Node):
             self.malformed += 1
             self.ratelog.warning("result", "dropped malformed result: %s", exc)
             return False
+        if self.outbox is not None:
+            try:
+                self.outbox.append_many(objs)
+            except OutboxFull as exc:
+                self.refused += len(objs)
+                self.ratelog.warning("outbox", "outbox refused %d records: %s", len(objs), exc)
         for obj in objs:
             line = dumps(obj)
             self.file.write(line + b"\n")

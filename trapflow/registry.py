@@ -13,9 +13,19 @@ from trapflow.errors import WorkerError
 from trapflow.plugin import Worker
 
 BUILTIN: dict[str, str] = {
+    # The four algorithms a deployment runs (pool names in the default config).
     "mono": "trapflow_workers.blob_detector:BlobDetector",
     "stereo": "trapflow_workers.histogram_classifier:HistogramClassifier",
-    "vo": "trapflow_workers.flow_vo:FlowOdometry",
+    "vo": "trapflow_workers.stereo_vo:StereoOdometry",
+    "tags": "trapflow_workers.apriltags:AprilTags",
+    # Alternatives, by what they are.
+    "crab_detector": "trapflow_workers.crab_detector:CrabDetector",
+    "scene_classifier": "trapflow_workers.scene_classifier:SceneClassifier",
+    "blob": "trapflow_workers.blob_detector:BlobDetector",
+    "histogram": "trapflow_workers.histogram_classifier:HistogramClassifier",
+    "flow_vo": "trapflow_workers.flow_vo:FlowOdometry",
+    "brightness": "trapflow_workers.example_brightness:Brightness",
+    # For tests and benchmarks.
     "noop": "trapflow_workers.testing:Noop",
     "slow": "trapflow_workers.testing:Slow",
     "crash": "trapflow_workers.testing:Crash",

@@ -25,9 +25,11 @@ import msgspec
 import zmq
 
 from trapflow import messages, registry
+from trapflow.camera import StereoRig
 from trapflow.config import Config
 from trapflow.errors import ProtocolError, StartupError, TrapflowError
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, NodeSpec, node_main
+from trapflow.sources import open_source
 from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
 
 log = logging.getLogger(__name__)
@@ -35,7 +37,7 @@ log = logging.getLogger(__name__)
 # How long every node has to report its first state before start-up is declared failed.
 STARTUP_TIMEOUT_S = 60.0
 # Stop ladder: capture first (no new pairs), then workers and broker, the normalizer last.
-STOP_ORDER = ("capture", "worker", "broker", "normalizer")
+STOP_ORDER = ("capture", "worker", "events", "broker", "normalizer", "modem")
 EXIT_OK, EXIT_FAILED, EXIT_STARTUP = 0, 1, 2
 LOCK_FILE = "supervisor.lock"
 
@@ -97,20 +99,25 @@ class Supervisor:
         self.exit_code = EXIT_OK
         self.stats: messages.Stats | None = None
         self.t0 = time.monotonic()
+        self.rig: StereoRig | None = None
 
     # --- the process graph --------------------------------------------------------------
 
     def boot(self) -> None:
         """Consumers first so nothing sent is lost: normalizer, broker, workers, capture."""
-        sup = self.cfg.supervisor
-        self._add(NodeSpec("normalizer", "normalizer", self.cfg, self.run_dir), sup.liveness_s)
-        self._add(NodeSpec("broker", "broker", self.cfg, self.run_dir), sup.liveness_s)
-        for pool, pcfg in self.cfg.pools.items():
+        sup, cfg, run = self.cfg.supervisor, self.cfg, self.run_dir
+        self._add(NodeSpec("normalizer", "normalizer", cfg, run), sup.liveness_s)
+        if cfg.modem.enabled:
+            self._add(NodeSpec("modem", "modem", cfg, run), sup.liveness_s)
+        self._add(NodeSpec("broker", "broker", cfg, run), sup.liveness_s)
+        if cfg.events.enabled:
+            self._add(NodeSpec("events", "events", cfg, run), sup.liveness_s)
+        for pool, pcfg in cfg.pools.items():
             for i in range(pcfg.count):
-                spec = NodeSpec("worker", f"worker:{pool}:{i}", self.cfg, self.run_dir,
-                                pool=pool, index=i)
+                spec = NodeSpec("worker", f"worker:{pool}:{i}", cfg, run, pool=pool, index=i,
+                                rig=self.rig)
                 self._add(spec, max(sup.liveness_s, pcfg.timeout_s))
-        self._add(NodeSpec("capture", "capture", self.cfg, self.run_dir), sup.liveness_s)
+        self._add(NodeSpec("capture", "capture", cfg, run, rig=self.rig), sup.liveness_s)
         for child in self.children:
             self._spawn(child)
 
@@ -177,7 +184,18 @@ class Supervisor:
         return f
 
     def _preflight(self) -> None:
-        """Fail before spawning anything when a pool names an algorithm that cannot load."""
+        """Fail before spawning anything when the source or an algorithm cannot load.
+
+        Building the source (not opening it) also tells the rig every node uses: a
+        calibration file or a KITTI folder's calib.txt beats the configured field of view.
+        """
+        c = self.cfg
+        rig = StereoRig.from_fov(c.source.width, c.source.height, c.rig.hfov_deg,
+                                 c.rig.baseline_m)
+        try:
+            self.rig = open_source(c.source, rig, c.rig.calibration).rig
+        except TrapflowError as exc:
+            raise StartupError(f"source {c.source.kind}: {exc}") from None
         for pool, pcfg in self.cfg.pools.items():
             if pcfg.count > 0:
                 try:
@@ -238,8 +256,11 @@ class Supervisor:
                 self._status_line()
 
     def _drained(self) -> bool:
+        """Every pair capture produced reached the broker and left every pool."""
         s = self.stats
-        return s is not None and all(p.pending == 0 and p.in_flight == 0 for p in s.pools.values())
+        produced = self._child("capture").counters.get("produced", -1)
+        return (s is not None and s.pairs_in >= produced
+                and all(p.pending == 0 and p.in_flight == 0 for p in s.pools.values()))
 
     def _child(self, role: str) -> Child:
         return next(c for c in self.children if c.spec.role == role)
@@ -419,8 +440,8 @@ class Supervisor:
                     log.warning("%s did not stop in time; killing it", c.name)
                     c.proc.kill()
                     c.proc.join(1.0)
-            if role == "worker":
-                self._poll(0.0)  # take the last stats the broker published
+            if role == "broker":
+                self._poll(0.3)  # take the totals the broker published on its way out
         for c in self.children:
             if c.proc is not None and c.proc.is_alive():
                 c.proc.kill()
@@ -450,13 +471,25 @@ class Supervisor:
         self.log_queue.close()
 
 
-def start(cfg: Config, run_dir: Path | None = None, duration: float | None = None,
-          out: IO[str] | None = None, announce: Callable[[str], None] | None = None) -> int:
-    """Run a pipeline until duration, a signal, or the end of a finite source."""
+def run(cfg: Config, run_dir: Path | None = None, duration: float | None = None,
+        out: IO[str] | None = None, announce: Callable[[str], None] | None = None,
+        ) -> tuple[int, messages.Stats | None]:
+    """Run a pipeline until duration, a signal, or the end of a finite source.
+
+    Returns the exit status and the last stats the broker published (the run's totals).
+    """
     if run_dir is None:
         run_dir = default_run_dir()
         run_dir.mkdir(parents=True, exist_ok=True)
         _link_latest(run_dir)
     if announce:
         announce(f"run directory: {run_dir}")
-    return Supervisor(cfg, run_dir, duration, out).run()
+    sup = Supervisor(cfg, run_dir, duration, out)
+    code = sup.run()
+    return code, sup.stats
+
+
+def start(cfg: Config, run_dir: Path | None = None, duration: float | None = None,
+          out: IO[str] | None = None, announce: Callable[[str], None] | None = None) -> int:
+    """run(), returning only the exit status."""
+    return run(cfg, run_dir, duration, out, announce)[0]

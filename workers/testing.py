@@ -10,7 +10,6 @@ from typing import Any
 from trapflow.messages import Extra
 from trapflow.plugin import Context, Pair, Worker
 
-
 # One read per memory page, as a real consumer would touch its input.
 PAGE = 4096
 

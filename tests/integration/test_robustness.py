@@ -55,7 +55,7 @@ def test_slow_latest_pool_drops_while_fast_ordered_pool_gets_everything(
     assert fast == list(range(len(fast))) and len(fast) > 60  # every pair, in order
     assert 3 <= len(slow) <= 12
     # `latest` hands the slow worker the newest pair each time: big jumps, never a backlog.
-    jumps = [b - a for a, b in zip(slow[1:], slow[2:])]
+    jumps = [b - a for a, b in zip(slow[1:], slow[2:], strict=False)]
     assert jumps and min(jumps) >= 8, slow
     assert "slow: processed" in out and "dropped 0" not in out.split("slow:")[1].splitlines()[0]
 

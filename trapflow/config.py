@@ -119,10 +119,11 @@ class NetworkConfig(_Section):
 
 def _default_pools() -> dict[str, PoolConfig]:
     return {
-        "mono": PoolConfig(count=1, policy="latest"),
+        # Visual odometry keeps its rate: the recognisers run at a lower CPU priority.
+        "mono": PoolConfig(count=1, policy="latest", nice=5),
         "stereo": PoolConfig(count=1, policy="latest", nice=10),
         "vo": PoolConfig(count=1, policy="ordered:16"),
-        "tags": PoolConfig(count=0, policy="latest"),
+        "tags": PoolConfig(count=0, policy="latest", nice=5),
     }
 
 

@@ -2,7 +2,9 @@
 
 latest     keep only the newest pair (slow recognisers always see fresh frames)
 fifo:N     bounded queue, oldest dropped when full
-ordered:N  one stateful worker, in order, bounded; drops show up as a gap
+ordered:N  one stateful worker, in order, bounded; when full the NEWEST pair is dropped,
+           so the worker sees long contiguous runs and one gap per overload, not a gap
+           before every pair (visual odometry re-initialises on each gap)
 """
 
 from __future__ import annotations
@@ -54,6 +56,8 @@ class Pending:
 
     def push(self, seq: int) -> list[int]:
         """Queue seq; return the sequence numbers this policy drops to make room."""
+        if self.policy.kind == "ordered" and len(self._q) >= self.policy.bound:
+            return [seq]
         dropped: list[int] = []
         while len(self._q) >= self.policy.bound:
             dropped.append(self._q.popleft())

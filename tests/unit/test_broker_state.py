@@ -51,11 +51,13 @@ def test_ordered_reports_gaps_and_keeps_order() -> None:
     s = state(vo="ordered:2")
     s.worker_ready(W1, "vo", 1, 0.0)
     assert dispatched(s.pair_arrived(0, 0.0)) == [(W1, 0, 0)]
-    for seq in (1, 2, 3):  # worker busy: 1 is dropped when 3 arrives (bound 2)
+    for seq in (1, 2, 3):  # worker busy, bound 2: the newest (3) is dropped, 1 and 2 kept
         s.pair_arrived(seq, 0.0)
-    acts = s.job_done(W1, "vo", 0, True, 0.1)
-    assert dispatched(acts) == [(W1, 2, 1)]  # one pair (1) missing before 2
-    assert dispatched(s.job_done(W1, "vo", 2, True, 0.2)) == [(W1, 3, 0)]
+    assert dispatched(s.job_done(W1, "vo", 0, True, 0.1)) == [(W1, 1, 0)]
+    assert dispatched(s.job_done(W1, "vo", 1, True, 0.2)) == [(W1, 2, 0)]
+    s.job_done(W1, "vo", 2, True, 0.3)
+    assert dispatched(s.pair_arrived(4, 0.4)) == [(W1, 4, 1)]  # one pair (3) missing before 4
+    assert s.pool_stats()["vo"].dropped == 1
 
 
 def test_capture_side_hole_is_a_gap() -> None:

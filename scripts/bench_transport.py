@@ -236,10 +236,41 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
             "broker_cpu_pct": cpu[1] / dt * 100, "rss_mb": rss}
 
 
+def markdown(out: dict[str, Any]) -> str:
+    """The transport results as markdown tables, ratios against raw pyzmq in the same run."""
+    lines = ["## Transport: trapflow broker path vs raw pyzmq PUSH/PULL (same run)", "",
+             f"Machine: {out['machine']}", "",
+             "| payload | pyzmq pairs/s | trapflow pairs/s | ratio | lost | CPU us/pair "
+             "pyzmq / trapflow | trapflow CPU us/pair by process |",
+             "|---|---:|---:|---:|---:|---:|---|"]
+    for kind in ("jpeg", "raw"):
+        t = out[kind]["throughput"]
+        b, f = t["pyzmq_push_pull"], t["trapflow"]
+        lines.append(f"| {kind} 1280x720 pair | {b['pairs_s']:,.0f} | {f['pairs_s']:,.0f} | "
+                     f"{t['ratio']:.2f}x | {f['lost']} | {b['cpu_us_per_pair']:,.0f} / "
+                     f"{f['cpu_us_per_pair']:,.0f} | {f['cpu_us_per_pair_by_process']} |")
+    fan = out["raw"]["fanout3"]
+    lines += ["", f"Fan-out 1 -> 3 pools (raw): {fan['pairs_s']:,.0f} pairs/s per pool "
+              f"({fan['pairs_s'] / out['raw']['throughput']['pyzmq_push_pull']['pairs_s']:.2f}x "
+              "raw pyzmq 1 -> 1)", "",
+              "| 30 pairs/s | pyzmq p50 / p99 us | trapflow p50 / p99 us | ratio p50 | "
+              "broker CPU % of a core | peak RSS MB (trapflow) |",
+              "|---|---:|---:|---:|---:|---|"]
+    for kind in ("jpeg", "raw"):
+        lat = out[kind]["latency_30hz"]
+        b, f = lat["pyzmq_push_pull"], lat["trapflow"]
+        rss = ", ".join(f"{k} {v:.0f}" for k, v in f["rss_mb"].items())
+        lines.append(f"| {kind} | {b['lat_us']['p50']:,.0f} / {b['lat_us']['p99']:,.0f} | "
+                     f"{f['lat_us']['p50']:,.0f} / {f['lat_us']['p99']:,.0f} | "
+                     f"{lat['ratio_p50']:.2f}x | {f['broker_cpu_pct']:.1f} | {rss} |")
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seconds", type=float, default=4.0)
     ap.add_argument("--latency-seconds", type=float, default=8.0)
+    ap.add_argument("--out", type=Path, default=Path("bench-results"))
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="tfbench-"))
     out: dict[str, Any] = {"machine": {"cores": os.cpu_count(), "python": sys.version.split()[0],
@@ -260,7 +291,10 @@ def main() -> None:
         }
     print("[bench] raw: fan-out to 3 pools", file=sys.stderr)
     out["raw"]["fanout3"] = trapflow_path("raw", args.seconds, None, 1, tmp, pools=3)
-    print(json.dumps(out, indent=1))
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "transport.json").write_text(json.dumps(out, indent=1))
+    (args.out / "transport.md").write_text(markdown(out))
+    print(markdown(out))
 
 
 if __name__ == "__main__":

@@ -85,6 +85,7 @@ class BrokerNode(Node):
                 if now - self._last_stats >= STATS_INTERVAL_S:
                     self._publish_stats(now)
                 self.beat()
+        self.state.finish()  # what is still pending or in flight will never be processed
         self._publish_stats(time.monotonic())  # the run's totals, for the supervisor
         return 0
 
@@ -154,7 +155,7 @@ class BrokerNode(Node):
             self.ratelog.warning(
                 "failed:" + msg.pool, "%s failed pair %d: %s", msg.worker, msg.seq, msg.reason
             )
-            self._apply(self.state.job_done(ident, msg.pool, msg.seq, False, now))
+            self._apply(self.state.job_done(ident, msg.pool, msg.seq, False, now, msg.kind))
 
     # --- actions --------------------------------------------------------------------
 

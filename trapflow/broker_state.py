@@ -1,8 +1,9 @@
 """The broker's decisions, pure: events in (pair arrived, worker ready, job done, tick),
 actions out (dispatch, release). No sockets, no clocks: callers pass `now` in seconds.
 
-Every pair that reaches a pool ends in exactly one counter: processed, failed,
-dropped (by the pool's policy) or lost (its worker died or timed out).
+Every pair that reaches a pool ends in exactly one counter (the loss ledger): processed,
+failed (by kind), dropped (by the pool's policy), timed out (its worker held it too
+long) or lost (its worker died, or the run ended first).
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ from trapflow.policy import Pending, Policy
 
 # A worker that has said nothing for this long while idle is presumed dead.
 IDLE_LIVENESS_S = 5.0
+# Distinct failure kinds counted per pool; the rest are counted as "other".
+MAX_FAILURE_KINDS = 16
 
 
 @dataclass(frozen=True)
@@ -76,7 +79,9 @@ class _Pool:
     dropped: int = 0
     processed: int = 0
     errors: int = 0
+    timed_out: int = 0
     lost: int = 0
+    failures: dict[str, int] = field(default_factory=dict)
     rr: int = 0
 
 
@@ -128,9 +133,9 @@ class BrokerState:
         return self.worker_ready(ident, pool_name, free, now) if free > 0 else []
 
     def job_done(
-        self, ident: bytes, pool_name: str, seq: int, ok: bool, now: float
+        self, ident: bytes, pool_name: str, seq: int, ok: bool, now: float, kind: str = "error"
     ) -> list[Action]:
-        """A worker finished (ok) or failed a pair; one credit comes back."""
+        """A worker finished (ok) or failed (with a kind) a pair; one credit comes back."""
         pool = self._pools.get(pool_name)
         if pool is None:
             return []
@@ -145,6 +150,11 @@ class BrokerState:
                 pool.processed += 1
             else:
                 pool.errors += 1
+                # Bounded: a plugin inventing new kinds cannot grow the stats without limit.
+                if kind in pool.failures or len(pool.failures) < MAX_FAILURE_KINDS:
+                    pool.failures[kind] = pool.failures.get(kind, 0) + 1
+                else:
+                    pool.failures["other"] = pool.failures.get("other", 0) + 1
             actions.extend(self._unhold(seq))
         w.credit += 1
         w.last_seen = now
@@ -156,12 +166,11 @@ class BrokerState:
         actions: list[Action] = []
         for pool in self._pools.values():
             for w in list(pool.workers.values()):
-                reason = ""
                 if w.in_flight and now - min(w.in_flight.values()) > pool.spec.timeout_s:
                     reason = f"job older than timeout_s={pool.spec.timeout_s:g}"
+                    actions.extend(self._evict(pool, w, reason, timed_out=True))
                 elif not w.in_flight and now - w.last_seen > self._idle_liveness:
                     reason = f"silent for more than {self._idle_liveness:g} s"
-                if reason:
                     actions.extend(self._evict(pool, w, reason))
         return actions
 
@@ -172,6 +181,17 @@ class BrokerState:
             if w is not None:
                 return self._evict(pool, w, reason) + self._dispatch(pool, now)
         return []
+
+    def finish(self) -> list[Action]:
+        """The run ends: what is pending or in flight is lost; every pair is accounted for."""
+        actions: list[Action] = []
+        for pool in self._pools.values():
+            for seq in pool.pending.clear():
+                pool.lost += 1
+                actions.extend(self._unhold(seq))
+            for w in list(pool.workers.values()):
+                actions.extend(self._evict(pool, w, "run ended"))
+        return actions
 
     # --- queries ------------------------------------------------------------------
 
@@ -191,7 +211,9 @@ class BrokerState:
                 pending=len(p.pending),
                 processed=p.processed,
                 errors=p.errors,
+                timed_out=p.timed_out,
                 lost=p.lost,
+                failures=dict(p.failures),
             )
             for p in self._pools.values()
         }
@@ -236,10 +258,14 @@ class BrokerState:
             actions.append(Dispatch(w.ident, pool.name, seq, max(gap, 0)))
         return actions
 
-    def _evict(self, pool: _Pool, w: _Worker, reason: str) -> list[Action]:
+    def _evict(self, pool: _Pool, w: _Worker, reason: str,
+               timed_out: bool = False) -> list[Action]:
         del pool.workers[w.ident]
         lost = tuple(sorted(w.in_flight))
-        pool.lost += len(lost)
+        if timed_out:
+            pool.timed_out += len(lost)
+        else:
+            pool.lost += len(lost)
         actions: list[Action] = [Evicted(w.ident, pool.name, lost, reason)]
         for seq in lost:
             actions.extend(self._unhold(seq))

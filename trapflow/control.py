@@ -48,8 +48,8 @@ def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
     if stats:
         lines.append(f"pairs in {stats['pairs_in']} ({stats['rate_in']}/s), "
                      f"malformed {stats['malformed']}")
-        keys = ("workers", "received", "dispatched", "processed", "dropped", "in_flight",
-                "pending", "errors", "lost", "rate")
+        keys = ("workers", "received", "processed", "dropped", "in_flight", "pending",
+                "errors", "timed_out", "lost", "rate")
         lines.append(f"{'pool':<10}" + "".join(f"{k:>11}" for k in keys))
         for name, p in stats["pools"].items():
             lines.append(f"{name:<10}" + "".join(f"{p.get(k, 0):>11}" for k in keys))

@@ -198,6 +198,7 @@ class Failed(Msg, frozen=True, tag="failed"):
     pool: str
     seq: int
     reason: str
+    kind: str = "error"  # short class of the failure (exception name), for the ledger
 
 
 WorkerMsg = Union[Ready, Alive, Done, Failed, Gone]
@@ -216,8 +217,10 @@ class PoolStats(Msg, frozen=True):
     in_flight: int = 0
     pending: int = 0
     processed: int = 0
-    errors: int = 0
-    lost: int = 0
+    errors: int = 0  # failed pairs (bad input, plugin error); by kind in `failures`
+    timed_out: int = 0  # a worker held the pair longer than the pool's timeout_s
+    lost: int = 0  # the worker holding it died, or the run stopped before it finished
+    failures: dict[str, int] = {}
     rate: float = 0.0  # processed per second over the last interval
 
 

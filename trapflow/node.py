@@ -50,6 +50,8 @@ ROLES = {
 }
 
 _PR_SET_PDEATHSIG = 1
+# Set to a folder to have every node write a cProfile of its loop there on exit.
+PROFILE_ENV = "TRAPFLOW_PROFILE_DIR"
 
 
 @dataclass(frozen=True)
@@ -118,7 +120,10 @@ class Node:
         raise NotImplementedError
 
     def close(self) -> None:
-        """Release sockets (all of this process's sockets die with the context)."""
+        """Send a last heartbeat (final counters for the ledger), then release sockets."""
+        self._next_beat = 0
+        self.beat()
+        self._hb.close(linger=300)  # give that last heartbeat a moment to leave
         self.ctx.destroy(linger=0)
 
 
@@ -184,7 +189,15 @@ def node_main(spec: NodeSpec, log_queue: Any, parent_pid: int) -> None:
             node.stopping = True
 
         signal.signal(signal.SIGTERM, _term)
-        code = node.run()
+        profile_dir = os.environ.get(PROFILE_ENV)
+        if profile_dir:  # developer aid: where does this node spend its time?
+            import cProfile
+
+            prof = cProfile.Profile()
+            code = prof.runcall(node.run)
+            prof.dump_stats(str(Path(profile_dir) / f"{spec.name.replace(':', '-')}.prof"))
+        else:
+            code = node.run()
     except Exception as exc:
         log.exception("%s crashed", spec.name)
         _report_death(spec, node, f"{type(exc).__name__}: {exc}")

@@ -29,6 +29,7 @@ BUILTIN: dict[str, str] = {
     "noop": "trapflow_workers.testing:Noop",
     "slow": "trapflow_workers.testing:Slow",
     "crash": "trapflow_workers.testing:Crash",
+    "flaky": "trapflow_workers.testing:Flaky",
 }
 
 ENTRY_POINT_GROUP = "trapflow.workers"

@@ -7,6 +7,7 @@ and a SUB of the broker's stats for the status line. The whole graph is in boot(
 from __future__ import annotations
 
 import fcntl
+import json
 import logging
 import logging.handlers
 import multiprocessing as mp
@@ -411,16 +412,42 @@ class Supervisor:
             self.out.write(line + "\n")
         self.out.flush()
 
+    def ledger(self) -> dict[str, Any]:
+        """Where every pair went: capture's count, then per pool exactly one state each."""
+        cap = self._child("capture").counters
+        s = self.stats
+        produced = cap.get("produced", 0)
+        out: dict[str, Any] = {
+            "produced": produced,
+            "dropped_at_capture": cap.get("dropped", 0),  # the broker was not reading
+            "reached_broker": s.pairs_in if s else 0,
+            "pools": {},
+        }
+        for name, p in (s.pools.items() if s else ()):
+            out["pools"][name] = {
+                "processed": p.processed, "dropped_by_policy": p.dropped,
+                "policy": self.cfg.pools[name].policy, "timed_out": p.timed_out,
+                "failed": p.errors, "failures": p.failures,
+                # Pairs the pool never saw (lost between capture and broker) count as lost.
+                "lost": p.lost + p.pending + p.in_flight + max(0, produced - p.received),
+            }
+        return out
+
     def _print_totals(self) -> None:
         if self.out.isatty():
             self.out.write("\n")
-        s = self.stats
-        if s is not None:
-            self.out.write(f"totals: {s.pairs_in} pairs in\n")
-            for name, p in s.pools.items():
+        ledger = self.ledger()
+        (self.run_dir / "ledger.json").write_text(json.dumps(ledger, indent=1) + "\n")
+        if self.stats is not None:
+            self.out.write(f"totals: {ledger['produced']} pairs captured, "
+                           f"{ledger['reached_broker']} reached the broker\n")
+            for name, p in ledger["pools"].items():
+                kinds = ", ".join(f"{k} {v}" for k, v in p["failures"].items())
                 self.out.write(
-                    f"  {name}: processed {p.processed}, dropped {p.dropped}, errors {p.errors}, "
-                    f"lost {p.lost}, restarts {self._pool_restarts(name)}\n")
+                    f"  {name}: processed {p['processed']}, dropped {p['dropped_by_policy']} "
+                    f"({p['policy']}), timed out {p['timed_out']}, failed {p['failed']}"
+                    f"{f' ({kinds})' if kinds else ''}, lost {p['lost']}, "
+                    f"restarts {self._pool_restarts(name)}\n")
         self.out.write(f"results: {self.run_dir / self.cfg.normalizer.results_file}\n")
         self.out.flush()
 
@@ -440,8 +467,8 @@ class Supervisor:
                     log.warning("%s did not stop in time; killing it", c.name)
                     c.proc.kill()
                     c.proc.join(1.0)
-            if role == "broker":
-                self._poll(0.3)  # take the totals the broker published on its way out
+            if group:  # take the last heartbeats (final counters) and the broker's totals
+                self._poll(0.3 if role == "broker" else 0.05)
         for c in self.children:
             if c.proc is not None and c.proc.is_alive():
                 c.proc.kill()

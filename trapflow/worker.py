@@ -163,7 +163,7 @@ class WorkerNode(Node):
                 f"{type(exc).__name__}: {exc}")
             self.ratelog.warning("fail", "%s: pair %d failed: %s", self.ident, seq, reason)
             self._send([messages.Failed(worker=self.ident, pool=self.pool, seq=seq,
-                                        reason=reason[:300])])
+                                        reason=reason[:300], kind=type(exc).__name__)])
             return
         self.processed += 1
         result = messages.Result(

@@ -7,6 +7,7 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
+from trapflow.errors import WorkerError
 from trapflow.messages import Extra
 from trapflow.plugin import Context, Pair, Worker
 
@@ -39,6 +40,22 @@ class Slow(Worker):
     def process(self, pair: Pair) -> Extra:
         time.sleep(self.delay)
         return Extra(name="slow", fields={"gap": pair.gap})
+
+
+class Flaky(Worker):
+    """Fails every `every`-th pair with a WorkerError (bad input, as a plugin reports it)."""
+
+    needs_images = False
+
+    def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
+        self.every = int(params.get("every", 3))
+        self.n = 0
+
+    def process(self, pair: Pair) -> Extra:
+        self.n += 1
+        if self.n % self.every == 0:
+            raise WorkerError(f"pair {pair.header.seq} rejected on purpose")
+        return Extra(name="flaky", fields={"n": self.n})
 
 
 class Crash(Worker):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import socket
@@ -194,3 +195,35 @@ def test_tcp_port_in_use_is_reported(spawn, run_dir: Path) -> None:
         blocker.close()
     assert code == 2
     assert "cannot start" in err and "address already in use" in err
+
+
+@pytest.mark.timeout(90)
+def test_ledger_accounts_for_every_pair(spawn, run_dir: Path) -> None:
+    """Every pair capture produced ends, per pool, in exactly one state."""
+    cfg = write_config(run_dir.parent / "ledger.yaml", {
+        "source": SMALL,
+        "pools": {
+            "fast": {"plugin": "noop", "policy": "ordered:64"},
+            "slow": {"plugin": "slow", "policy": "latest", "params": {"delay_s": 0.4}},
+            "flaky": {"plugin": "flaky", "policy": "fifo:8", "params": {"every": 3}},
+            "stuck": {"plugin": "slow", "policy": "fifo:4", "timeout_s": 1.0,
+                      "params": {"delay_s": 2.5}},
+        },
+    })
+    p: Pipeline = spawn(["--config", str(cfg), "--duration", "8"], run_dir)
+    code, out, err = p.wait(60)
+    assert code == 0, err
+    ledger = json.loads((run_dir / "ledger.json").read_text())
+    produced = ledger["produced"]
+    assert produced > 50
+    for name, pool in ledger["pools"].items():
+        states = (pool["processed"] + pool["dropped_by_policy"] + pool["timed_out"]
+                  + pool["failed"] + pool["lost"])
+        assert states == produced, (name, pool, produced)
+    pools = ledger["pools"]
+    assert pools["slow"]["dropped_by_policy"] > 0 and pools["slow"]["policy"] == "latest"
+    assert pools["flaky"]["failed"] > 0 and pools["flaky"]["failures"] == {
+        "WorkerError": pools["flaky"]["failed"]}
+    assert pools["stuck"]["timed_out"] > 0
+    assert pools["fast"]["processed"] >= produced - 5
+    assert "failed" in out and "timed out" in out

@@ -97,7 +97,8 @@ def test_timeout_evicts_and_counts_lost() -> None:
     ev = [a for a in acts if isinstance(a, Evicted)]
     assert ev and ev[0].lost == (0,) and "timeout" in ev[0].reason
     assert released(acts) == [0]
-    assert s.pool_stats()["p"].lost == 1 and s.pool_stats()["p"].workers == 0
+    st = s.pool_stats()["p"]
+    assert (st.timed_out, st.lost, st.workers) == (1, 0, 0)
 
 
 def test_idle_silent_worker_evicted_then_rejoins_on_heartbeat() -> None:
@@ -118,7 +119,7 @@ def test_done_from_evicted_worker_counts_once_and_rejoins() -> None:
     acts = s.job_done(W1, "p", 0, True, 11.5)
     assert dispatched(acts) == [(W1, 1, 0)]
     st = s.pool_stats()["p"]
-    assert (st.processed, st.lost) == (0, 1)
+    assert (st.processed, st.timed_out) == (0, 1)
 
 
 def test_worker_gone_frees_its_pairs_now() -> None:
@@ -174,7 +175,8 @@ def test_every_pair_ends_in_exactly_one_counter(seed: int) -> None:
             w = rng.choice(list(in_flight))
             if in_flight[w]:
                 done = in_flight[w].pop(0)
-                take(s.job_done(w, pool_of[w], done, rng.random() < 0.9, now))
+                ok = rng.random() < 0.9
+                take(s.job_done(w, pool_of[w], done, ok, now, rng.choice(["A", "B"])))
         elif r < 0.95:
             take(s.tick(now + rng.choice([0.0, 20.0])))
         else:
@@ -182,8 +184,15 @@ def test_every_pair_ends_in_exactly_one_counter(seed: int) -> None:
             take(s.worker_gone(w, "test", now))
             take(s.worker_ready(w, pool_of[w], 1, now))
     for name, st in s.pool_stats().items():
-        total = st.processed + st.errors + st.dropped + st.lost + st.pending + st.in_flight
+        total = (st.processed + st.errors + st.dropped + st.timed_out + st.lost + st.pending
+                 + st.in_flight)
         assert st.received == seq, name
         assert total == st.received, (name, st)
+        assert sum(st.failures.values()) == st.errors
     assert len(released_seqs) == len(set(released_seqs))
     assert len(released_seqs) + s.held() == seq
+    take(s.finish())  # the run ends: nothing pending or in flight remains unaccounted
+    for st in s.pool_stats().values():
+        assert st.pending == st.in_flight == 0
+        assert st.processed + st.errors + st.dropped + st.timed_out + st.lost == seq
+    assert sorted(released_seqs) == list(range(seq)) and s.drained()

@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# Benchmarks of trapflow on this machine; numbers go to bench-results/ (JSON per part and
+# bench.md with everything). Speed is measured here, never asserted in tests.
+# Usage: scripts/bench.sh [OUT_DIR]   (set PYTHON to choose the interpreter)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+OUT=${1:-bench-results}
+PY=${PYTHON:-python}
+mkdir -p "$OUT"
+echo "[bench] transport (broker path vs raw pyzmq)" >&2
+"$PY" scripts/bench_transport.py --out "$OUT" > /dev/null
+for part in bench_shm bench_synth; do
+  if [ -f "scripts/$part.py" ]; then
+    echo "[bench] $part" >&2
+    "$PY" "scripts/$part.py" --out "$OUT" > /dev/null
+  fi
+done
+echo "[bench] algorithms" >&2
+"$PY" scripts/bench_algorithms.py --out "$OUT" > /dev/null
+echo "[bench] modem link" >&2
+"$PY" scripts/bench_modem.py --out "$OUT/modem.json" > "$OUT/modem.txt"
+{
+  echo "# trapflow benchmark, $(date -u '+%Y-%m-%d %H:%M UTC'), $(nproc) cores"
+  echo
+  for md in "$OUT"/transport.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/bench_algorithms.md; do
+    [ -f "$md" ] && cat "$md" && echo
+  done
+  echo "## Modem link"
+  echo
+  echo '```'
+  cat "$OUT/modem.txt"
+  echo '```'
+} > "$OUT/bench.md"
+echo "[bench] wrote $OUT/bench.md" >&2

@@ -1,0 +1,55 @@
+"""Benchmark of the synthetic world: rendered pairs per second on one core, as JSON.
+
+Usage: python scripts/bench_synth.py [--width 1280 --height 720 --pairs 150 --out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import cv2
+
+from trapflow.camera import StereoRig
+from trapflow.synth import SynthOptions, World
+
+
+def bench(width: int, height: int, pairs: int, moving: bool) -> dict[str, float]:
+    rig = StereoRig.from_fov(width, height, 70.0, 0.12)
+    t0 = time.perf_counter()
+    world = World(rig, seed=1, moving=moving, rate_hz=15.0, options=SynthOptions(density=2.0))
+    setup = time.perf_counter() - t0
+    world.render(0)
+    t0 = time.perf_counter()
+    for i in range(1, pairs + 1):
+        world.render(i)
+    dt = time.perf_counter() - t0
+    return {"setup_s": round(setup, 3), "pairs_per_s": round(pairs / dt, 2),
+            "ms_per_pair": round(1000 * dt / pairs, 2)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--width", type=int, default=1280)
+    ap.add_argument("--height", type=int, default=720)
+    ap.add_argument("--pairs", type=int, default=150)
+    ap.add_argument("--out", default="")
+    args = ap.parse_args()
+    cv2.setNumThreads(1)
+    result = {
+        "bench": "synth_render",
+        "size": f"{args.width}x{args.height}",
+        "threads": 1,
+        "static": bench(args.width, args.height, args.pairs, False),
+        "moving": bench(args.width, args.height, args.pairs, True),
+    }
+    text = json.dumps(result, indent=2)
+    print(text)
+    if args.out:
+        with open(args.out, "w") as f:
+            f.write(text + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -329,7 +329,8 @@ class RingWriter(FrameRing):
         lb, rb = _as_bytes(left), _as_bytes(right)
         loff = FRAME_SLOT_HEADER
         roff = _round_up(loff + lb.nbytes, ALIGN)
-        if not lb.nbytes or not rb.nbytes or roff + rb.nbytes > self.slot_size:
+        if (not lb.nbytes or not rb.nbytes or lb.nbytes + rb.nbytes > self.capacity
+                or roff + rb.nbytes > self.slot_size):
             raise RingError(
                 f"write: expected 1..{self.capacity} payload bytes per pair, got "
                 f"{lb.nbytes} + {rb.nbytes}")

@@ -8,7 +8,7 @@ Decoding never trusts the wire: every decoder raises ProtocolError with a reason
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, Literal, Union
+from typing import Annotated, Any, Literal, Union
 
 import msgspec
 
@@ -385,3 +385,65 @@ TAP_TOPICS = (TOPIC_META, TOPIC_IMAGE, TOPIC_STATS, TOPIC_RESULT, TOPIC_TRUTH)
 def to_builtins(msg: Msg) -> Any:
     """Plain Python builtins (dicts, lists, numbers) for a message, for JSON output."""
     return msgspec.to_builtins(msg)
+
+
+# --- shared-memory frames -----------------------------------------------------------
+# With a shared-memory ring the pair message is [StereoPair header, FrameRef]: the images
+# stay in the ring slot and only this descriptor travels (trapflow/frame_ring.py).
+
+# Bytes at the start of every ring slot before the payload (generation, lengths).
+FRAME_SLOT_HEADER = 64
+MAX_RING_SLOTS = 4096
+
+_NonNeg = Annotated[int, msgspec.Meta(ge=0)]
+
+
+class FrameRef(Msg, frozen=True, tag="frameref"):
+    """Where one pair lies in a shared-memory ring: slot, its generation when written,
+    and the left and right payloads as (offset, length) from the start of the slot."""
+
+    segment: Annotated[str, msgspec.Meta(min_length=1, max_length=200)]
+    slot: _NonNeg
+    generation: _NonNeg
+    left_offset: _NonNeg
+    left_length: _NonNeg
+    right_offset: _NonNeg
+    right_length: _NonNeg
+
+
+_frame_ref_dec = msgspec.msgpack.Decoder(FrameRef)
+
+
+def decode_frame_ref(data: Buffer) -> FrameRef:
+    """Decode a FrameRef frame (bounds against a ring are checked by check_frame_ref)."""
+    ref: FrameRef = _decode(_frame_ref_dec, data, "frame ref", MAX_HEADER_BYTES)
+    return ref
+
+
+def check_frame_ref(ref: FrameRef, ring_slots: int, slot_size: int) -> None:
+    """Reject a descriptor that would read outside its slot: ProtocolError with the reason.
+
+    A committed generation is even and at least 2 (odd means a write in progress).
+    Both payloads must lie after the slot header, inside the slot, and not overlap.
+    """
+    what = f"frame ref slot {ref.slot}"
+    if not 0 <= ref.slot < ring_slots:
+        raise ProtocolError(f"frame ref: expected slot in 0..{ring_slots - 1}, got {ref.slot}")
+    if ref.generation < 2 or ref.generation % 2:
+        raise ProtocolError(
+            f"{what}: expected an even committed generation >= 2, got {ref.generation}")
+    spans = []
+    for side, off, n in (("left", ref.left_offset, ref.left_length),
+                         ("right", ref.right_offset, ref.right_length)):
+        if n < 1:
+            raise ProtocolError(f"{what}: expected {side} length >= 1, got {n}")
+        if off < FRAME_SLOT_HEADER or off + n > slot_size:
+            raise ProtocolError(
+                f"{what}: expected {side} bytes within {FRAME_SLOT_HEADER}..{slot_size}, "
+                f"got offset {off} length {n}")
+        spans.append((off, off + n))
+    (a0, a1), (b0, b1) = spans
+    if a0 < b1 and b0 < a1:
+        raise ProtocolError(
+            f"{what}: expected disjoint left and right payloads, got left {a0}..{a1} "
+            f"and right {b0}..{b1}")

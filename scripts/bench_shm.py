@@ -1,0 +1,159 @@
+"""Shared-memory frame ring benchmark: pairs written once into the ring with only a FrameRef
+over a pyzmq PUSH/PULL ipc socket, against raw pyzmq PUSH/PULL carrying the bytes, in one run.
+
+1280x720 stereo pairs, JPEG (q90, ~252 KB a pair) and raw (5.5 MB a pair), 1 producer ->
+1 consumer process; the consumer touches every page of both images. Throughput is lossless
+with back-pressure (4 pairs in flight: a ring of 4 slots, freed by the consumer); latency
+is one-way at a fixed 30 pairs/s (stamp before the write into the ring -> consumer holds
+usable views). Prints JSON on stdout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import zmq
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_transport import (  # noqa: E402  (a sibling script, not a package)
+    PAGE,
+    WINDOW,
+    _pcts,
+    cpu_s,
+    header,
+    make_payload,
+    peak_rss_mb,
+    raw_pyzmq,
+)
+
+from trapflow import frame_ring, messages  # noqa: E402
+
+
+def _shm_consumer(name: str, data_ep: str, credit_ep: str, conn: Any) -> None:
+    ctx = zmq.Context()
+    pull = ctx.socket(zmq.PULL)
+    pull.connect(data_ep)
+    credit = ctx.socket(zmq.PUSH)
+    credit.connect(credit_ep)
+    ring = frame_ring.FrameRing(name)  # the lifetime owner here: frees after use
+    reader = frame_ring.RingReader(name)
+    lats: list[int] = []
+    n = stale = 0
+    left = right = None
+    conn.send("ready")
+    while True:
+        frames = pull.recv_multipart()
+        if len(frames) == 1:
+            break
+        ref = messages.decode_frame_ref(frames[1])
+        try:
+            left, right = reader.view(ref)
+            t = time.monotonic_ns()
+            h = msgspec.msgpack.decode(frames[0])
+            left[::PAGE].sum()
+            right[::PAGE].sum()
+            reader.check(ref)
+            lats.append(t - h["t_mono_ns"])
+            n += 1
+        except frame_ring.StaleFrame:
+            stale += 1
+        ring.free_ref(ref)
+        credit.send(b"")
+    del left, right
+    conn.send({"n": n, "stale": stale, "lat": lats, "rss": peak_rss_mb(os.getpid())})
+    reader.close()
+    ring.close()
+    ctx.destroy(linger=0)
+
+
+def shm_ring(kind: str, seconds: float, rate: float | None, tmp: Path) -> dict[str, Any]:
+    left, right = make_payload(kind)
+    data_ep = f"ipc://{tmp}/shm-{kind}-{rate}.sock"
+    credit_ep = f"ipc://{tmp}/shm-credit-{kind}-{rate}.sock"
+    ring = frame_ring.FrameRing.create(WINDOW, frame_ring.slot_capacity(1280, 720))
+    writer = frame_ring.RingWriter(ring.name)
+    ctx = zmq.Context()
+    push = ctx.socket(zmq.PUSH)
+    push.bind(data_ep)
+    credit = ctx.socket(zmq.PULL)
+    credit.bind(credit_ep)
+    here, there = mp.Pipe()
+    proc = mp.get_context("spawn").Process(
+        target=_shm_consumer, args=(ring.name, data_ep, credit_ep, there))
+    proc.start()
+    try:
+        here.recv()
+        time.sleep(0.3)
+        c0 = cpu_s(os.getpid()) + cpu_s(proc.pid)
+        n, full, t0 = 0, 0, time.monotonic()
+        period = 1.0 / rate if rate else 0.0
+        while (now := time.monotonic()) - t0 < seconds:
+            if rate:
+                wait = t0 + n * period - now
+                if wait > 0:
+                    time.sleep(wait)
+            while credit.poll(0):
+                credit.recv()
+            hdr = header(n, kind)  # stamped before the write: the ring is the transport
+            slot = writer.acquire()
+            if slot is None:  # 4 pairs in flight: wait for the consumer to free one
+                full += 1
+                credit.poll(1000)
+                continue
+            ref = writer.write(slot, left, right)
+            push.send_multipart([hdr, messages.encode(ref)])
+            n += 1
+        push.send(b"end")
+        res = here.recv()
+        dt = time.monotonic() - t0
+        cpu = cpu_s(os.getpid()) + cpu_s(proc.pid) - c0
+        proc.join(5)
+    finally:
+        if proc.is_alive():
+            proc.kill()
+            proc.join(5)
+        ctx.destroy(linger=0)
+        writer.close()
+        ring.close()
+    return {"pairs": res["n"], "pairs_s": res["n"] / dt, "stale": res["stale"],
+            "lost": n - res["n"] - res["stale"], "ring_full_waits": full,
+            "lat_us": _pcts(res["lat"]), "cpu_us_per_pair": cpu / max(res["n"], 1) * 1e6,
+            "rss_mb": {"source": peak_rss_mb(os.getpid()), "consumer": res["rss"]}}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--seconds", type=float, default=4.0)
+    ap.add_argument("--latency-seconds", type=float, default=6.0)
+    args = ap.parse_args()
+    frame_ring.cleanup_stale()
+    tmp = Path(tempfile.mkdtemp(prefix="tfshm-"))
+    out: dict[str, Any] = {"machine": {"cores": os.cpu_count(), "python": sys.version.split()[0],
+                                       "pyzmq": zmq.__version__, "libzmq": zmq.zmq_version()}}
+    for kind in ("jpeg", "raw"):
+        print(f"[bench] {kind}: throughput", file=sys.stderr)
+        base = raw_pyzmq(kind, args.seconds, None, tmp)
+        shm = shm_ring(kind, args.seconds, None, tmp)
+        print(f"[bench] {kind}: 30 Hz latency", file=sys.stderr)
+        base30 = raw_pyzmq(kind, args.latency_seconds, 30.0, tmp)
+        shm30 = shm_ring(kind, args.latency_seconds, 30.0, tmp)
+        out[kind] = {
+            "throughput": {"pyzmq_push_pull": base, "shm_ring": shm,
+                           "ratio": shm["pairs_s"] / base["pairs_s"]},
+            "latency_30hz": {"pyzmq_push_pull": base30, "shm_ring": shm30,
+                             "ratio_p50": shm30["lat_us"]["p50"] / base30["lat_us"]["p50"]},
+        }
+    print(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()

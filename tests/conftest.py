@@ -106,6 +106,17 @@ class Pipeline:
         data: dict[str, Any] = json.loads(out.stdout)
         return data
 
+    def wait_active(self, timeout: float = 60.0) -> dict[str, Any]:
+        """Poll status until every node is active and stats flow; return that status."""
+        def ready() -> dict[str, Any] | None:
+            s = self.status()
+            if s and s.get("stats") and all(n["state"] == "active" for n in s["nodes"]):
+                return s
+            return None
+
+        result: dict[str, Any] = poll_for(ready, timeout, interval=0.2, what="every node active")
+        return result
+
     def wait(self, timeout: float) -> tuple[int, str, str]:
         out, err = self.proc.communicate(timeout=timeout)
         return self.proc.returncode, out, err

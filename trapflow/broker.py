@@ -17,6 +17,7 @@ import zmq
 from trapflow import messages
 from trapflow.broker_state import BrokerState, Dispatch, Evicted, PoolSpec, Release
 from trapflow.errors import ProtocolError
+from trapflow.frame_ring import HELD, FrameRing
 from trapflow.node import ACTIVE, Node, NodeSpec
 from trapflow.ratelog import RateLimitedLog
 from trapflow.transport import SocketSpec, open_socket
@@ -51,6 +52,13 @@ class BrokerNode(Node):
         }
         self.state = BrokerState(pools, idle_liveness_s=self.cfg.supervisor.liveness_s)
         self.frames: dict[int, list[Any]] = {}
+        # Shared-memory ring: the broker owns slot lifetime (frees a slot on Release).
+        ring_name = spec.extra.get("ring")
+        self.ring = FrameRing(ring_name) if ring_name else None
+        self.refs: dict[int, messages.FrameRef] = {}
+        self.remote = {n for n, p in self.cfg.pools.items() if p.remote}
+        if self.ring is not None:
+            self._reclaim_held()
         self.malformed = 0
         self.unroutable = 0
         self.ratelog = RateLimitedLog(log)
@@ -101,8 +109,15 @@ class BrokerNode(Node):
             if len(frames) == 2 and frames[0].bytes == messages.TOPIC_TRUTH:
                 self._publish(messages.TOPIC_TRUTH, frames[1])  # out of band, for the tap only
                 continue
+            ref: messages.FrameRef | None = None
             try:
-                pair = messages.check_pair_frames(frames)
+                if len(frames) == 2:
+                    pair, ref = messages.check_pair_ref(frames)
+                    if self.ring is None:
+                        raise ProtocolError("pair: got a frame ref, but no shared-memory ring")
+                    self.ring.validate(ref)
+                else:
+                    pair = messages.check_pair_frames(frames)
             except ProtocolError as exc:
                 self.malformed += 1
                 self.ratelog.warning("capture", "dropped malformed pair message: %s", exc)
@@ -110,12 +125,16 @@ class BrokerNode(Node):
             if pair.seq in self.frames:
                 self.malformed += 1
                 self.ratelog.warning("dup", "dropped pair with duplicate seq %d", pair.seq)
+                if ref is not None and self.ring is not None and ref != self.refs.get(pair.seq):
+                    self.ring.free_ref(ref)
                 continue
             self.frames[pair.seq] = frames
+            if ref is not None:
+                self.refs[pair.seq] = ref
             if self.wanted.get(messages.TOPIC_META):
                 self._publish(messages.TOPIC_META, frames[0])
             if self.wanted.get(messages.TOPIC_IMAGE):
-                self._publish(messages.TOPIC_IMAGE, *frames)
+                self._publish(messages.TOPIC_IMAGE, *self._payload(pair.seq, copy=True))
             self._apply(self.state.pair_arrived(pair.seq, time.monotonic()))
 
     # --- worker side ----------------------------------------------------------------
@@ -169,9 +188,10 @@ class BrokerNode(Node):
                     if action.gap == 0:
                         self._jobs[key] = job
                 try:
+                    remote = action.pool in self.remote
                     self.router.send_multipart(
-                        [action.worker, job, *self.frames[action.seq]], copy=False
-                    )
+                        [action.worker, job, *self._payload(action.seq, copy=remote)],
+                        copy=False)
                 except zmq.ZMQError as exc:  # EHOSTUNREACH: the worker vanished
                     self.unroutable += 1
                     self.ratelog.warning("route", "cannot reach worker %r: %s", action.worker, exc)
@@ -179,12 +199,37 @@ class BrokerNode(Node):
                                                        time.monotonic()))
             elif isinstance(action, Release):
                 self.frames.pop(action.seq, None)
+                ref = self.refs.pop(action.seq, None)
+                if ref is not None and self.ring is not None:
+                    self.ring.free_ref(ref)
             elif isinstance(action, Evicted):
                 log.warning(
                     "evicted worker %s of pool %s (%s); pairs lost: %s",
                     action.worker.decode(errors="replace"), action.pool, action.reason,
                     list(action.lost) or "none",
                 )
+
+    def _payload(self, seq: int, copy: bool) -> list[Any]:
+        """[header, left, right] bytes, or [header, ref] for local readers of the ring.
+
+        copy=True reads the bytes out of the ring (remote pools, the tap): zmq sends them
+        later from its own thread, after the slot may have been freed and reused.
+        """
+        frames = self.frames[seq]
+        ref = self.refs.get(seq)
+        if ref is None or not copy:
+            return frames
+        assert self.ring is not None
+        row = self.ring.payload(ref)
+        return [frames[0], bytes(row[0]), bytes(row[1])]
+
+    def _reclaim_held(self) -> None:
+        """A new broker knows of no pair: slots a previous broker held are free again."""
+        assert self.ring is not None
+        n = sum(self.ring.free(slot, self.ring.generation(slot))
+                for slot in range(self.ring.slots) if self.ring.state(slot) == HELD)
+        if n:
+            log.warning("freed %d ring slots held by a previous broker", n)
 
     def _on_subscriptions(self) -> None:
         # XPUB passes the first subscribe and the last unsubscribe of each topic prefix.

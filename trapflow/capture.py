@@ -17,6 +17,7 @@ import zmq
 
 from trapflow import messages
 from trapflow.camera import StereoRig
+from trapflow.frame_ring import RingError, RingWriter
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.sources import Frames, Source, SourceError, open_source
 from trapflow.transport import SocketSpec, open_socket
@@ -50,6 +51,9 @@ class CaptureNode(Node):
         self.dropped = 0
         self.failures = 0
         self.jpeg_params = [int(cv2.IMWRITE_JPEG_QUALITY), self.src_cfg.jpeg_quality]
+        # With a shared-memory ring each pair is written once there; only a descriptor is sent.
+        ring_name = spec.extra.get("ring")
+        self.ring = RingWriter(ring_name) if ring_name else None
 
     def counters(self) -> dict[str, int]:
         out = {"produced": self.produced, "dropped": self.dropped, "failures": self.failures}
@@ -108,6 +112,11 @@ class CaptureNode(Node):
         self.source.close()
         return 0
 
+    def close(self) -> None:
+        if self.ring is not None:
+            self.ring.close()
+        super().close()
+
     def _wait(self, seconds: float) -> None:
         end = time.monotonic() + seconds
         while not self.stopping and (left := end - time.monotonic()) > 0:
@@ -130,6 +139,19 @@ class CaptureNode(Node):
                         f.left.shape, f.right.shape)
             return
         left, right = self._encode(f.left), self._encode(f.right)
+        slot: int | None = None
+        if self.ring is not None:
+            slot = self.ring.acquire()
+            if slot is None:  # every slot still held by some pool: drop, never wait
+                self.dropped += 1
+                return
+            try:
+                ref = self.ring.write(slot, left, right)
+            except RingError as exc:
+                self.ring.release(slot)
+                self.failures += 1
+                log.warning("pair does not fit a ring slot; skipped: %s", exc)
+                return
         seq = self.seq
         self.seq += 1
         header = messages.StereoPair(
@@ -144,11 +166,14 @@ class CaptureNode(Node):
             height=h,
             source=self.src_cfg.kind,
         )
+        payload: list[Any] = [messages.encode(header)]
+        payload += [left, right] if slot is None else [messages.encode(ref)]
         try:
-            payload: list[Any] = [messages.encode(header), left, right]
             self.push.send_multipart(payload, zmq.NOBLOCK, copy=False)
         except zmq.Again:
             self.dropped += 1
+            if self.ring is not None and slot is not None:
+                self.ring.release(slot)
             return
         self.produced += 1
         if f.truth is not None:

@@ -64,6 +64,7 @@ class PoolConfig(_Section):
     credit: Annotated[int, msgspec.Meta(ge=1, le=64)] = 1
     timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 10.0
     params: dict[str, Any] = {}
+    remote: bool = False  # workers on another host: the broker sends them the bytes
     debug: bool = False
     save: bool = False
     time: bool = False
@@ -117,6 +118,18 @@ class NetworkConfig(_Section):
             )
 
 
+class FramesConfig(_Section):
+    """How images travel from capture to the workers on one host."""
+
+    transport: Literal["zmq", "shm"] = "shm"
+    """shm: written once into a shared-memory ring, only a descriptor rides on ZeroMQ;
+    zmq: the bytes ride in the messages (what remote pools always get)."""
+    spare_slots: Annotated[int, msgspec.Meta(ge=0, le=1024)] = 9
+    """Ring slots beyond what the pools can hold: pairs between capture and the broker."""
+    preroll_slots: Annotated[int, msgspec.Meta(ge=0, le=1024)] = 0
+    """Ring slots kept for an event pre-roll."""
+
+
 def _default_pools() -> dict[str, PoolConfig]:
     return {
         # Visual odometry keeps its rate: the recognisers run at a lower CPU priority.
@@ -136,6 +149,7 @@ class Config(_Section):
     normalizer: NormalizerConfig = msgspec.field(default_factory=NormalizerConfig)
     supervisor: SupervisorConfig = msgspec.field(default_factory=SupervisorConfig)
     network: NetworkConfig = msgspec.field(default_factory=NetworkConfig)
+    frames: FramesConfig = msgspec.field(default_factory=FramesConfig)
     outbox: OutboxConfig = msgspec.field(default_factory=OutboxConfig)
     modem: ModemConfig = msgspec.field(default_factory=ModemConfig)
     health: HealthConfig = msgspec.field(default_factory=HealthConfig)

@@ -38,12 +38,11 @@ import secrets
 import struct
 import threading
 from collections.abc import Iterable, Iterator
-from typing import Annotated, Any, Literal
+from typing import Any
 
-import msgspec
 import numpy as np
 
-from trapflow.config import PoolConfig
+from trapflow.config import FramesConfig, PoolConfig  # noqa: F401 - FramesConfig re-exported
 from trapflow.errors import ProtocolError, StartupError, TrapflowError
 from trapflow.messages import FRAME_SLOT_HEADER, MAX_RING_SLOTS, FrameRef, check_frame_ref
 
@@ -73,17 +72,6 @@ class RingError(TrapflowError):
 
 class StaleFrame(RingError):
     """The slot was reused while (or before) the reader used it: the read is rejected."""
-
-
-class FramesConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
-    """How images travel between processes on one host."""
-
-    transport: Literal["zmq", "shm"] = "zmq"
-    """zmq: the bytes ride in the pair message; shm: in a shared-memory ring, a FrameRef rides."""
-    spare_slots: Annotated[int, msgspec.Meta(ge=0, le=1024)] = IN_TRANSIT_SLOTS
-    """Slots beyond what the pools can hold: pairs between capture and the broker."""
-    preroll_slots: Annotated[int, msgspec.Meta(ge=0, le=1024)] = 0
-    """Slots kept for the event pre-roll (pairs held back before an event)."""
 
 
 def slot_capacity(width: int, height: int) -> int:
@@ -252,6 +240,13 @@ class FrameRing:
             raise ProtocolError(
                 f"frame ref: expected segment {self.name!r}, got {ref.segment!r}")
         check_frame_ref(ref, self.slots, self.slot_size)
+
+    def payload(self, ref: FrameRef) -> tuple[np.ndarray, np.ndarray]:
+        """Views of a pair for its lifetime owner, who keeps the slot held while using them."""
+        self.validate(ref)
+        row = self._data[ref.slot]
+        return (row[ref.left_offset:ref.left_offset + ref.left_length],
+                row[ref.right_offset:ref.right_offset + ref.right_length])
 
     # --- lifetime ---------------------------------------------------------------------
 

@@ -304,7 +304,8 @@ def raw_size(pair: StereoPair) -> int:
 def check_pair_frames(frames: Sequence[Buffer]) -> StereoPair:
     """Validate a [header, left, right] message and return its header."""
     if len(frames) != 3:
-        raise ProtocolError(f"pair: expected 3 frames [header, left, right], got {len(frames)}")
+        raise ProtocolError(f"pair: expected 3 frames [header, left, right] or 2 "
+                            f"[header, frame ref], got {len(frames)}")
     pair = decode_pair_header(frames[0])
     limit = raw_size(pair)
     for side, frame in (("left", frames[1]), ("right", frames[2])):
@@ -447,3 +448,11 @@ def check_frame_ref(ref: FrameRef, ring_slots: int, slot_size: int) -> None:
         raise ProtocolError(
             f"{what}: expected disjoint left and right payloads, got left {a0}..{a1} "
             f"and right {b0}..{b1}")
+
+
+def check_pair_ref(frames: Sequence[Buffer]) -> tuple[StereoPair, FrameRef]:
+    """Validate a [header, frame ref] message (images in shared memory)."""
+    if len(frames) != 2:
+        raise ProtocolError(f"pair: expected 2 frames [header, frame ref], got {len(frames)}")
+    pair = decode_pair_header(frames[0])
+    return pair, decode_frame_ref(frames[1])

@@ -14,7 +14,7 @@ from trapflow.plugin import Worker
 
 BUILTIN: dict[str, str] = {
     # The four algorithms a deployment runs (pool names in the default config).
-    "mono": "trapflow_workers.blob_detector:BlobDetector",
+    "mono": "trapflow_workers.crab_detector:CrabDetector",
     "stereo": "trapflow_workers.histogram_classifier:HistogramClassifier",
     "vo": "trapflow_workers.stereo_vo:StereoOdometry",
     "tags": "trapflow_workers.apriltags:AprilTags",
@@ -30,6 +30,7 @@ BUILTIN: dict[str, str] = {
     "slow": "trapflow_workers.testing:Slow",
     "crash": "trapflow_workers.testing:Crash",
     "flaky": "trapflow_workers.testing:Flaky",
+    "digest": "trapflow_workers.testing:Digest",
 }
 
 ENTRY_POINT_GROUP = "trapflow.workers"

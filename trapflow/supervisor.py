@@ -29,6 +29,7 @@ from trapflow import messages, registry
 from trapflow.camera import StereoRig
 from trapflow.config import Config
 from trapflow.errors import ProtocolError, StartupError, TrapflowError
+from trapflow.frame_ring import FrameRing, cleanup_stale, ring_slots, slot_capacity
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, NodeSpec, node_main
 from trapflow.sources import open_source
 from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
@@ -69,6 +70,13 @@ class Child:
         return self.proc is not None and self.proc.is_alive()
 
 
+def _full_stats(stats: messages.Stats) -> dict[str, Any]:
+    """Stats as plain data with every field, zeros included (the wire form omits them)."""
+    out = msgspec.structs.asdict(stats)
+    out["pools"] = {n: msgspec.structs.asdict(p) for n, p in stats.pools.items()}
+    return out
+
+
 def default_run_dir(base: Path = Path("runs")) -> Path:
     """A fresh timestamped run directory under ./runs."""
     return base / datetime.now().strftime("%Y%m%d-%H%M%S-%f")[:-3]
@@ -101,6 +109,7 @@ class Supervisor:
         self.stats: messages.Stats | None = None
         self.t0 = time.monotonic()
         self.rig: StereoRig | None = None
+        self.ring: FrameRing | None = None
 
     # --- the process graph --------------------------------------------------------------
 
@@ -126,6 +135,8 @@ class Supervisor:
         self.children.append(Child(spec, liveness_s))
 
     def _spawn(self, child: Child) -> None:
+        if self.ring is not None:
+            child.spec.extra["ring"] = self.ring.name
         child.proc = self.mp.Process(
             target=node_main, args=(child.spec, self.log_queue, os.getpid()),
             name=child.name, daemon=False,
@@ -143,6 +154,7 @@ class Supervisor:
         lock = self._lock_run_dir()
         self._preflight()
         self.endpoints = Endpoints.for_run(self.cfg.network, self.run_dir)
+        self.ring = self._create_ring()
         self.ctx = new_context()
         self._start_logging()
         try:
@@ -164,6 +176,8 @@ class Supervisor:
             self._print_totals()
             self.ctx.destroy(linger=0)
             self._stop_logging()
+            if self.ring is not None:
+                self.ring.close()  # unlinks the segment: nothing left in /dev/shm
             lock.close()
         return self.exit_code
 
@@ -203,6 +217,25 @@ class Supervisor:
                     registry.resolve(self.cfg.plugin_of(pool))
                 except TrapflowError as exc:
                     raise StartupError(f"pool {pool!r}: {exc}") from None
+
+    def _create_ring(self) -> FrameRing | None:
+        """The shared-memory frame ring every local node maps (frames.transport: shm).
+
+        Segments of supervisors that died (kill -9, power cut) are removed first.
+        """
+        for name in cleanup_stale():
+            log.warning("removed stale shared-memory segment %s", name)
+        c = self.cfg
+        if c.frames.transport != "shm":
+            return None
+        pools = [p for p in c.pools.values() if p.count > 0 and not p.remote]
+        slots = ring_slots(pools, c.frames.preroll_slots, c.frames.spare_slots)
+        w, h = c.source.width, c.source.height
+        if self.rig is not None:  # a file or camera source knows its own size
+            w, h = max(w, self.rig.width), max(h, self.rig.height)
+        ring = FrameRing.create(slots, slot_capacity(w, h))
+        log.info("frame ring %s: %d slots of %d bytes", ring.name, slots, ring.slot_size)
+        return ring
 
     def _install_signals(self) -> None:
         def _stop(signo: int, _frame: Any) -> None:
@@ -315,7 +348,9 @@ class Supervisor:
                     self._spawn(c)
                 continue
             if c.alive():
-                if now - c.last_beat > c.liveness_s:
+                # A node still configuring (loading a model, building a world) gets start-up time.
+                limit = c.liveness_s if c.state != "unconfigured" else STARTUP_TIMEOUT_S
+                if now - c.last_beat > limit:
                     log.error("%s silent for %.1f s; killing it", c.name, now - c.last_beat)
                     c.proc.kill()
                 continue
@@ -369,7 +404,9 @@ class Supervisor:
                  "last_beat_s": round(now - c.last_beat, 1), "counters": c.counters}
                 for c in self.children
             ],
-            "stats": messages.to_builtins(self.stats) if self.stats else None,
+            "stats": _full_stats(self.stats) if self.stats else None,
+            "ring": ({"segment": self.ring.name, "slots": self.ring.slots, **self.ring.counts()}
+                     if self.ring is not None else None),
         }
 
     def _on_control(self, data: bytes) -> None:

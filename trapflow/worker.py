@@ -20,6 +20,7 @@ import zmq
 from trapflow import messages, registry
 from trapflow.capture import rig_from_config
 from trapflow.errors import ProtocolError, WorkerError
+from trapflow.frame_ring import RingError, RingReader
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.plugin import Context, Pair, Worker
 from trapflow.ratelog import RateLimitedLog
@@ -29,8 +30,8 @@ log = logging.getLogger(__name__)
 
 
 def decode_image(frame: Any, pair: messages.StereoPair, side: str) -> np.ndarray:
-    """A BGR uint8 image from a JPEG or raw frame; ProtocolError if it is not one."""
-    buf = np.frombuffer(frame.buffer if hasattr(frame, "buffer") else frame, dtype=np.uint8)
+    """A BGR uint8 image from a JPEG or raw frame (or ring view); ProtocolError if not one."""
+    buf = _as_bytes(frame)
     if pair.encoding == "raw":
         return buf.reshape(pair.height, pair.width, 3)
     img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
@@ -46,6 +47,8 @@ def decode_image(frame: Any, pair: messages.StereoPair, side: str) -> np.ndarray
 
 
 def _as_bytes(frame: Any) -> np.ndarray:
+    if isinstance(frame, np.ndarray):
+        return frame
     return np.frombuffer(frame.buffer if hasattr(frame, "buffer") else frame, dtype=np.uint8)
 
 
@@ -75,6 +78,7 @@ class WorkerNode(Node):
             SocketSpec(zmq.DEALER, self.endpoints.workers, identity=self.ident.encode()),
         )
         self.plugin: Worker | None = None
+        self._reader: RingReader | None = None
         self.processed = 0
         self.failed = 0
         self.free = self.pcfg.credit
@@ -83,7 +87,17 @@ class WorkerNode(Node):
             logging.getLogger().setLevel(logging.DEBUG)
 
     def counters(self) -> dict[str, int]:
-        return {"processed": self.processed, "failed": self.failed}
+        stale = self._reader.rejected if self._reader is not None else 0
+        return {"processed": self.processed, "failed": self.failed, "stale_reads": stale}
+
+    def _ring(self) -> RingReader:
+        """The shared-memory ring, mapped once, on first use."""
+        if self._reader is None:
+            name = self.spec.extra.get("ring")
+            if not name:
+                raise ProtocolError("job: got a frame ref, but this worker has no ring")
+            self._reader = RingReader(name)
+        return self._reader
 
     def _configure(self) -> bool:
         try:
@@ -143,23 +157,32 @@ class WorkerNode(Node):
         assert self.plugin is not None
         seq = -1
         try:
-            if len(frames) != 4:
-                raise ProtocolError(f"job: expected 4 frames [job, header, left, right], "
-                                    f"got {len(frames)}")
+            if len(frames) not in (3, 4):
+                raise ProtocolError(f"job: expected 4 frames [job, header, left, right] or 3 "
+                                    f"[job, header, frame ref], got {len(frames)}")
             job = messages.decode_job(frames[0])
-            header = messages.check_pair_frames(frames[1:])
+            ref: messages.FrameRef | None = None
+            if len(frames) == 3:
+                header, ref = messages.check_pair_ref(frames[1:])
+                raw_left, raw_right = self._ring().view(ref)  # zero-copy views of the slot
+            else:
+                header = messages.check_pair_frames(frames[1:])
+                raw_left, raw_right = frames[2], frames[3]
             seq = header.seq
             if self.plugin.needs_images:
-                left = decode_image(frames[2], header, "left")
-                right = decode_image(frames[3], header, "right")
+                left = decode_image(raw_left, header, "left")
+                right = decode_image(raw_right, header, "right")
             else:  # the encoded bytes, zero-copy: plugins that never look at pixels
-                left, right = _as_bytes(frames[2]), _as_bytes(frames[3])
+                left, right = _as_bytes(raw_left), _as_bytes(raw_right)
             t0 = time.monotonic_ns()
             body = self.plugin.process(Pair(header=header, left=left, right=right, gap=job.gap))
             proc_ns = time.monotonic_ns() - t0
+            if ref is not None:
+                # The slot must still hold this pair, or the result came from other bytes.
+                self._ring().check(ref)
         except Exception as exc:  # one bad pair fails, the worker goes on
             self.failed += 1
-            reason = str(exc) if isinstance(exc, (ProtocolError, WorkerError)) else (
+            reason = str(exc) if isinstance(exc, (ProtocolError, WorkerError, RingError)) else (
                 f"{type(exc).__name__}: {exc}")
             self.ratelog.warning("fail", "%s: pair %d failed: %s", self.ident, seq, reason)
             self._send([messages.Failed(worker=self.ident, pool=self.pool, seq=seq,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
 import time
 from collections.abc import Mapping
@@ -40,6 +41,19 @@ class Slow(Worker):
     def process(self, pair: Pair) -> Extra:
         time.sleep(self.delay)
         return Extra(name="slow", fields={"gap": pair.gap})
+
+
+class Digest(Worker):
+    """A digest of the decoded pixels of both images: shows two paths deliver the same pair."""
+
+    def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
+        self.pool = ctx.pool
+
+    def process(self, pair: Pair) -> Extra:
+        h = hashlib.sha1(pair.left.tobytes())
+        h.update(pair.right.tobytes())
+        return Extra(name="digest", fields={"sha1": h.hexdigest()[:16], "pool": self.pool,
+                                            "shape": list(pair.left.shape)})
 
 
 class Flaky(Worker):

@@ -45,11 +45,18 @@ def test_start_runs_every_pool_and_writes_results(spawn, run_dir: Path) -> None:
 @pytest.mark.timeout(90)
 def test_tap_and_status_attach_to_a_running_pipeline(spawn, run_dir: Path) -> None:
     p: Pipeline = spawn(["--workers", "mono=1,vo=1", *SMALL], run_dir)
-    status = poll_for(lambda: (s := p.status()) and s.get("stats") and s, 40, what="status")
+    def all_active() -> dict | None:
+        s = p.status()
+        if s and s.get("stats") and all(n["state"] == "active" for n in s["nodes"]):
+            return s
+        return None
+
+    status = poll_for(all_active, 40, what="every node active")
     names = {n["name"]: n for n in status["nodes"]}
     assert set(names) >= {"capture", "broker", "normalizer", "worker:mono:0", "worker:vo:0"}
-    assert all(n["state"] == "active" for n in names.values())
-    assert status["stats"]["pools"]["vo"]["received"] > 0
+    assert status["ring"]["slots"] > 0 and status["ring"]["held"] <= status["ring"]["slots"]
+    poll_for(lambda: (s := p.status()) and s["stats"]["pools"]["vo"]["received"] > 0, 10,
+             what="pairs reaching the vo pool")
     tap = subprocess.run(
         [sys.executable, "-m", "trapflow", "tap", "all", "--count", "12", "--timeout", "20",
          "--run-dir", str(run_dir)], capture_output=True, text=True, timeout=40, cwd=REPO)
@@ -75,7 +82,7 @@ def test_tap_and_status_attach_to_a_running_pipeline(spawn, run_dir: Path) -> No
 @pytest.mark.timeout(60)
 def test_sigterm_stops_everything_within_5s(spawn, run_dir: Path) -> None:
     p: Pipeline = spawn(["--workers", "mono=2,stereo=1,vo=1", *SMALL], run_dir)
-    poll_for(lambda: (s := p.status()) and s.get("stats"), 40, what="pipeline up")
+    p.wait_active()
     kids = p.track()
     assert len(kids) >= 6
     t0 = time.monotonic()
@@ -88,7 +95,7 @@ def test_sigterm_stops_everything_within_5s(spawn, run_dir: Path) -> None:
 @pytest.mark.timeout(60)
 def test_supervisor_killed_leaves_no_orphans(spawn, run_dir: Path) -> None:
     p: Pipeline = spawn(["--workers", "mono=1,vo=1", *SMALL], run_dir)
-    poll_for(lambda: (s := p.status()) and s.get("stats"), 40, what="pipeline up")
+    p.wait_active()
     kids = p.track()
     p.proc.kill()
     p.proc.wait(5)

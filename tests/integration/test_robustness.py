@@ -36,7 +36,7 @@ def test_slow_latest_pool_drops_while_fast_ordered_pool_gets_everything(
         },
     })
     p: Pipeline = spawn(["--config", str(cfg), "--duration", "9"], run_dir)
-    s1 = poll_for(lambda: (s := p.status()) and s.get("stats") and s, 40, what="pipeline up")
+    s1 = p.wait_active()
     t1 = time.monotonic()
     time.sleep(3)
     s2 = p.status()
@@ -64,7 +64,7 @@ def test_slow_latest_pool_drops_while_fast_ordered_pool_gets_everything(
 @pytest.mark.timeout(90)
 def test_kill_9_worker_is_replaced_and_the_run_goes_on(spawn, run_dir: Path) -> None:
     p: Pipeline = spawn(["--workers", "mono=2,vo=1", "--size", "320x240"], run_dir)
-    s = poll_for(lambda: (s := p.status()) and s.get("stats") and s, 40, what="pipeline up")
+    s = p.wait_active()
     victim = _node(s, "worker:mono:1")
     os.kill(victim["pid"], signal.SIGKILL)
     lines_before = len(p.results())
@@ -115,7 +115,7 @@ def test_crash_loop_gives_up_loudly_and_keeps_the_rest(spawn, run_dir: Path) -> 
 @pytest.mark.timeout(90)
 def test_malformed_messages_on_every_bound_socket(spawn, run_dir: Path, zctx) -> None:
     p: Pipeline = spawn(["--workers", "mono=1", "--size", "320x240"], run_dir)
-    poll_for(lambda: (s := p.status()) and s.get("stats"), 40, what="pipeline up")
+    p.wait_active()
     ep = lambda name: f"ipc://{run_dir.resolve() / name}"  # noqa: E731
     cap = zctx.socket(zmq.PUSH)
     cap.connect(ep("capture.sock"))
@@ -170,7 +170,7 @@ def test_plugin_that_cannot_start_fails_the_start_with_one_line(spawn, run_dir: 
 @pytest.mark.timeout(60)
 def test_run_dir_in_use_is_refused(spawn, run_dir: Path) -> None:
     first: Pipeline = spawn(["--workers", "vo=1", "--size", "320x240"], run_dir)
-    poll_for(lambda: (s := first.status()) and s.get("stats"), 40, what="first pipeline up")
+    first.wait_active()
     second: Pipeline = spawn(["--workers", "vo=1", "--duration", "5"], run_dir)
     code, _, err = second.wait(30)
     assert code == 2 and "is in use by another trapflow" in err

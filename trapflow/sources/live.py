@@ -112,15 +112,14 @@ class LiveStereoSource(Source):
             for th in self._threads:
                 if th.error is not None and th.frames.empty():
                     raise SourceError(f"{self.kind}: camera {th.error}")
-            got = False
             for th, push in ((left_t, self.sync.push_left), (right_t, self.sync.push_right)):
                 try:
                     t, img = th.frames.get(timeout=0.005)
                 except queue.Empty:
                     continue
                 push(t, img)
-                got = True
-            if not got and time.monotonic_ns() > deadline:
+            # No *pair* for stall_s is a stall, even while the other camera keeps delivering.
+            if time.monotonic_ns() > deadline:
                 waiting = [th.camera for th in self._threads if th.frames.empty()]
                 raise SourceError(f"{self.kind}: camera {', '.join(waiting) or 'pair'} stalled: "
                                   f"no pair for {self.stall_ns / 1e9:.1f} s")

@@ -27,11 +27,13 @@ import zmq
 
 from trapflow import config as configmod
 from trapflow import messages
+from trapflow.frame_ring import FrameRing, RingWriter, ring_slots, slot_capacity
 from trapflow.node import NodeSpec, node_main
 from trapflow.transport import Endpoints
 
 PAGE = 4096
 WINDOW = 4  # pairs in flight per consumer, as in the peer measurements
+FRAMES = ("zmq", "shm")  # trapflow's two frame paths: bytes through the broker, or the ring
 
 
 def make_payload(kind: str) -> tuple[bytes, bytes]:
@@ -129,6 +131,41 @@ def raw_pyzmq(kind: str, seconds: float, rate: float | None, tmp: Path) -> dict[
             "rss_mb": {"source": peak_rss_mb(os.getpid()), "consumer": res["rss"]}}
 
 
+def raw_pyzmq_fanout(seconds: float, tmp: Path, consumers: int = 3) -> dict[str, Any]:
+    """Raw pairs from one source to 3 consumers, each getting every pair (one PUSH each)."""
+    left, right = make_payload("raw")
+    ctx = zmq.Context()
+    pushes, procs, pipes = [], [], []
+    for i in range(consumers):
+        endpoint = f"ipc://{tmp}/fan-{i}.sock"
+        push = ctx.socket(zmq.PUSH)
+        push.setsockopt(zmq.SNDHWM, WINDOW // 2)
+        push.bind(endpoint)
+        here, there = mp.Pipe()
+        proc = mp.get_context("spawn").Process(target=_raw_consumer, args=(endpoint, there))
+        proc.start()
+        pushes.append(push)
+        procs.append(proc)
+        pipes.append(here)
+    for here in pipes:
+        here.recv()
+    time.sleep(0.3)
+    n, t0 = 0, time.monotonic()
+    while time.monotonic() - t0 < seconds:
+        h = header(n, "raw")
+        for push in pushes:
+            push.send_multipart([h, left, right], copy=False)
+        n += 1
+    for push in pushes:
+        push.send(b"end")
+    counts = [here.recv()["n"] for here in pipes]
+    dt = time.monotonic() - t0
+    for proc in procs:
+        proc.join(5)
+    ctx.destroy(linger=0)
+    return {"pairs_s": min(counts) / dt, "per_consumer": [c / dt for c in counts]}
+
+
 def _pcts(lat_ns: list[int]) -> dict[str, float]:
     if not lat_ns:
         return {}
@@ -141,15 +178,27 @@ def _pcts(lat_ns: list[int]) -> dict[str, float]:
 
 
 def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
-                  tmp: Path, pools: int = 1) -> dict[str, Any]:
-    """Pairs into the real broker, no-op workers, results counted back (window per worker)."""
+                  tmp: Path, pools: int = 1, frames: str = "zmq") -> dict[str, Any]:
+    """Pairs into the real broker, no-op workers, results counted back (window per worker).
+
+    The harness plays capture: with frames="shm" it writes each pair once into the ring
+    and sends the descriptor, as capture does; with "zmq" it sends the bytes.
+    """
     run_dir = Path(tempfile.mkdtemp(prefix="tfb-", dir=tmp))
     cfg = configmod.from_data({
         "source": {"encoding": "raw" if kind == "raw" else "jpeg"},
-        "pools": {f"p{i}": {"plugin": "noop", "count": workers, "policy": "fifo:64",
+        "pools": {f"p{i}": {"plugin": "noop", "count": workers, "policy": "fifo:8",
                             "credit": 2} for i in range(pools)},
+        "frames": {"transport": frames},
         "log_level": "WARNING",
     })
+    ring = writer = None
+    extra: dict[str, Any] = {}
+    if frames == "shm":
+        ring = FrameRing.create(ring_slots(cfg.pools.values(), 0, cfg.frames.spare_slots),
+                                slot_capacity(1280, 720))
+        writer = RingWriter(ring.name)
+        extra["ring"] = ring.name
     ep = Endpoints.for_run(cfg.network, run_dir)
     ctx = zmq.Context()
     push = ctx.socket(zmq.PUSH)
@@ -160,64 +209,80 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
     hb = ctx.socket(zmq.PULL)  # stand-in supervisor: heartbeats are received and ignored
     hb.bind(ep.heartbeat)
     q = mp.get_context("spawn").Queue()
-    specs = [NodeSpec("broker", "broker", cfg, run_dir)] + [
-        NodeSpec("worker", f"worker:p{p}:{i}", cfg, run_dir, pool=f"p{p}", index=i)
+    specs = [NodeSpec("broker", "broker", cfg, run_dir, extra=extra)] + [
+        NodeSpec("worker", f"worker:p{p}:{i}", cfg, run_dir, pool=f"p{p}", index=i, extra=extra)
         for p in range(pools) for i in range(workers)]
     procs = [mp.get_context("spawn").Process(target=node_main, args=(s, q, os.getpid()))
              for s in specs]
     for p in procs:
         p.start()
     left, right = make_payload(kind)
-    # Warm up until every worker answered (their READY reached the broker).
-    seq = 0
-    done = 0
-    deadline = time.monotonic() + 30
-    while done < 3 * workers * pools and time.monotonic() < deadline:
-        push.send_multipart([header(seq, kind), left, right], copy=False)
-        seq += 1
-        if results.poll(100):
-            while results.poll(0):
-                results.recv()
-                done += 1
-    time.sleep(0.5)
-    while results.poll(200):
-        results.recv()
-    pids = [os.getpid()] + [p.pid for p in procs]
-    c0 = [cpu_s(p) for p in pids]
+    if kind == "raw":  # capture writes arrays; the ring copies them once
+        left_a = np.frombuffer(left, np.uint8)
+        right_a = np.frombuffer(right, np.uint8)
+
+    def send(seq: int) -> bool:
+        if writer is None:
+            push.send_multipart([header(seq, kind), left, right], copy=False)
+            return True
+        slot = writer.acquire()
+        if slot is None:
+            return False  # every slot held: the window will free one
+        ref = writer.write(slot, left_a if kind == "raw" else left,
+                           right_a if kind == "raw" else right)
+        push.send_multipart([header(seq, kind), messages.encode(ref)])
+        return True
+
     lats: list[int] = []
-    window = WINDOW * workers
-    sent = completed = 0
-    expected = pools  # each pair yields one result per pool
-    t0 = time.monotonic()
-    period = 1.0 / rate if rate else 0.0
-    while (now := time.monotonic()) - t0 < seconds:
-        if rate:
-            wait = t0 + sent * period - now
-            if wait > 0 and results.poll(int(wait * 1000) + 1) == 0:
-                continue
-        elif sent - completed // expected >= window:
-            results.poll(1000)
+    completed = 0
+
+    def take(timeout_ms: int) -> None:
+        nonlocal completed
+        if not results.poll(timeout_ms):
+            return
         while results.poll(0):
             r = messages.decode_result(results.recv(copy=False))
             completed += 1
             if isinstance(r.body, messages.Extra):
                 lats.append(int(r.body.fields["lat_ns"]))
-        if rate and time.monotonic() < t0 + sent * period:
+
+    # Warm up until every worker answered (their READY reached the broker).
+    seq = 0
+    deadline = time.monotonic() + 30
+    while completed < 3 * workers * pools and time.monotonic() < deadline:
+        if send(seq):
+            seq += 1
+        take(100)
+    time.sleep(0.5)
+    take(200)
+    pids = [os.getpid()] + [p.pid for p in procs]
+    c0 = [cpu_s(p) for p in pids]
+    lats.clear()
+    completed = 0
+    window = WINDOW * workers
+    sent = 0
+    t0 = time.monotonic()
+    period = 1.0 / rate if rate else 0.0
+    while time.monotonic() - t0 < seconds:
+        if rate:
+            wait = t0 + sent * period - time.monotonic()
+            if wait > 0:
+                take(int(wait * 1000) + 1)
+                continue
+        elif sent - completed // pools >= window:
+            take(1000)
             continue
-        if not rate and sent - completed // expected >= window:
-            continue
-        push.send_multipart([header(seq, kind), left, right], copy=False)
-        seq += 1
-        sent += 1
+        if send(seq):
+            seq += 1
+            sent += 1
+        else:
+            take(10)
+        take(0)
     end = time.monotonic() + 5
-    while completed < sent * expected and time.monotonic() < end:
-        if results.poll(200):
-            r = messages.decode_result(results.recv(copy=False))
-            completed += 1
-            if isinstance(r.body, messages.Extra):
-                lats.append(int(r.body.fields["lat_ns"]))
+    while completed < sent * pools and time.monotonic() < end:
+        take(200)
     dt = time.monotonic() - t0
-    cpu = [cpu_s(p) - c for p, c in zip(pids, c0, strict=False)]
+    cpu = [cpu_s(p) - c for p, c in zip(pids, c0, strict=True)]
     rss = {"harness": peak_rss_mb(os.getpid()), "broker": peak_rss_mb(procs[0].pid)}
     for i, p in enumerate(procs[1:]):
         rss[f"worker{i}"] = peak_rss_mb(p.pid)
@@ -226,43 +291,80 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
     for p in procs:
         p.join(5)
     ctx.destroy(linger=0)
-    per_pool = completed / expected
-    return {"pairs": int(per_pool), "pairs_s": per_pool / dt, "lost": sent - int(per_pool),
-            "lat_us": _pcts(lats),
+    if writer is not None and ring is not None:
+        writer.close()
+        ring.close()
+    per_pool = completed / pools
+    names = ["harness", "broker"] + [f"worker{i}" for i in range(len(procs) - 1)]
+    return {"frames": frames, "pairs": int(per_pool), "pairs_s": per_pool / dt,
+            "lost": sent - int(per_pool), "lat_us": _pcts(lats),
             "cpu_us_per_pair": sum(cpu) / max(per_pool, 1) * 1e6,
             "cpu_us_per_pair_by_process": dict(zip(
-                ["harness", "broker"] + [f"worker{i}" for i in range(len(procs) - 1)],
-                [round(c / max(per_pool, 1) * 1e6, 1) for c in cpu], strict=True)),
+                names, [round(c / max(per_pool, 1) * 1e6, 1) for c in cpu], strict=True)),
             "broker_cpu_pct": cpu[1] / dt * 100, "rss_mb": rss}
+
+
+def jpeg_decode_cost(n: int = 20) -> dict[str, float]:
+    """CPU a worker spends decoding one 1280x720 JPEG pair (what raw frames over shm save)."""
+    left, right = make_payload("jpeg")
+    bufs = [np.frombuffer(b, np.uint8) for b in (left, right)]
+    cv2.setNumThreads(1)
+    t0 = time.process_time()
+    for _ in range(n):
+        for b in bufs:
+            cv2.imdecode(b, cv2.IMREAD_COLOR)
+    per_pair = (time.process_time() - t0) / n
+    return {"decode_ms_per_pair": per_pair * 1e3}
 
 
 def markdown(out: dict[str, Any]) -> str:
     """The transport results as markdown tables, ratios against raw pyzmq in the same run."""
-    lines = ["## Transport: trapflow broker path vs raw pyzmq PUSH/PULL (same run)", "",
-             f"Machine: {out['machine']}", "",
-             "| payload | pyzmq pairs/s | trapflow pairs/s | ratio | lost | CPU us/pair "
-             "pyzmq / trapflow | trapflow CPU us/pair by process |",
-             "|---|---:|---:|---:|---:|---:|---|"]
+    m = out["machine"]
+    lines = ["## Transport: trapflow vs raw pyzmq PUSH/PULL (same run, same payload)", "",
+             f"{m['cores']} cores, Python {m['python']}, pyzmq {m['pyzmq']}, "
+             f"libzmq {m['libzmq']}. 1280x720 stereo pairs; lossless, {WINDOW} pairs in "
+             "flight per consumer; consumers touch every page. trapflow-zmq: bytes through "
+             "the broker; trapflow-shm: written once into the shared-memory ring, "
+             "descriptors through the broker.", "",
+             "| payload | path | pairs/s | x pyzmq | CPU us/pair | by process (us/pair) |",
+             "|---|---|---:|---:|---:|---|"]
     for kind in ("jpeg", "raw"):
         t = out[kind]["throughput"]
-        b, f = t["pyzmq_push_pull"], t["trapflow"]
-        lines.append(f"| {kind} 1280x720 pair | {b['pairs_s']:,.0f} | {f['pairs_s']:,.0f} | "
-                     f"{t['ratio']:.2f}x | {f['lost']} | {b['cpu_us_per_pair']:,.0f} / "
-                     f"{f['cpu_us_per_pair']:,.0f} | {f['cpu_us_per_pair_by_process']} |")
+        b = t["pyzmq_push_pull"]
+        lines.append(f"| {kind} | pyzmq PUSH/PULL | {b['pairs_s']:,.0f} | 1.00x | "
+                     f"{b['cpu_us_per_pair']:,.0f} | |")
+        for f in FRAMES:
+            r = t[f"trapflow_{f}"]
+            lines.append(f"| {kind} | trapflow-{f} | {r['pairs_s']:,.0f} | "
+                         f"{t[f'ratio_{f}']:.2f}x | {r['cpu_us_per_pair']:,.0f} | "
+                         f"{r['cpu_us_per_pair_by_process']} |")
     fan = out["raw"]["fanout3"]
-    lines += ["", f"Fan-out 1 -> 3 pools (raw): {fan['pairs_s']:,.0f} pairs/s per pool "
-              f"({fan['pairs_s'] / out['raw']['throughput']['pyzmq_push_pull']['pairs_s']:.2f}x "
-              "raw pyzmq 1 -> 1)", "",
-              "| 30 pairs/s | pyzmq p50 / p99 us | trapflow p50 / p99 us | ratio p50 | "
-              "broker CPU % of a core | peak RSS MB (trapflow) |",
-              "|---|---:|---:|---:|---:|---|"]
+    base = fan["pyzmq_push_pull"]["pairs_s"]
+    lines += ["", "Fan-out, raw pairs, 1 source -> 3 pools (every pool gets every pair), "
+              "pairs/s per pool (slowest):", "",
+              "| path | pairs/s | x pyzmq |", "|---|---:|---:|",
+              f"| pyzmq PUSH/PULL x3 | {base:,.0f} | 1.00x |"]
+    for f in FRAMES:
+        r = fan[f"trapflow_{f}"]
+        lines.append(f"| trapflow-{f} | {r['pairs_s']:,.0f} | {r['pairs_s'] / base:.2f}x |")
+    lines += ["", "One-way latency at 30 pairs/s, capture stamp before send -> the worker holds "
+              "the pair (us):", "",
+              "| payload | path | p50 | p99 | max | x pyzmq p50 | broker CPU % of a core | "
+              "peak RSS MB |", "|---|---|---:|---:|---:|---:|---:|---|"]
     for kind in ("jpeg", "raw"):
         lat = out[kind]["latency_30hz"]
-        b, f = lat["pyzmq_push_pull"], lat["trapflow"]
-        rss = ", ".join(f"{k} {v:.0f}" for k, v in f["rss_mb"].items())
-        lines.append(f"| {kind} | {b['lat_us']['p50']:,.0f} / {b['lat_us']['p99']:,.0f} | "
-                     f"{f['lat_us']['p50']:,.0f} / {f['lat_us']['p99']:,.0f} | "
-                     f"{lat['ratio_p50']:.2f}x | {f['broker_cpu_pct']:.1f} | {rss} |")
+        b = lat["pyzmq_push_pull"]["lat_us"]
+        lines.append(f"| {kind} | pyzmq | {b['p50']:,.0f} | {b['p99']:,.0f} | {b['max']:,.0f} "
+                     "| 1.00x | | |")
+        for f in FRAMES:
+            r = lat[f"trapflow_{f}"]
+            rss = ", ".join(f"{k} {v:.0f}" for k, v in r["rss_mb"].items())
+            lines.append(f"| {kind} | trapflow-{f} | {r['lat_us']['p50']:,.0f} | "
+                         f"{r['lat_us']['p99']:,.0f} | {r['lat_us']['max']:,.0f} | "
+                         f"{lat[f'ratio_p50_{f}']:.2f}x | {r['broker_cpu_pct']:.1f} | {rss} |")
+    dec = out["jpeg_decode"]["decode_ms_per_pair"]
+    lines += ["", f"JPEG decode of one 1280x720 pair costs a worker {dec:.1f} ms of CPU "
+              "(one core); with raw frames in the ring no worker decodes anything."]
     return "\n".join(lines) + "\n"
 
 
@@ -276,21 +378,27 @@ def main() -> None:
     out: dict[str, Any] = {"machine": {"cores": os.cpu_count(), "python": sys.version.split()[0],
                                        "pyzmq": zmq.__version__, "libzmq": zmq.zmq_version()}}
     for kind in ("jpeg", "raw"):
-        print(f"[bench] {kind}: raw pyzmq throughput", file=sys.stderr)
+        print(f"[bench] {kind}: throughput (pyzmq, trapflow zmq, trapflow shm)", file=sys.stderr)
         base = raw_pyzmq(kind, args.seconds, None, tmp)
-        print(f"[bench] {kind}: trapflow throughput", file=sys.stderr)
-        tf = trapflow_path(kind, args.seconds, None, 1, tmp)
+        tf = {f: trapflow_path(kind, args.seconds, None, 1, tmp, frames=f) for f in FRAMES}
         print(f"[bench] {kind}: 30 Hz latency", file=sys.stderr)
         base30 = raw_pyzmq(kind, args.latency_seconds, 30.0, tmp)
-        tf30 = trapflow_path(kind, args.latency_seconds, 30.0, 1, tmp)
+        tf30 = {f: trapflow_path(kind, args.latency_seconds, 30.0, 1, tmp, frames=f)
+                for f in FRAMES}
         out[kind] = {
-            "throughput": {"pyzmq_push_pull": base, "trapflow": tf,
-                           "ratio": tf["pairs_s"] / base["pairs_s"]},
-            "latency_30hz": {"pyzmq_push_pull": base30, "trapflow": tf30,
-                             "ratio_p50": tf30["lat_us"]["p50"] / base30["lat_us"]["p50"]},
+            "throughput": {"pyzmq_push_pull": base, **{f"trapflow_{f}": tf[f] for f in FRAMES},
+                           **{f"ratio_{f}": tf[f]["pairs_s"] / base["pairs_s"] for f in FRAMES}},
+            "latency_30hz": {"pyzmq_push_pull": base30,
+                             **{f"trapflow_{f}": tf30[f] for f in FRAMES},
+                             **{f"ratio_p50_{f}": tf30[f]["lat_us"]["p50"]
+                                / base30["lat_us"]["p50"] for f in FRAMES}},
         }
     print("[bench] raw: fan-out to 3 pools", file=sys.stderr)
-    out["raw"]["fanout3"] = trapflow_path("raw", args.seconds, None, 1, tmp, pools=3)
+    base3 = raw_pyzmq_fanout(args.seconds, tmp)
+    out["raw"]["fanout3"] = {"pyzmq_push_pull": base3, **{
+        f"trapflow_{f}": trapflow_path("raw", args.seconds, None, 1, tmp, pools=3, frames=f)
+        for f in FRAMES}}
+    out["jpeg_decode"] = jpeg_decode_cost()
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "transport.json").write_text(json.dumps(out, indent=1))
     (args.out / "transport.md").write_text(markdown(out))

@@ -137,8 +137,10 @@ def lossless_problems(pairs_read: int, stats: Stats) -> list[str]:
 @click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False), default=None)
 @click.option("--option", "options", multiple=True, metavar="KEY=VALUE",
               help="Replay option (left_topic, right_topic, tolerance_s, msg_type, msg_def...).")
+@click.option("--run-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Where results, logs and sockets go (default: runs/<timestamp>).")
 def replay(path: Path, rate: float, loop: bool, assert_lossless: bool,
-           config_path: str | None, options: tuple[str, ...]) -> None:
+           config_path: str | None, options: tuple[str, ...], run_dir: Path | None) -> None:
     """Feed a trapflow recording or a ROS 2 bag through the pipeline."""
     from trapflow import config as config_mod
     from trapflow.camera import StereoRig
@@ -166,7 +168,7 @@ def replay(path: Path, rate: float, loop: bool, assert_lossless: bool,
     from trapflow.supervisor import run
 
     try:
-        code, stats = run(cfg, announce=click.echo)
+        code, stats = run(cfg, run_dir, announce=click.echo)
     except TrapflowError as exc:
         raise click.ClickException(str(exc)) from None
     if code != 0:

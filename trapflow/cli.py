@@ -149,7 +149,8 @@ def status(run_dir: Path, as_json: bool, stop: bool, timeout: float) -> None:
 
 
 def _add_commands() -> None:
-    from trapflow import cli_dataset, cli_modem, cli_sources
+    from trapflow import cli_dataset, cli_sources
+    from trapflow.modem import cli as cli_modem
 
     for cmd in (*cli_modem.COMMANDS, cli_sources.calibrate, cli_sources.record,
                 cli_sources.replay, cli_dataset.dataset):

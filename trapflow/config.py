@@ -16,9 +16,9 @@ import yaml
 
 from trapflow.errors import ConfigError
 from trapflow.events import EventsConfig
-from trapflow.health import HealthConfig
-from trapflow.modem_config import ModemConfig
-from trapflow.outbox import OutboxConfig
+from trapflow.modem.config import ModemConfig
+from trapflow.modem.health import HealthConfig
+from trapflow.modem.outbox import OutboxConfig
 from trapflow.policy import Policy, parse_policy
 
 

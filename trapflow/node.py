@@ -45,7 +45,7 @@ ROLES = {
     "broker": "trapflow.broker:BrokerNode",
     "worker": "trapflow.worker:WorkerNode",
     "normalizer": "trapflow.normalizer:NormalizerNode",
-    "modem": "trapflow.modem_node:ModemNode",
+    "modem": "trapflow.modem.node:ModemNode",
     "events": "trapflow.events_node:EventsNode",
 }
 

@@ -15,9 +15,9 @@ import zmq
 
 from trapflow import messages
 from trapflow.errors import ProtocolError
+from trapflow.modem.outbox import Outbox, OutboxFull
 from trapflow.node import ACTIVE, FINALIZED, Node, NodeSpec
 from trapflow.normalize import dumps, normalize
-from trapflow.outbox import Outbox, OutboxFull
 from trapflow.ratelog import RateLimitedLog
 from trapflow.transport import SocketSpec, open_socket
 

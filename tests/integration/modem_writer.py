@@ -9,7 +9,7 @@ from __future__ import annotations
 import sys
 import time
 
-from trapflow.outbox import Outbox, OutboxConfig
+from trapflow.modem.outbox import Outbox, OutboxConfig
 
 
 def record(ident: int) -> dict[str, object]:

@@ -19,9 +19,9 @@ from typing import Any
 
 import pytest
 
-from trapflow.modem_config import ModemConfig
-from trapflow.modem_sender import ModemSender
-from trapflow.outbox import Outbox, OutboxConfig
+from trapflow.modem.config import ModemConfig
+from trapflow.modem.outbox import Outbox, OutboxConfig
+from trapflow.modem.sender import ModemSender
 
 
 def poll_for(predicate: Callable[[], bool], timeout: float, what: str) -> None:
@@ -33,7 +33,7 @@ def poll_for(predicate: Callable[[], bool], timeout: float, what: str) -> None:
 
 
 def cli(*args: str) -> subprocess.Popen[bytes]:
-    cmd = [sys.executable, "-m", "trapflow.cli_modem", *args]
+    cmd = [sys.executable, "-m", "trapflow.modem.cli", *args]
     return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
 

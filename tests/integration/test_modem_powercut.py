@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from trapflow.outbox import OutboxConfig, OutboxQueue
+from trapflow.modem.outbox import OutboxConfig, OutboxQueue
 
 sys.path.insert(0, str(Path(__file__).parent))
 from modem_writer import record  # noqa: E402
@@ -39,7 +39,7 @@ def poll_for(predicate: Callable[[], bool], timeout: float, what: str) -> None:
 
 
 def cli(*args: str, **kw: object) -> subprocess.Popen[bytes]:
-    return subprocess.Popen([sys.executable, "-m", "trapflow.cli_modem", *args], **kw)  # type: ignore[call-overload]
+    return subprocess.Popen([sys.executable, "-m", "trapflow.modem.cli", *args], **kw)  # type: ignore[call-overload]
 
 
 def start_box(tmp: Path, run: int) -> subprocess.Popen[bytes]:
@@ -48,7 +48,7 @@ def start_box(tmp: Path, run: int) -> subprocess.Popen[bytes]:
         "import subprocess, sys\n"
         f"w = subprocess.Popen([sys.executable, {str(HERE / 'modem_writer.py')!r}, "
         f"{str(tmp / 'outbox.sqlite')!r}, {str(tmp / 'acks.log')!r}, '{run}'])\n"
-        "s = subprocess.Popen([sys.executable, '-m', 'trapflow.cli_modem', 'modem-send', "
+        "s = subprocess.Popen([sys.executable, '-m', 'trapflow.modem.cli', 'modem-send', "
         f"{str(tmp / 'outbox.sqlite')!r}, {str(tmp / 'a')!r}, '--bit-rate', '19200', "
         "'--ack-timeout', '0.4', '--no-aggregate', '--no-ttl'], stderr=subprocess.DEVNULL)\n"
         "w.wait(); s.wait()\n"

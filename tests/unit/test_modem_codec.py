@@ -10,8 +10,8 @@ import msgspec
 import pytest
 
 from trapflow.errors import ProtocolError
-from trapflow.link_codec import GENERIC, LinkCodec
-from trapflow.link_frame import (
+from trapflow.modem.codec import GENERIC, LinkCodec
+from trapflow.modem.frame import (
     ACK,
     DATA,
     Deframer,

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from trapflow.outbox import (
+from trapflow.modem.outbox import (
     ACKED,
     AGGREGATED,
     EXPIRED,

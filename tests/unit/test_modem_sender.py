@@ -8,11 +8,11 @@ from typing import Any
 import msgspec
 import pytest
 
-from trapflow.health import HealthConfig, HealthMonitor
-from trapflow.link_codec import LinkCodec
-from trapflow.modem_config import ModemConfig
-from trapflow.modem_sender import ModemSender
-from trapflow.outbox import Outbox, OutboxConfig
+from trapflow.modem.codec import LinkCodec
+from trapflow.modem.config import ModemConfig
+from trapflow.modem.health import HealthConfig, HealthMonitor
+from trapflow.modem.outbox import Outbox, OutboxConfig
+from trapflow.modem.sender import ModemSender
 
 
 @pytest.mark.parametrize(

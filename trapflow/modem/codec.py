@@ -18,7 +18,7 @@ import msgspec
 import numpy as np
 
 from trapflow.errors import ProtocolError
-from trapflow.link_frame import Reader, put_svarint, put_uvarint
+from trapflow.modem.frame import Reader, put_svarint, put_uvarint
 
 DEFAULT_LABELS = (
     "crab", "scallop", "fish", "starfish", "lobster", "urchin", "octopus", "shrimp",

@@ -18,8 +18,9 @@ from typing import Any
 import msgspec
 
 from trapflow.errors import ProtocolError
-from trapflow.link_codec import LinkCodec
-from trapflow.link_frame import (
+from trapflow.modem.codec import LinkCodec
+from trapflow.modem.config import BITS_PER_BYTE, ModemConfig
+from trapflow.modem.frame import (
     ACK,
     DATA,
     OVERHEAD,
@@ -30,9 +31,8 @@ from trapflow.link_frame import (
     parse_ack,
     put_uvarint,
 )
-from trapflow.link_port import LinkPort
-from trapflow.modem_config import BITS_PER_BYTE, ModemConfig
-from trapflow.outbox import ACKED, REJECTED, OutboxConfig, OutboxQueue, Stored
+from trapflow.modem.outbox import ACKED, REJECTED, OutboxConfig, OutboxQueue, Stored
+from trapflow.modem.port import LinkPort
 
 log = logging.getLogger(__name__)
 

@@ -14,8 +14,8 @@ import zmq
 
 from trapflow import messages
 from trapflow.errors import ProtocolError
-from trapflow.health import HealthMonitor
-from trapflow.modem_sender import ModemSender
+from trapflow.modem.health import HealthMonitor
+from trapflow.modem.sender import ModemSender
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.transport import SocketSpec, open_socket
 

@@ -16,9 +16,9 @@ from typing import IO, Any
 import msgspec
 
 from trapflow.errors import ProtocolError
-from trapflow.link_codec import DEFAULT_LABELS, LinkCodec
-from trapflow.link_frame import ACK, DATA, Deframer, ack_payload, frame, parse_data
-from trapflow.link_port import LinkPort
+from trapflow.modem.codec import DEFAULT_LABELS, LinkCodec
+from trapflow.modem.frame import ACK, DATA, Deframer, ack_payload, frame, parse_data
+from trapflow.modem.port import LinkPort
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """Click commands for the modem link: `surface` (ship end), `modem-sim` (simulator), `modem-send`.
 
 Thin commands: each parses, builds one library object and runs it until SIGINT/SIGTERM.
-`python -m trapflow.cli_modem` runs them without the main `trapflow` group.
+`python -m trapflow.modem.cli` runs them without the main `trapflow` group.
 """
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ from typing import IO
 
 import click
 
-from trapflow.link_codec import DEFAULT_LABELS
-from trapflow.modem_config import ModemConfig
-from trapflow.outbox import OutboxConfig
+from trapflow.modem.codec import DEFAULT_LABELS
+from trapflow.modem.config import ModemConfig
+from trapflow.modem.outbox import OutboxConfig
 
 
 def _stop_on_signals() -> threading.Event:
@@ -59,7 +59,7 @@ def _output(path: Path | None) -> Iterator[IO[bytes]]:
 @click.option("--labels", default=None, help="Comma-separated label table (must match the box).")
 def surface(port: str, output: Path | None, baudrate: int, labels: str | None) -> None:
     """Receive results from the modem link on PORT, acknowledge them, write JSON lines."""
-    from trapflow.surface import SurfaceReceiver
+    from trapflow.modem.surface import SurfaceReceiver
 
     stop = _stop_on_signals()
     with _output(output) as out:
@@ -122,7 +122,7 @@ def modem_sim(
     link_b: Path | None,
 ) -> None:
     """Simulate an acoustic modem between two pseudo-terminals; prints both ends."""
-    from trapflow.modem_sim import LinkSimulator
+    from trapflow.modem.sim import LinkSimulator
 
     stop = _stop_on_signals()
     sim = LinkSimulator(bit_rate, latency, loss, corrupt, noise, seed, (link_a, link_b))
@@ -152,7 +152,7 @@ def modem_send(
     no_ttl: bool,
 ) -> None:
     """Send the records waiting in OUTBOX over the modem link on PORT (outside a pipeline)."""
-    from trapflow.modem_sender import ModemSender
+    from trapflow.modem.sender import ModemSender
 
     cfg = ModemConfig(
         enabled=True,

@@ -7,8 +7,8 @@ from typing import Annotated
 
 import msgspec
 
-from trapflow.link_codec import DEFAULT_LABELS
-from trapflow.link_frame import MAX_PAYLOAD
+from trapflow.modem.codec import DEFAULT_LABELS
+from trapflow.modem.frame import MAX_PAYLOAD
 
 BITS_PER_BYTE = 10  # 8N1 on the serial side: start, 8 data bits, stop
 

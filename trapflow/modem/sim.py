@@ -18,7 +18,7 @@ import time
 import tty
 from pathlib import Path
 
-from trapflow.link_frame import split_packets
+from trapflow.modem.frame import split_packets
 
 log = logging.getLogger(__name__)
 

@@ -13,6 +13,7 @@ import time
 from typing import Any
 
 import cv2
+import msgspec
 import numpy as np
 import psutil
 import zmq
@@ -27,6 +28,9 @@ from trapflow.ratelog import RateLimitedLog
 from trapflow.transport import SocketSpec, open_socket
 
 log = logging.getLogger(__name__)
+
+# With a pool's `save: true`, one input pair and its result are kept per this interval.
+SAVE_INTERVAL_S = 1.0
 
 
 def decode_image(frame: Any, pair: messages.StereoPair, side: str) -> np.ndarray:
@@ -79,6 +83,7 @@ class WorkerNode(Node):
         )
         self.plugin: Worker | None = None
         self._reader: RingReader | None = None
+        self._next_save = 0.0
         self.processed = 0
         self.failed = 0
         self.free = self.pcfg.credit
@@ -148,6 +153,20 @@ class WorkerNode(Node):
         self.set_state(FINALIZED)
         return 0
 
+    def _save(self, left: np.ndarray, right: np.ndarray, result: messages.Result) -> None:
+        """Debug aid (`save: true`): at most one input pair and its result per second."""
+        now = time.monotonic()
+        if now < self._next_save:
+            return
+        self._next_save = now + SAVE_INTERVAL_S
+        folder = self.spec.run_dir / "debug" / self.ident.replace(":", "-")
+        folder.mkdir(parents=True, exist_ok=True)
+        stem = folder / f"{result.seq:08d}"
+        cv2.imwrite(f"{stem}_left.jpg", left)
+        cv2.imwrite(f"{stem}_right.jpg", right)
+        (folder / f"{result.seq:08d}.json").write_bytes(
+            msgspec.json.encode(messages.to_builtins(result)))
+
     def _send(self, msgs: list[Any]) -> None:
         self.dealer.send_multipart(
             [m if isinstance(m, bytes) else messages.encode(m) for m in msgs]
@@ -195,5 +214,7 @@ class WorkerNode(Node):
         )
         if self.pcfg.time:
             log.info("%s: pair %d in %.1f ms", self.ident, header.seq, proc_ns / 1e6)
+        if self.pcfg.save and self.plugin.needs_images:
+            self._save(left, right, result)
         self._send([messages.Done(worker=self.ident, pool=self.pool, seq=header.seq),
                     messages.encode(result)])

@@ -101,3 +101,25 @@ def test_supervisor_killed_leaves_no_orphans(spawn, run_dir: Path) -> None:
     p.proc.wait(5)
     gone, alive = psutil.wait_procs(kids, timeout=5)
     assert not alive, [k.pid for k in alive]
+
+
+@pytest.mark.timeout(60)
+def test_save_flag_keeps_debug_pairs(spawn, run_dir: Path) -> None:
+    from tests.conftest import write_config
+
+    cfg = write_config(run_dir.parent / "save.yaml", {
+        "source": {"width": 320, "height": 240, "rate_hz": 10.0},
+        "pools": {"stereo": {"plugin": "histogram", "save": True, "time": True}},
+    })
+    p: Pipeline = spawn(["--config", str(cfg), "--duration", "5"], run_dir)
+    code, _, err = p.wait(45)
+    assert code == 0, err
+    folders = list((run_dir / "debug").iterdir())
+    assert len(folders) == 1 and folders[0].name.startswith("stereo-0-")
+    saved = sorted(folders[0].glob("*.json"))
+    assert 1 <= len(saved) <= 6  # rate limited to about one per second
+    import cv2
+
+    assert cv2.imread(str(saved[0]).replace(".json", "_left.jpg")).shape == (240, 320, 3)
+    assert "stereo_ir" in saved[0].read_text()
+    assert "pair 0 in" in (run_dir / "trapflow.log").read_text()  # `time: true` logs timings

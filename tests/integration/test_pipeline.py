@@ -58,11 +58,11 @@ def test_tap_and_status_attach_to_a_running_pipeline(spawn, run_dir: Path) -> No
     poll_for(lambda: (s := p.status()) and s["stats"]["pools"]["vo"]["received"] > 0, 10,
              what="pairs reaching the vo pool")
     tap = subprocess.run(
-        [sys.executable, "-m", "trapflow", "tap", "all", "--count", "12", "--timeout", "20",
-         "--run-dir", str(run_dir)], capture_output=True, text=True, timeout=40, cwd=REPO)
+        [sys.executable, "-m", "trapflow", "tap", "all", "--count", "60", "--timeout", "30",
+         "--run-dir", str(run_dir)], capture_output=True, text=True, timeout=50, cwd=REPO)
     assert tap.returncode == 0, tap.stderr
     lines = tap.stdout.splitlines()
-    assert len(lines) == 12
+    assert len(lines) == 60
     kinds = {line.split()[0] for line in lines}
     assert {"frame", "result"} <= kinds
     saved = run_dir.parent / "frames"

@@ -210,12 +210,12 @@ def test_ledger_accounts_for_every_pair(spawn, run_dir: Path) -> None:
                       "params": {"delay_s": 2.5}},
         },
     })
-    p: Pipeline = spawn(["--config", str(cfg), "--duration", "8"], run_dir)
+    p: Pipeline = spawn(["--config", str(cfg), "--duration", "10"], run_dir)
     code, out, err = p.wait(60)
     assert code == 0, err
     ledger = json.loads((run_dir / "ledger.json").read_text())
     produced = ledger["produced"]
-    assert produced > 50
+    assert produced > 30
     for name, pool in ledger["pools"].items():
         states = (pool["processed"] + pool["dropped_by_policy"] + pool["timed_out"]
                   + pool["failed"] + pool["lost"])

@@ -134,6 +134,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seconds", type=float, default=4.0)
     ap.add_argument("--latency-seconds", type=float, default=6.0)
+    ap.add_argument("--out", type=Path, default=Path("bench-results"))
     args = ap.parse_args()
     frame_ring.cleanup_stale()
     tmp = Path(tempfile.mkdtemp(prefix="tfshm-"))
@@ -152,7 +153,24 @@ def main() -> None:
             "latency_30hz": {"pyzmq_push_pull": base30, "shm_ring": shm30,
                              "ratio_p50": shm30["lat_us"]["p50"] / base30["lat_us"]["p50"]},
         }
-    print(json.dumps(out, indent=1))
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "shm.json").write_text(json.dumps(out, indent=1))
+    (args.out / "shm.md").write_text(markdown(out))
+    print(markdown(out))
+
+
+def markdown(out: dict[str, Any]) -> str:
+    """The ring alone (no broker): a floor for what the brokered shm path can reach."""
+    lines = ["## The shared-memory ring alone, 1 producer -> 1 consumer (no broker)", "",
+             "| payload | pyzmq pairs/s | ring pairs/s | x pyzmq | pyzmq p50 / p99 us at 30 Hz "
+             "| ring p50 / p99 us at 30 Hz |", "|---|---:|---:|---:|---:|---:|"]
+    for kind in ("jpeg", "raw"):
+        t, lat = out[kind]["throughput"], out[kind]["latency_30hz"]
+        b, r = lat["pyzmq_push_pull"]["lat_us"], lat["shm_ring"]["lat_us"]
+        lines.append(f"| {kind} | {t['pyzmq_push_pull']['pairs_s']:,.0f} | "
+                     f"{t['shm_ring']['pairs_s']:,.0f} | {t['ratio']:.2f}x | "
+                     f"{b['p50']:,.0f} / {b['p99']:,.0f} | {r['p50']:,.0f} / {r['p99']:,.0f} |")
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":

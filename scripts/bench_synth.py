@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from pathlib import Path
 
 import cv2
 
@@ -34,7 +35,7 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=1280)
     ap.add_argument("--height", type=int, default=720)
     ap.add_argument("--pairs", type=int, default=150)
-    ap.add_argument("--out", default="")
+    ap.add_argument("--out", default="bench-results", help="folder for synth.json and synth.md")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     result = {
@@ -46,9 +47,14 @@ def main() -> None:
     }
     text = json.dumps(result, indent=2)
     print(text)
-    if args.out:
-        with open(args.out, "w") as f:
-            f.write(text + "\n")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "synth.json").write_text(text + "\n")
+    rows = [f"| {mode} | {result[mode]['pairs_per_s']:.1f} | {result[mode]['ms_per_pair']:.1f} |"
+            for mode in ("static", "moving")]
+    (out / "synth.md").write_text(
+        f"## Synthetic world rendering, {result['size']}, one thread\n\n"
+        "| mode | pairs/s | ms per pair |\n|---|---:|---:|\n" + "\n".join(rows) + "\n")
 
 
 if __name__ == "__main__":

@@ -1,5 +1,6 @@
 """Benchmark of the four algorithm plugins: processing time per pair, alone and all together,
-VO speed at 1280x720 and 640x480 on one core, and VO drift over a long rendered path.
+VO speed at 1280x720 and 640x480 on one core, and VO drift over a 30 m path, all on frames of
+the moving synthetic world (trapflow.synth; --drift-world testkit: the older flat test floor).
 
 Writes bench_algorithms.json and bench_algorithms.md into --out. Uses the packaged demo
 models when present, else tiny stand-in ONNX models (then only pre/post-processing is timed).
@@ -23,11 +24,14 @@ from trapflow_workers.crab_detector import CrabDetector
 from trapflow_workers.scene_classifier import SceneClassifier
 from trapflow_workers.stereo_vo import StereoOdometry
 from trapflow_workers.testkit import make_context, make_pair
-from trapflow_workers.testkit_scenes import FloorWorld, circle_path, pose, rot_x, tag_image
+from trapflow_workers.testkit_scenes import FloorWorld, circle_path
 from trapflow_workers.vo_metrics import as_4x4, drift_percent, end_drift_percent, path_length
 
 from trapflow.camera import StereoRig
 from trapflow.plugin import Worker
+from trapflow.synth import SynthOptions, World
+
+RATE_HZ = 15.0
 
 PLUGINS: dict[str, type[Worker]] = {
     "mono": CrabDetector,
@@ -54,15 +58,10 @@ def _models(tmp: Path) -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
 
 
 def _frames(name: str, rig: StereoRig, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    if name == "tags":
-        out = []
-        for i in range(n):
-            t = pose(rot_x(np.pi + 0.3 * np.sin(i / 7)), np.array([0.1 * np.sin(i / 5), 0, 1.2]))
-            img, _ = tag_image(rig, i % 50, 0.12, t)
-            out.append((img, img))
-        return out
-    world = FloorWorld.square(rig, 12.0, res_m=0.003, seed=1)
-    return [world.render(p) for p in circle_path(n * 0.04, n, 4.0)]
+    """n consecutive pairs of the moving world (with tags on the floor for the tag detector)."""
+    opts = SynthOptions(tags=8 if name == "tags" else 0, density=1.5)
+    world = World(rig, seed=1, moving=True, rate_hz=RATE_HZ, options=opts)
+    return [world.render(i)[:2] for i in range(n)]
 
 
 def _time(
@@ -98,8 +97,9 @@ def _together(rig: StereoRig, params: dict[str, dict[str, Any]], n: int) -> dict
         return {k: j.get(timeout=600) for k, j in jobs.items()}
 
 
-def _drift(rig: StereoRig, length_m: float, steps: int) -> dict[str, float]:
-    cv2.setNumThreads(1)
+def _drift_testkit(
+    rig: StereoRig, length_m: float, steps: int
+) -> tuple[list[np.ndarray], list[np.ndarray], int]:
     radius = length_m / 6.0
     world = FloorWorld.square(rig, 2 * radius + 5, res_m=0.003, seed=2)
     vo = StereoOdometry()
@@ -110,13 +110,50 @@ def _drift(rig: StereoRig, length_m: float, steps: int) -> dict[str, float]:
         truth.append(p)
         est.append(as_4x4(res.pose))
         ok += res.ok
+    return truth, est, ok
+
+
+def _drift_world(
+    rig: StereoRig, length_m: float, speed: float
+) -> tuple[list[np.ndarray], list[np.ndarray], int]:
+    """Render and track until the rig has travelled length_m (true path length)."""
+    world = World(rig, seed=4, moving=True, rate_hz=RATE_HZ, options=SynthOptions(speed=speed))
+    vo = StereoOdometry()
+    vo.configure({}, make_context(rig, pool="vo"))
+    truth, est, ok, travelled = [], [], 0, 0.0
+    i = 0
+    while travelled < length_m:
+        left, right, t = world.render(i)
+        res = vo.process(make_pair(left, right, seq=i))
+        truth.append(as_4x4(t.pose))
+        est.append(as_4x4(res.pose))
+        ok += res.ok
+        if i > 0:
+            travelled += float(np.linalg.norm(truth[-1][:3, 3] - truth[-2][:3, 3]))
+        i += 1
+    return truth, est, ok
+
+
+def _drift(
+    rig: StereoRig, source: str, length_m: float, steps: int, speed: float
+) -> dict[str, Any]:
+    cv2.setNumThreads(1)
+    t0 = time.perf_counter()
+    if source == "world":
+        truth, est, ok = _drift_world(rig, length_m, speed)
+    else:
+        truth, est, ok = _drift_testkit(rig, length_m, steps)
     segments = [length_m * f for f in (0.2, 0.4, 0.6, 0.8)]
     return {
+        "source": source,
+        "speed_m_s": speed if source == "world" else None,
         "path_m": float(path_length(truth)[-1]),
-        "pairs": steps,
+        "pairs": len(truth),
         "ok": ok,
+        "segments_m": segments,
         "segment_drift_pct": drift_percent(truth, est, segments),
         "end_drift_pct": end_drift_percent(truth, est),
+        "wall_s": time.perf_counter() - t0,
     }
 
 
@@ -138,7 +175,16 @@ def main() -> None:
     ap.add_argument("--out", default="bench-results", help="folder for the JSON and markdown")
     ap.add_argument("--frames", type=int, default=120, help="pairs per algorithm run")
     ap.add_argument("--path-m", type=float, default=30.0, help="VO drift path length")
-    ap.add_argument("--steps", type=int, default=600, help="pairs along the drift path")
+    ap.add_argument(
+        "--drift-world",
+        choices=("world", "testkit"),
+        default="world",
+        help="drift on the moving synthetic world, or the flat testkit floor (a circle)",
+    )
+    ap.add_argument(
+        "--speed", type=float, default=0.5, help="rig speed in m/s on the world (15 pairs/s)"
+    )
+    ap.add_argument("--steps", type=int, default=600, help="pairs along the testkit path")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -148,7 +194,7 @@ def main() -> None:
         alone = {k: _time(k, hd, params[k], args.frames) for k in PLUGINS}
         vo_vga = _time("vo", vga, {}, args.frames)
         together = _together(hd, params, args.frames)
-    drift = _drift(hd, args.path_m, args.steps)
+    drift = _drift(hd, args.drift_world, args.path_m, args.steps, args.speed)
     rows = [(k, "alone 1280x720", alone[k]) for k in PLUGINS]
     rows.append(("vo", "alone 640x480", vo_vga))
     rows += [(k, "all together 1280x720", together[k]) for k in PLUGINS]
@@ -159,14 +205,21 @@ def main() -> None:
         "drift": drift,
         "models": origin,
         "threads": 1,
+        "frames_from": f"moving synthetic world, {RATE_HZ:g} pairs/s",
     }
     (out / "bench_algorithms.json").write_text(json.dumps(report, indent=2))
+    where = (
+        f"moving synthetic world at {args.speed:g} m/s"
+        if args.drift_world == "world"
+        else "flat testkit floor"
+    )
+    seg_m = ", ".join(f"{v:g}" for v in drift["segments_m"])
     md = (
         f"{_table(rows)}\n\nModels: {', '.join(f'{k}: {v}' for k, v in origin.items())}. "
-        "One OpenCV / onnxruntime thread per process.\n\n"
-        f"VO drift over a {drift['path_m']:.1f} m rendered path ({drift['pairs']} pairs at "
-        f"1280x720, {drift['ok']} ok): {drift['segment_drift_pct']:.3f} % (segment metric), "
-        f"{drift['end_drift_pct']:.3f} % at the end.\n"
+        "One OpenCV / onnxruntime thread per process; frames of the moving synthetic world.\n\n"
+        f"VO drift over a {drift['path_m']:.1f} m path of the {where} ({drift['pairs']} pairs "
+        f"at 1280x720, {drift['ok']} ok): {drift['segment_drift_pct']:.3f} % (KITTI-style "
+        f"segment metric, segments of {seg_m} m), {drift['end_drift_pct']:.3f} % at the end.\n"
     )
     (out / "bench_algorithms.md").write_text(md)
     print(md)

@@ -47,7 +47,9 @@ class TagParams(Params):
     image: Literal["left", "right"] = "left"
     """Which image of the pair to search (both share the intrinsics once rectified)."""
     refine: Literal["subpix", "apriltag", "none"] = "subpix"
-    """Corner refinement method."""
+    """Corner refinement: subpix is fast but puts corners ~0.4 px inside the square (tags
+    read ~1 % too far at 1280x720, up to 3 % at 640x480 for 12 cm tags at 1.3 m); apriltag
+    fits the edges (~0.1 %) at 7-8x the cost; none is 2x worse than subpix."""
 
 
 class AprilTags(Worker):

@@ -109,6 +109,7 @@ def load_labels(
     if key in metadata:
         return labels_from_names(metadata[key], f"model {model.name} metadata {key!r}")
     for name in (
+        f"{model.stem}.labels",  # what the packaged demo models ship
         f"{model.stem}.labels.txt",
         f"{model.stem}_labels.txt",
         f"{model.stem}.names",

@@ -58,11 +58,12 @@ class Classifier(nn.Module):
         super().__init__()
         self.f = nn.Sequential(block(6, 24, 2), block(24, 32, 2), block(32, 48, 2), block(48, 48),
                                block(48, 96, 2), block(96, 96))
+        self.drop = nn.Dropout(0.1)
         self.fc = nn.Linear(192, n)
 
     def logits(self, x: torch.Tensor) -> torch.Tensor:
         f = self.f(x)
-        return self.fc(torch.cat([f.mean((2, 3)), f.amax((2, 3))], 1))
+        return self.fc(self.drop(torch.cat([f.mean((2, 3)), f.amax((2, 3))], 1)))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.softmax(self.logits(x), 1)
@@ -100,17 +101,22 @@ def training_data(cache: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def augment(xb: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
-    """Mirror the pair (flip both views, swap them: still a valid stereo pair), jitter gain."""
-    flip = torch.from_numpy(rng.random(len(xb)) < 0.5)
+    """Mirror the pair (flip both views, swap them: still a valid stereo pair), shift it a few
+    pixels, jitter the gain of each colour channel (the same for both views)."""
+    b = len(xb)
+    flip = torch.from_numpy(rng.random(b) < 0.5)
     mirrored = torch.cat([xb[:, 3:], xb[:, :3]], 1).flip(3)
     xb = torch.where(flip[:, None, None, None], mirrored, xb)
-    gain = torch.from_numpy(rng.uniform(0.8, 1.2, (len(xb), 1, 1, 1)).astype(np.float32))
-    return (xb * gain).clamp(0, 1)
+    dy, dx = (int(v) for v in rng.integers(-4, 5, 2))
+    xb = torch.roll(xb, (dy, dx), (2, 3))
+    gain = rng.uniform(0.85, 1.15, (b, 1, 1, 1)) * rng.uniform(0.95, 1.05, (b, 3, 1, 1))
+    gain6 = torch.from_numpy(np.concatenate([gain, gain], 1).astype(np.float32))
+    return (xb * gain6).clamp(0, 1)
 
 
 def train(x: np.ndarray, y: np.ndarray, epochs: int) -> Classifier:
     model = Classifier(len(sd.CLS_LABELS))
-    opt = torch.optim.AdamW(model.parameters(), lr=3e-3, weight_decay=1e-4)
+    opt = torch.optim.AdamW(model.parameters(), lr=3e-3, weight_decay=5e-4)
     counts = np.bincount(y, minlength=len(sd.CLS_LABELS)).astype(np.float64)
     # Balanced classes: draw each pair with probability inversely proportional to its class size.
     p = 1.0 / counts[y]

@@ -1,10 +1,12 @@
-"""Train the demo models on the synthetic world and export ONNX (dev only: needs torch).
+"""Train the demo crab detector on the synthetic world and export ONNX (dev only: needs torch).
 
     python scripts/train_demo_models.py [--out workers/models] [--seeds 40] [--epochs 12]
+    python scripts/train_demo_models.py --set-metadata   # only (re)write the ONNX metadata
 
 Detector: Ultralytics YOLOv8 output layout [1, 4+nc, N] (cx, cy, w, h in input pixels,
-then per-class scores, no objectness) on a 320x320 letterboxed RGB input in 0..1.
-Classifier: the pair as [1, 6, 96, 160] (left RGB, right RGB), softmax over labels.
+then per-class scores, no objectness) on a 320x320 letterboxed RGB input in 0..1, with the
+metadata CrabDetector reads (names, imgsz, color_order, scale, layout).
+The stereo scene classifier is trained by scripts/train_scene_classifier.py.
 Training seeds 1000+, evaluation seeds 9000+ (never used for training).
 """
 
@@ -25,6 +27,26 @@ import synth_demo_data as sd  # noqa: E402
 
 STRIDE = 8
 GRID = sd.DET_SIZE // STRIDE
+DET_METADATA = {
+    "names": str(dict(enumerate(sd.DET_CLASSES))),
+    "imgsz": json.dumps([sd.DET_SIZE, sd.DET_SIZE]),
+    "color_order": "rgb",
+    "scale": repr(1.0 / 255.0),
+    "layout": "yolov8",
+    "task": "detect",
+    "description": "trapflow demo crab and scallop detector (synthetic data only)",
+}
+
+
+def set_metadata(path: Path, meta: dict[str, str]) -> None:
+    """Replace the ONNX custom metadata (what the runtime plugins read) in place."""
+    import onnx
+
+    proto = onnx.load(str(path))
+    del proto.metadata_props[:]
+    for k, v in meta.items():
+        proto.metadata_props.add(key=k, value=v)
+    onnx.save(proto, str(path))
 
 
 def block(cin: int, cout: int, stride: int = 1, dil: int = 1) -> nn.Module:
@@ -63,29 +85,13 @@ class Detector(nn.Module):
         return torch.cat([torch.stack([cx, cy, w, h], 1), torch.sigmoid(r[:, 4:])], 1)
 
 
-class Classifier(nn.Module):
-    def __init__(self, n: int) -> None:
-        super().__init__()
-        self.f = nn.Sequential(block(6, 16, 2), block(16, 32, 2), block(32, 48, 2),
-                               block(48, 64, 2), block(64, 64), nn.AdaptiveAvgPool2d(1))
-        self.fc = nn.Linear(64, n)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.softmax(self.fc(self.f(x).flatten(1)), 1)
-
-    def logits(self, x: torch.Tensor) -> torch.Tensor:
-        return self.fc(self.f(x).flatten(1))
-
-
 def gather(seeds: list[int], per_seed: int):
-    det_x, det_t, cls_x, cls_y = [], [], [], []
-    for left, right, truth in sd.samples(seeds, per_seed):
+    det_x, det_t = [], []
+    for left, _right, truth in sd.samples(seeds, per_seed):
         x, s, dx, dy = sd.det_input(left)
-        det_x.append((x[0] * 255).astype(np.uint8))
+        det_x.append(np.round(x[0] * 255).astype(np.uint8))
         det_t.append(sd.det_targets(truth, s, dx, dy))
-        cls_x.append((sd.cls_input(left, right)[0] * 255).astype(np.uint8))
-        cls_y.append(sd.CLS_LABELS.index(truth.scene_label))
-    return np.stack(det_x), det_t, np.stack(cls_x), np.array(cls_y)
+    return np.stack(det_x), det_t
 
 
 def encode_targets(targets, nc: int):
@@ -153,30 +159,10 @@ def train_detector(data, epochs: int) -> Detector:
     return model.eval()
 
 
-def train_classifier(data, epochs: int) -> Classifier:
-    x, y = data
-    model = Classifier(len(sd.CLS_LABELS))
-    opt = torch.optim.AdamW(model.parameters(), lr=3e-3, weight_decay=1e-4)
-    rng = np.random.default_rng(1)
-    n = len(x)
-    for ep in range(epochs):
-        order = rng.permutation(n)
-        tot = 0.0
-        for i in range(0, n, 64):
-            idx = order[i:i + 64]
-            xb = torch.from_numpy(x[idx].astype(np.float32) / 255.0)
-            loss = nn.functional.cross_entropy(model.logits(xb), torch.from_numpy(y[idx]))
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            tot += float(loss)
-        print(f"classifier epoch {ep + 1}/{epochs} loss {tot / ((n + 63) // 64):.4f}", flush=True)
-    return model.eval()
-
-
 def export(model: nn.Module, shape: tuple[int, ...], path: Path, names: list[str]) -> None:
     torch.onnx.export(model, torch.zeros(shape), str(path), input_names=["images"],
                       output_names=names, opset_version=17, dynamo=False)
+    set_metadata(path, DET_METADATA)
 
 
 def evaluate(out_dir: Path, seeds: list[int], per_seed: int) -> dict[str, float]:
@@ -184,13 +170,11 @@ def evaluate(out_dir: Path, seeds: list[int], per_seed: int) -> dict[str, float]
 
     det = ort.InferenceSession(str(out_dir / "crab_detector.onnx"),
                                providers=["CPUExecutionProvider"])
-    cls = ort.InferenceSession(str(out_dir / "scene_classifier.onnx"),
-                               providers=["CPUExecutionProvider"])
     dets: dict[int, list] = {c: [] for c in range(len(sd.DET_CLASSES))}
     gts: dict[int, list] = {c: [] for c in range(len(sd.DET_CLASSES))}
-    correct = total = 0
-    t_det = t_cls = 0.0
-    for img, (left, right, truth) in enumerate(sd.samples(seeds, per_seed)):
+    total = 0
+    t_det = 0.0
+    for img, (left, _right, truth) in enumerate(sd.samples(seeds, per_seed)):
         x, s, dx, dy = sd.det_input(left)
         t0 = time.perf_counter()
         out = det.run(None, {"images": x})[0]
@@ -199,17 +183,11 @@ def evaluate(out_dir: Path, seeds: list[int], per_seed: int) -> dict[str, float]
             gts[c].append([np.array(t[1:]) for t in sd.det_targets(truth, s, dx, dy) if t[0] == c])
         for c, score, box in sd.decode(out):
             dets[c].append((img, score, box))
-        t0 = time.perf_counter()
-        p = cls.run(None, {"images": sd.cls_input(left, right)})[0]
-        t_cls += time.perf_counter() - t0
-        correct += int(sd.CLS_LABELS[int(p.argmax())] == truth.scene_label)
         total += 1
     return {"images": total,
             "map50_crab": round(sd.average_precision(dets[0], gts[0]), 3),
             "map50_scallop": round(sd.average_precision(dets[1], gts[1]), 3),
-            "classifier_accuracy": round(correct / total, 3),
-            "detector_ms": round(1000 * t_det / total, 2),
-            "classifier_ms": round(1000 * t_cls / total, 2)}
+            "detector_ms": round(1000 * t_det / total, 2)}
 
 
 def main() -> None:
@@ -219,30 +197,26 @@ def main() -> None:
     ap.add_argument("--per-seed", type=int, default=40)
     ap.add_argument("--epochs", type=int, default=12)
     ap.add_argument("--eval-only", action="store_true")
+    ap.add_argument("--set-metadata", action="store_true")
     args = ap.parse_args()
     torch.manual_seed(0)
     torch.set_num_threads(2)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.set_metadata:
+        set_metadata(out / "crab_detector.onnx", DET_METADATA)
+        return
     if not args.eval_only:
         t0 = time.time()
-        dx, dt, cx, cy = gather(list(range(1000, 1000 + args.seeds)), args.per_seed)
-        print(f"data: {len(dx)} pairs in {time.time() - t0:.0f} s; scenes "
-              f"{np.bincount(cy, minlength=3).tolist()}", flush=True)
+        dx, dt = gather(list(range(1000, 1000 + args.seeds)), args.per_seed)
+        print(f"data: {len(dx)} images in {time.time() - t0:.0f} s", flush=True)
         t0 = time.time()
         det = train_detector((dx, dt), args.epochs)
         export(det, (1, 3, sd.DET_SIZE, sd.DET_SIZE), out / "crab_detector.onnx", ["output0"])
         print(f"detector trained in {time.time() - t0:.0f} s", flush=True)
-        t0 = time.time()
-        clf = train_classifier((cx, cy), args.epochs * 2)
-        export(clf, (1, 6, sd.CLS_SIZE[1], sd.CLS_SIZE[0]), out / "scene_classifier.onnx",
-               ["probs"])
-        print(f"classifier trained in {time.time() - t0:.0f} s", flush=True)
         (out / "crab_detector.labels").write_text("".join(c + "\n" for c in sd.DET_CLASSES))
-        (out / "scene_classifier.labels").write_text("".join(c + "\n" for c in sd.CLS_LABELS))
     metrics = evaluate(out, list(range(9000, 9012)), 40)
     print(json.dumps(metrics), flush=True)
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
 
 
 if __name__ == "__main__":

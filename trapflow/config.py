@@ -39,7 +39,7 @@ class SourceConfig(_Section):
     height: Annotated[int, msgspec.Meta(ge=16, le=8192)] = 720
     encoding: Literal["jpeg", "raw"] = "jpeg"
     jpeg_quality: Annotated[int, msgspec.Meta(ge=1, le=100)] = 90
-    seed: int = 0
+    seed: int = 1
     moving: bool = False
     loop: bool = False
     options: dict[str, Any] = {}

@@ -15,7 +15,7 @@ from trapflow.plugin import Worker
 BUILTIN: dict[str, str] = {
     # The four algorithms a deployment runs (pool names in the default config).
     "mono": "trapflow_workers.crab_detector:CrabDetector",
-    "stereo": "trapflow_workers.histogram_classifier:HistogramClassifier",
+    "stereo": "trapflow_workers.scene_classifier:SceneClassifier",
     "vo": "trapflow_workers.stereo_vo:StereoOdometry",
     "tags": "trapflow_workers.apriltags:AprilTags",
     # Alternatives, by what they are.

@@ -227,3 +227,18 @@ def test_ledger_accounts_for_every_pair(spawn, run_dir: Path) -> None:
     assert pools["stuck"]["timed_out"] > 0
     assert pools["fast"]["processed"] >= produced - 5
     assert "failed" in out and "timed out" in out
+
+
+@pytest.mark.timeout(60)
+def test_model_that_does_not_load_names_the_file(spawn, run_dir: Path) -> None:
+    bad = run_dir.parent / "corrupt.onnx"
+    bad.write_bytes(b"\x08\x07this is not a protobuf model")
+    cfg = write_config(run_dir.parent / "model.yaml", {
+        "source": SMALL,
+        "pools": {"mono": {"plugin": "crab_detector", "params": {"model": str(bad)}}},
+    })
+    p: Pipeline = spawn(["--config", str(cfg), "--duration", "20"], run_dir)
+    code, _, err = p.wait(45)
+    assert code == 2
+    line = next(x for x in err.splitlines() if x.startswith("trapflow: error:"))
+    assert "worker:mono:0 cannot start" in line and "corrupt.onnx" in line, line

@@ -99,13 +99,18 @@ class BrokerNode(Node):
         self._publish_stats(time.monotonic())  # the run's totals, for the supervisor
         return 0
 
+    @staticmethod
+    def _readable(sock: zmq.Socket[bytes]) -> bool:
+        events = sock.getsockopt(_EVENTS)
+        return isinstance(events, int) and bool(events & _POLLIN)
+
     # --- capture side ---------------------------------------------------------------
 
     def _drain_capture(self) -> None:
         # Take what is queued now, then go back to the workers: results never starve.
         # EVENTS before each recv: an empty socket costs no exception (this is the hot path).
         for _ in range(64):
-            if not self.pull.getsockopt(_EVENTS) & _POLLIN:
+            if not self._readable(self.pull):
                 return
             frames = self.pull.recv_multipart(copy=False)
             if len(frames) == 2 and frames[0].bytes == messages.TOPIC_TRUTH:
@@ -143,7 +148,7 @@ class BrokerNode(Node):
 
     def _drain_workers(self) -> None:
         for _ in range(256):
-            if not self.router.getsockopt(_EVENTS) & _POLLIN:
+            if not self._readable(self.router):
                 return
             frames = self.router.recv_multipart(copy=False)
             ident = frames[0].bytes

@@ -5,8 +5,6 @@ Thin: each parses its options, then calls one library function.
 
 from __future__ import annotations
 
-import signal
-import threading
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +13,7 @@ import msgspec
 
 from trapflow.errors import TrapflowError
 from trapflow.messages import Stats
+from trapflow.signals import stop_on_signals
 
 
 class PatternType(click.ParamType[tuple[int, int]]):
@@ -78,17 +77,6 @@ def calibrate(left_glob: str, right_glob: str, pattern: tuple[int, int], square:
     click.echo(f"written: {output}")
 
 
-def _stop_on_signals() -> threading.Event:
-    stop = threading.Event()
-
-    def handler(signum: int, frame: object) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
-    return stop
-
-
 @click.command()
 @click.option("--run-dir", type=click.Path(file_okay=False, path_type=Path),
               default=Path("runs/latest"), show_default=True,
@@ -105,7 +93,7 @@ def record(run_dir: Path, endpoint: str | None, output: Path) -> None:
         from trapflow.transport import Endpoints
 
         endpoint = Endpoints.for_run(Config().network, run_dir).tap
-    stop = _stop_on_signals()
+    stop = stop_on_signals()
     click.echo(f"recording {endpoint} to {output}; Ctrl-C to stop", err=True)
     try:
         counts = record_tap(endpoint, output, stop)

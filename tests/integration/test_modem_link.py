@@ -13,23 +13,16 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from tests.conftest import poll_for
 from trapflow.modem.config import ModemConfig
 from trapflow.modem.outbox import Outbox, OutboxConfig
 from trapflow.modem.sender import ModemSender
-
-
-def poll_for(predicate: Callable[[], bool], timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout}s waiting for {what}")
-        time.sleep(0.05)
 
 
 def cli(*args: str) -> subprocess.Popen[bytes]:
@@ -62,7 +55,7 @@ def start_sim(
     (tmp / "a").unlink(missing_ok=True)
     sim = cli("modem-sim", *opts, "--link-a", str(tmp / "a"), "--link-b", str(tmp / "b"))
     procs.append(sim)
-    poll_for(lambda: (tmp / "a").exists() and (tmp / "b").exists(), 20, "the simulator's ends")
+    poll_for(lambda: (tmp / "a").exists() and (tmp / "b").exists(), 20, what="the simulator's ends")
     return sim
 
 
@@ -99,7 +92,7 @@ def test_300_bits_10_percent_loss(tmp_path: Path, procs: list[subprocess.Popen[b
                                       "confidence": 0.9}})  # fmt: skip
     appended_at = time.time()
     # Aggregation summarises whole intervals only: let the 1 s interval of these records end.
-    poll_for(lambda: int(time.time()) > int(appended_at), 2, "the interval to end")
+    poll_for(lambda: int(time.time()) > int(appended_at), 2, what="the interval to end")
 
     cfg = ModemConfig(enabled=True, port=str(tmp_path / "a"), bit_rate=300.0,
                       bytes_per_hour=3000, ack_timeout_s=1.5, ttl_s={"stereo_vo": 3.0},
@@ -111,7 +104,7 @@ def test_300_bits_10_percent_loss(tmp_path: Path, procs: list[subprocess.Popen[b
     thread.start()
     started = time.monotonic()
     try:
-        poll_for(lambda: box.counts()[2] == 0, 90, "the outbox to drain")
+        poll_for(lambda: box.counts()[2] == 0, 90, what="the outbox to drain")
         elapsed = time.monotonic() - started
         stats = sender.stats()
     finally:
@@ -179,18 +172,18 @@ def test_port_disappears_and_comes_back(
     try:
         for i in range(5):
             box.append(scallop(i))
-        poll_for(lambda: len(lines_of(out)) == 5, 30, "the first records at the surface")
-        poll_for(lambda: box.counts()[2] == 0, 10, "their acknowledgements")
+        poll_for(lambda: len(lines_of(out)) == 5, 30, what="the first records at the surface")
+        poll_for(lambda: box.counts()[2] == 0, 10, what="their acknowledgements")
         stop(sim)
         procs.remove(sim)
-        poll_for(lambda: sender.stats()["state"] == "inactive", 10, "the sender to notice")
+        poll_for(lambda: sender.stats()["state"] == "inactive", 10, what="the sender to notice")
         assert str(tmp_path / "a") in sender.stats()["reason"]
         for i in range(5, 12):
             box.append(scallop(i))
         assert box.counts()[2] == 7
         start_sim(tmp_path, procs, *fast)
-        poll_for(lambda: box.counts()[2] == 0, 30, "sending to resume")
-        poll_for(lambda: len(lines_of(out)) == 12, 10, "the rest at the surface")
+        poll_for(lambda: box.counts()[2] == 0, 30, what="sending to resume")
+        poll_for(lambda: len(lines_of(out)) == 12, 10, what="the rest at the surface")
     finally:
         halt.set()
         thread.join(timeout=10)

@@ -15,11 +15,11 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
+from tests.conftest import poll_for
 from trapflow.modem.outbox import OutboxConfig, OutboxQueue
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -29,13 +29,6 @@ SEED = 20250707
 CYCLES = 15
 HERE = Path(__file__).parent
 
-
-def poll_for(predicate: Callable[[], bool], timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout}s waiting for {what}")
-        time.sleep(0.05)
 
 
 def cli(*args: str, **kw: object) -> subprocess.Popen[bytes]:
@@ -84,7 +77,7 @@ def test_power_cut_loses_nothing_and_sends_nothing_twice(tmp_path: Path) -> None
     )
     procs: list[subprocess.Popen[bytes]] = [sim]
     try:
-        poll_for(lambda: (tmp_path / "b").exists(), 20, "the simulator's ends")
+        poll_for(lambda: (tmp_path / "b").exists(), 20, what="the simulator's ends")
         out = tmp_path / "surface.jsonl"
         surface = cli("surface", str(tmp_path / "b"), "-o", str(out), stderr=subprocess.PIPE)
         procs.append(surface)
@@ -109,7 +102,7 @@ def test_power_cut_loses_nothing_and_sends_nothing_twice(tmp_path: Path) -> None
             stderr=subprocess.DEVNULL,
         )
         procs.append(sender)
-        poll_for(lambda: queue.counts()[2] == 0, 60, "the outbox to drain")
+        poll_for(lambda: queue.counts()[2] == 0, 60, what="the outbox to drain")
         acks = [
             tuple(map(int, line.split()))
             for line in (tmp_path / "acks.log").read_text().splitlines()

@@ -8,9 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
-import signal
 import sys
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
@@ -20,17 +18,7 @@ import click
 from trapflow.modem.codec import DEFAULT_LABELS
 from trapflow.modem.config import ModemConfig
 from trapflow.modem.outbox import OutboxConfig
-
-
-def _stop_on_signals() -> threading.Event:
-    stop = threading.Event()
-
-    def handler(signum: int, frame: object) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
-    return stop
+from trapflow.signals import stop_on_signals
 
 
 def _labels(text: str | None) -> list[str]:
@@ -61,7 +49,7 @@ def surface(port: str, output: Path | None, baudrate: int, labels: str | None) -
     """Receive results from the modem link on PORT, acknowledge them, write JSON lines."""
     from trapflow.modem.surface import SurfaceReceiver
 
-    stop = _stop_on_signals()
+    stop = stop_on_signals()
     with _output(output) as out:
         receiver = SurfaceReceiver(port, out, _labels(labels), baudrate)
         receiver.run(stop)
@@ -124,7 +112,7 @@ def modem_sim(
     """Simulate an acoustic modem between two pseudo-terminals; prints both ends."""
     from trapflow.modem.sim import LinkSimulator
 
-    stop = _stop_on_signals()
+    stop = stop_on_signals()
     sim = LinkSimulator(bit_rate, latency, loss, corrupt, noise, seed, (link_a, link_b))
     a, b = sim.names
     click.echo(f"box end: {a}")
@@ -166,7 +154,7 @@ def modem_send(
         cfg.aggregate = []
     if no_ttl:
         cfg.ttl_s = {}
-    stop = _stop_on_signals()
+    stop = stop_on_signals()
     sender = ModemSender(outbox, port, cfg, OutboxConfig())
     sender.run(stop)
     click.echo(json.dumps(sender.stats()), err=True)

@@ -59,7 +59,7 @@ class BrokerNode(Node):
         self.ring = FrameRing(ring_name) if ring_name else None
         self.refs: dict[int, messages.FrameRef] = {}
         self.remote = {n for n, p in self.cfg.pools.items() if p.remote}
-        if self.ring is not None:
+        if self.ring is not None and spec.extra.get("restarted"):
             self._reclaim_held()
         self.malformed = 0
         self.unroutable = 0

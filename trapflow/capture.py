@@ -117,6 +117,15 @@ class CaptureNode(Node):
             self.ring.close()
         super().close()
 
+    def _acquire(self) -> int | None:
+        """A free ring slot; a finite source waits for one (back-pressure), a live one never."""
+        assert self.ring is not None
+        slot = self.ring.acquire()
+        while slot is None and self.source.finite and not self.stopping:
+            self._wait(0.002)
+            slot = self.ring.acquire()
+        return slot
+
     def _wait(self, seconds: float) -> None:
         end = time.monotonic() + seconds
         while not self.stopping and (left := end - time.monotonic()) > 0:
@@ -141,7 +150,7 @@ class CaptureNode(Node):
         left, right = self._encode(f.left), self._encode(f.right)
         slot: int | None = None
         if self.ring is not None:
-            slot = self.ring.acquire()
+            slot = self._acquire()
             if slot is None:  # every slot still held by some pool: drop, never wait
                 self.dropped += 1
                 return
@@ -168,13 +177,20 @@ class CaptureNode(Node):
         )
         payload: list[Any] = [messages.encode(header)]
         payload += [left, right] if slot is None else [messages.encode(ref)]
-        try:
-            self.push.send_multipart(payload, zmq.NOBLOCK, copy=False)
-        except zmq.Again:
-            self.dropped += 1
-            if self.ring is not None and slot is not None:
-                self.ring.release(slot)
-            return
+        # A live camera never waits (its next frame is coming); a file or recording has no
+        # clock to keep, so it waits for the broker instead of dropping: lossless replay.
+        while True:
+            try:
+                self.push.send_multipart(payload, zmq.NOBLOCK, copy=False)
+                break
+            except zmq.Again:
+                if self.source.finite and not self.stopping:
+                    self._wait(0.002)
+                    continue
+                self.dropped += 1
+                if self.ring is not None and slot is not None:
+                    self.ring.release(slot)
+                return
         self.produced += 1
         if f.truth is not None:
             truth = msgspec.structs.replace(f.truth, seq=seq)

@@ -114,7 +114,8 @@ class Supervisor:
     # --- the process graph --------------------------------------------------------------
 
     def boot(self) -> None:
-        """Consumers first so nothing sent is lost: normalizer, broker, workers, capture."""
+        """Consumers first so nothing sent is lost: normalizer, broker, workers; capture is
+        spawned once they are all active (see run())."""
         sup, cfg, run = self.cfg.supervisor, self.cfg, self.run_dir
         self._add(NodeSpec("normalizer", "normalizer", cfg, run), sup.liveness_s)
         if cfg.modem.enabled:
@@ -129,7 +130,8 @@ class Supervisor:
                 self._add(spec, max(sup.liveness_s, pcfg.timeout_s))
         self._add(NodeSpec("capture", "capture", cfg, run, rig=self.rig), sup.liveness_s)
         for child in self.children:
-            self._spawn(child)
+            if child.spec.role != "capture":
+                self._spawn(child)
 
     def _add(self, spec: NodeSpec, liveness_s: float) -> None:
         self.children.append(Child(spec, liveness_s))
@@ -137,6 +139,9 @@ class Supervisor:
     def _spawn(self, child: Child) -> None:
         if self.ring is not None:
             child.spec.extra["ring"] = self.ring.name
+        # A restarted broker frees the ring slots its predecessor held; a first one must not
+        # (capture's first pairs may already hold slots on their way to it).
+        child.spec.extra["restarted"] = child.restart_total > 0
         child.proc = self.mp.Process(
             target=node_main, args=(child.spec, self.log_queue, os.getpid()),
             name=child.name, daemon=False,
@@ -169,6 +174,8 @@ class Supervisor:
                 zmq.SUB, self.endpoints.tap, subscribe=(messages.TOPIC_STATS,), rcvhwm=4))
             self._install_signals()
             self.boot()
+            self._wait_started()  # every consumer is ready before the first pair exists
+            self._spawn(self._child("capture"))
             self._wait_started()
             self._supervise()
         finally:
@@ -251,7 +258,8 @@ class Supervisor:
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while not self.stop_requested:
             self._poll(0.05)
-            for c in self.children:
+            started = [c for c in self.children if c.proc is not None]
+            for c in started:
                 if c.state == INACTIVE and c.reason:
                     raise StartupError(f"{c.name} cannot start: {c.reason}")
                 if not c.alive():
@@ -261,11 +269,11 @@ class Supervisor:
                     self._poll(0.2)  # the dying node's last heartbeat carries its reason
                     why = c.reason or f"exited with status {c.proc.exitcode}"
                     raise StartupError(f"{c.name} cannot start: {why}")
-            if all(c.state in (ACTIVE, FINALIZED) for c in self.children):
-                log.info("all %d nodes active", len(self.children))
+            if all(c.state in (ACTIVE, FINALIZED) for c in started):
+                log.info("%d nodes active", len(started))
                 return
             if time.monotonic() > deadline:
-                slow = [c.name for c in self.children if c.state != ACTIVE]
+                slow = [c.name for c in started if c.state != ACTIVE]
                 raise StartupError(f"nodes not active after {STARTUP_TIMEOUT_S:g} s: {slow}")
 
     def _supervise(self) -> None:

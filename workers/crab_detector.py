@@ -13,8 +13,8 @@ from typing import Annotated, Any, Literal
 
 import msgspec
 import numpy as np
-from trapflow_workers.common import Params, check_frame, load_labels, model_path, parse_params
-from trapflow_workers.onnx_session import DEFAULT_PROVIDERS, Session, open_session
+from trapflow_workers.common import check_frame, load_labels, model_path, parse_params
+from trapflow_workers.onnx_session import ModelParams, Session, open_session
 from trapflow_workers.yolo_decode import (
     DEFAULT_STRIDES,
     Layout,
@@ -35,17 +35,9 @@ Unit = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
 Side = Annotated[int, msgspec.Meta(ge=16, le=4096)]
 
 
-class DetectorParams(Params):
-    """`pools.mono.params`: every key is optional."""
+class DetectorParams(ModelParams):
+    """`pools.mono.params`: every key is optional (empty model: the packaged one)."""
 
-    model: str = ""
-    """ONNX file; empty = the packaged models/crab_detector.onnx."""
-    labels: str = ""
-    """Labels file (one per line, or JSON); empty = metadata `names`, else a file beside it."""
-    providers: tuple[str, ...] = DEFAULT_PROVIDERS
-    """Execution providers in order of preference (tensorrt, cuda, cpu, ...)."""
-    threads: Annotated[int, msgspec.Meta(ge=1, le=64)] = 1
-    """onnxruntime intra-op threads; 1 so the processes of a pool do not fight over cores."""
     layout: Literal["auto", "yolov8", "yolov5", "yolox"] = "auto"
     """Output decoder; auto chooses from the output shape."""
     confidence: Unit = 0.25

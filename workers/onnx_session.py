@@ -10,9 +10,12 @@ import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
+import msgspec
 import numpy as np
 import onnxruntime as ort
+from trapflow_workers.common import Params
 
 from trapflow.errors import WorkerError
 
@@ -111,3 +114,16 @@ def open_session(
     return Session(
         session=session, path=path, provider=used, metadata=dict(meta.custom_metadata_map or {})
     )
+
+
+class ModelParams(Params):
+    """Parameters every ONNX-model plugin takes (its own params add to these)."""
+
+    model: str = ""
+    """ONNX file; empty = the plugin's packaged demo model."""
+    labels: str = ""
+    """Labels file (one per line, or JSON); empty = metadata `names`, else a file beside it."""
+    providers: tuple[str, ...] = DEFAULT_PROVIDERS
+    """Execution providers in order of preference (tensorrt, cuda, cpu, ...)."""
+    threads: Annotated[int, msgspec.Meta(ge=1, le=64)] = 1
+    """onnxruntime intra-op threads; 1 so the processes of a pool do not fight over cores."""

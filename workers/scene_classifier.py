@@ -16,8 +16,8 @@ from typing import Annotated, Any, Literal
 import cv2
 import msgspec
 import numpy as np
-from trapflow_workers.common import Params, check_frame, load_labels, model_path, parse_params
-from trapflow_workers.onnx_session import DEFAULT_PROVIDERS, Session, open_session
+from trapflow_workers.common import check_frame, load_labels, model_path, parse_params
+from trapflow_workers.onnx_session import ModelParams, Session, open_session
 
 from trapflow.errors import WorkerError
 from trapflow.messages import StereoIR
@@ -29,17 +29,9 @@ Arrangement = Literal["concat_channels", "side_by_side", "two_inputs"]
 Side = Annotated[int, msgspec.Meta(ge=8, le=4096)]
 
 
-class ClassifierParams(Params):
-    """`pools.stereo.params`: every key is optional."""
+class ClassifierParams(ModelParams):
+    """`pools.stereo.params`: every key is optional (empty model: the packaged one)."""
 
-    model: str = ""
-    """ONNX file; empty = the packaged models/scene_classifier.onnx."""
-    labels: str = ""
-    """Labels file; empty = metadata `names`, else a file beside the model."""
-    providers: tuple[str, ...] = DEFAULT_PROVIDERS
-    """Execution providers in order of preference."""
-    threads: Annotated[int, msgspec.Meta(ge=1, le=64)] = 1
-    """onnxruntime intra-op threads."""
     arrangement: Literal["auto", "concat_channels", "side_by_side", "two_inputs"] = "auto"
     """How the pair is fed to the model."""
     input_size: tuple[Side, Side] | None = None

@@ -1,6 +1,7 @@
 """Train the demo stereo scene classifier on the synthetic world and export it (dev only: torch).
 
-    python scripts/train_scene_classifier.py [--out workers/models] [--epochs 10] [--chunks 20]
+    python scripts/train_scene_classifier.py [--out workers/models] [--epochs 24] [--chunks 20]
+        [--budget-min M] [--checkpoint PATH]
 
 Input: the pair as [1, 6, 96, 160] (left RGB then right RGB, each resized with INTER_AREA,
 pixel / 255), softmax over empty, crab, scallop. Exactly what SceneClassifier feeds it, read
@@ -132,7 +133,21 @@ def augment(xb: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
     return (xb * gain6).clamp(0, 1)
 
 
-def train(x: np.ndarray, y: np.ndarray, epochs: int) -> Classifier:
+def one_cycle(progress: float, top: float = 3e-3) -> float:
+    """OneCycleLR's shape (cosine up over the first 30% from top/25, cosine down to top/1e4),
+    as a function of the fraction of training done, so a time budget can end it early."""
+    lo, end, warm = top / 25, top / 1e4, 0.3
+    if progress < warm:
+        return lo + (top - lo) * (1 - np.cos(np.pi * progress / warm)) / 2
+    return end + (top - end) * (1 + np.cos(np.pi * min(1.0, (progress - warm) / (1 - warm)))) / 2
+
+
+def train(x: np.ndarray, y: np.ndarray, epochs: int, budget_s: float | None = None,
+          checkpoint: Path | None = None) -> tuple[Classifier, int]:
+    """Returns the model and the epochs run. Progress through the LR schedule is the larger of
+    steps done / planned and, with `budget_s`, time spent / budget: on a shared machine the
+    schedule still anneals fully when the epochs turn out slower than timed. `checkpoint` is
+    written after every epoch (weights, optimizer, step, time) and resumed from if present."""
     model = Classifier(len(sd.CLS_LABELS))
     opt = torch.optim.AdamW(model.parameters(), lr=3e-3, weight_decay=5e-4)
     counts = np.bincount(y, minlength=len(sd.CLS_LABELS)).astype(np.float64)
@@ -141,23 +156,47 @@ def train(x: np.ndarray, y: np.ndarray, epochs: int) -> Classifier:
     p /= p.sum()
     n, batch = len(x), 64
     steps = (n + batch - 1) // batch
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, 3e-3, total_steps=epochs * steps)
+    total = epochs * steps
     rng = np.random.default_rng(1)
-    for ep in range(epochs):
+    done, ep, spent = 0, 0, 0.0
+    if checkpoint is not None and checkpoint.exists():
+        state = torch.load(checkpoint, weights_only=False)  # written by this script only
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["opt"])
+        rng.bit_generator.state = state["rng"]
+        done, ep, spent = state["step"], state["epoch"], state["spent"]
+        print(f"resumed from {checkpoint} after epoch {ep}", flush=True)
+    t0 = time.time() - spent
+    progress = 0.0
+    while ep < epochs and progress < 1.0:
         model.train()
-        tot = 0.0
+        tot, m = 0.0, 0
         for _ in range(steps):
+            progress = done / total
+            if budget_s is not None:
+                progress = max(progress, (time.time() - t0) / budget_s)
+            if progress >= 1.0:
+                break
+            for g in opt.param_groups:
+                g["lr"] = one_cycle(progress)
             idx = rng.choice(n, batch, p=p)
             xb = augment(torch.from_numpy(x[idx].astype(np.float32) / 255.0), rng)
             loss = nn.functional.cross_entropy(model.logits(xb), torch.from_numpy(y[idx]))
             opt.zero_grad()
             loss.backward()
             opt.step()
-            sched.step()
+            done += 1
+            m += 1
             tot += loss.item()
-        print(f"classifier epoch {ep + 1}/{epochs} loss {tot / steps:.4f}", flush=True)
+        ep += 1
+        print(f"classifier epoch {ep}/{epochs} loss {tot / max(m, 1):.4f} progress "
+              f"{min(progress, 1.0):.2f} {time.time() - t0:.0f} s", flush=True)
+        if checkpoint is not None:
+            torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "step": done,
+                        "epoch": ep, "spent": time.time() - t0,
+                        "rng": rng.bit_generator.state}, checkpoint)
     recalibrate_bn(model, x)
-    return model.eval()
+    return model.eval(), ep
 
 
 @torch.no_grad()
@@ -229,11 +268,15 @@ def evaluate(path: Path, seeds: list[int], per_seed: int) -> dict[str, object]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--out", default="workers/models")
-    ap.add_argument("--epochs", type=int, default=10)
+    ap.add_argument("--epochs", type=int, default=24)
     ap.add_argument("--chunks", type=int, default=20, help=f"training chunks of {CHUNK} worlds")
     ap.add_argument("--cache", default=str(Path(tempfile.gettempdir()) / "trapflow_train_cache"))
     ap.add_argument("--eval-seeds", type=int, default=12)
     ap.add_argument("--eval-only", action="store_true")
+    ap.add_argument("--budget-min", type=float, default=None,
+                    help="end the LR schedule after this many minutes even if epochs remain")
+    ap.add_argument("--checkpoint", default=None,
+                    help="torch weights saved after every epoch and resumed from if present")
     args = ap.parse_args()
     torch.manual_seed(0)
     torch.set_num_threads(2)
@@ -247,8 +290,10 @@ def main() -> None:
         print(f"data: {len(x)} pairs from {worlds} worlds in {time.time() - t0:.0f} s; scenes "
               f"{dict(zip(sd.CLS_LABELS, counts, strict=True))}", flush=True)
         t0 = time.time()
-        model = train(x, y, args.epochs)
-        print(f"trained in {time.time() - t0:.0f} s; eval-mode training accuracy "
+        budget = None if args.budget_min is None else 60 * args.budget_min
+        ckpt = None if args.checkpoint is None else Path(args.checkpoint)
+        model, ran = train(x, y, args.epochs, budget, ckpt)
+        print(f"trained {ran} epochs in {time.time() - t0:.0f} s; eval-mode training accuracy "
               f"{train_accuracy(model, x, y):.3f}", flush=True)
         print(f"max |torch - onnxruntime| {export(model, path, x):.2e}", flush=True)
         (out / "scene_classifier.labels").write_text("".join(c + "\n" for c in sd.CLS_LABELS))

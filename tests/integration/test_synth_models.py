@@ -70,8 +70,6 @@ def test_crab_detector_plugin_finds_held_out_crabs() -> None:
     assert false_pos <= total, f"{false_pos} crab boxes match no crab ({total} crabs)"
 
 
-@pytest.mark.xfail(strict=True, reason="shipped classifier reaches 0.756 on these seeds "
-                   "(0.864 on the card's): visible crabs in worlds 777004/777001 called empty")
 @pytest.mark.timeout(90)
 def test_scene_classifier_plugin_reaches_accuracy_on_held_out_scenes() -> None:
     """SceneClassifier with its defaults: packaged model, arrangement and labels from metadata."""

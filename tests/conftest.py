@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import secrets
 import signal
 import subprocess
 import sys
@@ -161,3 +162,14 @@ def spawn() -> Iterator[Callable[..., Pipeline]]:
         leaked += p.leftovers()
         p.kill_all()
     assert not leaked, f"processes left behind: {leaked}"
+
+
+@pytest.fixture
+def prefix() -> Iterator[str]:
+    """A shared-memory segment prefix of this test's own; its segments are removed after."""
+    from trapflow import frame_ring as fr
+
+    p = f"tftest{secrets.token_hex(3)}-"
+    yield p
+    for name in fr.list_segments(p):
+        os.unlink(os.path.join(fr.SHM_DIR, name))

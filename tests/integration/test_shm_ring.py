@@ -7,7 +7,6 @@ from __future__ import annotations
 import hashlib
 import multiprocessing as mp
 import os
-import secrets
 import signal
 import time
 from collections.abc import Callable, Iterator
@@ -22,15 +21,6 @@ from trapflow import frame_ring as fr
 from trapflow import messages
 
 SPAWN = mp.get_context("spawn")
-
-
-@pytest.fixture
-def prefix() -> Iterator[str]:
-    """A prefix of this test's own, so cleanup never touches anyone else's segments."""
-    p = f"tftest{secrets.token_hex(3)}-"
-    yield p
-    for name in fr.list_segments(p):
-        os.unlink(os.path.join(fr.SHM_DIR, name))
 
 
 @pytest.fixture

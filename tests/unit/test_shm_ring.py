@@ -4,7 +4,6 @@ descriptor validation, reclaim after a crashed writer, stale-segment cleanup, si
 from __future__ import annotations
 
 import os
-import secrets
 import subprocess
 import sys
 from collections.abc import Callable, Iterator
@@ -20,15 +19,6 @@ from trapflow import messages
 from trapflow.errors import ProtocolError
 
 pytestmark = pytest.mark.timeout(30)
-
-
-@pytest.fixture
-def prefix() -> Iterator[str]:
-    """A prefix of this test's own, so cleanup never touches anyone else's segments."""
-    p = f"tftest{secrets.token_hex(3)}-"
-    yield p
-    for name in fr.list_segments(p):
-        os.unlink(os.path.join(fr.SHM_DIR, name))
 
 
 @pytest.fixture

@@ -153,6 +153,11 @@ class _Store:
         finally:
             os.close(fd)
 
+    def _next_seq(self) -> int:
+        """The seq the next record gets; call inside a write transaction."""
+        row = self._db.execute("SELECT seq FROM sqlite_sequence WHERE name='records'").fetchone()
+        return (int(row[0]) if row else 0) + 1
+
     def sync(self) -> None:
         """fsync the WAL now: everything committed so far survives a power cut."""
         with self._lock:
@@ -372,10 +377,7 @@ class Outbox(_Store):
             self._db.execute("BEGIN IMMEDIATE")
             try:
                 # Read the counter inside the write lock: the sender also appends (aggregates).
-                row = self._db.execute(
-                    "SELECT seq FROM sqlite_sequence WHERE name='records'"
-                ).fetchone()
-                first = (int(row[0]) if row else 0) + 1
+                first = self._next_seq()
                 rows = []
                 for i, (rec, body) in enumerate(zip(records, bodies, strict=True)):
                     seq = first + i
@@ -491,10 +493,7 @@ class OutboxQueue(_Store):
         with self._lock:
             self._db.execute("BEGIN IMMEDIATE")
             try:
-                row = self._db.execute(
-                    "SELECT seq FROM sqlite_sequence WHERE name='records'"
-                ).fetchone()
-                seq = (int(row[0]) if row else 0) + 1
+                seq = self._next_seq()
                 self._db.execute(
                     "INSERT INTO records(seq, t_ns, cls, body, crc) VALUES (?,?,?,?,?)",
                     (seq, t_ns, cls, body, record_crc(seq, t_ns, cls, body)),

@@ -29,7 +29,7 @@ from trapflow import config as configmod
 from trapflow import messages
 from trapflow.frame_ring import FrameRing, RingWriter, ring_slots, slot_capacity
 from trapflow.node import NodeSpec, node_main
-from trapflow.transport import Endpoints
+from trapflow.transport import Endpoints, Link, LinkClosed, connect_link
 
 PAGE = 4096
 WINDOW = 4  # pairs in flight per consumer, as in the peer measurements
@@ -182,7 +182,8 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
     """Pairs into the real broker, no-op workers, results counted back (window per worker).
 
     The harness plays capture: with frames="shm" it writes each pair once into the ring
-    and sends the descriptor, as capture does; with "zmq" it sends the bytes.
+    and sends the descriptor over the broker's local link, as capture does; with "zmq" it
+    sends the bytes.
     """
     run_dir = Path(tempfile.mkdtemp(prefix="tfb-", dir=tmp))
     cfg = configmod.from_data({
@@ -230,9 +231,18 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
             return False  # every slot held: the window will free one
         ref = writer.write(slot, left_a if kind == "raw" else left,
                            right_a if kind == "raw" else right)
-        push.send_multipart([header(seq, kind), messages.encode(ref)])
+        nonlocal link
+        while link is None:  # as capture does: descriptors over the broker's local link
+            try:
+                link = connect_link(ep.capture_link)
+            except LinkClosed:
+                time.sleep(0.05)
+        if not link.send([header(seq, kind), messages.encode(ref)]):
+            writer.release(slot)
+            return False
         return True
 
+    link: Link | None = None
     lats: list[int] = []
     completed = 0
 
@@ -241,10 +251,11 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
         if not results.poll(timeout_ms):
             return
         while results.poll(0):
-            r = messages.decode_result(results.recv(copy=False))
-            completed += 1
-            if isinstance(r.body, messages.Extra):
-                lats.append(int(r.body.fields["lat_ns"]))
+            for frame in results.recv_multipart(copy=False):  # the broker batches results
+                r = messages.decode_result(frame)
+                completed += 1
+                if isinstance(r.body, messages.Extra):
+                    lats.append(int(r.body.fields["lat_ns"]))
 
     # Warm up until every worker answered (their READY reached the broker).
     seq = 0

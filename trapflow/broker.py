@@ -2,7 +2,9 @@
 
 Owns: PULL from capture, ROUTER to workers, PUSH of results to the normalizer,
 PUB tap (frame metadata, images, stats once a second). Image frames are
-forwarded as received (zero-copy); only the small header is decoded.
+forwarded as received (zero-copy); only the small header is decoded. With the
+shared-memory ring, capture and local workers talk to it over local links instead
+(descriptors only), and results leave in batches.
 """
 
 from __future__ import annotations
@@ -20,7 +22,14 @@ from trapflow.errors import ProtocolError
 from trapflow.frame_ring import HELD, FrameRing
 from trapflow.node import ACTIVE, Node, NodeSpec
 from trapflow.ratelog import RateLimitedLog
-from trapflow.transport import SocketSpec, open_socket
+from trapflow.transport import (
+    Link,
+    LinkClosed,
+    SocketSpec,
+    accept_link,
+    listen_link,
+    open_socket,
+)
 
 log = logging.getLogger(__name__)
 
@@ -28,6 +37,7 @@ STATS_INTERVAL_S = 1.0
 # Plain ints: zmq's enum flags cost a conversion on every call in the hot loop.
 _EVENTS, _POLLIN, _NOBLOCK = int(zmq.EVENTS), int(zmq.POLLIN), int(zmq.NOBLOCK)
 TICK_INTERVAL_S = 0.1
+RESULTS_PER_MESSAGE = 64  # results leave in one message per loop pass, up to this many
 
 
 class BrokerNode(Node):
@@ -61,6 +71,16 @@ class BrokerNode(Node):
         self.remote = {n for n, p in self.cfg.pools.items() if p.remote}
         if self.ring is not None and spec.extra.get("restarted"):
             self._reclaim_held()
+        # Local links (ring only): listeners, then one Link per connected capture or worker.
+        self.listeners: dict[Any, str] = {}
+        if self.ring is not None:
+            self.listeners = {listen_link(ep.capture_link): "capture",
+                              listen_link(ep.workers_link): "worker"}
+        self.fds: dict[int, Any] = {}  # file descriptor -> local link or listener
+        self.link_role: dict[Link, str] = {}
+        self.link_ident: dict[Link, bytes] = {}
+        self.worker_links: dict[bytes, Link] = {}
+        self._out: list[Any] = []  # results waiting for this pass's batch
         self.malformed = 0
         self.unroutable = 0
         self.ratelog = RateLimitedLog(log)
@@ -79,15 +99,27 @@ class BrokerNode(Node):
         poller.register(self.pull, zmq.POLLIN)
         poller.register(self.router, zmq.POLLIN)
         poller.register(self.tap, zmq.POLLIN)
+        for listener in self.listeners:
+            poller.register(listener, zmq.POLLIN)
+            self.fds[listener.fileno()] = listener
+        self.poller = poller
         next_tick = time.monotonic()
         while not self.stopping:
             events = dict(poller.poll(int(TICK_INTERVAL_S * 1000)))
             if self.router in events:
                 self._drain_workers()
+            links = [self.fds[k] for k in events if isinstance(k, int) and k in self.fds]
+            for link in links:  # zmq's poller reports plain sockets by file descriptor
+                if isinstance(link, Link):
+                    self._drain_link(link)
             if self.pull in events:
                 self._drain_capture()
+            for listener in links:
+                if listener in self.listeners:
+                    self._accept(listener)
             if self.tap in events:
                 self._on_subscriptions()
+            self._flush_results()
             now = time.monotonic()
             if now >= next_tick:
                 next_tick = now + TICK_INTERVAL_S
@@ -96,7 +128,12 @@ class BrokerNode(Node):
                     self._publish_stats(now)
                 self.beat()
         self.state.finish()  # what is still pending or in flight will never be processed
+        self._flush_results()
         self._publish_stats(time.monotonic())  # the run's totals, for the supervisor
+        for link in list(self.link_role):
+            link.close()
+        for listener in self.listeners:
+            listener.close()
         return 0
 
     @staticmethod
@@ -112,37 +149,82 @@ class BrokerNode(Node):
         for _ in range(64):
             if not self._readable(self.pull):
                 return
-            frames = self.pull.recv_multipart(copy=False)
-            if len(frames) == 2 and frames[0].bytes == messages.TOPIC_TRUTH:
-                self._publish(messages.TOPIC_TRUTH, frames[1])  # out of band, for the tap only
-                continue
-            ref: messages.FrameRef | None = None
+            self._on_capture(self.pull.recv_multipart(copy=False))
+
+    def _on_capture(self, frames: list[Any]) -> None:
+        if len(frames) == 2 and _bytes(frames[0]) == messages.TOPIC_TRUTH:
+            self._publish(messages.TOPIC_TRUTH, frames[1])  # out of band, for the tap only
+            return
+        ref: messages.FrameRef | None = None
+        try:
+            if len(frames) == 2:
+                pair, ref = messages.check_pair_ref(frames)
+                if self.ring is None:
+                    raise ProtocolError("pair: got a frame ref, but no shared-memory ring")
+                self.ring.validate(ref)
+            else:
+                pair = messages.check_pair_frames(frames)
+        except ProtocolError as exc:
+            self.malformed += 1
+            self.ratelog.warning("capture", "dropped malformed pair message: %s", exc)
+            return
+        if pair.seq in self.frames:
+            self.malformed += 1
+            self.ratelog.warning("dup", "dropped pair with duplicate seq %d", pair.seq)
+            if ref is not None and self.ring is not None and ref != self.refs.get(pair.seq):
+                self.ring.free_ref(ref)
+            return
+        self.frames[pair.seq] = frames
+        if ref is not None:
+            self.refs[pair.seq] = ref
+        if self.wanted.get(messages.TOPIC_META):
+            self._publish(messages.TOPIC_META, frames[0])
+        if self.wanted.get(messages.TOPIC_IMAGE):
+            self._publish(messages.TOPIC_IMAGE, *self._payload(pair.seq, copy=True))
+        self._apply(self.state.pair_arrived(pair.seq, time.monotonic()))
+
+    # --- local links ----------------------------------------------------------------
+
+    def _accept(self, listener: Any) -> None:
+        while (link := accept_link(listener)) is not None:
+            self.link_role[link] = self.listeners[listener]
+            self.fds[link.fileno()] = link
+            self.poller.register(link, zmq.POLLIN)
+
+    def _drain_link(self, link: Link) -> None:
+        role = self.link_role.get(link)
+        for _ in range(256):
             try:
-                if len(frames) == 2:
-                    pair, ref = messages.check_pair_ref(frames)
-                    if self.ring is None:
-                        raise ProtocolError("pair: got a frame ref, but no shared-memory ring")
-                    self.ring.validate(ref)
-                else:
-                    pair = messages.check_pair_frames(frames)
+                frames = link.recv()
+                if frames is None:
+                    return
+                if role == "capture":
+                    self._on_capture(frames)
+                    continue
+                msg = messages.decode_worker_msg(frames[0])
+                ident = self.link_ident.get(link)
+                if ident is None:  # a worker names itself in its first message
+                    ident = msg.worker.encode()
+                    self.link_ident[link] = ident
+                    self.worker_links[ident] = link
+                self._on_worker_msg(ident, msg, [ident, *frames])  # as a ROUTER gives them
+            except LinkClosed:
+                self._drop_link(link, "disconnected")
+                return
             except ProtocolError as exc:
                 self.malformed += 1
-                self.ratelog.warning("capture", "dropped malformed pair message: %s", exc)
-                continue
-            if pair.seq in self.frames:
-                self.malformed += 1
-                self.ratelog.warning("dup", "dropped pair with duplicate seq %d", pair.seq)
-                if ref is not None and self.ring is not None and ref != self.refs.get(pair.seq):
-                    self.ring.free_ref(ref)
-                continue
-            self.frames[pair.seq] = frames
-            if ref is not None:
-                self.refs[pair.seq] = ref
-            if self.wanted.get(messages.TOPIC_META):
-                self._publish(messages.TOPIC_META, frames[0])
-            if self.wanted.get(messages.TOPIC_IMAGE):
-                self._publish(messages.TOPIC_IMAGE, *self._payload(pair.seq, copy=True))
-            self._apply(self.state.pair_arrived(pair.seq, time.monotonic()))
+                self.ratelog.warning("link", "dropped malformed %s message: %s", role, exc)
+
+    def _drop_link(self, link: Link, reason: str) -> None:
+        """A local peer went away: a worker's jobs are settled now, not at a timeout."""
+        self.poller.unregister(link)
+        self.fds.pop(link.fileno(), None)
+        self.link_role.pop(link, None)
+        ident = self.link_ident.pop(link, None)
+        link.close()
+        if ident is not None and self.worker_links.get(ident) is link:
+            del self.worker_links[ident]
+            self._apply(self.state.worker_gone(ident, reason, time.monotonic()))
 
     # --- worker side ----------------------------------------------------------------
 
@@ -172,7 +254,9 @@ class BrokerNode(Node):
             if len(frames) != 3:
                 raise ProtocolError(
                     f"done: expected 3 frames [id, done, result], got {len(frames)}")
-            self.results.send(frames[2], copy=False)
+            self._out.append(frames[2])
+            if len(self._out) >= RESULTS_PER_MESSAGE:
+                self._flush_results()
             self._apply(self.state.job_done(ident, msg.pool, msg.seq, True, now))
         elif isinstance(msg, messages.Gone):
             self._apply(self.state.worker_gone(msg.worker.encode(), msg.reason, now))
@@ -193,27 +277,43 @@ class BrokerNode(Node):
                     job = messages.encode(messages.Job(pool=action.pool, gap=action.gap))
                     if action.gap == 0:
                         self._jobs[key] = job
+                link = self.worker_links.get(action.worker)
                 try:
-                    remote = action.pool in self.remote
-                    self.router.send_multipart(
-                        [action.worker, job, *self._payload(action.seq, copy=remote)],
-                        copy=False)
-                except zmq.ZMQError as exc:  # EHOSTUNREACH: the worker vanished
+                    if link is not None:
+                        if not link.send([job, *self.frames[action.seq]]):
+                            raise LinkClosed("its queue is full")
+                    else:
+                        remote = action.pool in self.remote
+                        self.router.send_multipart(
+                            [action.worker, job, *self._payload(action.seq, copy=remote)],
+                            copy=False)
+                except (zmq.ZMQError, LinkClosed) as exc:  # EHOSTUNREACH: the worker vanished
                     self.unroutable += 1
                     self.ratelog.warning("route", "cannot reach worker %r: %s", action.worker, exc)
-                    self._apply(self.state.worker_gone(action.worker, "unreachable",
-                                                       time.monotonic()))
+                    if link is not None:
+                        self._drop_link(link, "unreachable")
+                    else:
+                        self._apply(self.state.worker_gone(action.worker, "unreachable",
+                                                           time.monotonic()))
             elif isinstance(action, Release):
                 self.frames.pop(action.seq, None)
                 ref = self.refs.pop(action.seq, None)
                 if ref is not None and self.ring is not None:
                     self.ring.free_ref(ref)
             elif isinstance(action, Evicted):
-                log.warning(
-                    "evicted worker %s of pool %s (%s); pairs lost: %s",
+                # A worker told to stop leaves on purpose; anything else is news.
+                level = logging.INFO if action.reason == messages.GONE_STOPPING else logging.WARNING
+                log.log(
+                    level, "evicted worker %s of pool %s (%s); pairs lost: %s",
                     action.worker.decode(errors="replace"), action.pool, action.reason,
                     list(action.lost) or "none",
                 )
+
+    def _flush_results(self) -> None:
+        """This pass's results in one message: one wake-up of the normalizer, not one each."""
+        if self._out:
+            self.results.send_multipart(self._out, copy=False)
+            self._out = []
 
     def _payload(self, seq: int, copy: bool) -> list[Any]:
         """[header, left, right] bytes, or [header, ref] for local readers of the ring.
@@ -275,3 +375,7 @@ class BrokerNode(Node):
         )
         self._last_in = self.state.pairs_in
         self._publish(messages.TOPIC_STATS, messages.encode(stats))  # cheap: once a second
+
+
+def _bytes(frame: Any) -> bytes:
+    return frame.bytes if isinstance(frame, zmq.Frame) else bytes(frame)

@@ -1,7 +1,8 @@
 """The capture process: reads stereo frames from a source, encodes them once, pushes them.
 
-Owns a PUSH to the broker. Capture never waits for an algorithm: when the broker
-is not reading, the pair is dropped here and counted.
+Owns a PUSH to the broker (with the shared-memory ring, a local link carrying
+descriptors). Capture never waits for an algorithm: when the broker is not
+reading, the pair is dropped here and counted.
 """
 
 from __future__ import annotations
@@ -19,8 +20,9 @@ from trapflow import messages
 from trapflow.camera import StereoRig
 from trapflow.frame_ring import RingError, RingWriter
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
+from trapflow.ratelog import RateLimitedLog
 from trapflow.sources import Frames, Source, SourceError, open_source
-from trapflow.transport import SocketSpec, open_socket
+from trapflow.transport import Link, LinkClosed, SocketSpec, connect_link, open_socket
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +56,8 @@ class CaptureNode(Node):
         # With a shared-memory ring each pair is written once there; only a descriptor is sent.
         ring_name = spec.extra.get("ring")
         self.ring = RingWriter(ring_name) if ring_name else None
+        self.link: Link | None = None  # with the ring: descriptors go over a local link
+        self.ratelog = RateLimitedLog(log)
 
     def counters(self) -> dict[str, int]:
         out = {"produced": self.produced, "dropped": self.dropped, "failures": self.failures}
@@ -179,23 +183,36 @@ class CaptureNode(Node):
         payload += [left, right] if slot is None else [messages.encode(ref)]
         # A live camera never waits (its next frame is coming); a file or recording has no
         # clock to keep, so it waits for the broker instead of dropping: lossless replay.
-        while True:
-            try:
-                self.push.send_multipart(payload, zmq.NOBLOCK, copy=False)
-                break
-            except zmq.Again:
-                if self.source.finite and not self.stopping:
-                    self._wait(0.002)
-                    continue
-                self.dropped += 1
-                if self.ring is not None and slot is not None:
-                    self.ring.release(slot)
-                return
+        while not self._deliver(payload):
+            if self.source.finite and not self.stopping:
+                self._wait(0.002)
+                continue
+            self.dropped += 1
+            if self.ring is not None and slot is not None:
+                self.ring.release(slot)
+            return
         self.produced += 1
         if f.truth is not None:
             truth = msgspec.structs.replace(f.truth, seq=seq)
+            # Truth is for tests and viewers; never worth a wait.
+            self._deliver([messages.TOPIC_TRUTH, messages.encode(truth)])
+
+    def _deliver(self, frames: list[Any]) -> bool:
+        """Hand one message to the broker without waiting; False if it cannot take it now."""
+        if self.ring is None:
             try:
-                self.push.send_multipart([messages.TOPIC_TRUTH, messages.encode(truth)],
-                                         zmq.NOBLOCK)
+                self.push.send_multipart(frames, zmq.NOBLOCK, copy=False)
             except zmq.Again:
-                pass  # truth is for tests and viewers; never worth a wait
+                return False
+            return True
+        try:
+            if self.link is None:
+                self.link = connect_link(self.endpoints.capture_link)
+            return self.link.send(frames)
+        except LinkClosed as exc:  # the broker is restarting: drop, reconnect next time
+            self.ratelog.warning("link", "broker link: %s", exc)
+            if self.link is not None:
+                self.link.close()
+                self.link = None
+            return False
+

@@ -7,6 +7,7 @@ Decoding never trusts the wire: every decoder raises ProtocolError with a reason
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Sequence
 from typing import Annotated, Any, Literal, Union
 
@@ -177,10 +178,13 @@ class Alive(Msg, frozen=True, tag="alive"):
 
 
 class Gone(Msg, frozen=True, tag="gone"):
-    """Supervisor -> broker: this worker process exited; its pairs are lost now."""
+    """Supervisor (or a stopping worker) -> broker: this worker is gone; its pairs are lost."""
 
     worker: str
     reason: str = ""
+
+
+GONE_STOPPING = "stopping"  # Gone.reason of a worker that leaves on a stop request
 
 
 class Done(Msg, frozen=True, tag="done"):
@@ -456,3 +460,43 @@ def check_pair_ref(frames: Sequence[Buffer]) -> tuple[StereoPair, FrameRef]:
         raise ProtocolError(f"pair: expected 2 frames [header, frame ref], got {len(frames)}")
     pair = decode_pair_header(frames[0])
     return pair, decode_frame_ref(frames[1])
+
+
+# --- local links: several frames in one datagram ---------------------------------
+# On one host, descriptors travel over UNIX seqpacket sockets, one datagram per message.
+# A datagram is: u8 frame count, that many u32 little-endian lengths, then the frames.
+
+MAX_LINK_FRAMES = 8
+MAX_LINK_BYTES = MAX_RESULT_BYTES + 2 * MAX_HEADER_BYTES
+_LEN = struct.Struct("<I")
+
+
+def pack_frames(frames: Sequence[Buffer]) -> bytes:
+    """One datagram carrying frames (each bytes-like or a zmq.Frame)."""
+    views = [memoryview(f.buffer if hasattr(f, "buffer") else f).cast("B") for f in frames]
+    if not 0 < len(views) <= MAX_LINK_FRAMES:
+        raise ProtocolError(f"link message: expected 1..{MAX_LINK_FRAMES} frames, "
+                            f"got {len(views)}")
+    head = bytes([len(views)]) + b"".join(_LEN.pack(v.nbytes) for v in views)
+    return b"".join([head, *views])
+
+
+def unpack_frames(data: bytes | memoryview) -> list[memoryview]:
+    """The frames of one datagram, as views into it; ProtocolError if it is not one."""
+    buf = memoryview(data)
+    if buf.nbytes < 1:
+        raise ProtocolError("link message: expected a frame count, got an empty datagram")
+    n = buf[0]
+    at = 1 + 4 * n
+    if not 0 < n <= MAX_LINK_FRAMES or buf.nbytes < at:
+        raise ProtocolError(f"link message: expected 1..{MAX_LINK_FRAMES} frames and their "
+                            f"lengths, got count {n} in {buf.nbytes} bytes")
+    frames = []
+    for i in range(n):
+        (size,) = _LEN.unpack_from(buf, 1 + 4 * i)
+        frames.append(buf[at:at + size])
+        at += size
+    if at != buf.nbytes:
+        raise ProtocolError(f"link message: frame lengths add up to {at} bytes, "
+                            f"datagram has {buf.nbytes}")
+    return frames

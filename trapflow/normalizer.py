@@ -57,10 +57,11 @@ class NormalizerNode(Node):
             if self.pull.poll(100, zmq.POLLIN):
                 for _ in range(256):
                     try:
-                        data = self.pull.recv(zmq.NOBLOCK, copy=False)
+                        batch = self.pull.recv_multipart(zmq.NOBLOCK, copy=False)
                     except zmq.Again:
                         break
-                    dirty |= self._handle(data)
+                    for data in batch:  # the broker sends a pass's results together
+                        dirty |= self._handle(data)
             now = time.monotonic()
             if dirty and now >= next_flush:
                 self.file.flush()
@@ -73,9 +74,11 @@ class NormalizerNode(Node):
         # Take what the broker already sent before closing the file.
         while True:
             try:
-                self._handle(self.pull.recv(zmq.NOBLOCK, copy=False))
+                batch = self.pull.recv_multipart(zmq.NOBLOCK, copy=False)
             except zmq.Again:
                 break
+            for data in batch:
+                self._handle(data)
         self.file.flush()
         os.fsync(self.file.fileno())
         self.file.close()

@@ -1,8 +1,8 @@
 """The worker process: runs one algorithm plugin through its lifecycle on pairs it pulls.
 
-Owns a DEALER to the broker: READY with a credit, then one job at a time per
-credit, each answered by DONE (+ result) or FAILED. Bad input fails one pair,
-never the process.
+Owns a DEALER to the broker (or, for a local worker of the shared-memory ring, a
+local link): READY with a credit, then one job at a time per credit, each answered
+by DONE (+ result) or FAILED. Bad input fails one pair, never the process.
 """
 
 from __future__ import annotations
@@ -25,12 +25,14 @@ from trapflow.frame_ring import RingError, RingReader
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.plugin import Context, Pair, Worker
 from trapflow.ratelog import RateLimitedLog
-from trapflow.transport import SocketSpec, open_socket
+from trapflow.transport import Link, LinkClosed, SocketSpec, connect_link, open_socket
 
 log = logging.getLogger(__name__)
 
 # With a pool's `save: true`, one input pair and its result are kept per this interval.
 SAVE_INTERVAL_S = 1.0
+LINK_RETRY_S = 0.02  # how often a local worker tries to reach a broker that is not up
+SEND_WAIT_MS = 1000  # how long a Done may wait for room in a busy broker's queue
 
 
 def decode_image(frame: Any, pair: messages.StereoPair, side: str) -> np.ndarray:
@@ -77,10 +79,15 @@ class WorkerNode(Node):
         self.pool = spec.pool
         self.pcfg = self.cfg.pools[self.pool]
         self.ident = messages.worker_identity(self.pool, spec.index, os.getpid())
-        self.dealer = open_socket(
-            self.ctx,
-            SocketSpec(zmq.DEALER, self.endpoints.workers, identity=self.ident.encode()),
-        )
+        # Local workers of the ring get descriptors over a local link; others, bytes over zmq.
+        self.local = bool(spec.extra.get("ring")) and not self.pcfg.remote
+        self.link: Link | None = None
+        self.dealer: zmq.Socket[bytes] | None = None
+        if not self.local:
+            self.dealer = open_socket(
+                self.ctx,
+                SocketSpec(zmq.DEALER, self.endpoints.workers, identity=self.ident.encode()),
+            )
         self.plugin: Worker | None = None
         self._reader: RingReader | None = None
         self._next_save = 0.0
@@ -131,11 +138,12 @@ class WorkerNode(Node):
                 self.beat()
                 time.sleep(0.1)
             return 0
-        self._send([messages.Ready(worker=self.ident, pool=self.pool, credit=self.pcfg.credit)])
+        if self.dealer is not None:
+            self._send([self._ready()])
         next_alive = 0.0
         while not self.stopping:
-            if self.dealer.poll(100, zmq.POLLIN):
-                frames = self.dealer.recv_multipart(copy=False)
+            frames = self._recv(100)
+            if frames is not None:
                 self.free -= 1
                 self._handle(frames)
                 self.free += 1
@@ -145,6 +153,8 @@ class WorkerNode(Node):
                 self._send([messages.Alive(worker=self.ident, pool=self.pool,
                                            free=max(self.free, 0))])
             self.beat()
+        # Leaving on purpose: the broker settles this worker's jobs now, quietly.
+        self._send([messages.Gone(worker=self.ident, reason=messages.GONE_STOPPING)])
         assert self.plugin is not None
         self.plugin.deactivate()
         self.set_state(INACTIVE)
@@ -167,10 +177,62 @@ class WorkerNode(Node):
         (folder / f"{result.seq:08d}.json").write_bytes(
             msgspec.json.encode(messages.to_builtins(result)))
 
+    def _ready(self) -> messages.Ready:
+        return messages.Ready(worker=self.ident, pool=self.pool, credit=self.pcfg.credit)
+
+    def _recv(self, timeout_ms: int) -> list[Any] | None:
+        """The next job's frames, or None after timeout_ms."""
+        if self.dealer is not None:
+            if self.dealer.poll(timeout_ms, zmq.POLLIN):
+                return self.dealer.recv_multipart(copy=False)
+            return None
+        link = self._link()
+        if link is None:
+            time.sleep(LINK_RETRY_S)
+            return None
+        try:
+            return link.recv() if link.wait(timeout_ms) else None
+        except LinkClosed as exc:  # the broker died: a new one will listen at the same path
+            log.warning("%s: %s; reconnecting", self.ident, exc)
+            link.close()
+            self.link = None
+        except ProtocolError as exc:
+            self.ratelog.warning("link", "%s: dropped malformed job: %s", self.ident, exc)
+        return None
+
+    def _link(self) -> Link | None:
+        """The local link to the broker, connected (and READY sent) on first use."""
+        if self.link is None:
+            try:
+                self.link = connect_link(self.endpoints.workers_link)
+            except LinkClosed:
+                return None
+            self.free = self.pcfg.credit
+            self._send([self._ready()])
+        return self.link
+
     def _send(self, msgs: list[Any]) -> None:
-        self.dealer.send_multipart(
-            [m if isinstance(m, bytes) else messages.encode(m) for m in msgs]
-        )
+        frames = [m if isinstance(m, bytes) else messages.encode(m) for m in msgs]
+        if self.dealer is not None:
+            self.dealer.send_multipart(frames)
+            return
+        link = self.link
+        if link is None:
+            return  # no broker: the job this answers was lost with the one that died
+        try:
+            if not link.send(frames) and not (link.wait_writable(SEND_WAIT_MS)
+                                              and link.send(frames)):
+                self.ratelog.warning("busy", "%s: broker queue full; message dropped",
+                                     self.ident)
+        except LinkClosed as exc:
+            log.warning("%s: %s; reconnecting", self.ident, exc)
+            link.close()
+            self.link = None
+        except ProtocolError as exc:  # a result too big for one datagram fails its pair
+            done = msgs[0]
+            if isinstance(done, messages.Done):
+                self._send([messages.Failed(worker=self.ident, pool=self.pool, seq=done.seq,
+                                            reason=str(exc)[:300], kind="ProtocolError")])
 
     def _handle(self, frames: list[Any]) -> None:
         assert self.plugin is not None

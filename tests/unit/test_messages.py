@@ -90,3 +90,28 @@ def test_malformed_worker_messages_rejected(data: bytes, error: str) -> None:
 def test_result_size_limit() -> None:
     with pytest.raises(ProtocolError, match="at most"):
         messages.decode_result(b"\x00" * (messages.MAX_RESULT_BYTES + 1))
+
+
+def test_link_frames_roundtrip() -> None:
+    frames = [b"job", b"", memoryview(b"header"), bytearray(b"\x00" * 300)]
+    out = messages.unpack_frames(messages.pack_frames(frames))
+    assert [bytes(f) for f in out] == [bytes(f) for f in frames]
+
+
+@pytest.mark.parametrize(("data", "error"), [
+    (b"", "empty datagram"),
+    (b"\x00", "got count 0"),
+    (b"\x09" + b"\x00" * 36, "got count 9"),
+    (b"\x02\x01\x00\x00\x00", "got count 2 in 5 bytes"),
+    (b"\x01\x05\x00\x00\x00ab", "add up to 10 bytes, datagram has 7"),
+    (b"\x01\x01\x00\x00\x00abc", "add up to 6 bytes, datagram has 8"),
+])
+def test_link_frames_reject_malformed(data: bytes, error: str) -> None:
+    with pytest.raises(ProtocolError, match=error):
+        messages.unpack_frames(data)
+
+
+@pytest.mark.parametrize("count", [0, messages.MAX_LINK_FRAMES + 1])
+def test_link_frames_refuse_to_pack_a_wrong_count(count: int) -> None:
+    with pytest.raises(ProtocolError, match="frames"):
+        messages.pack_frames([b"x"] * count)

@@ -205,8 +205,6 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
     push = ctx.socket(zmq.PUSH)
     push.setsockopt(zmq.SNDHWM, 64)
     push.connect(ep.capture)
-    results = ctx.socket(zmq.PULL)
-    results.connect(ep.results)
     hb = ctx.socket(zmq.PULL)  # stand-in supervisor: heartbeats are received and ignored
     hb.bind(ep.heartbeat)
     q = mp.get_context("spawn").Queue()
@@ -243,15 +241,21 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
         return True
 
     link: Link | None = None
+    out: Link | None = None
     lats: list[int] = []
     completed = 0
 
     def take(timeout_ms: int) -> None:
-        nonlocal completed
-        if not results.poll(timeout_ms):
+        nonlocal completed, out
+        while out is None:  # as the normalizer does: results over the broker's local link
+            try:
+                out = connect_link(ep.results_link)
+            except LinkClosed:
+                time.sleep(0.05)
+        if not out.wait(timeout_ms):
             return
-        while results.poll(0):
-            for frame in results.recv_multipart(copy=False):  # the broker batches results
+        while (batch := out.recv()) is not None:  # the broker batches results
+            for frame in batch:
                 r = messages.decode_result(frame)
                 completed += 1
                 if isinstance(r.body, messages.Extra):

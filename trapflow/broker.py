@@ -1,10 +1,10 @@
 """The broker process: translates sockets to BrokerState events and actions to sends.
 
-Owns: PULL from capture, ROUTER to workers, PUSH of results to the normalizer,
-PUB tap (frame metadata, images, stats once a second). Image frames are
-forwarded as received (zero-copy); only the small header is decoded. With the
-shared-memory ring, capture and local workers talk to it over local links instead
-(descriptors only), and results leave in batches.
+Owns: PULL from capture, ROUTER to workers, a local link of results to the
+normalizer (in batches), PUB tap (frame metadata, images, stats once a second).
+Image frames are forwarded as received (zero-copy); only the small header is
+decoded. With the shared-memory ring, capture and local workers talk to it over
+local links instead (descriptors only).
 """
 
 from __future__ import annotations
@@ -37,7 +37,8 @@ STATS_INTERVAL_S = 1.0
 # Plain ints: zmq's enum flags cost a conversion on every call in the hot loop.
 _EVENTS, _POLLIN, _NOBLOCK = int(zmq.EVENTS), int(zmq.POLLIN), int(zmq.NOBLOCK)
 TICK_INTERVAL_S = 0.1
-RESULTS_PER_MESSAGE = 64  # results leave in one message per loop pass, up to this many
+RESULTS_BATCH_BYTES = 64 << 10  # results leave in datagrams of about this size, or less
+MAX_WAITING_RESULTS = 100_000  # kept while no normalizer listens; beyond, the oldest go
 
 
 class BrokerNode(Node):
@@ -50,7 +51,6 @@ class BrokerNode(Node):
         self.router = open_socket(
             self.ctx, SocketSpec(zmq.ROUTER, ep.workers, bind=True, router_mandatory=True)
         )
-        self.results = open_socket(self.ctx, SocketSpec(zmq.PUSH, ep.results, bind=True))
         # XPUB tells us what taps subscribe to, so nothing is published that nobody reads;
         # a small high-water mark: a slow tap loses messages instead of holding the broker.
         self.tap = open_socket(self.ctx, SocketSpec(zmq.XPUB, ep.tap, bind=True, sndhwm=32))
@@ -72,15 +72,17 @@ class BrokerNode(Node):
         if self.ring is not None and spec.extra.get("restarted"):
             self._reclaim_held()
         # Local links (ring only): listeners, then one Link per connected capture or worker.
-        self.listeners: dict[Any, str] = {}
+        self.listeners: dict[Any, str] = {listen_link(ep.results_link): "results"}
         if self.ring is not None:
-            self.listeners = {listen_link(ep.capture_link): "capture",
-                              listen_link(ep.workers_link): "worker"}
+            self.listeners[listen_link(ep.capture_link)] = "capture"
+            self.listeners[listen_link(ep.workers_link)] = "worker"
         self.fds: dict[int, Any] = {}  # file descriptor -> local link or listener
         self.link_role: dict[Link, str] = {}
         self.link_ident: dict[Link, bytes] = {}
         self.worker_links: dict[bytes, Link] = {}
-        self._out: list[Any] = []  # results waiting for this pass's batch
+        self.results_link: Link | None = None  # the normalizer, once it connected
+        self._out: list[Any] = []  # results waiting for this pass's batch (or a normalizer)
+        self.results_dropped = 0
         self.malformed = 0
         self.unroutable = 0
         self.ratelog = RateLimitedLog(log)
@@ -91,7 +93,8 @@ class BrokerNode(Node):
 
     def counters(self) -> dict[str, int]:
         return {"pairs_in": self.state.pairs_in, "malformed": self.malformed,
-                "held": self.state.held()}
+                "held": self.state.held(), "results_waiting": len(self._out),
+                "results_dropped": self.results_dropped}
 
     def run(self) -> int:
         self.set_state(ACTIVE)
@@ -187,7 +190,12 @@ class BrokerNode(Node):
 
     def _accept(self, listener: Any) -> None:
         while (link := accept_link(listener)) is not None:
-            self.link_role[link] = self.listeners[listener]
+            role = self.listeners[listener]
+            if role == "results":  # a (restarted) normalizer: it gets what waited for it
+                if self.results_link is not None:
+                    self._drop_link(self.results_link, "replaced")
+                self.results_link = link
+            self.link_role[link] = role
             self.fds[link.fileno()] = link
             self.poller.register(link, zmq.POLLIN)
 
@@ -201,6 +209,8 @@ class BrokerNode(Node):
                 if role == "capture":
                     self._on_capture(frames)
                     continue
+                if role == "results":
+                    continue  # the normalizer only listens; its link is watched for EOF
                 msg = messages.decode_worker_msg(frames[0])
                 ident = self.link_ident.get(link)
                 if ident is None:  # a worker names itself in its first message
@@ -221,6 +231,8 @@ class BrokerNode(Node):
         self.fds.pop(link.fileno(), None)
         self.link_role.pop(link, None)
         ident = self.link_ident.pop(link, None)
+        if link is self.results_link:
+            self.results_link = None
         link.close()
         if ident is not None and self.worker_links.get(ident) is link:
             del self.worker_links[ident]
@@ -255,8 +267,6 @@ class BrokerNode(Node):
                 raise ProtocolError(
                     f"done: expected 3 frames [id, done, result], got {len(frames)}")
             self._out.append(frames[2])
-            if len(self._out) >= RESULTS_PER_MESSAGE:
-                self._flush_results()
             self._apply(self.state.job_done(ident, msg.pool, msg.seq, True, now))
         elif isinstance(msg, messages.Gone):
             self._apply(self.state.worker_gone(msg.worker.encode(), msg.reason, now))
@@ -310,10 +320,32 @@ class BrokerNode(Node):
                 )
 
     def _flush_results(self) -> None:
-        """This pass's results in one message: one wake-up of the normalizer, not one each."""
-        if self._out:
-            self.results.send_multipart(self._out, copy=False)
-            self._out = []
+        """Results leave in few datagrams: one wake-up of the normalizer per pass, not one each.
+
+        What the normalizer cannot take now (busy, restarting) waits here for the next pass.
+        """
+        if len(self._out) > MAX_WAITING_RESULTS:
+            extra = len(self._out) - MAX_WAITING_RESULTS
+            self.results_dropped += extra
+            self.ratelog.warning("results", "no normalizer: dropped %d oldest results", extra)
+            del self._out[:extra]
+        while self._out and self.results_link is not None:
+            n, size = 0, 0
+            while n < min(len(self._out), messages.MAX_LINK_FRAMES) and (
+                    n == 0 or size + len(self._out[n]) < RESULTS_BATCH_BYTES):
+                size += len(self._out[n])
+                n += 1
+            try:
+                if not self.results_link.send(self._out[:n]):
+                    return
+            except LinkClosed:
+                self._drop_link(self.results_link, "disconnected")
+                return
+            except ProtocolError as exc:  # one result too big for a datagram
+                self.results_dropped += 1
+                self.ratelog.warning("results", "dropped a result: %s", exc)
+                n = 1
+            del self._out[:n]
 
     def _payload(self, seq: int, copy: bool) -> list[Any]:
         """[header, left, right] bytes, or [header, ref] for local readers of the ring.

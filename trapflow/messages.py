@@ -466,7 +466,7 @@ def check_pair_ref(frames: Sequence[Buffer]) -> tuple[StereoPair, FrameRef]:
 # On one host, descriptors travel over UNIX seqpacket sockets, one datagram per message.
 # A datagram is: u8 frame count, that many u32 little-endian lengths, then the frames.
 
-MAX_LINK_FRAMES = 8
+MAX_LINK_FRAMES = 64  # a batch of results
 MAX_LINK_BYTES = MAX_RESULT_BYTES + 2 * MAX_HEADER_BYTES
 _LEN = struct.Struct("<I")
 

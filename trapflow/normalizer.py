@@ -1,6 +1,7 @@
 """The normalizer process: every result becomes JSON lines in results.jsonl and on its tap.
 
-Owns a PULL of results from the broker and a PUB of JSON lines (`result` topic).
+Owns a local link that brings batches of results from the broker and a PUB of JSON
+lines (`result` topic).
 The file is flushed at least every flush_interval_s and fsynced every fsync_interval_s.
 """
 
@@ -19,7 +20,14 @@ from trapflow.modem.outbox import Outbox, OutboxFull
 from trapflow.node import ACTIVE, FINALIZED, Node, NodeSpec
 from trapflow.normalize import dumps, normalize
 from trapflow.ratelog import RateLimitedLog
-from trapflow.transport import SocketSpec, open_socket
+from trapflow.transport import (
+    LINK_RETRY_S,
+    Link,
+    LinkClosed,
+    SocketSpec,
+    connect_link,
+    open_socket,
+)
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +38,7 @@ class NormalizerNode(Node):
     def __init__(self, spec: NodeSpec) -> None:
         super().__init__(spec)
         ep = self.endpoints
-        self.pull = open_socket(self.ctx, SocketSpec(zmq.PULL, ep.results))
+        self.link: Link | None = None  # results from the broker, connected on first use
         self.pub = open_socket(self.ctx, SocketSpec(zmq.PUB, ep.results_tap, bind=True,
                                                     sndhwm=256))
         ncfg = self.cfg.normalizer
@@ -54,14 +62,7 @@ class NormalizerNode(Node):
         next_flush = next_sync = time.monotonic()
         dirty = False
         while not self.stopping:
-            if self.pull.poll(100, zmq.POLLIN):
-                for _ in range(256):
-                    try:
-                        batch = self.pull.recv_multipart(zmq.NOBLOCK, copy=False)
-                    except zmq.Again:
-                        break
-                    for data in batch:  # the broker sends a pass's results together
-                        dirty |= self._handle(data)
+            dirty |= self._receive(100)
             now = time.monotonic()
             if dirty and now >= next_flush:
                 self.file.flush()
@@ -72,13 +73,8 @@ class NormalizerNode(Node):
                 dirty = False
             self.beat()
         # Take what the broker already sent before closing the file.
-        while True:
-            try:
-                batch = self.pull.recv_multipart(zmq.NOBLOCK, copy=False)
-            except zmq.Again:
-                break
-            for data in batch:
-                self._handle(data)
+        while self.link is not None and self._receive(0):
+            pass
         self.file.flush()
         os.fsync(self.file.fileno())
         self.file.close()
@@ -87,7 +83,34 @@ class NormalizerNode(Node):
         self.set_state(FINALIZED)
         return 0
 
-    def _handle(self, data: zmq.Frame) -> bool:
+    def _receive(self, timeout_ms: int) -> bool:
+        """Handle the batches of results waiting (up to timeout_ms for the first)."""
+        if self.link is None:
+            try:
+                self.link = connect_link(self.endpoints.results_link)
+            except LinkClosed:  # the broker is not listening yet (or restarting)
+                time.sleep(LINK_RETRY_S)
+                return False
+        dirty = False
+        try:
+            if not self.link.wait(timeout_ms):
+                return False
+            for _ in range(256):
+                batch = self.link.recv()
+                if batch is None:
+                    break
+                for data in batch:  # the broker sends a pass's results together
+                    dirty |= self._handle(data)
+        except LinkClosed as exc:  # a new broker will listen at the same path
+            log.info("results link: %s; reconnecting", exc)
+            self.link.close()
+            self.link = None
+        except ProtocolError as exc:
+            self.malformed += 1
+            self.ratelog.warning("link", "dropped malformed results batch: %s", exc)
+        return dirty
+
+    def _handle(self, data: messages.Buffer) -> bool:
         try:
             res = messages.decode_result(data)
             objs = normalize(res, self.cfg.normalizer.decimals)

@@ -29,16 +29,16 @@ MAX_IPC_PATH = 107
 _ENDPOINTS = {
     "capture": ("capture.sock", 0),  # capture PUSH -> broker PULL
     "workers": ("workers.sock", 1),  # broker ROUTER <-> worker DEALERs
-    "results": ("results.sock", 2),  # broker PUSH -> normalizer PULL
     "tap": ("tap.sock", 3),  # broker PUB: frames and stats
     "results_tap": ("results-tap.sock", 4),  # normalizer PUB: JSON results
     "heartbeat": ("heartbeat.sock", 5),  # nodes PUSH -> supervisor PULL
     "control": ("control.sock", 6),  # supervisor REP: status, stop
 }
-# Local links (always files in the run directory): descriptors of pairs in the ring.
+# Local links (always files in the run directory): descriptors of pairs in the ring, results.
 _LINKS = {
     "capture_link": "capture.link",  # capture -> broker
     "workers_link": "workers.link",  # broker <-> local workers
+    "results_link": "results.link",  # broker -> normalizer, results in batches
 }
 
 
@@ -48,13 +48,13 @@ class Endpoints:
 
     capture: str
     workers: str
-    results: str
     tap: str
     results_tap: str
     heartbeat: str
     control: str
     capture_link: str
     workers_link: str
+    results_link: str
 
     @classmethod
     def for_run(cls, net: NetworkConfig, run_dir: Path) -> Endpoints:
@@ -129,6 +129,7 @@ class LinkClosed(TrapflowError):
     """The other end of a local link is gone (or was never there)."""
 
 
+LINK_RETRY_S = 0.02  # how often a peer tries to reach a broker that is not listening (yet)
 _LINK_SNDBUF = 4 << 20  # the kernel caps this at its own maximum; results are small anyway
 
 

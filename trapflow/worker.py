@@ -25,13 +25,19 @@ from trapflow.frame_ring import RingError, RingReader
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.plugin import Context, Pair, Worker
 from trapflow.ratelog import RateLimitedLog
-from trapflow.transport import Link, LinkClosed, SocketSpec, connect_link, open_socket
+from trapflow.transport import (
+    LINK_RETRY_S,
+    Link,
+    LinkClosed,
+    SocketSpec,
+    connect_link,
+    open_socket,
+)
 
 log = logging.getLogger(__name__)
 
 # With a pool's `save: true`, one input pair and its result are kept per this interval.
 SAVE_INTERVAL_S = 1.0
-LINK_RETRY_S = 0.02  # how often a local worker tries to reach a broker that is not up
 SEND_WAIT_MS = 1000  # how long a Done may wait for room in a busy broker's queue
 
 

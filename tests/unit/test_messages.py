@@ -101,7 +101,7 @@ def test_link_frames_roundtrip() -> None:
 @pytest.mark.parametrize(("data", "error"), [
     (b"", "empty datagram"),
     (b"\x00", "got count 0"),
-    (b"\x09" + b"\x00" * 36, "got count 9"),
+    (bytes([messages.MAX_LINK_FRAMES + 1]) + b"\x00" * 400, "got count 65"),
     (b"\x02\x01\x00\x00\x00", "got count 2 in 5 bytes"),
     (b"\x01\x05\x00\x00\x00ab", "add up to 10 bytes, datagram has 7"),
     (b"\x01\x01\x00\x00\x00abc", "add up to 6 bytes, datagram has 8"),

@@ -66,22 +66,19 @@ class Floor:
         z = height(x, y): the relief is gentle, five rounds settle far below a texel.
         """
         inv = (-1.0 / np.minimum(dirs[2], np.float32(-0.02))).astype(np.float32)
-        # Position on the height grid along each ray: g0 + t * step per axis.
-        sx = dirs[0] * np.float32(1.0 / GEO_CELL_M)
-        sy = dirs[1] * np.float32(-1.0 / GEO_CELL_M)
-        gx0 = np.float32((centre[0] - self.x0) / GEO_CELL_M)
-        gy0 = np.float32((self.y1 - centre[1]) / GEO_CELL_M)
         c2 = np.float32(centre[2])
-        t: np.ndarray = c2 * inv
-        gx, gy = np.empty_like(t), np.empty_like(t)
+        # With t = (c2 - h) * inv, a ray's position on the height grid is p - h * q per axis.
+        qx = inv * dirs[0] * np.float32(1.0 / GEO_CELL_M)
+        qy = inv * dirs[1] * np.float32(-1.0 / GEO_CELL_M)
+        px = qx * c2 + np.float32((centre[0] - self.x0) / GEO_CELL_M)
+        py = qy * c2 + np.float32((self.y1 - centre[1]) / GEO_CELL_M)
+        h = np.zeros_like(inv)
+        gx, gy = np.empty_like(inv), np.empty_like(inv)
         for _ in range(rounds):
-            np.multiply(t, sx, out=gx)
-            gx += gx0
-            np.multiply(t, sy, out=gy)
-            gy += gy0
-            hz = cv2.remap(self.geo, gx, gy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            np.subtract(c2, hz, out=t)
-            t *= inv
+            np.subtract(px, np.multiply(h, qx, out=gx), out=gx)
+            np.subtract(py, np.multiply(h, qy, out=gy), out=gy)
+            h = cv2.remap(self.geo, gx, gy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        t: np.ndarray = (c2 - h) * inv
         return t
 
     def texel_map(self, centre: np.ndarray, dirs: np.ndarray, t: np.ndarray

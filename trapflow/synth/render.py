@@ -30,7 +30,7 @@ from trapflow.synth.texture import Floor
 from trapflow.synth.water import F_SCALE, Light, Noise, Snow, to_u8
 
 GRID = 4  # the floor is ray-cast every GRID pixels and resampled
-LIGHT_GRID = 16  # light and water change slowly across the image: computed every 16 pixels
+LIGHT_GRID = 16  # a moving rig computes light and water every 16 pixels: they change slowly
 TARGET_MEAN = 105.0  # auto exposure: mean grey level of the first left image
 COUNT_VISIBLE = 0.35  # an animal at least this visible decides the scene label
 
@@ -66,7 +66,8 @@ class World:
         self.pose0_inv = inv_pose(self.pose0)
         w, h = rig.width, rig.height
         self._grid = RayGrid(rig, GRID)
-        self._light_grid = RayGrid(rig, LIGHT_GRID)
+        # A static rig lights its floor once, so it affords the fine grid.
+        self._light_grid = RayGrid(rig, LIGHT_GRID) if moving else self._grid
         self._frustum = Frustum(rig)
         self.floor = Floor(*self._floor_bounds(), rng=rng)
         lo, hi = float(self.floor.geo.min()), float(self.floor.geo.max())
@@ -176,10 +177,11 @@ class World:
         img4 = cv2.remap(self.floor.albedo4, mx, my, cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_REFLECT)
         img = cv2.cvtColor(img4, cv2.COLOR_BGRA2BGR)
-        # The light grid's cell centres fall midway between floor-grid cells: t there is
-        # the average of its neighbours, which is all the smooth lighting needs.
         lg = self._light_grid
-        t = cv2.resize(t, (lg.cols, lg.rows), interpolation=cv2.INTER_LINEAR)
+        if lg is not self._grid:
+            # A coarse light grid's cell centres fall midway between floor-grid cells:
+            # t there is the mean of its neighbours, all that the smooth lighting needs.
+            t = cv2.resize(t, (lg.cols, lg.rows), interpolation=cv2.INTER_LINEAR)
         f, b = self.light.maps(t * lg.length, t, right, self.gain)
         f8 = cv2.resize(to_u8(f, F_SCALE), size, interpolation=cv2.INTER_LINEAR)
         b8 = cv2.resize(to_u8(b, 1.0), size, interpolation=cv2.INTER_LINEAR)

@@ -179,8 +179,8 @@ class World:
         img = cv2.cvtColor(img4, cv2.COLOR_BGRA2BGR)
         lg = self._light_grid
         if lg is not self._grid:
-            # A coarse light grid's cell centres fall midway between floor-grid cells:
-            # t there is the mean of its neighbours, all that the smooth lighting needs.
+            # cv2.resize samples t at the light grid's cell centres, between floor-grid
+            # cells: interpolated depth is all that the smooth lighting needs.
             t = cv2.resize(t, (lg.cols, lg.rows), interpolation=cv2.INTER_LINEAR)
         f, b = self.light.maps(t * lg.length, t, right, self.gain)
         f8 = cv2.resize(to_u8(f, F_SCALE), size, interpolation=cv2.INTER_LINEAR)

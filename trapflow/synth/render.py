@@ -24,11 +24,13 @@ from trapflow.messages import Truth, TruthObject
 from trapflow.synth.animals import Placement, Population
 from trapflow.synth.geometry import Trajectory, floor_points, inv_pose, right_of
 from trapflow.synth.options import SynthOptions
+from trapflow.synth.rays import Frustum, RayGrid
 from trapflow.synth.sprites import boulder, tag_sprite
 from trapflow.synth.texture import Floor
 from trapflow.synth.water import F_SCALE, Light, Noise, Snow, to_u8
 
 GRID = 4  # the floor is ray-cast every GRID pixels and resampled
+LIGHT_GRID = 16  # a moving rig computes light and water every 16 pixels: they change slowly
 TARGET_MEAN = 105.0  # auto exposure: mean grey level of the first left image
 COUNT_VISIBLE = 0.35  # an animal at least this visible decides the scene label
 
@@ -63,16 +65,15 @@ class World:
         self.pose0 = self.traj.floor_pose(0.0)
         self.pose0_inv = inv_pose(self.pose0)
         w, h = rig.width, rig.height
-        self._wc, self._hc = math.ceil(w / GRID), math.ceil(h / GRID)
-        us = (np.arange(self._wc) + 0.5) * (w / self._wc) - 0.5
-        vs = (np.arange(self._hc) + 0.5) * (h / self._hc) - 0.5
-        self._us, self._vs = np.meshgrid(us, vs)
-        rays = np.stack([(self._us - rig.cx) / rig.fx, (self._vs - rig.cy) / rig.fy,
-                         np.ones_like(self._us)], axis=-1).astype(np.float32)
-        self._rays = rays
-        self._ray_len = np.linalg.norm(rays, axis=-1)
+        self._grid = RayGrid(rig, GRID)
+        # A static rig lights its floor once, so it affords the fine grid.
+        self._light_grid = RayGrid(rig, LIGHT_GRID) if moving else self._grid
+        self._frustum = Frustum(rig)
         self.floor = Floor(*self._floor_bounds(), rng=rng)
-        self.light = Light(rig, self._us, self._vs, opts.haze, opts.light)
+        lo, hi = float(self.floor.geo.min()), float(self.floor.geo.max())
+        self._mid_z, self._half_relief = (lo + hi) / 2.0, (hi - lo) / 2.0
+        self.light = Light(rig, self._light_grid.us, self._light_grid.vs, opts.haze,
+                           opts.light)
         self.boulders = self._place_boulders(np.random.default_rng([seed, 2]))
         self.tags = self._place_tags()
         occl = [(p.x, p.y, p.sprite.size_m * 0.4) for p in self.boulders]
@@ -161,22 +162,27 @@ class World:
 
     # --- rendering ------------------------------------------------------------------
 
-    def _floor_view(self, pose: np.ndarray, right: bool = False) -> _View:
-        rig = self.rig
-        r, c = pose[:3, :3], pose[:3, 3]
-        d = self._rays @ r.T
-        dz = np.minimum(d[..., 2], -0.02)
-        t = c[2] / -dz
-        for _ in range(5):  # fixed point: the ray meets z = height(x, y)
-            hz = self.floor.height_at(c[0] + t * d[..., 0], c[1] + t * d[..., 1])
-            t = (c[2] - hz) / -dz
-        mxy = self.floor.texel(c[0] + t * d[..., 0], c[1] + t * d[..., 1])
-        f, b = self.light.maps(t * self._ray_len, t, right, self.gain)
-        size = (rig.width, rig.height)
-        maps = cv2.resize(mxy, size, interpolation=cv2.INTER_LINEAR)
-        img4 = cv2.remap(self.floor.albedo4, maps, None,  # type: ignore[call-overload]
-                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    def _floor_view(self, pose: np.ndarray, right: bool = False,
+                    dirs: np.ndarray | None = None) -> _View:
+        """The lit floor seen from `pose`; dirs: the floor grid's rays rotated by the pose.
+
+        Both cameras share their rotation, so render() rotates the rays once per pair.
+        """
+        floor_dirs = dirs if dirs is not None else self._grid.directions(pose[:3, :3])
+        centre = pose[:3, 3]
+        size = (self.rig.width, self.rig.height)
+        t = self.floor.intersect(centre, floor_dirs)
+        mx, my = (cv2.resize(m, size, interpolation=cv2.INTER_LINEAR)
+                  for m in self.floor.texel_map(centre, floor_dirs, t))
+        img4 = cv2.remap(self.floor.albedo4, mx, my, cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REFLECT)
         img = cv2.cvtColor(img4, cv2.COLOR_BGRA2BGR)
+        lg = self._light_grid
+        if lg is not self._grid:
+            # cv2.resize samples t at the light grid's cell centres, between floor-grid
+            # cells: interpolated depth is all that the smooth lighting needs.
+            t = cv2.resize(t, (lg.cols, lg.rows), interpolation=cv2.INTER_LINEAR)
+        f, b = self.light.maps(t * lg.length, t, right, self.gain)
         f8 = cv2.resize(to_u8(f, F_SCALE), size, interpolation=cv2.INTER_LINEAR)
         b8 = cv2.resize(to_u8(b, 1.0), size, interpolation=cv2.INTER_LINEAR)
         img = cv2.multiply(img, f8, scale=1.0 / F_SCALE)
@@ -199,6 +205,8 @@ class World:
         """The sprite warped into its clipped image box: (x0, y0, rgba, body)."""
         if cache_key is not None and (cache_key, view) in self._sprite_cache:
             return self._sprite_cache[(cache_key, view)]
+        if self._surely_off_image(place, w2c):
+            return None
         hm = self._homography(place, w2c)
         n = place.sprite.side
         corners = np.array([[0, 0, 1], [n - 1, 0, 1], [0, n - 1, 1], [n - 1, n - 1, 1]], float).T
@@ -222,6 +230,16 @@ class World:
             self._sprite_cache[(cache_key, view)] = out
         return out
 
+    def _surely_off_image(self, place: Placement, w2c: np.ndarray) -> bool:
+        """A cheap test before the homography: most placements of a moving rig are out of view.
+
+        The sprite lies within 0.71 x its side (half the diagonal) of its centre, and its
+        centre within half the relief's range of the mid height.
+        """
+        centre = w2c[:3, :3] @ np.array([place.x, place.y, self._mid_z + place.lift]) + w2c[:3, 3]
+        radius = 0.71 * place.sprite.size_m + self._half_relief
+        return self._frustum.surely_outside(centre, radius)
+
     def _full_area(self, place: Placement, w2c: np.ndarray) -> float:
         """Projected area (px) of the sprite's body, unclipped: body fraction x quad area."""
         hm = self._homography(place, w2c)
@@ -240,7 +258,7 @@ class World:
         sl = (slice(y0, y0 + h), slice(x0, x0 + w))
         a = np.ascontiguousarray(rgba[..., 3])
         a3 = cv2.merge([a, a, a])
-        rgb = np.ascontiguousarray(rgba[..., :3])
+        rgb = cv2.cvtColor(rgba, cv2.COLOR_BGRA2BGR)  # 15x faster than a numpy channel slice
         contrib = cv2.multiply(rgb, view.f8[sl], dtype=cv2.CV_32F, scale=1.0 / F_SCALE)
         cv2.add(contrib, cv2.multiply(a3, view.b8[sl], dtype=cv2.CV_32F), dst=contrib)
         return contrib, a3
@@ -269,7 +287,8 @@ class World:
         if self._static is not None:
             views = [_View(img=v.img.copy(), f8=v.f8, b8=v.b8) for v in self._static]
         else:
-            views = [self._floor_view(p, vi == 1) for vi, p in enumerate(poses)]
+            dirs = self._grid.directions(pose_l[:3, :3])
+            views = [self._floor_view(p, vi == 1, dirs) for vi, p in enumerate(poses)]
         static = self._static is not None
         animals = self.population.active(t)
         rot, trans = w2cs[0][:3, :3], w2cs[0][:3, 3]

@@ -58,6 +58,42 @@ class Floor:
                                     borderMode=cv2.BORDER_REPLICATE)
         return out
 
+    def intersect(self, centre: np.ndarray, dirs: np.ndarray, rounds: int = 5) -> np.ndarray:
+        """Ray parameter t (float32) where the rays centre + t * dirs meet the relief.
+
+        dirs is (3, rows, cols) in the floor frame. Rays near the horizon are bent
+        down to a 1:50 slope so that they land somewhere. Fixed-point iteration on
+        z = height(x, y): the relief is gentle, five rounds settle far below a texel.
+        """
+        inv = (-1.0 / np.minimum(dirs[2], np.float32(-0.02))).astype(np.float32)
+        c2 = np.float32(centre[2])
+        # With t = (c2 - h) * inv, a ray's position on the height grid is p - h * q per axis.
+        qx = inv * dirs[0] * np.float32(1.0 / GEO_CELL_M)
+        qy = inv * dirs[1] * np.float32(-1.0 / GEO_CELL_M)
+        px = qx * c2 + np.float32((centre[0] - self.x0) / GEO_CELL_M)
+        py = qy * c2 + np.float32((self.y1 - centre[1]) / GEO_CELL_M)
+        h = np.zeros_like(inv)
+        gx, gy = np.empty_like(inv), np.empty_like(inv)
+        for _ in range(rounds):
+            np.subtract(px, np.multiply(h, qx, out=gx), out=gx)
+            np.subtract(py, np.multiply(h, qy, out=gy), out=gy)
+            h = cv2.remap(self.geo, gx, gy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        t: np.ndarray = (c2 - h) * inv
+        return t
+
+    def texel_map(self, centre: np.ndarray, dirs: np.ndarray, t: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """Texture columns and rows (float32) of the points centre + t * dirs.
+
+        Two single-channel maps: resizing and remapping with them is faster than
+        with one interleaved 2-channel map.
+        """
+        mx = t * dirs[0] * np.float32(1.0 / TEXEL_M)
+        mx += np.float32((centre[0] - self.x0) / TEXEL_M)
+        my = t * dirs[1] * np.float32(-1.0 / TEXEL_M)
+        my += np.float32((self.y1 - centre[1]) / TEXEL_M)
+        return mx, my
+
     def texel(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Texture coordinates (column, row) of floor points, as one 2-channel float32 map."""
         out: np.ndarray = np.stack([(x - self.x0) / TEXEL_M, (self.y1 - y) / TEXEL_M],

@@ -112,7 +112,10 @@ class Snow:
         v = rig.fy * pc[:, 1] / pc[:, 2] + rig.cy
         r = rig.fx * rad / pc[:, 2]
         inside = (u > -8) & (v > -8) & (u < rig.width + 8) & (v < rig.height + 8)
-        for ui, vi, ri, bi in zip(u[inside], v[inside], r[inside], br[inside], strict=True):
-            c = tuple(float(x) for x in colour * bi)
-            cv2.circle(img, (int(ui * 4), int(vi * 4)), max(int(min(ri, 5.0) * 4), 3), c, -1,
-                       cv2.LINE_AA, shift=2)
+        # Centres and radii in quarter pixels (shift=2), truncated like int().
+        xs = (u[inside] * 4).astype(np.int64).tolist()
+        ys = (v[inside] * 4).astype(np.int64).tolist()
+        rs = np.maximum((np.minimum(r[inside], 5.0) * 4).astype(np.int64), 3).tolist()
+        cols = (br[inside, None] * colour[None, :]).tolist()
+        for x, y, rad, col in zip(xs, ys, rs, cols, strict=True):
+            cv2.circle(img, (x, y), rad, col, -1, cv2.LINE_AA, shift=2)

@@ -9,6 +9,7 @@ local links instead (descriptors only).
 
 from __future__ import annotations
 
+import collections
 import logging
 import time
 from typing import Any
@@ -82,6 +83,8 @@ class BrokerNode(Node):
         self.worker_links: dict[bytes, Link] = {}
         self.results_link: Link | None = None  # the normalizer, once it connected
         self._out: list[Any] = []  # results waiting for this pass's batch (or a normalizer)
+        # Sent but not yet written: sent again to a restarted normalizer (kill -9, OOM).
+        self._unacked: collections.deque[Any] = collections.deque()
         self.results_dropped = 0
         self.malformed = 0
         self.unroutable = 0
@@ -93,7 +96,7 @@ class BrokerNode(Node):
 
     def counters(self) -> dict[str, int]:
         return {"pairs_in": self.state.pairs_in, "malformed": self.malformed,
-                "held": self.state.held(), "results_waiting": len(self._out),
+                "held": self.state.held(), "results_waiting": len(self._out) + len(self._unacked),
                 "results_dropped": self.results_dropped}
 
     def run(self) -> int:
@@ -210,7 +213,8 @@ class BrokerNode(Node):
                     self._on_capture(frames)
                     continue
                 if role == "results":
-                    continue  # the normalizer only listens; its link is watched for EOF
+                    self._on_ack(messages.decode_results_ack(frames[0]))
+                    continue
                 msg = messages.decode_worker_msg(frames[0])
                 ident = self.link_ident.get(link)
                 if ident is None:  # a worker names itself in its first message
@@ -233,6 +237,9 @@ class BrokerNode(Node):
         ident = self.link_ident.pop(link, None)
         if link is self.results_link:
             self.results_link = None
+            # What it was sent but never confirmed goes first to its successor.
+            self._out[:0] = self._unacked
+            self._unacked.clear()
         link.close()
         if ident is not None and self.worker_links.get(ident) is link:
             del self.worker_links[ident]
@@ -338,6 +345,7 @@ class BrokerNode(Node):
             try:
                 if not self.results_link.send(self._out[:n]):
                     return
+                self._unacked.extend(self._out[:n])
             except LinkClosed:
                 self._drop_link(self.results_link, "disconnected")
                 return
@@ -346,6 +354,10 @@ class BrokerNode(Node):
                 self.ratelog.warning("results", "dropped a result: %s", exc)
                 n = 1
             del self._out[:n]
+
+    def _on_ack(self, ack: messages.ResultsAck) -> None:
+        for _ in range(min(ack.count, len(self._unacked))):
+            self._unacked.popleft()
 
     def _payload(self, seq: int, copy: bool) -> list[Any]:
         """[header, left, right] bytes, or [header, ref] for local readers of the ring.

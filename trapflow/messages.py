@@ -184,7 +184,13 @@ class Gone(Msg, frozen=True, tag="gone"):
     reason: str = ""
 
 
-GONE_STOPPING = "stopping"  # Gone.reason of a worker that leaves on a stop request
+GONE_STOPPING = "stopping"
+
+
+class ResultsAck(Msg, frozen=True, tag="ack"):
+    """Normalizer -> broker: the first `count` results it was sent are written; forget them."""
+
+    count: int  # Gone.reason of a worker that leaves on a stop request
 
 
 class Done(Msg, frozen=True, tag="done"):
@@ -267,6 +273,7 @@ _pair_dec = msgspec.msgpack.Decoder(StereoPair)
 _job_dec = msgspec.msgpack.Decoder(Job)
 _worker_dec = msgspec.msgpack.Decoder(WorkerMsg)
 _result_dec = msgspec.msgpack.Decoder(Result)
+_ack_dec = msgspec.msgpack.Decoder(ResultsAck)
 _stats_dec = msgspec.msgpack.Decoder(Stats)
 _control_dec = msgspec.msgpack.Decoder(ControlRequest)
 _heartbeat_dec = msgspec.msgpack.Decoder(Heartbeat)
@@ -336,6 +343,14 @@ def decode_worker_msg(data: Buffer) -> Ready | Alive | Done | Failed | Gone:
         _worker_dec, data, "worker message", MAX_HEADER_BYTES
     )
     return msg
+
+
+def decode_results_ack(data: Buffer) -> ResultsAck:
+    """Decode the normalizer's acknowledgement of written results."""
+    ack: ResultsAck = _decode(_ack_dec, data, "results ack", MAX_HEADER_BYTES)
+    if ack.count < 0:
+        raise ProtocolError(f"results ack: expected a count >= 0, got {ack.count}")
+    return ack
 
 
 def decode_result(data: Buffer) -> Result:
@@ -468,17 +483,16 @@ def check_pair_ref(frames: Sequence[Buffer]) -> tuple[StereoPair, FrameRef]:
 
 MAX_LINK_FRAMES = 64  # a batch of results
 MAX_LINK_BYTES = MAX_RESULT_BYTES + 2 * MAX_HEADER_BYTES
-_LEN = struct.Struct("<I")
 
 
 def pack_frames(frames: Sequence[Buffer]) -> bytes:
     """One datagram carrying frames (each bytes-like or a zmq.Frame)."""
-    views = [memoryview(f.buffer if hasattr(f, "buffer") else f).cast("B") for f in frames]
-    if not 0 < len(views) <= MAX_LINK_FRAMES:
+    bufs = [f.buffer if hasattr(f, "buffer") else f for f in frames]
+    if not 0 < len(bufs) <= MAX_LINK_FRAMES:
         raise ProtocolError(f"link message: expected 1..{MAX_LINK_FRAMES} frames, "
-                            f"got {len(views)}")
-    head = bytes([len(views)]) + b"".join(_LEN.pack(v.nbytes) for v in views)
-    return b"".join([head, *views])
+                            f"got {len(bufs)}")
+    head = struct.pack(f"<B{len(bufs)}I", len(bufs), *[memoryview(b).nbytes for b in bufs])
+    return b"".join([head, *bufs])
 
 
 def unpack_frames(data: bytes | memoryview) -> list[memoryview]:
@@ -492,8 +506,7 @@ def unpack_frames(data: bytes | memoryview) -> list[memoryview]:
         raise ProtocolError(f"link message: expected 1..{MAX_LINK_FRAMES} frames and their "
                             f"lengths, got count {n} in {buf.nbytes} bytes")
     frames = []
-    for i in range(n):
-        (size,) = _LEN.unpack_from(buf, 1 + 4 * i)
+    for size in struct.unpack_from(f"<{n}I", buf, 1):
         frames.append(buf[at:at + size])
         at += size
     if at != buf.nbytes:

@@ -140,7 +140,8 @@ class Link:
         sock.setblocking(False)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, _LINK_SNDBUF)
         self.sock = sock
-        self._buf = bytearray(messages.MAX_LINK_BYTES)
+        self._buf = bytearray(messages.MAX_LINK_BYTES)  # one datagram at a time, reused
+        self._view = memoryview(self._buf)
         self._poll = select.poll()
         self._poll.register(sock.fileno(), select.POLLIN)
 
@@ -172,7 +173,7 @@ class Link:
             raise LinkClosed(f"local link closed: {exc}") from None
         if n == 0:
             raise LinkClosed("local link closed by its peer")
-        return messages.unpack_frames(bytes(self._buf[:n]))
+        return messages.unpack_frames(bytes(self._view[:n]))
 
     def wait(self, timeout_ms: int) -> bool:
         """True when a message (or EOF) is waiting, within timeout_ms."""

@@ -196,8 +196,11 @@ class WorkerNode(Node):
         if link is None:
             time.sleep(LINK_RETRY_S)
             return None
-        try:
-            return link.recv() if link.wait(timeout_ms) else None
+        try:  # a busy pipeline has the next job waiting: no poll call for it
+            frames = link.recv()
+            if frames is None and link.wait(timeout_ms):
+                frames = link.recv()
+            return frames
         except LinkClosed as exc:  # the broker died: a new one will listen at the same path
             log.warning("%s: %s; reconnecting", self.ident, exc)
             link.close()

@@ -247,3 +247,37 @@ def test_model_that_does_not_load_names_the_file(spawn, run_dir: Path) -> None:
     assert code == 2
     line = next(x for x in err.splitlines() if x.startswith("trapflow: error:"))
     assert "worker:mono:0 cannot start" in line and "corrupt.onnx" in line, line
+
+
+@pytest.mark.timeout(90)
+def test_kill_9_normalizer_loses_no_result(spawn, run_dir: Path) -> None:
+    """Results sent to a normalizer that dies unwritten go again to its successor."""
+    cfg = write_config(run_dir.parent / "norm.yaml", {
+        "source": SMALL,
+        "supervisor": {"restart_backoff_s": 0.5},
+        "pools": {"fast": {"plugin": "noop", "policy": "ordered:64"}},
+    })
+    p: Pipeline = spawn(["--config", str(cfg)], run_dir)
+    s = p.wait_active()
+    poll_for(lambda: len(p.results()) > 20, 20, what="first results")
+    victim = _node(s, "normalizer")
+    # Stopped first, so results are sent to it and never written: they die with it.
+    os.kill(victim["pid"], signal.SIGSTOP)
+    time.sleep(1.0)
+    os.kill(victim["pid"], signal.SIGKILL)
+
+    def restarted() -> dict | None:
+        st = p.status()
+        n = _node(st, "normalizer") if st else None
+        return st if n and n["pid"] != victim["pid"] and n["state"] == "active" else None
+
+    poll_for(restarted, 20, interval=0.2, what="normalizer restarted")
+    n = len(p.results())
+    poll_for(lambda: len(p.results()) > n + 20, 20, what="results after the restart")
+    code, _, err = p.stop(signal.SIGINT)
+    assert code == 0, err
+    processed = json.loads((run_dir / "ledger.json").read_text())["pools"]["fast"]["processed"]
+    seqs = [row["noop"]["seq"] for row in p.results()]
+    assert processed > 40
+    assert len(set(seqs)) == processed  # every processed pair has its line
+    assert len(seqs) - len(set(seqs)) <= 64  # at most one batch written twice

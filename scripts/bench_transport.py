@@ -34,6 +34,7 @@ from trapflow.transport import Endpoints, Link, LinkClosed, connect_link
 PAGE = 4096
 WINDOW = 4  # pairs in flight per consumer, as in the peer measurements
 FRAMES = ("zmq", "shm")  # trapflow's two frame paths: bytes through the broker, or the ring
+REPEATS = 3  # throughput runs per path, median reported
 
 
 def make_payload(kind: str) -> tuple[bytes, bytes]:
@@ -319,6 +320,19 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
             "broker_cpu_pct": cpu[1] / dt * 100, "rss_mb": rss}
 
 
+def _median_run(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """The run with the median pairs/s, with the spread of all runs added."""
+    ordered = sorted(runs, key=lambda r: r["pairs_s"])
+    mid = dict(ordered[len(ordered) // 2])
+    mid["pairs_s_runs"] = [round(r["pairs_s"], 1) for r in runs]
+    return mid
+
+
+def _spread(run: dict[str, Any]) -> str:
+    runs = run.get("pairs_s_runs") or [run["pairs_s"]]
+    return f"[{min(runs):,.0f}-{max(runs):,.0f}]"
+
+
 def jpeg_decode_cost(n: int = 20) -> dict[str, float]:
     """CPU a worker spends decoding one 1280x720 JPEG pair (what raw frames over shm save)."""
     left, right = make_payload("jpeg")
@@ -340,17 +354,18 @@ def markdown(out: dict[str, Any]) -> str:
              f"libzmq {m['libzmq']}. 1280x720 stereo pairs; lossless, {WINDOW} pairs in "
              "flight per consumer; consumers touch every page. trapflow-zmq: bytes through "
              "the broker; trapflow-shm: written once into the shared-memory ring, "
-             "descriptors through the broker.", "",
+             "descriptors through the broker over local links. Throughput: median of "
+             f"{REPEATS} runs (pyzmq and trapflow interleaved), [min-max] next to it.", "",
              "| payload | path | pairs/s | x pyzmq | CPU us/pair | by process (us/pair) |",
              "|---|---|---:|---:|---:|---|"]
     for kind in ("jpeg", "raw"):
         t = out[kind]["throughput"]
         b = t["pyzmq_push_pull"]
-        lines.append(f"| {kind} | pyzmq PUSH/PULL | {b['pairs_s']:,.0f} | 1.00x | "
+        lines.append(f"| {kind} | pyzmq PUSH/PULL | {b['pairs_s']:,.0f} {_spread(b)} | 1.00x | "
                      f"{b['cpu_us_per_pair']:,.0f} | |")
         for f in FRAMES:
             r = t[f"trapflow_{f}"]
-            lines.append(f"| {kind} | trapflow-{f} | {r['pairs_s']:,.0f} | "
+            lines.append(f"| {kind} | trapflow-{f} | {r['pairs_s']:,.0f} {_spread(r)} | "
                          f"{t[f'ratio_{f}']:.2f}x | {r['cpu_us_per_pair']:,.0f} | "
                          f"{r['cpu_us_per_pair_by_process']} |")
     fan = out["raw"]["fanout3"]
@@ -394,8 +409,14 @@ def main() -> None:
                                        "pyzmq": zmq.__version__, "libzmq": zmq.zmq_version()}}
     for kind in ("jpeg", "raw"):
         print(f"[bench] {kind}: throughput (pyzmq, trapflow zmq, trapflow shm)", file=sys.stderr)
-        base = raw_pyzmq(kind, args.seconds, None, tmp)
-        tf = {f: trapflow_path(kind, args.seconds, None, 1, tmp, frames=f) for f in FRAMES}
+        # Interleaved repeats, median kept: a shared machine's noise hits every path alike.
+        runs: dict[str, list[dict[str, Any]]] = {"base": [], **{f: [] for f in FRAMES}}
+        for _ in range(REPEATS):
+            runs["base"].append(raw_pyzmq(kind, args.seconds, None, tmp))
+            for f in FRAMES:
+                runs[f].append(trapflow_path(kind, args.seconds, None, 1, tmp, frames=f))
+        base = _median_run(runs["base"])
+        tf = {f: _median_run(runs[f]) for f in FRAMES}
         print(f"[bench] {kind}: 30 Hz latency", file=sys.stderr)
         base30 = raw_pyzmq(kind, args.latency_seconds, 30.0, tmp)
         tf30 = {f: trapflow_path(kind, args.latency_seconds, 30.0, 1, tmp, frames=f)

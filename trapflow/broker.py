@@ -204,6 +204,8 @@ class BrokerNode(Node):
 
     def _drain_link(self, link: Link) -> None:
         role = self.link_role.get(link)
+        if role is None:  # dropped earlier in this pass (a failed send to it)
+            return
         for _ in range(256):
             try:
                 frames = link.recv()
@@ -231,6 +233,8 @@ class BrokerNode(Node):
 
     def _drop_link(self, link: Link, reason: str) -> None:
         """A local peer went away: a worker's jobs are settled now, not at a timeout."""
+        if link not in self.link_role:
+            return
         self.poller.unregister(link)
         self.fds.pop(link.fileno(), None)
         self.link_role.pop(link, None)

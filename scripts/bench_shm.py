@@ -1,5 +1,6 @@
 """Shared-memory frame ring benchmark: pairs written once into the ring with only a FrameRef
-over a pyzmq PUSH/PULL ipc socket, against raw pyzmq PUSH/PULL carrying the bytes, in one run.
+over a local link (as trapflow sends descriptors), against raw pyzmq PUSH/PULL carrying the
+bytes, in one run.
 
 1280x720 stereo pairs, JPEG (q90, ~252 KB a pair) and raw (5.5 MB a pair), 1 producer ->
 1 consumer process; the consumer touches every page of both images. Throughput is lossless
@@ -36,14 +37,11 @@ from bench_transport import (  # noqa: E402  (a sibling script, not a package)
 )
 
 from trapflow import frame_ring, messages  # noqa: E402
+from trapflow.transport import accept_link, connect_link, listen_link  # noqa: E402
 
 
-def _shm_consumer(name: str, data_ep: str, credit_ep: str, conn: Any) -> None:
-    ctx = zmq.Context()
-    pull = ctx.socket(zmq.PULL)
-    pull.connect(data_ep)
-    credit = ctx.socket(zmq.PUSH)
-    credit.connect(credit_ep)
+def _shm_consumer(name: str, path: str, conn: Any) -> None:
+    link = connect_link(path)
     ring = frame_ring.FrameRing(name)  # the lifetime owner here: frees after use
     reader = frame_ring.RingReader(name)
     lats: list[int] = []
@@ -51,7 +49,9 @@ def _shm_consumer(name: str, data_ep: str, credit_ep: str, conn: Any) -> None:
     left = right = None
     conn.send("ready")
     while True:
-        frames = pull.recv_multipart()
+        frames = link.recv() if link.wait(1000) else None
+        if frames is None:
+            continue
         if len(frames) == 1:
             break
         ref = messages.decode_frame_ref(frames[1])
@@ -67,30 +67,26 @@ def _shm_consumer(name: str, data_ep: str, credit_ep: str, conn: Any) -> None:
         except frame_ring.StaleFrame:
             stale += 1
         ring.free_ref(ref)
-        credit.send(b"")
+        link.send([b"free"])
     del left, right
     conn.send({"n": n, "stale": stale, "lat": lats, "rss": peak_rss_mb(os.getpid())})
     reader.close()
     ring.close()
-    ctx.destroy(linger=0)
+    link.close()
 
 
 def shm_ring(kind: str, seconds: float, rate: float | None, tmp: Path) -> dict[str, Any]:
     left, right = make_payload(kind)
-    data_ep = f"ipc://{tmp}/shm-{kind}-{rate}.sock"
-    credit_ep = f"ipc://{tmp}/shm-credit-{kind}-{rate}.sock"
+    listener = listen_link(f"{tmp}/shm-{kind}-{rate}.link")
     ring = frame_ring.FrameRing.create(WINDOW, frame_ring.slot_capacity(1280, 720))
     writer = frame_ring.RingWriter(ring.name)
-    ctx = zmq.Context()
-    push = ctx.socket(zmq.PUSH)
-    push.bind(data_ep)
-    credit = ctx.socket(zmq.PULL)
-    credit.bind(credit_ep)
     here, there = mp.Pipe()
     proc = mp.get_context("spawn").Process(
-        target=_shm_consumer, args=(ring.name, data_ep, credit_ep, there))
+        target=_shm_consumer, args=(ring.name, listener.getsockname(), there))
     proc.start()
     try:
+        while (link := accept_link(listener)) is None:
+            time.sleep(0.01)
         here.recv()
         time.sleep(0.3)
         c0 = cpu_s(os.getpid()) + cpu_s(proc.pid)
@@ -101,18 +97,18 @@ def shm_ring(kind: str, seconds: float, rate: float | None, tmp: Path) -> dict[s
                 wait = t0 + n * period - now
                 if wait > 0:
                     time.sleep(wait)
-            while credit.poll(0):
-                credit.recv()
+            while link.recv() is not None:  # the consumer's frees
+                pass
             hdr = header(n, kind)  # stamped before the write: the ring is the transport
             slot = writer.acquire()
             if slot is None:  # 4 pairs in flight: wait for the consumer to free one
                 full += 1
-                credit.poll(1000)
+                link.wait(1000)
                 continue
             ref = writer.write(slot, left, right)
-            push.send_multipart([hdr, messages.encode(ref)])
+            link.send([hdr, messages.encode(ref)])
             n += 1
-        push.send(b"end")
+        link.send([b"end"])
         res = here.recv()
         dt = time.monotonic() - t0
         cpu = cpu_s(os.getpid()) + cpu_s(proc.pid) - c0
@@ -121,7 +117,8 @@ def shm_ring(kind: str, seconds: float, rate: float | None, tmp: Path) -> dict[s
         if proc.is_alive():
             proc.kill()
             proc.join(5)
-        ctx.destroy(linger=0)
+        link.close()
+        listener.close()
         writer.close()
         ring.close()
     return {"pairs": res["n"], "pairs_s": res["n"] / dt, "stale": res["stale"],
@@ -161,7 +158,8 @@ def main() -> None:
 
 def markdown(out: dict[str, Any]) -> str:
     """The ring alone (no broker): a floor for what the brokered shm path can reach."""
-    lines = ["## The shared-memory ring alone, 1 producer -> 1 consumer (no broker)", "",
+    lines = ["## The shared-memory ring alone, 1 producer -> 1 consumer (no broker), "
+             "descriptors over a local link", "",
              "| payload | pyzmq pairs/s | ring pairs/s | x pyzmq | pyzmq p50 / p99 us at 30 Hz "
              "| ring p50 / p99 us at 30 Hz |", "|---|---:|---:|---:|---:|---:|"]
     for kind in ("jpeg", "raw"):

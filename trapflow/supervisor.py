@@ -25,7 +25,7 @@ from typing import IO, Any
 import msgspec
 import zmq
 
-from trapflow import messages, registry
+from trapflow import messages, registry, run_totals
 from trapflow.camera import StereoRig
 from trapflow.config import Config
 from trapflow.errors import ProtocolError, StartupError, TrapflowError
@@ -106,7 +106,9 @@ class Supervisor:
         self.children: list[Child] = []
         self.stop_requested = False
         self.exit_code = EXIT_OK
-        self.stats: messages.Stats | None = None
+        self.stats: messages.Stats | None = None  # the run's totals, all brokers
+        self._broker_stats: messages.Stats | None = None  # the live broker's own
+        self._retired: messages.Stats | None = None  # what brokers that died had counted
         self.t0 = time.monotonic()
         self.rig: StereoRig | None = None
         self.ring: FrameRing | None = None
@@ -325,13 +327,24 @@ class Supervisor:
             while True:
                 try:
                     _topic, data = self.stats_sub.recv_multipart(zmq.NOBLOCK)
-                    self.stats = messages.decode_stats(data)
+                    self._on_stats(messages.decode_stats(data))
                 except zmq.Again:
                     break
                 except (ValueError, ProtocolError) as exc:
                     log.warning("bad stats message: %s", exc)
         if self.control in events:
             self._on_control(self.control.recv())
+
+    def _on_stats(self, stats: messages.Stats) -> None:
+        self._broker_stats = stats
+        self.stats = run_totals.combine(self._retired, stats)
+
+    def _retire_broker(self) -> None:
+        """A restarted broker counts from zero: the run's totals keep what its predecessor saw."""
+        if self._broker_stats is not None:
+            self._retired = run_totals.combine(self._retired,
+                                               run_totals.retire(self._broker_stats))
+            self._broker_stats = None
 
     def _on_heartbeat(self, data: bytes) -> None:
         try:
@@ -353,6 +366,8 @@ class Supervisor:
             if c.restart_at is not None:
                 if now >= c.restart_at:
                     log.warning("restarting %s (restart %d)", c.name, c.restart_total)
+                    if c.spec.role == "broker":
+                        self._retire_broker()
                     self._spawn(c)
                 continue
             if c.alive():

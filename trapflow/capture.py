@@ -48,7 +48,8 @@ class CaptureNode(Node):
         self.src_cfg = self.cfg.source
         self.source: Source = open_source(self.src_cfg, rig_from_config(spec),
                                           self.cfg.rig.calibration)
-        self.seq = 0
+        # A restarted capture continues past its predecessor's numbers (the supervisor knows).
+        self.seq = int(spec.extra.get("first_seq", 0))
         self.produced = 0
         self.dropped = 0
         self.failures = 0
@@ -60,7 +61,8 @@ class CaptureNode(Node):
         self.ratelog = RateLimitedLog(log)
 
     def counters(self) -> dict[str, int]:
-        out = {"produced": self.produced, "dropped": self.dropped, "failures": self.failures}
+        out = {"produced": self.produced, "dropped": self.dropped, "failures": self.failures,
+               "next_seq": self.seq}
         sync = getattr(self.source, "sync", None)  # live cameras paired by timestamp
         if sync is not None:
             for k, v in sync.stats.as_dict().items():

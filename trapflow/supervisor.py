@@ -40,6 +40,8 @@ log = logging.getLogger(__name__)
 STARTUP_TIMEOUT_S = 60.0
 # Stop ladder: capture first (no new pairs), then workers and broker, the normalizer last.
 STOP_ORDER = ("capture", "worker", "events", "broker", "normalizer", "modem")
+CAPTURE_TOTALS = ("produced", "dropped", "failures")  # summed over capture restarts
+SEQ_RESTART_GAP = 100  # extra seqs skipped at a capture restart, beyond the heartbeat lag
 EXIT_OK, EXIT_FAILED, EXIT_STARTUP = 0, 1, 2
 LOCK_FILE = "supervisor.lock"
 
@@ -109,6 +111,7 @@ class Supervisor:
         self.stats: messages.Stats | None = None  # the run's totals, all brokers
         self._broker_stats: messages.Stats | None = None  # the live broker's own
         self._retired: messages.Stats | None = None  # what brokers that died had counted
+        self._capture_base: dict[str, int] = {}  # what captures that died had counted
         self.t0 = time.monotonic()
         self.rig: StereoRig | None = None
         self.ring: FrameRing | None = None
@@ -302,7 +305,7 @@ class Supervisor:
     def _drained(self) -> bool:
         """Every pair capture produced reached the broker and left every pool."""
         s = self.stats
-        produced = self._child("capture").counters.get("produced", -1)
+        produced = self.capture_counts()["produced"] if self._child("capture").counters else -1
         return (s is not None and s.pairs_in >= produced
                 and all(p.pending == 0 and p.in_flight == 0 for p in s.pools.values()))
 
@@ -339,6 +342,21 @@ class Supervisor:
         self._broker_stats = stats
         self.stats = run_totals.combine(self._retired, stats)
 
+    def _retire_capture(self, c: Child) -> None:
+        """A restarted capture goes on counting, and numbering pairs past any its predecessor
+        may have sent after its last heartbeat: a pool sees a gap, never a repeated seq."""
+        for key in CAPTURE_TOTALS:
+            self._capture_base[key] = self._capture_base.get(key, 0) + c.counters.get(key, 0)
+        rate = max(self.cfg.source.rate_hz, 1.0)
+        margin = int(rate * (self.cfg.supervisor.heartbeat_interval_s + 1.0)) + SEQ_RESTART_GAP
+        c.spec.extra["first_seq"] = c.counters.get("next_seq", 0) + margin
+        c.counters = {}
+
+    def capture_counts(self) -> dict[str, int]:
+        """Capture's counters over the whole run, across its restarts."""
+        cur = self._child("capture").counters
+        return {k: self._capture_base.get(k, 0) + cur.get(k, 0) for k in CAPTURE_TOTALS}
+
     def _retire_broker(self) -> None:
         """A restarted broker counts from zero: the run's totals keep what its predecessor saw."""
         if self._broker_stats is not None:
@@ -368,6 +386,8 @@ class Supervisor:
                     log.warning("restarting %s (restart %d)", c.name, c.restart_total)
                     if c.spec.role == "broker":
                         self._retire_broker()
+                    if c.spec.role == "capture":
+                        self._retire_capture(c)
                     self._spawn(c)
                 continue
             if c.alive():
@@ -453,10 +473,10 @@ class Supervisor:
         s = self.stats
         if s is None:
             return f"{up:6.1f}s | waiting for stats"
-        cap = self._child("capture")
+        cap = self.capture_counts()
         parts = [f"{up:6.1f}s | in {s.rate_in:5.1f}/s ({s.pairs_in})"]
-        if cap.counters.get("dropped"):
-            parts[0] += f" capture-drop {cap.counters['dropped']}"
+        if cap["dropped"]:
+            parts[0] += f" capture-drop {cap['dropped']}"
         for name, p in s.pools.items():
             parts.append(
                 f"{name} {p.workers}w {p.rate:5.1f}/s drop {p.dropped} "
@@ -474,7 +494,7 @@ class Supervisor:
 
     def ledger(self) -> dict[str, Any]:
         """Where every pair went: capture's count, then per pool exactly one state each."""
-        cap = self._child("capture").counters
+        cap = self.capture_counts()
         s = self.stats
         produced = cap.get("produced", 0)
         out: dict[str, Any] = {

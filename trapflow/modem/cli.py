@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -43,15 +44,28 @@ def _output(path: Path | None) -> Iterator[IO[bytes]]:
     default=None,
     help="JSON lines file to append to (default: standard output).",
 )
+@click.option(
+    "--state",
+    "state_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="File remembering which messages were written, so a restarted surface writes a "
+    "retransmission only once (default: OUTPUT.state beside a regular output file; with "
+    "standard output and no --state the memory is lost when the command stops).",
+)
 @click.option("--baudrate", type=click.IntRange(50, 4_000_000), default=9600, show_default=True)
 @click.option("--labels", default=None, help="Comma-separated label table (must match the box).")
-def surface(port: str, output: Path | None, baudrate: int, labels: str | None) -> None:
+def surface(
+    port: str, output: Path | None, state_path: Path | None, baudrate: int, labels: str | None
+) -> None:
     """Receive results from the modem link on PORT, acknowledge them, write JSON lines."""
     from trapflow.modem.surface import SurfaceReceiver
 
     stop = stop_on_signals()
     with _output(output) as out:
-        receiver = SurfaceReceiver(port, out, _labels(labels), baudrate)
+        if state_path is None and output is not None and os.path.isfile(output):
+            state_path = output.with_name(output.name + ".state")
+        receiver = SurfaceReceiver(port, out, _labels(labels), baudrate, state_path=state_path)
         receiver.run(stop)
     click.echo(json.dumps(receiver.stats()), err=True)
 

@@ -2,6 +2,7 @@
 
 Reads frames from a serial port, acknowledges every DATA frame, drops messages it
 has already written (retransmissions), decodes the rest and writes JSON lines.
+With a state file the memory of written ids survives a restart of the surface.
 """
 
 from __future__ import annotations
@@ -9,8 +10,10 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import stat
 import threading
 import time
+from pathlib import Path
 from typing import IO, Any
 
 import msgspec
@@ -19,6 +22,7 @@ from trapflow.errors import ProtocolError
 from trapflow.modem.codec import DEFAULT_LABELS, LinkCodec
 from trapflow.modem.frame import ACK, DATA, Deframer, ack_payload, frame, parse_data
 from trapflow.modem.port import LinkPort
+from trapflow.modem.surface_state import OutputMark, SurfaceState, load_state, save_state
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +38,7 @@ class SurfaceReceiver:
         baudrate: int = 9600,
         fsync_interval_s: float = 1.0,
         reopen_interval_s: float = 1.0,
+        state_path: Path | None = None,
     ) -> None:
         self.port = LinkPort(port, baudrate, reopen_interval_s)
         self.out = out
@@ -47,6 +52,13 @@ class SurfaceReceiver:
         self.duplicates = 0
         self.undecodable = 0
         self.bad_frames = 0
+        self.state_path = state_path
+        self.state_saves = 0
+        self.cut_bytes = 0
+        self._unsaved = False  # ids in memory that the state file does not hold yet
+        self._save_error = ""
+        if state_path is not None:
+            self._load(state_path)
 
     def run(self, stop: threading.Event) -> None:
         """Step until stop is set."""
@@ -75,11 +87,81 @@ class SurfaceReceiver:
             except ProtocolError:
                 self.bad_frames += 1
                 continue
-            new += self._accept(floor, messages)
-            self._flush(sync=False)
-            # Acknowledge only once the lines are written: an ack means "on the surface".
-            self.port.write(frame(ACK, ack_payload(i for i, _ in messages)))
+            written = self._accept(floor, messages)
+            new += written
+            # Acknowledge only once the lines are written (and, with a state file, the ids
+            # saved): an ack means "on the surface", and never again written as new.
+            if self._commit(written > 0):
+                self.port.write(frame(ACK, ack_payload(i for i, _ in messages)))
         return new
+
+    def _commit(self, wrote: bool) -> bool:
+        """Flush the output and save the state when new ids came; False if it could not."""
+        if self.state_path is None:
+            self._flush(sync=False)
+            return True
+        self._unsaved = self._unsaved or wrote
+        if not self._unsaved:
+            return True
+        try:
+            # Output first: a saved state must never name lines a power cut could still lose.
+            self._flush(sync=True)
+            save_state(self.state_path, self._snapshot())
+        except OSError as exc:
+            reason = f"cannot save surface state {self.state_path}: {exc}"
+            if reason != self._save_error:
+                log.error("%s; not acknowledging until it can", reason)
+            self._save_error = reason
+            return False
+        self._unsaved = False
+        self._save_error = ""
+        self.state_saves += 1
+        return True
+
+    def _output_stat(self) -> os.stat_result | None:
+        """The output's stat when it is a regular file (a pipe or terminal has no length)."""
+        try:
+            st = os.fstat(self.out.fileno())
+        except (OSError, ValueError, AttributeError):
+            return None
+        return st if stat.S_ISREG(st.st_mode) else None
+
+    def _snapshot(self) -> SurfaceState:
+        st = self._output_stat()
+        mark = None if st is None else OutputMark(dev=st.st_dev, ino=st.st_ino, size=st.st_size)
+        return SurfaceState(floor=self.floor, seen=sorted(self.seen), output=mark)
+
+    def _load(self, path: Path) -> None:
+        state = load_state(path)
+        self.floor = state.floor
+        self.seen = set(state.seen)
+        st = self._output_stat()
+        mark = state.output
+        if mark is None or st is None or (st.st_dev, st.st_ino) != (mark.dev, mark.ino):
+            return  # another output file (rotated, replaced): nothing of it to reconcile
+        if st.st_size > mark.size:
+            # Lines written after the last save were never acknowledged: the sender sends
+            # them again, and they are written again, so the first copy goes.
+            try:
+                self.out.flush()
+                os.ftruncate(self.out.fileno(), mark.size)
+            except OSError as exc:
+                log.warning("cannot cut unacknowledged lines from the output: %s", exc)
+                return
+            self.cut_bytes = st.st_size - mark.size
+            log.warning(
+                "cut %d bytes from the end of the output: written after the last save of %s "
+                "and never acknowledged, they come again",
+                self.cut_bytes,
+                path,
+            )
+        elif st.st_size < mark.size:
+            log.warning(
+                "output is %d bytes but %s expected at least %d (truncated by hand?)",
+                st.st_size,
+                path,
+                mark.size,
+            )
 
     def _accept(self, floor: int, messages: list[tuple[int, bytes]]) -> int:
         if floor > self.floor:
@@ -121,5 +203,7 @@ class SurfaceReceiver:
             "undecodable": self.undecodable,
             "bad_frames": self.bad_frames,
             "floor": self.floor,
+            "state_saves": self.state_saves,
+            "cut_bytes": self.cut_bytes,
             "link": self.deframer.stats(),
         }

@@ -10,7 +10,9 @@ local links instead (descriptors only).
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
+import os
 import time
 from typing import Any
 
@@ -84,7 +86,8 @@ class BrokerNode(Node):
         self.results_link: Link | None = None  # the normalizer, once it connected
         self._out: list[Any] = []  # results waiting for this pass's batch (or a normalizer)
         # Sent but not yet written: sent again to a restarted normalizer (kill -9, OOM).
-        self._unacked: collections.deque[Any] = collections.deque()
+        # Bounded: a normalizer that never acknowledges cannot grow the broker without limit.
+        self._unacked: collections.deque[Any] = collections.deque(maxlen=MAX_WAITING_RESULTS)
         self.results_dropped = 0
         self.malformed = 0
         self.unroutable = 0
@@ -139,7 +142,10 @@ class BrokerNode(Node):
         for link in list(self.link_role):
             link.close()
         for listener in self.listeners:
+            path = listener.getsockname()
             listener.close()
+            with contextlib.suppress(OSError):
+                os.unlink(path)  # a successor binds afresh; a finished run leaves no socket
         return 0
 
     @staticmethod

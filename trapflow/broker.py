@@ -117,15 +117,14 @@ class BrokerNode(Node):
             events = dict(poller.poll(int(TICK_INTERVAL_S * 1000)))
             if self.router in events:
                 self._drain_workers()
-            links = [self.fds[k] for k in events if isinstance(k, int) and k in self.fds]
-            for link in links:  # zmq's poller reports plain sockets by file descriptor
-                if isinstance(link, Link):
-                    self._drain_link(link)
+            # zmq's poller reports plain sockets (links, listeners) by file descriptor.
+            for ready in [self.fds[k] for k in events if isinstance(k, int) and k in self.fds]:
+                if ready in self.listeners:
+                    self._accept(ready)
+                else:
+                    self._drain_link(ready)
             if self.pull in events:
                 self._drain_capture()
-            for listener in links:
-                if listener in self.listeners:
-                    self._accept(listener)
             if self.tap in events:
                 self._on_subscriptions()
             self._flush_results()

@@ -22,7 +22,7 @@ from trapflow.frame_ring import RingError, RingWriter
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.ratelog import RateLimitedLog
 from trapflow.sources import Frames, Source, SourceError, open_source
-from trapflow.transport import Link, LinkClosed, SocketSpec, connect_link, open_socket
+from trapflow.transport import LinkClient, LinkClosed, SocketSpec, open_socket
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +57,8 @@ class CaptureNode(Node):
         # With a shared-memory ring each pair is written once there; only a descriptor is sent.
         ring_name = spec.extra.get("ring")
         self.ring = RingWriter(ring_name) if ring_name else None
-        self.link: Link | None = None  # with the ring: descriptors go over a local link
+        # With the ring, descriptors go over a local link.
+        self.link = LinkClient(self.endpoints.capture_link)
         self.ratelog = RateLimitedLog(log)
 
     def counters(self) -> dict[str, int]:
@@ -207,14 +208,14 @@ class CaptureNode(Node):
             except zmq.Again:
                 return False
             return True
+        link = self.link.get()
+        if link is None:
+            self.ratelog.warning("link", "broker link: nobody listens at %s", self.link.path)
+            return False
         try:
-            if self.link is None:
-                self.link = connect_link(self.endpoints.capture_link)
-            return self.link.send(frames)
+            return link.send(frames)
         except LinkClosed as exc:  # the broker is restarting: drop, reconnect next time
             self.ratelog.warning("link", "broker link: %s", exc)
-            if self.link is not None:
-                self.link.close()
-                self.link = None
+            self.link.drop()
             return False
 

@@ -184,13 +184,13 @@ class Gone(Msg, frozen=True, tag="gone"):
     reason: str = ""
 
 
-GONE_STOPPING = "stopping"
+GONE_STOPPING = "stopping"  # Gone.reason of a worker that leaves on a stop request
 
 
 class ResultsAck(Msg, frozen=True, tag="ack"):
     """Normalizer -> broker: the first `count` results it was sent are written; forget them."""
 
-    count: int  # Gone.reason of a worker that leaves on a stop request
+    count: int
 
 
 class Done(Msg, frozen=True, tag="done"):

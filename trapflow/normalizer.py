@@ -2,7 +2,8 @@
 
 Owns a local link that brings batches of results from the broker and a PUB of JSON
 lines (`result` topic).
-The file is flushed at least every flush_interval_s and fsynced every fsync_interval_s.
+Each batch is written unbuffered as it arrives, then acknowledged; the file is fsynced
+every fsync_interval_s.
 """
 
 from __future__ import annotations
@@ -20,14 +21,7 @@ from trapflow.modem.outbox import Outbox, OutboxFull
 from trapflow.node import ACTIVE, FINALIZED, Node, NodeSpec
 from trapflow.normalize import dumps, normalize
 from trapflow.ratelog import RateLimitedLog
-from trapflow.transport import (
-    LINK_RETRY_S,
-    Link,
-    LinkClosed,
-    SocketSpec,
-    connect_link,
-    open_socket,
-)
+from trapflow.transport import LINK_RETRY_S, LinkClient, LinkClosed, SocketSpec, open_socket
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +32,7 @@ class NormalizerNode(Node):
     def __init__(self, spec: NodeSpec) -> None:
         super().__init__(spec)
         ep = self.endpoints
-        self.link: Link | None = None  # results from the broker, connected on first use
+        self.link = LinkClient(ep.results_link)  # results from the broker
         self.pub = open_socket(self.ctx, SocketSpec(zmq.PUB, ep.results_tap, bind=True,
                                                     sndhwm=256))
         ncfg = self.cfg.normalizer
@@ -75,7 +69,7 @@ class NormalizerNode(Node):
                 dirty = False
             self.beat()
         # Take what the broker already sent before closing the file.
-        while self.link is not None and self._receive(0):
+        while self.link.link is not None and self._receive(0):
             pass
         self.file.flush()
         os.fsync(self.file.fileno())
@@ -87,18 +81,16 @@ class NormalizerNode(Node):
 
     def _receive(self, timeout_ms: int) -> bool:
         """Handle the batches of results waiting (up to timeout_ms for the first)."""
-        if self.link is None:
-            try:
-                self.link = connect_link(self.endpoints.results_link)
-            except LinkClosed:  # the broker is not listening yet (or restarting)
-                time.sleep(LINK_RETRY_S)
-                return False
+        link = self.link.get()
+        if link is None:  # the broker is not listening yet (or restarting)
+            time.sleep(LINK_RETRY_S)
+            return False
         dirty = False
         try:
-            if not self.link.wait(timeout_ms):
+            if not link.wait(timeout_ms):
                 return False
             for _ in range(256):
-                batch = self.link.recv()
+                batch = link.recv()
                 if batch is None:
                     break
                 lines: list[bytes] = []
@@ -106,11 +98,10 @@ class NormalizerNode(Node):
                     dirty |= self._handle(data, lines)
                 if lines:
                     self.file.write(b"".join(lines))
-                self.link.send([messages.encode(messages.ResultsAck(count=len(batch)))])
+                link.send([messages.encode(messages.ResultsAck(count=len(batch)))])
         except LinkClosed as exc:  # a new broker will listen at the same path
             log.info("results link: %s; reconnecting", exc)
-            self.link.close()
-            self.link = None
+            self.link.drop()
         except ProtocolError as exc:
             self.malformed += 1
             self.ratelog.warning("link", "dropped malformed results batch: %s", exc)

@@ -189,6 +189,32 @@ class Link:
         self.sock.close()
 
 
+class LinkClient:
+    """The connecting end of a local link: connects on first use, again after a drop.
+
+    The broker may die and be restarted at any time; its successor listens at the same path.
+    """
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self.link: Link | None = None
+
+    def get(self) -> Link | None:
+        """The connected link, or None while nobody listens (LINK_RETRY_S is a fair wait)."""
+        if self.link is None:
+            try:
+                self.link = connect_link(self.path)
+            except LinkClosed:
+                return None
+        return self.link
+
+    def drop(self) -> None:
+        """Forget a link whose peer went away; the next get() connects afresh."""
+        if self.link is not None:
+            self.link.close()
+            self.link = None
+
+
 def _check_path(path: str) -> None:
     if len(path) > MAX_IPC_PATH:
         raise StartupError(f"run directory path too long for local links: {path!r} has "

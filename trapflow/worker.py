@@ -25,14 +25,7 @@ from trapflow.frame_ring import RingError, RingReader
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.plugin import Context, Pair, Worker
 from trapflow.ratelog import RateLimitedLog
-from trapflow.transport import (
-    LINK_RETRY_S,
-    Link,
-    LinkClosed,
-    SocketSpec,
-    connect_link,
-    open_socket,
-)
+from trapflow.transport import LINK_RETRY_S, Link, LinkClient, LinkClosed, SocketSpec, open_socket
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +80,7 @@ class WorkerNode(Node):
         self.ident = messages.worker_identity(self.pool, spec.index, os.getpid())
         # Local workers of the ring get descriptors over a local link; others, bytes over zmq.
         self.local = bool(spec.extra.get("ring")) and not self.pcfg.remote
-        self.link: Link | None = None
+        self.link = LinkClient(self.endpoints.workers_link)
         self.dealer: zmq.Socket[bytes] | None = None
         if not self.local:
             self.dealer = open_socket(
@@ -203,29 +196,24 @@ class WorkerNode(Node):
             return frames
         except LinkClosed as exc:  # the broker died: a new one will listen at the same path
             log.warning("%s: %s; reconnecting", self.ident, exc)
-            link.close()
-            self.link = None
+            self.link.drop()
         except ProtocolError as exc:
             self.ratelog.warning("link", "%s: dropped malformed job: %s", self.ident, exc)
         return None
 
     def _link(self) -> Link | None:
-        """The local link to the broker, connected (and READY sent) on first use."""
-        if self.link is None:
-            try:
-                self.link = connect_link(self.endpoints.workers_link)
-            except LinkClosed:
-                return None
+        """The local link to the broker; READY goes first on every new connection."""
+        if self.link.link is None and self.link.get() is not None:
             self.free = self.pcfg.credit
             self._send([self._ready()])
-        return self.link
+        return self.link.link
 
     def _send(self, msgs: list[Any]) -> None:
         frames = [m if isinstance(m, bytes) else messages.encode(m) for m in msgs]
         if self.dealer is not None:
             self.dealer.send_multipart(frames)
             return
-        link = self.link
+        link = self.link.link
         if link is None:
             return  # no broker: the job this answers was lost with the one that died
         try:
@@ -235,8 +223,7 @@ class WorkerNode(Node):
                                      self.ident)
         except LinkClosed as exc:
             log.warning("%s: %s; reconnecting", self.ident, exc)
-            link.close()
-            self.link = None
+            self.link.drop()
         except ProtocolError as exc:  # a result too big for one datagram fails its pair
             done = msgs[0]
             if isinstance(done, messages.Done):

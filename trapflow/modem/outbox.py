@@ -7,6 +7,7 @@ marks them resolved (acknowledged, expired, aggregated) in a separate table.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import shutil
@@ -15,7 +16,7 @@ import struct
 import threading
 import time
 import zlib
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -178,16 +179,22 @@ class _Store:
         if self._dirty and time.monotonic() - self._last_sync >= self.cfg.fsync_interval_s:
             self.sync()
 
+    @contextlib.contextmanager
+    def _transaction(self) -> Iterator[None]:
+        """One write transaction (the caller holds the lock): all of it commits, or none."""
+        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            yield
+            self._db.execute("COMMIT")
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            raise
+        self._dirty = True
+
     def _write(self, sql: str, rows: Iterable[Sequence[Any]]) -> None:
         with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
-            try:
+            with self._transaction():
                 self._db.executemany(sql, rows)
-                self._db.execute("COMMIT")
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
-            self._dirty = True
             self._maybe_sync()
 
     def used_bytes(self) -> int:
@@ -219,25 +226,18 @@ class _Store:
         now_ns = time.time_ns() if now_ns is None else now_ns
         keep = self.cfg.retention_s if keep_s is None else keep_s
         cutoff = now_ns - int(keep * 1e9)
-        with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
-            try:
-                cur = self._db.execute(
-                    "DELETE FROM records WHERE seq IN (SELECT seq FROM resolved WHERE t_ns < ?)",
-                    (cutoff,),
-                )
-                gone = cur.rowcount
-                self._db.execute(
-                    "DELETE FROM tried WHERE seq IN (SELECT seq FROM resolved WHERE t_ns < ?)",
-                    (cutoff,),
-                )
-                self._db.execute("DELETE FROM resolved WHERE t_ns < ?", (cutoff,))
-                self._db.execute("DELETE FROM sent WHERE t_ns < ?", (now_ns - 7200 * 10**9,))
-                self._db.execute("COMMIT")
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
-            self._dirty = True
+        with self._lock, self._transaction():
+            cur = self._db.execute(
+                "DELETE FROM records WHERE seq IN (SELECT seq FROM resolved WHERE t_ns < ?)",
+                (cutoff,),
+            )
+            gone = cur.rowcount
+            self._db.execute(
+                "DELETE FROM tried WHERE seq IN (SELECT seq FROM resolved WHERE t_ns < ?)",
+                (cutoff,),
+            )
+            self._db.execute("DELETE FROM resolved WHERE t_ns < ?", (cutoff,))
+            self._db.execute("DELETE FROM sent WHERE t_ns < ?", (now_ns - 7200 * 10**9,))
         return int(gone)
 
     def integrity_check(self) -> list[str]:
@@ -374,8 +374,7 @@ class Outbox(_Store):
             raise
         t_ns = time.time_ns()
         with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
-            try:
+            with self._transaction():
                 # Read the counter inside the write lock: the sender also appends (aggregates).
                 first = self._next_seq()
                 rows = []
@@ -386,12 +385,7 @@ class Outbox(_Store):
                 self._db.executemany(
                     "INSERT INTO records(seq, t_ns, cls, body, crc) VALUES (?,?,?,?,?)", rows
                 )
-                self._db.execute("COMMIT")
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
             self._last_seq = first + len(records) - 1
-            self._dirty = True
             self.appended += len(records)
             self._maybe_sync()
         return [r[0] for r in rows]
@@ -491,8 +485,7 @@ class OutboxQueue(_Store):
         body = msgspec.json.encode(record)
         t_ns = time.time_ns()
         with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
-            try:
+            with self._transaction():
                 seq = self._next_seq()
                 self._db.execute(
                     "INSERT INTO records(seq, t_ns, cls, body, crc) VALUES (?,?,?,?,?)",
@@ -502,29 +495,17 @@ class OutboxQueue(_Store):
                     "INSERT OR IGNORE INTO resolved(seq, state, t_ns) VALUES (?,?,?)",
                     [(s, AGGREGATED, t_ns) for s in covered],
                 )
-                self._db.execute("COMMIT")
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
-            self._dirty = True
             self._maybe_sync()
         return seq
 
     def record_sent(self, nbytes: int, seqs: Sequence[int] = (), now_ns: int | None = None) -> None:
         """Add a transmission to the budget ledger and note the records it carried."""
         t = time.time_ns() if now_ns is None else now_ns
-        with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
-            try:
-                self._db.execute("INSERT INTO sent(t_ns, bytes) VALUES (?,?)", (t, nbytes))
-                self._db.executemany(
-                    "INSERT OR IGNORE INTO tried(seq) VALUES (?)", [(s,) for s in seqs]
-                )
-                self._db.execute("COMMIT")
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
-            self._dirty = True
+        with self._lock, self._transaction():
+            self._db.execute("INSERT INTO sent(t_ns, bytes) VALUES (?,?)", (t, nbytes))
+            self._db.executemany(
+                "INSERT OR IGNORE INTO tried(seq) VALUES (?)", [(s,) for s in seqs]
+            )
 
     def tried(self, seqs: Sequence[int]) -> set[int]:
         """Which of these records were sent at least once (they may be on the surface)."""

@@ -286,14 +286,13 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
                 take(int(wait * 1000) + 1)
                 continue
         elif sent - completed // pools >= window:
-            take(1000)
+            take(1000)  # results are read when the window is full, as a PUSH blocks at its HWM
             continue
         if send(seq):
             seq += 1
             sent += 1
         else:
             take(10)
-        take(0)
     end = time.monotonic() + 5
     while completed < sent * pools and time.monotonic() < end:
         take(200)

@@ -28,17 +28,18 @@ from trapflow.ratelog import RateLimitedLog
 from trapflow.transport import (
     Link,
     LinkClosed,
+    Poller,
     SocketSpec,
     accept_link,
     listen_link,
     open_socket,
+    zmq_readable,
 )
 
 log = logging.getLogger(__name__)
 
 STATS_INTERVAL_S = 1.0
-# Plain ints: zmq's enum flags cost a conversion on every call in the hot loop.
-_EVENTS, _POLLIN, _NOBLOCK = int(zmq.EVENTS), int(zmq.POLLIN), int(zmq.NOBLOCK)
+_NOBLOCK = int(zmq.NOBLOCK)  # a plain int: zmq's enum flags cost a conversion per call
 TICK_INTERVAL_S = 0.1
 RESULTS_BATCH_BYTES = 64 << 10  # results leave in datagrams of about this size, or less
 MAX_WAITING_RESULTS = 100_000  # kept while no normalizer listens; beyond, the oldest go
@@ -80,6 +81,12 @@ class BrokerNode(Node):
             self.listeners[listen_link(ep.capture_link)] = "capture"
             self.listeners[listen_link(ep.workers_link)] = "worker"
         self.fds: dict[int, Any] = {}  # file descriptor -> local link or listener
+        self.poller = Poller()
+        for sock in (self.pull, self.router, self.tap):
+            self.poller.register(sock)
+        for listener in self.listeners:
+            self.poller.register(listener)
+            self.fds[listener.fileno()] = listener
         self.link_role: dict[Link, str] = {}
         self.link_ident: dict[Link, bytes] = {}
         self.worker_links: dict[bytes, Link] = {}
@@ -104,28 +111,20 @@ class BrokerNode(Node):
 
     def run(self) -> int:
         self.set_state(ACTIVE)
-        poller = zmq.Poller()
-        poller.register(self.pull, zmq.POLLIN)
-        poller.register(self.router, zmq.POLLIN)
-        poller.register(self.tap, zmq.POLLIN)
-        for listener in self.listeners:
-            poller.register(listener, zmq.POLLIN)
-            self.fds[listener.fileno()] = listener
-        self.poller = poller
+        poller = self.poller
         next_tick = time.monotonic()
         while not self.stopping:
-            events = dict(poller.poll(int(TICK_INTERVAL_S * 1000)))
-            if self.router in events:
+            socks, fds = poller.poll(int(TICK_INTERVAL_S * 1000))
+            if self.router in socks:
                 self._drain_workers()
-            # zmq's poller reports plain sockets (links, listeners) by file descriptor.
-            for ready in [self.fds[k] for k in events if isinstance(k, int) and k in self.fds]:
+            for ready in [self.fds[fd] for fd in fds if fd in self.fds]:
                 if ready in self.listeners:
                     self._accept(ready)
                 else:
                     self._drain_link(ready)
-            if self.pull in events:
+            if self.pull in socks:
                 self._drain_capture()
-            if self.tap in events:
+            if self.tap in socks:
                 self._on_subscriptions()
             self._flush_results()
             now = time.monotonic()
@@ -147,18 +146,14 @@ class BrokerNode(Node):
                 os.unlink(path)  # a successor binds afresh; a finished run leaves no socket
         return 0
 
-    @staticmethod
-    def _readable(sock: zmq.Socket[bytes]) -> bool:
-        events = sock.getsockopt(_EVENTS)
-        return isinstance(events, int) and bool(events & _POLLIN)
-
     # --- capture side ---------------------------------------------------------------
 
     def _drain_capture(self) -> None:
         # Take what is queued now, then go back to the workers: results never starve.
         # EVENTS before each recv: an empty socket costs no exception (this is the hot path).
+        self.poller.touch(self.pull)  # read its events again next pass: more may wait
         for _ in range(64):
-            if not self._readable(self.pull):
+            if not zmq_readable(self.pull):
                 return
             self._on_capture(self.pull.recv_multipart(copy=False))
 
@@ -205,7 +200,7 @@ class BrokerNode(Node):
                 self.results_link = link
             self.link_role[link] = role
             self.fds[link.fileno()] = link
-            self.poller.register(link, zmq.POLLIN)
+            self.poller.register(link)
 
     def _drain_link(self, link: Link) -> None:
         role = self.link_role.get(link)
@@ -257,8 +252,9 @@ class BrokerNode(Node):
     # --- worker side ----------------------------------------------------------------
 
     def _drain_workers(self) -> None:
+        self.poller.touch(self.router)
         for _ in range(256):
-            if not self._readable(self.router):
+            if not zmq_readable(self.router):
                 return
             frames = self.router.recv_multipart(copy=False)
             ident = frames[0].bytes
@@ -310,6 +306,7 @@ class BrokerNode(Node):
                             raise LinkClosed("its queue is full")
                     else:
                         remote = action.pool in self.remote
+                        self.poller.touch(self.router)
                         self.router.send_multipart(
                             [action.worker, job, *self._payload(action.seq, copy=remote)],
                             copy=False)
@@ -392,6 +389,7 @@ class BrokerNode(Node):
 
     def _on_subscriptions(self) -> None:
         # XPUB passes the first subscribe and the last unsubscribe of each topic prefix.
+        self.poller.touch(self.tap)
         while True:
             try:
                 msg = self.tap.recv(zmq.NOBLOCK)
@@ -405,6 +403,7 @@ class BrokerNode(Node):
                        for t in messages.TAP_TOPICS}
 
     def _publish(self, topic: bytes, *frames: Any) -> None:
+        self.poller.touch(self.tap)
         try:
             self.tap.send_multipart([topic, *frames], _NOBLOCK, copy=False)
         except zmq.Again:

@@ -254,3 +254,61 @@ def connect_link(path: str) -> Link:
         raise LinkClosed(f"cannot connect to {path}: {exc.strerror}") from None
     return Link(sock)
 
+
+
+class Poller:
+    """One poll() system call over local links, listeners and zmq sockets.
+
+    zmq's own poller reads every zmq socket's events before and after it sleeps, a few
+    system calls per socket on every pass; with the ring, a broker's per-pair traffic is
+    on links alone. Here a zmq socket is watched through its notification descriptor
+    (ZMQ_FD), which only says "something changed", so its events are read when that
+    fired, or when this process used the socket since (touch()): any send or receive may
+    consume the notification of a message that is waiting.
+    """
+
+    def __init__(self) -> None:
+        self._poll = select.poll()
+        self._zmq: dict[int, zmq.Socket[bytes]] = {}  # notification fd -> socket
+        self._touched: set[zmq.Socket[bytes]] = set()
+
+    def register(self, obj: zmq.Socket[bytes] | socket.socket | Link) -> None:
+        if isinstance(obj, zmq.Socket):
+            fd = obj.getsockopt(zmq.FD)
+            assert isinstance(fd, int)
+            self._zmq[fd] = obj
+            self._touched.add(obj)  # what arrived before registering
+        else:
+            fd = obj.fileno()
+        self._poll.register(fd, select.POLLIN)
+
+    def unregister(self, obj: socket.socket | Link) -> None:
+        self._poll.unregister(obj.fileno())
+
+    def touch(self, sock: zmq.Socket[bytes]) -> None:
+        """Read sock's events on the next poll: it was used since they were last read."""
+        self._touched.add(sock)
+
+    def poll(self, timeout_ms: int) -> tuple[list[zmq.Socket[bytes]], list[int]]:
+        """The zmq sockets with a message waiting, and the other descriptors readable."""
+        ready = [s for s in self._touched if zmq_readable(s)]
+        self._touched.clear()
+        socks: list[zmq.Socket[bytes]] = []
+        fds: list[int] = []
+        for fd, _ in self._poll.poll(0 if ready else timeout_ms):
+            sock = self._zmq.get(fd)
+            if sock is None:
+                fds.append(fd)
+            elif sock not in ready and zmq_readable(sock):
+                socks.append(sock)
+        return ready + socks, fds
+
+
+_EVENTS, _POLLIN = int(zmq.EVENTS), int(zmq.POLLIN)  # plain ints: no enum conversion
+
+
+def zmq_readable(sock: zmq.Socket[bytes]) -> bool:
+    """A message is waiting. Cheaper than a failed recv on a hot path, and reading
+    EVENTS re-arms the socket's notification descriptor."""
+    events = sock.getsockopt(_EVENTS)
+    return isinstance(events, int) and bool(events & _POLLIN)

@@ -9,6 +9,7 @@ buffer); CPU and peak RSS are read from /proc. Prints JSON on stdout.
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import multiprocessing as mp
 import os
@@ -78,6 +79,7 @@ def cpu_s(pid: int) -> float:
 
 
 def _raw_consumer(endpoint: str, conn: Any) -> None:
+    gc.freeze()  # as trapflow's nodes do after start-up: same collector work on both sides
     ctx = zmq.Context()
     pull = ctx.socket(zmq.PULL)
     pull.setsockopt(zmq.RCVHWM, WINDOW // 2)
@@ -404,6 +406,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("bench-results"))
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="tfbench-"))
+    gc.freeze()  # every producer here (pyzmq's and trapflow's) runs with a frozen heap
     out: dict[str, Any] = {"machine": {"cores": os.cpu_count(), "python": sys.version.split()[0],
                                        "pyzmq": zmq.__version__, "libzmq": zmq.zmq_version()}}
     for kind in ("jpeg", "raw"):

@@ -483,6 +483,9 @@ def check_pair_ref(frames: Sequence[Buffer]) -> tuple[StereoPair, FrameRef]:
 
 MAX_LINK_FRAMES = 64  # a batch of results
 MAX_LINK_BYTES = MAX_RESULT_BYTES + 2 * MAX_HEADER_BYTES
+# The head of a datagram of n frames: its count then n lengths (compiled once per n).
+_HEADS = [struct.Struct(f"<B{n}I") for n in range(MAX_LINK_FRAMES + 1)]
+_LENGTHS = [struct.Struct(f"<{n}I") for n in range(MAX_LINK_FRAMES + 1)]
 
 
 def pack_frames(frames: Sequence[Buffer]) -> bytes:
@@ -491,7 +494,7 @@ def pack_frames(frames: Sequence[Buffer]) -> bytes:
     if not 0 < len(bufs) <= MAX_LINK_FRAMES:
         raise ProtocolError(f"link message: expected 1..{MAX_LINK_FRAMES} frames, "
                             f"got {len(bufs)}")
-    head = struct.pack(f"<B{len(bufs)}I", len(bufs), *[memoryview(b).nbytes for b in bufs])
+    head = _HEADS[len(bufs)].pack(len(bufs), *[memoryview(b).nbytes for b in bufs])
     return b"".join([head, *bufs])
 
 
@@ -506,7 +509,7 @@ def unpack_frames(data: bytes | memoryview) -> list[memoryview]:
         raise ProtocolError(f"link message: expected 1..{MAX_LINK_FRAMES} frames and their "
                             f"lengths, got count {n} in {buf.nbytes} bytes")
     frames = []
-    for size in struct.unpack_from(f"<{n}I", buf, 1):
+    for size in _LENGTHS[n].unpack_from(buf, 1):
         frames.append(buf[at:at + size])
         at += size
     if at != buf.nbytes:

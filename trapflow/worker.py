@@ -22,7 +22,7 @@ from trapflow import messages, registry
 from trapflow.capture import rig_from_config
 from trapflow.errors import ProtocolError, WorkerError
 from trapflow.frame_ring import RingError, RingReader
-from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
+from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec, freeze_heap
 from trapflow.plugin import Context, Pair, Worker
 from trapflow.ratelog import RateLimitedLog
 from trapflow.transport import LINK_RETRY_S, Link, LinkClient, LinkClosed, SocketSpec, open_socket
@@ -137,6 +137,7 @@ class WorkerNode(Node):
                 self.beat()
                 time.sleep(0.1)
             return 0
+        freeze_heap()  # the algorithm and its model are loaded
         if self.dealer is not None:
             self._send([self._ready()])
         next_alive = 0.0

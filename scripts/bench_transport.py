@@ -257,12 +257,16 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
                 time.sleep(0.05)
         if not out.wait(timeout_ms):
             return
+        got = 0
         while (batch := out.recv()) is not None:  # the broker batches results
+            got += len(batch)
             for frame in batch:
                 r = messages.decode_result(frame)
                 completed += 1
                 if isinstance(r.body, messages.Extra):
                     lats.append(int(r.body.fields["lat_ns"]))
+        if got:  # acknowledged once per pass, as the normalizer does once they are written
+            out.send([messages.encode(messages.ResultsAck(count=got))])
 
     # Warm up until every worker answered (their READY reached the broker).
     seq = 0

@@ -2,8 +2,9 @@
 
 Owns a local link that brings batches of results from the broker and a PUB of JSON
 lines (`result` topic).
-Each batch is written unbuffered as it arrives, then acknowledged; the file is fsynced
-every fsync_interval_s.
+Each batch is written unbuffered as it arrives; the batches of one pass are then
+acknowledged together (one wake-up of the broker). The file is fsynced every
+fsync_interval_s.
 """
 
 from __future__ import annotations
@@ -86,11 +87,17 @@ class NormalizerNode(Node):
             time.sleep(LINK_RETRY_S)
             return False
         dirty = False
+        written = 0
         try:
             if not link.wait(timeout_ms):
                 return False
             for _ in range(256):
-                batch = link.recv()
+                try:
+                    batch = link.recv()
+                except ProtocolError as exc:
+                    self.malformed += 1
+                    self.ratelog.warning("link", "dropped malformed results batch: %s", exc)
+                    continue
                 if batch is None:
                     break
                 lines: list[bytes] = []
@@ -98,13 +105,12 @@ class NormalizerNode(Node):
                     dirty |= self._handle(data, lines)
                 if lines:
                     self.file.write(b"".join(lines))
-                link.send([messages.encode(messages.ResultsAck(count=len(batch)))])
+                written += len(batch)
+            if written:  # one acknowledgement for all the batches written in this pass
+                link.send([messages.encode(messages.ResultsAck(count=written))])
         except LinkClosed as exc:  # a new broker will listen at the same path
             log.info("results link: %s; reconnecting", exc)
             self.link.drop()
-        except ProtocolError as exc:
-            self.malformed += 1
-            self.ratelog.warning("link", "dropped malformed results batch: %s", exc)
         return dirty
 
     def _handle(self, data: messages.Buffer, lines: list[bytes]) -> bool:

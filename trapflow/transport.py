@@ -1,5 +1,6 @@
 """The only module that creates sockets: an endpoint table, SocketSpec -> open socket,
-and the local links that carry shared-memory descriptors on one host.
+and the local links that carry shared-memory descriptors on one host, with one poller
+over both.
 
 Sockets are opened inside the process that uses them (never inherited across a
 fork), from that process's single context, with linger 0 so shutdown never hangs.
@@ -255,6 +256,15 @@ def connect_link(path: str) -> Link:
     return Link(sock)
 
 
+_EVENTS, _POLLIN = int(zmq.EVENTS), int(zmq.POLLIN)  # plain ints: no enum conversion
+
+
+def zmq_readable(sock: zmq.Socket[bytes]) -> bool:
+    """A message is waiting. Cheaper than a failed recv on a hot path, and reading
+    EVENTS re-arms the socket's notification descriptor."""
+    events = sock.getsockopt(_EVENTS)
+    return isinstance(events, int) and bool(events & _POLLIN)
+
 
 class Poller:
     """One poll() system call over local links, listeners and zmq sockets.
@@ -302,13 +312,3 @@ class Poller:
             elif sock not in ready and zmq_readable(sock):
                 socks.append(sock)
         return ready + socks, fds
-
-
-_EVENTS, _POLLIN = int(zmq.EVENTS), int(zmq.POLLIN)  # plain ints: no enum conversion
-
-
-def zmq_readable(sock: zmq.Socket[bytes]) -> bool:
-    """A message is waiting. Cheaper than a failed recv on a hot path, and reading
-    EVENTS re-arms the socket's notification descriptor."""
-    events = sock.getsockopt(_EVENTS)
-    return isinstance(events, int) and bool(events & _POLLIN)

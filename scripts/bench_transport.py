@@ -35,7 +35,7 @@ from trapflow.transport import Endpoints, Link, LinkClosed, connect_link
 PAGE = 4096
 WINDOW = 4  # pairs in flight per consumer, as in the peer measurements
 FRAMES = ("zmq", "shm")  # trapflow's two frame paths: bytes through the broker, or the ring
-REPEATS = 3  # throughput runs per path, median reported
+REPEATS = 5  # throughput runs per path, median reported
 
 
 def make_payload(kind: str) -> tuple[bytes, bytes]:
@@ -360,7 +360,9 @@ def markdown(out: dict[str, Any]) -> str:
              "flight per consumer; consumers touch every page. trapflow-zmq: bytes through "
              "the broker; trapflow-shm: written once into the shared-memory ring, "
              "descriptors through the broker over local links. Throughput: median of "
-             f"{REPEATS} runs (pyzmq and trapflow interleaved), [min-max] next to it.", "",
+             f"{REPEATS} runs (pyzmq and trapflow interleaved), [min-max] next to it; x pyzmq: "
+             "ratio of the medians, [min-max] of the ratios run by run (each trapflow run "
+             "against the pyzmq run just before it).", "",
              "| payload | path | pairs/s | x pyzmq | CPU us/pair | by process (us/pair) |",
              "|---|---|---:|---:|---:|---|"]
     for kind in ("jpeg", "raw"):
@@ -370,8 +372,10 @@ def markdown(out: dict[str, Any]) -> str:
                      f"{b['cpu_us_per_pair']:,.0f} | |")
         for f in FRAMES:
             r = t[f"trapflow_{f}"]
+            paired = t[f"paired_{f}"]
             lines.append(f"| {kind} | trapflow-{f} | {r['pairs_s']:,.0f} {_spread(r)} | "
-                         f"{t[f'ratio_{f}']:.2f}x | {r['cpu_us_per_pair']:,.0f} | "
+                         f"{t[f'ratio_{f}']:.2f}x [{min(paired):.2f}-{max(paired):.2f}] | "
+                         f"{r['cpu_us_per_pair']:,.0f} | "
                          f"{r['cpu_us_per_pair_by_process']} |")
     fan = out["raw"]["fanout3"]
     base = fan["pyzmq_push_pull"]["pairs_s"]
@@ -429,7 +433,10 @@ def main() -> None:
                 for f in FRAMES}
         out[kind] = {
             "throughput": {"pyzmq_push_pull": base, **{f"trapflow_{f}": tf[f] for f in FRAMES},
-                           **{f"ratio_{f}": tf[f]["pairs_s"] / base["pairs_s"] for f in FRAMES}},
+                           **{f"ratio_{f}": tf[f]["pairs_s"] / base["pairs_s"] for f in FRAMES},
+                           **{f"paired_{f}": [r["pairs_s"] / b["pairs_s"] for b, r in
+                                              zip(runs["base"], runs[f], strict=True)]
+                              for f in FRAMES}},
             "latency_30hz": {"pyzmq_push_pull": base30,
                              **{f"trapflow_{f}": tf30[f] for f in FRAMES},
                              **{f"ratio_p50_{f}": tf30[f]["lat_us"]["p50"]

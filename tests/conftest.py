@@ -43,6 +43,26 @@ def recv(sock: zmq.Socket[bytes], timeout: float = 2.0) -> list[bytes]:
     return sock.recv_multipart()
 
 
+def modem_cli(*args: str) -> subprocess.Popen[bytes]:
+    """A modem command (`modem-sim`, `surface`) as a real process; its stderr is kept."""
+    cmd = [sys.executable, "-m", "trapflow.modem.cli", *args]
+    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+@pytest.fixture
+def started_procs() -> Iterator[list[subprocess.Popen[bytes]]]:
+    """Processes a test starts: killed if still running at the end, reaped, pipes closed."""
+    started: list[subprocess.Popen[bytes]] = []
+    yield started
+    for proc in started:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait(timeout=10)
+        for pipe in (proc.stdout, proc.stderr):
+            if pipe is not None:
+                pipe.close()
+
+
 @pytest.fixture
 def run_dir() -> Iterator[Path]:
     """A short run directory (ipc socket paths are limited to 107 bytes)."""

@@ -10,24 +10,17 @@ import collections
 import json
 import signal
 import subprocess
-import sys
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from tests.conftest import poll_for
+from tests.conftest import modem_cli, poll_for
 from trapflow.modem.config import ModemConfig
 from trapflow.modem.outbox import Outbox, OutboxConfig
 from trapflow.modem.sender import ModemSender
-
-
-def cli(*args: str) -> subprocess.Popen[bytes]:
-    cmd = [sys.executable, "-m", "trapflow.modem.cli", *args]
-    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
 
 def stop(proc: subprocess.Popen[bytes]) -> dict[str, Any]:
@@ -39,22 +32,12 @@ def stop(proc: subprocess.Popen[bytes]) -> dict[str, Any]:
     return json.loads(lines[-1]) if lines and lines[-1].startswith("{") else {}
 
 
-@pytest.fixture
-def procs() -> Iterator[list[subprocess.Popen[bytes]]]:
-    started: list[subprocess.Popen[bytes]] = []
-    yield started
-    for proc in started:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(timeout=10)
-
-
 def start_sim(
-    tmp: Path, procs: list[subprocess.Popen[bytes]], *opts: str
+    tmp: Path, started_procs: list[subprocess.Popen[bytes]], *opts: str
 ) -> subprocess.Popen[bytes]:
     (tmp / "a").unlink(missing_ok=True)
-    sim = cli("modem-sim", *opts, "--link-a", str(tmp / "a"), "--link-b", str(tmp / "b"))
-    procs.append(sim)
+    sim = modem_cli("modem-sim", *opts, "--link-a", str(tmp / "a"), "--link-b", str(tmp / "b"))
+    started_procs.append(sim)
     poll_for(lambda: (tmp / "a").exists() and (tmp / "b").exists(), 20, what="the simulator's ends")
     return sim
 
@@ -70,13 +53,14 @@ def ts(i: int) -> str:
 
 
 @pytest.mark.timeout(120)
-def test_300_bits_10_percent_loss(tmp_path: Path, procs: list[subprocess.Popen[bytes]]) -> None:
+def test_300_bits_10_percent_loss(
+        tmp_path: Path, started_procs: list[subprocess.Popen[bytes]]) -> None:
     """Scallops arrive once and in order; crabs are summarised; odometry expires; budget kept."""
-    start_sim(tmp_path, procs, "--bit-rate", "300", "--latency", "0.3", "--loss", "0.1",
+    start_sim(tmp_path, started_procs, "--bit-rate", "300", "--latency", "0.3", "--loss", "0.1",
               "--noise", "0.1", "--seed", "7")  # fmt: skip
     out = tmp_path / "surface.jsonl"
-    surface = cli("surface", str(tmp_path / "b"), "-o", str(out))
-    procs.append(surface)
+    surface = modem_cli("surface", str(tmp_path / "b"), "-o", str(out))
+    started_procs.append(surface)
 
     box = Outbox(tmp_path / "outbox.sqlite", OutboxConfig())
     scallops = 8
@@ -111,7 +95,7 @@ def test_300_bits_10_percent_loss(tmp_path: Path, procs: list[subprocess.Popen[b
         halt.set()
         thread.join(timeout=10)
     surface_stats = stop(surface)
-    sim_stats = stop(procs[0])
+    sim_stats = stop(started_procs[0])
     got = lines_of(out)
     per_class: dict[str, list[dict[str, Any]]] = collections.defaultdict(list)
     for rec in got:
@@ -151,14 +135,14 @@ def test_300_bits_10_percent_loss(tmp_path: Path, procs: list[subprocess.Popen[b
 
 @pytest.mark.timeout(90)
 def test_port_disappears_and_comes_back(
-    tmp_path: Path, procs: list[subprocess.Popen[bytes]]
+    tmp_path: Path, started_procs: list[subprocess.Popen[bytes]]
 ) -> None:
     """The sink goes inactive with a reason, the outbox keeps filling, sending resumes."""
     fast = ("--bit-rate", "19200", "--latency", "0.02")
-    sim = start_sim(tmp_path, procs, *fast)
+    sim = start_sim(tmp_path, started_procs, *fast)
     out = tmp_path / "surface.jsonl"
-    surface = cli("surface", str(tmp_path / "b"), "-o", str(out))
-    procs.append(surface)
+    surface = modem_cli("surface", str(tmp_path / "b"), "-o", str(out))
+    started_procs.append(surface)
     box = Outbox(tmp_path / "outbox.sqlite", OutboxConfig())
     cfg = ModemConfig(bit_rate=19200.0, ack_timeout_s=0.3, reopen_interval_s=0.2)
     sender = ModemSender(tmp_path / "outbox.sqlite", str(tmp_path / "a"), cfg)
@@ -175,13 +159,13 @@ def test_port_disappears_and_comes_back(
         poll_for(lambda: len(lines_of(out)) == 5, 30, what="the first records at the surface")
         poll_for(lambda: box.counts()[2] == 0, 10, what="their acknowledgements")
         stop(sim)
-        procs.remove(sim)
+        started_procs.remove(sim)
         poll_for(lambda: sender.stats()["state"] == "inactive", 10, what="the sender to notice")
         assert str(tmp_path / "a") in sender.stats()["reason"]
         for i in range(5, 12):
             box.append(scallop(i))
         assert box.counts()[2] == 7
-        start_sim(tmp_path, procs, *fast)
+        start_sim(tmp_path, started_procs, *fast)
         poll_for(lambda: box.counts()[2] == 0, 30, what="sending to resume")
         poll_for(lambda: len(lines_of(out)) == 12, 10, what="the rest at the surface")
     finally:

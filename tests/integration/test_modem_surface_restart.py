@@ -10,36 +10,19 @@ import json
 import random
 import signal
 import subprocess
-import sys
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import poll_for
+from tests.conftest import modem_cli, poll_for
 from trapflow.modem.config import ModemConfig
 from trapflow.modem.outbox import Outbox, OutboxConfig
 from trapflow.modem.sender import ModemSender
 
 SEED = 20250708
 RECORDS = 120
-
-
-def cli(*args: str) -> subprocess.Popen[bytes]:
-    cmd = [sys.executable, "-m", "trapflow.modem.cli", *args]
-    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-
-
-@pytest.fixture
-def procs() -> Iterator[list[subprocess.Popen[bytes]]]:
-    started: list[subprocess.Popen[bytes]] = []
-    yield started
-    for proc in started:
-        if proc.poll() is None:
-            proc.kill()
-        proc.communicate(timeout=10)
 
 
 def seqs(path: Path) -> list[int]:
@@ -51,13 +34,13 @@ def seqs(path: Path) -> list[int]:
 
 @pytest.mark.timeout(120)
 def test_surface_killed_and_restarted_writes_each_record_once(
-    tmp_path: Path, procs: list[subprocess.Popen[bytes]]
+    tmp_path: Path, started_procs: list[subprocess.Popen[bytes]]
 ) -> None:
     print(f"surface-restart seed {SEED}")
     rng = random.Random(SEED)
-    procs.append(cli("modem-sim", "--bit-rate", "2400", "--latency", "0.05", "--loss", "0.15",
-                     "--seed", str(SEED), "--link-a", str(tmp_path / "a"),
-                     "--link-b", str(tmp_path / "b")))  # fmt: skip
+    started_procs.append(modem_cli(
+        "modem-sim", "--bit-rate", "2400", "--latency", "0.05", "--loss", "0.15",
+        "--seed", str(SEED), "--link-a", str(tmp_path / "a"), "--link-b", str(tmp_path / "b")))
     poll_for(lambda: (tmp_path / "a").exists() and (tmp_path / "b").exists(), 20,
              what="the simulator's ends")  # fmt: skip
     out = tmp_path / "surface.jsonl"
@@ -73,16 +56,16 @@ def test_surface_killed_and_restarted_writes_each_record_once(
     thread.start()
     kills = 0
     try:
-        surface = cli("surface", str(tmp_path / "b"), "-o", str(out))
-        procs.append(surface)
+        surface = modem_cli("surface", str(tmp_path / "b"), "-o", str(out))
+        started_procs.append(surface)
         # Kill the surface at random moments while records are still arriving.
         while kills < 6 and len(seqs(out)) < RECORDS * 0.8:
             time.sleep(rng.uniform(0.3, 1.2))  # the random moment of the crash
             surface.send_signal(signal.SIGKILL)
             surface.wait(timeout=10)
             kills += 1
-            surface = cli("surface", str(tmp_path / "b"), "-o", str(out))
-            procs.append(surface)
+            surface = modem_cli("surface", str(tmp_path / "b"), "-o", str(out))
+            started_procs.append(surface)
         poll_for(lambda: box.counts()[2] == 0, 60, what="the outbox to drain")
         stats = sender.stats()
     finally:

@@ -249,14 +249,19 @@ def test_model_that_does_not_load_names_the_file(spawn, run_dir: Path) -> None:
     assert "worker:mono:0 cannot start" in line and "corrupt.onnx" in line, line
 
 
+def _ordered_noop(path: Path, restart_backoff_s: float) -> Path:
+    """A small source into one ordered no-op pool: every processed pair is one result line."""
+    return write_config(path, {
+        "source": SMALL,
+        "supervisor": {"restart_backoff_s": restart_backoff_s},
+        "pools": {"fast": {"plugin": "noop", "policy": "ordered:64"}},
+    })
+
+
 @pytest.mark.timeout(90)
 def test_kill_9_normalizer_loses_no_result(spawn, run_dir: Path) -> None:
     """Results sent to a normalizer that dies unwritten go again to its successor."""
-    cfg = write_config(run_dir.parent / "norm.yaml", {
-        "source": SMALL,
-        "supervisor": {"restart_backoff_s": 0.5},
-        "pools": {"fast": {"plugin": "noop", "policy": "ordered:64"}},
-    })
+    cfg = _ordered_noop(run_dir.parent / "norm.yaml", restart_backoff_s=0.5)
     p: Pipeline = spawn(["--config", str(cfg)], run_dir)
     s = p.wait_active()
     poll_for(lambda: len(p.results()) > 20, 20, what="first results")
@@ -326,11 +331,7 @@ def test_kill_9_capture_restarts_past_its_numbers_and_the_ledger_adds_up(
         spawn, run_dir: Path) -> None:
     """A restarted capture never repeats a seq (an ordered pool sees a gap), and the ledger
     counts both captures' pairs."""
-    cfg = write_config(run_dir.parent / "cap.yaml", {
-        "source": SMALL,
-        "supervisor": {"restart_backoff_s": 0.2},
-        "pools": {"fast": {"plugin": "noop", "policy": "ordered:64"}},
-    })
+    cfg = _ordered_noop(run_dir.parent / "cap.yaml", restart_backoff_s=0.2)
     p: Pipeline = spawn(["--config", str(cfg)], run_dir)
     s = p.wait_active()
 

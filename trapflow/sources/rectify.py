@@ -1,4 +1,7 @@
-"""Stereo rectification with maps computed once from a calibration, applied per pair."""
+"""Stereo rectification with maps computed once from a calibration, applied per pair.
+
+Pinhole lenses use cv2.initUndistortRectifyMap, fisheye lenses cv2.fisheye's.
+"""
 
 from __future__ import annotations
 
@@ -16,10 +19,10 @@ class Rectifier:
         self.calib = calib
         size = calib.size
         # initUndistortRectifyMap is the expensive part: done here once, never per pair.
+        build = (cv2.fisheye.initUndistortRectifyMap if calib.model == "fisheye"
+                 else cv2.initUndistortRectifyMap)
         self._maps = [
-            cv2.initUndistortRectifyMap(
-                calib.arr(k), calib.arr(d), calib.arr(r), calib.arr(p), size, cv2.CV_16SC2
-            )
+            build(calib.arr(k), calib.arr(d), calib.arr(r), calib.arr(p), size, cv2.CV_16SC2)
             for k, d, r, p in (("K1", "D1", "R1", "P1"), ("K2", "D2", "R2", "P2"))
         ]
 

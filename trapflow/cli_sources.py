@@ -57,17 +57,28 @@ class SourceSpecType(click.ParamType[tuple[str, str]]):
               help="Inner corners per row x per column.")
 @click.option("--square", type=click.FloatRange(min=0, min_open=True), default=0.025,
               show_default=True, help="Side of one square in metres.")
+@click.option("--model", type=click.Choice(["pinhole", "rational", "fisheye"]),
+              default="pinhole", show_default=True,
+              help="Lens model: pinhole (k1 k2 p1 p2), rational (OpenCV's stereo_calib "
+                   "sample: joint fit, k1 k2 k6), fisheye (equidistant k1..k4).")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path),
               default=Path("calib.yaml"), show_default=True)
+@click.option("--camera-info", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Also write a ROS camera_info pair, left.yaml and right.yaml, in this folder.")
 def calibrate(left_glob: str, right_glob: str, pattern: tuple[int, int], square: float,
-              output: Path) -> None:
+              model: str, output: Path, camera_info: Path | None) -> None:
     """Stereo checkerboard calibration from LEFT_GLOB and RIGHT_GLOB image pairs."""
     from trapflow.calibrate import calibrate_stereo, expand
     from trapflow.calibration import save_calibration
+    from trapflow.calibration_formats import write_camera_info
 
     try:
-        report = calibrate_stereo(expand(left_glob), expand(right_glob), pattern, square)
+        report = calibrate_stereo(expand(left_glob), expand(right_glob), pattern, square, model)
         save_calibration(report.calibration, output)
+        if camera_info is not None:
+            camera_info.mkdir(parents=True, exist_ok=True)
+            write_camera_info(report.calibration, camera_info / "left.yaml",
+                              camera_info / "right.yaml")
     except (TrapflowError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
     c = report.calibration
@@ -75,6 +86,8 @@ def calibrate(left_glob: str, right_glob: str, pattern: tuple[int, int], square:
     click.echo(f"views rejected ({len(report.rejected)}): {', '.join(report.rejected) or 'none'}")
     click.echo(f"baseline: {c.baseline_m:.4f} m, fx left {c.K1[0][0]:.1f}, right {c.K2[0][0]:.1f}")
     click.echo(f"written: {output}")
+    if camera_info is not None:
+        click.echo(f"written: {camera_info / 'left.yaml'}, {camera_info / 'right.yaml'}")
 
 
 @click.command()

@@ -2,11 +2,12 @@
 
 Understood: trapflow's own YAML; plain K1/D1/K2/D2/R/T YAML; a ROS camera_info pair
 (`camera_calibration` output, plumb_bob / rational_polynomial / equidistant, and its
-fisheye mode's `plumb_bob` with 4 coefficients); a Kalibr camchain (cam0 + cam1); OpenCV
-FileStorage YAML/XML (stereo_calib.cpp's intrinsics + extrinsics, stereoRectify's output,
-cv::fisheye::stereoCalibrate's output). Except for trapflow's own files, the rectification
-is computed here from K/D/R/T (calibration_rectify.py) and, where the file carries R1/R2,
-checked against them. Every error names the file, the field and FORMATS.
+fisheye mode's `plumb_bob` with 4 coefficients) or its oST text file; a Kalibr camchain
+(cam0 + cam1); OpenCV FileStorage YAML/XML (stereo_calib.cpp's intrinsics + extrinsics,
+stereoRectify's output, cv::fisheye::stereoCalibrate's output). Except for trapflow's own
+files, the rectification is computed here from K/D/R/T (calibration_rectify.py) and,
+where the file carries R1/R2, checked against them. Errors name the file, the field and
+FORMATS.
 """
 
 from __future__ import annotations
@@ -31,10 +32,11 @@ from trapflow.errors import ConfigError
 log = logging.getLogger(__name__)
 
 FORMATS = ("trapflow YAML; plain K1/D1/K2/D2/R/T YAML with image_width/image_height; "
-           "a ROS camera_info pair (LEFT.yaml,RIGHT.yaml or a folder holding both); "
+           "a ROS camera_info pair (LEFT.yaml,RIGHT.yaml or a folder holding both) or "
+           "ost.txt; "
            "a Kalibr camchain with cam0 and cam1; OpenCV FileStorage YAML/XML with "
            "K1|M1, D1, K2|M2, D2, R, T (one file, or intrinsics,extrinsics)")
-SUFFIXES = (".yaml", ".yml", ".xml", ".json")
+SUFFIXES = (".yaml", ".yml", ".xml", ".json", ".txt", ".ini")
 # A file's own rectifying rotations must match the ones computed from its R and T; they
 # are written with 6 decimals by ROS, so 1e-3 only catches a real contradiction.
 ROTATION_TOLERANCE = 1e-3
@@ -85,6 +87,8 @@ def load_doc(path: Path) -> dict[str, Any]:
     except OSError as exc:
         raise ConfigError(f"cannot read calibration {path}: {exc.strerror}") from None
     head = text.lstrip()[:200]
+    if head.startswith("# oST") or head.startswith("[image]"):
+        return {"__ost__": parse_ost(text, path)}
     if head.startswith(("%YAML", "<?xml", "<opencv_storage")) or "!!opencv-matrix" in text:
         return _load_filestorage(path)
     try:
@@ -94,6 +98,52 @@ def load_doc(path: Path) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise fail(path, f"expected a mapping of fields, got {type(data).__name__}")
     return data
+
+
+def parse_ost(text: str, where: Path) -> list[dict[str, Any]]:
+    """ROS camera_calibration's oST text: [image] width/height, then one [camera] section
+    each (camera matrix, distortion, rectification, projection), as camera_info fields."""
+    cams: list[dict[str, Any]] = []
+    size: dict[str, int] = {}
+    section, key = "", ""
+    rows: list[list[float]] = []
+    fields = {"camera matrix": "camera_matrix", "distortion": "distortion_coefficients",
+              "rectification": "rectification_matrix", "projection": "projection_matrix"}
+
+    def flush() -> None:
+        if not key or not rows:
+            return
+        if section == "image":
+            size[key] = int(rows[0][0])
+        elif key in fields:
+            cams[-1][fields[key]] = {"data": [v for row in rows for v in row]}
+
+    for raw in text.splitlines() + [""]:
+        line = raw.strip()
+        if line.startswith("#"):
+            continue
+        try:
+            values = [float(v) for v in line.split()] if line else []
+        except ValueError:
+            values = []
+        if values:
+            rows.append(values)
+            continue
+        flush()
+        key, rows = "", []
+        if line.startswith("[") and line.endswith("]"):
+            section = line[1:-1]
+            if section != "image":
+                cams.append({"camera_name": section})
+        elif line:
+            key = line
+    if "width" not in size or "height" not in size:
+        raise fail(where, "oST file without [image] width and height")
+    for cam in cams:
+        n = len(cam.get("distortion_coefficients", {"data": []})["data"])
+        cam.update(image_width=size["width"], image_height=size["height"],
+                   distortion_model="rational_polynomial" if n == 8 else "plumb_bob")
+    return cams
 
 
 def _load_filestorage(path: Path) -> dict[str, Any]:
@@ -129,6 +179,8 @@ def _load_filestorage(path: Path) -> dict[str, Any]:
 def classify(doc: dict[str, Any]) -> str:
     """ros, kalibr, kalibr-mono, opencv, opencv-intrinsics, opencv-extrinsics, trapflow, mono."""
     keys = set(doc)
+    if "__ost__" in keys:
+        return "ost"
     if "camera_matrix" in keys and "distortion_coefficients" in keys:
         return "ros"
     if "cam0" in keys:
@@ -185,7 +237,12 @@ def _from_docs(docs: list[tuple[Path, dict[str, Any]]], where: str,
         if kind == "kalibr":
             return read_kalibr(d, p)
         return read_opencv(d, p, image_size)
+    ost = [(p, c) for p, d in docs if kinds[p] == "ost" for c in d["__ost__"]]
+    if len(ost) == 2 and not ros:
+        ros = ost
     if len(ros) == 2:
+        log.info("calibration %s: using the camera_info pair %s, %s", where,
+                 ros[0][0].name, ros[1][0].name)
         return read_ros_pair(ros[0], ros[1])
     if len(intr) == 1 and len(extr) == 1:
         merged = {**extr[0][1], **intr[0][1]}
@@ -197,6 +254,9 @@ def _from_docs(docs: list[tuple[Path, dict[str, Any]]], where: str,
             raise fail(p, f"one camera's camera_info (camera_name {d.get('camera_name')!r}); "
                           "a stereo pair is needed: give LEFT.yaml,RIGHT.yaml or a folder "
                           "holding both (a name with 'left' finds its 'right' sibling)")
+        if kind == "ost":
+            raise fail(p, f"an oST file with {len(d['__ost__'])} camera(s); a stereo pair "
+                          "(two camera sections) is needed")
         if kind == "kalibr-mono":
             raise fail(p, "a Kalibr camchain with one camera (cam0 only); a stereo pair is "
                           "needed: a camchain with cam0 and cam1 (T_cn_cnm1)")

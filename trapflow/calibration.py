@@ -91,6 +91,12 @@ def from_extrinsics(*, model: Model, size: tuple[int, int], k1: np.ndarray, d1: 
     """A complete calibration from intrinsics and extrinsics: trapflow rectifies it itself."""
     if model not in MODELS:
         raise ValueError(f"model: expected one of {', '.join(MODELS)}, got {model!r}")
+    det = float(np.linalg.det(np.asarray(r, np.float64).reshape(3, 3)))
+    if abs(det - 1) > 1e-3:
+        raise ValueError(f"R: expected a rotation (det 1), got det {det:.6f}")
+    for name, d in (("D1", d1), ("D2", d2)):
+        if model == "fisheye" and np.size(d) != 4:
+            raise ValueError(f"field {name}: a fisheye lens has 4 coefficients, got {np.size(d)}")
     rect = stereo_rectify(model, k1, d1, k2, d2, size, r, t)
     return StereoCalibration(
         model=model, image_width=size[0], image_height=size[1],

@@ -429,8 +429,6 @@ def _opencv_size(doc: dict[str, Any]) -> tuple[int, int] | None:
 def _complete(model: Model, size: tuple[int, int], k1: np.ndarray, d1: np.ndarray,
               k2: np.ndarray, d2: np.ndarray, r: np.ndarray, t: np.ndarray,
               where: str) -> StereoCalibration:
-    if abs(np.linalg.det(r) - 1) > 1e-3:
-        raise fail(where, f"R: expected a rotation (det 1), got det {np.linalg.det(r):.6f}")
     try:
         return from_extrinsics(model=model, size=size, k1=k1, d1=d1, k2=k2, d2=d2, r=r, t=t)
     except (ValueError, cv2.error) as exc:

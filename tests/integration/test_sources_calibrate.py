@@ -7,11 +7,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import yaml
+from click.testing import CliRunner
 
 from trapflow.calibrate import CalibrationError, calibrate_stereo, expand, parse_pattern
 from trapflow.calibration import load_calibration, save_calibration
 from trapflow.camera import StereoRig
 from trapflow.checkerboard import render_pair
+from trapflow.cli_sources import calibrate
 from trapflow.errors import ConfigError
 from trapflow.sources.rectify import Rectifier
 
@@ -115,3 +118,31 @@ def test_load_calibration_names_the_problem(tmp_path: Path, content: str, error:
 def test_load_calibration_missing_file(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="cannot read calibration"):
         load_calibration(tmp_path / "nope.yaml")
+
+
+@pytest.mark.timeout(90)
+def test_calibrate_command_writes_a_camera_info_pair_that_reads_back(tmp_path: Path) -> None:
+    """`--camera-info DIR` writes left.yaml and right.yaml as ROS camera_info; read back as a
+    pair they give the calibration the command wrote (rectification recomputed the same)."""
+    write_views(tmp_path, n_good=8, n_bad=0)
+    out, info = tmp_path / "calib.yaml", tmp_path / "ros"
+    res = CliRunner().invoke(calibrate, [str(tmp_path / "L" / "*.png"),
+                                         str(tmp_path / "R" / "*.png"), "--square", "0.025",
+                                         "-o", str(out), "--camera-info", str(info)])
+    assert res.exit_code == 0, res.output
+    assert f"written: {info / 'left.yaml'}, {info / 'right.yaml'}" in res.output
+    ours, ros = load_calibration(out), load_calibration(info)
+    left = yaml.safe_load((info / "left.yaml").read_text())
+    assert left["distortion_model"] == "plumb_bob" and left["image_width"] == 640
+    for name in ("K1", "D1", "K2", "D2", "R", "T", "R1", "R2", "P1", "P2", "Q"):
+        np.testing.assert_allclose(ros.arr(name), ours.arr(name), atol=1e-7, err_msg=name)
+
+
+def test_calibrate_command_rejects_an_unknown_model() -> None:
+    res = CliRunner().invoke(calibrate, ["L*.png", "R*.png", "--model", "omni"])
+    assert res.exit_code == 2 and "'omni' is not one of" in res.output
+
+
+def test_calibrate_stereo_rejects_an_unknown_model(tmp_path: Path) -> None:
+    with pytest.raises(CalibrationError, match="model: expected one of pinhole, rational"):
+        calibrate_stereo([tmp_path / "a.png"], [tmp_path / "b.png"], PATTERN, SQUARE, "omni")

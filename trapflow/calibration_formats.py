@@ -17,16 +17,12 @@ from pathlib import Path
 from typing import Any, cast
 
 import cv2
+import msgspec
 import numpy as np
 import yaml
 
-from trapflow.calibration import (
-    StereoCalibration,
-    from_extrinsics,
-    guess_model,
-    parse_trapflow,
-)
-from trapflow.calibration_rectify import Model
+from trapflow.calibration import StereoCalibration, from_extrinsics
+from trapflow.calibration_rectify import MODELS, Model
 from trapflow.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -49,6 +45,52 @@ _KALIBR_MODELS: dict[str, Model] = {"radtan": "pinhole", "equidistant": "fisheye
 def fail(where: str | Path, what: str) -> ConfigError:
     """A ConfigError naming the file, what is wrong and the formats understood."""
     return ConfigError(f"calibration {where}: {what} (formats understood: {FORMATS})")
+
+
+def parse_trapflow(data: dict[str, object], where: str) -> StereoCalibration:
+    """trapflow's own fields, or plain K1/D1/K2/D2/R/T (+ image size) rectified here."""
+    if "R1" not in data and all(k in data for k in ("K1", "D1", "K2", "D2", "R", "T")):
+        return _from_plain(data, where)
+    try:
+        return msgspec.convert(data, StereoCalibration)
+    except msgspec.ValidationError as exc:
+        raise fail(where, str(exc).strip()) from None
+
+
+def _from_plain(data: dict[str, object], where: str) -> StereoCalibration:
+    for key in ("image_width", "image_height"):
+        if not isinstance(data.get(key), int):
+            raise fail(where, f"plain K1/D1/K2/D2/R/T needs {key} (an integer, pixels), "
+                              f"got {data.get(key)!r}; add `image_width: W` and "
+                              "`image_height: H`")
+    size = (int(str(data["image_width"])), int(str(data["image_height"])))
+    try:
+        arrs = {k: np.asarray(data[k], np.float64) for k in ("K1", "D1", "K2", "D2", "R", "T")}
+    except (TypeError, ValueError) as exc:
+        raise fail(where, f"K1/D1/K2/D2/R/T must be numbers: {exc}") from None
+    model = data.get("model") or guess_model(arrs["D1"].size)
+    if model not in MODELS:
+        raise fail(where, f"model: expected one of {', '.join(MODELS)}, got {model!r}")
+    for name, shape in (("K1", (3, 3)), ("K2", (3, 3)), ("R", (3, 3))):
+        if arrs[name].shape != shape:
+            raise fail(where, f"field {name}: expected shape {shape}, got {arrs[name].shape}")
+    if arrs["T"].size != 3:
+        raise fail(where, f"field T: expected 3 numbers, got {arrs['T'].size}")
+    try:
+        return from_extrinsics(model=model, size=size,
+                               k1=arrs["K1"], d1=arrs["D1"], k2=arrs["K2"], d2=arrs["D2"],
+                               r=arrs["R"], t=arrs["T"])
+    except (ValueError, cv2.error) as exc:
+        raise fail(where, str(exc).strip()) from None
+
+
+def guess_model(n_coefficients: int) -> Model:
+    """The lens model a distortion vector implies when the file does not say it.
+
+    Four coefficients are a fisheye's k1..k4: OpenCV's pinhole calibration always writes
+    5, 8, 12 or 14, and ROS camera_calibration's fisheye mode writes 4 under `plumb_bob`.
+    """
+    return "fisheye" if n_coefficients == 4 else "pinhole"
 
 
 def read_calibration(spec: str, image_size: tuple[int, int] | None = None) -> StereoCalibration:

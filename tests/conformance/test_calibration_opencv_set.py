@@ -9,6 +9,7 @@ sample's own image list, stereo_calib.xml (read with OpenCV's FileStorage).
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import cv2
@@ -61,6 +62,12 @@ def test_stereo_calib_recipe_matches_reference_rms(realdata: Path,
     of the reference, same focal length, baseline and rotation, every listed pair used."""
     calib, used, rejected = calibrate(realdata, "rational")
     assert calib.rms_px is not None
+    logging.getLogger(__name__).info(
+        "rational: rms %.4f px (reference %.4f), fx %.2f (%.2f), baseline %.4f (%.4f) squares, "
+        "rotation %.4f deg from the reference's", calib.rms_px, reference["rms"],
+        calib.arr("K1")[0, 0], np.asarray(reference["K1"])[0, 0], calib.baseline_m,
+        np.linalg.norm(np.asarray(reference["T"])),
+        angle_deg(calib.arr("R"), np.asarray(reference["R"])))
     assert abs(calib.rms_px - float(reference["rms"])) < 0.05  # type: ignore[arg-type]
     k1_ref = np.asarray(reference["K1"])
     assert calib.arr("K1")[0, 0] == pytest.approx(k1_ref[0, 0], rel=0.005)
@@ -83,6 +90,9 @@ def test_default_pinhole_model_agrees_with_reference_extrinsics(
     point (cx 342.5 against 340.8) tilt the fitted extrinsics."""
     calib, used, _ = calibrate(realdata, "pinhole")
     assert len(used) == 13
+    logging.getLogger(__name__).info(
+        "pinhole: rms %.4f px, baseline %.4f squares, rotation %.3f deg from the reference's",
+        calib.rms_px, calib.baseline_m, angle_deg(calib.arr("R"), np.asarray(reference["R"])))
     assert calib.rms_px is not None and calib.rms_px < float(reference["rms"])  # type: ignore[arg-type]
     t_ref = np.asarray(reference["T"])
     assert calib.baseline_m == pytest.approx(np.linalg.norm(t_ref), rel=0.01)

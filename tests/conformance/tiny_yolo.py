@@ -162,7 +162,7 @@ def yolov5_model(
     nc: int,
     names: list[str],
     seed: int = 0,
-    obj_bias: float = -3.0,
+    obj_bias: float = -7.0,
 ) -> Path:
     """A YOLOv5-layout detector for RGB input in 0..1 (YOLOv5's letterbox, /255)."""
     rng = np.random.default_rng(seed)

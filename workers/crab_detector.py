@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Annotated, Any, Literal, cast
 
 import msgspec
@@ -74,7 +75,7 @@ class DetectorParams(ModelParams):
 
 
 def _metadata_choice(
-    meta: Mapping[str, str], key: str, allowed: tuple[str, ...], model: str, pool: str
+    meta: Mapping[str, str], key: str, allowed: tuple[str, ...], model: str, param: str, pool: str
 ) -> str | None:
     """A metadata value that must be one of `allowed`; None when the key is absent."""
     raw = meta.get(key)
@@ -84,7 +85,7 @@ def _metadata_choice(
     if value not in allowed:
         raise WorkerError(
             f"model {model} metadata {key!r}: expected one of {', '.join(allowed)}, got "
-            f"{raw[:40]!r} (fix the metadata or set pools.{pool}.params.{key})"
+            f"{raw[:40]!r} (fix the metadata or set pools.{pool}.params.{param})"
         )
     return value
 
@@ -120,6 +121,47 @@ def _metadata_size(meta: Mapping[str, str]) -> tuple[int, int] | None:
     return None
 
 
+@dataclass(frozen=True)
+class InputSpec:
+    """How frames become the model's input: placement, padding, channel order, scaling."""
+
+    placement: Placement
+    pad_value: int
+    rgb: bool
+    scale: float
+
+
+def input_spec(
+    p: DetectorParams, meta: Mapping[str, str], yolox: bool, model: str, pool: str
+) -> InputSpec:
+    """Each setting from params, else the model's metadata, else the layout's toolchain."""
+    placement = p.letterbox if p.letterbox != "auto" else None
+    if placement is None:
+        placement = _metadata_choice(meta, "letterbox", PLACEMENTS, model, "letterbox", pool)
+    color = p.color if p.color != "auto" else None
+    if color is None:
+        color = _metadata_choice(meta, "color_order", ("rgb", "bgr"), model, "color", pool)
+    scale = p.scale
+    if scale is None:
+        scale = _metadata_number(meta, "scale", model, "scale", pool)
+    pad = p.pad_value
+    if pad is None:
+        value = _metadata_number(meta, "pad_value", model, "pad_value", pool)
+        if value is not None and not (0 <= value <= 255 and value == int(value)):
+            raise WorkerError(
+                f"model {model} metadata 'pad_value': expected an integer 0..255, got "
+                f"{meta['pad_value'][:40]!r} (fix the metadata or set "
+                f"pools.{pool}.params.pad_value)"
+            )
+        pad = None if value is None else int(value)
+    return InputSpec(
+        placement=cast(Placement, placement or ("topleft" if yolox else "center")),
+        pad_value=PAD_VALUE if pad is None else pad,
+        rgb=(color or ("bgr" if yolox else "rgb")) == "rgb",
+        scale=(1.0 if yolox else 1.0 / 255.0) if scale is None else scale,
+    )
+
+
 class CrabDetector(Worker):
     """Letterbox -> ONNX model -> decoder -> NMS -> boxes in image pixels, as the toolchain does."""
 
@@ -148,37 +190,16 @@ class CrabDetector(Worker):
         self.labels = load_labels(p.labels, path, meta)
         self.layout = self._probe_layout(path.name, meta, dtype, ctx.pool)
         yolox = self.layout.startswith("yolox")
-        color = p.color if p.color != "auto" else meta.get("color_order", "").lower()
-        if color not in ("rgb", "bgr"):
-            color = "bgr" if yolox else "rgb"
-        scale = p.scale
-        if scale is None:
-            scale = _metadata_number(meta, "scale", path.name, "scale", ctx.pool)
-        if scale is None:
-            scale = 1.0 if yolox else 1.0 / 255.0
-        placement = p.letterbox if p.letterbox != "auto" else None
-        if placement is None:
-            placement = _metadata_choice(meta, "letterbox", PLACEMENTS, path.name, ctx.pool)
-        self.placement = cast(Placement, placement or ("topleft" if yolox else "center"))
-        pad = p.pad_value
-        if pad is None:
-            value = _metadata_number(meta, "pad_value", path.name, "pad_value", ctx.pool)
-            if value is not None and not (0 <= value <= 255 and value == int(value)):
-                raise WorkerError(
-                    f"model {path.name} metadata 'pad_value': expected an integer 0..255, "
-                    f"got {meta['pad_value'][:40]!r} (fix the metadata or set "
-                    f"pools.{ctx.pool}.params.pad_value)"
-                )
-            pad = PAD_VALUE if value is None else int(value)
+        spec = input_spec(p, meta, yolox, path.name, ctx.pool)
         self.agnostic = p.agnostic_nms if p.agnostic_nms is not None else yolox
         # YOLOX's demo NMS counts box edges as whole pixels (x2 - x1 + 1).
         self.edge_pixel = yolox
         self.preprocess = Preprocessor(
             self.input_hw,
-            placement=self.placement,
-            fill=pad,
-            rgb=color == "rgb",
-            scale=scale,
+            placement=spec.placement,
+            fill=spec.pad_value,
+            rgb=spec.rgb,
+            scale=spec.scale,
             mean=p.mean,
             std=p.std,
             nhwc=self.nhwc,
@@ -191,10 +212,10 @@ class CrabDetector(Worker):
             self.layout,
             self.input_hw[1],
             self.input_hw[0],
-            self.placement,
-            pad,
-            color,
-            scale,
+            spec.placement,
+            spec.pad_value,
+            "rgb" if spec.rgb else "bgr",
+            spec.scale,
             "class-agnostic" if self.agnostic else "per-class",
             self.nc,
         )
@@ -209,7 +230,7 @@ class CrabDetector(Worker):
         shape = tuple(int(v) for v in out.shape)
         forced = self.p.layout if self.p.layout != "auto" else None
         if forced is None:
-            forced = _metadata_choice(meta, "layout", LAYOUTS, name, pool)
+            forced = _metadata_choice(meta, "layout", LAYOUTS, name, "layout", pool)
         nc = len(self.labels) if self.labels else None
         if forced:
             layout = cast(Layout, forced)

@@ -155,6 +155,11 @@ def test_provider_fallback_logs_the_provider_used(
         ),
         (
             {"model": "{tmp}/yolov8.onnx"},
+            "meta:color_order=bgra",
+            r"metadata 'color_order': expected one of rgb, bgr, got 'bgra' .*params\.color\)",
+        ),
+        (
+            {"model": "{tmp}/yolov8.onnx"},
             "meta:layout=yolov9",
             "metadata 'layout': expected one of yolov8, yolov5, yolox, yolox_decoded",
         ),

@@ -126,11 +126,12 @@ def _reference_tensor(
 
 
 @pytest.mark.parametrize(
-    ("placement", "rgb", "scale", "mean", "std", "nhwc"),
+    ("placement", "rgb", "scale", "mean", "std", "nhwc", "dtype"),
     [
-        ("center", True, 1 / 255, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), False),
-        ("topleft", False, 1.0, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), False),
-        ("center", True, 0.5, (0.4, 0.5, 0.6), (0.2, 0.25, 0.3), True),
+        ("center", True, 1 / 255, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), False, np.float32),
+        ("topleft", False, 1.0, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), False, np.float32),
+        ("center", True, 0.5, (0.4, 0.5, 0.6), (0.2, 0.25, 0.3), True, np.float32),
+        ("topleft", True, 1 / 255, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), False, np.float16),
     ],
 )
 def test_preprocessor_equals_letterbox_then_conversion(
@@ -140,16 +141,19 @@ def test_preprocessor_equals_letterbox_then_conversion(
     mean: tuple[float, float, float],
     std: tuple[float, float, float],
     nhwc: bool,
+    dtype: type[np.floating],
 ) -> None:
     rng = np.random.default_rng(3)
-    pre = Preprocessor((320, 320), placement, 114, rgb, scale, mean, std, nhwc)
+    pre = Preprocessor((320, 320), placement, 114, rgb, scale, mean, std, nhwc, dtype)
     # Frames of changing sizes: the padding is rebuilt, the buffer reused.
     for shape in [(480, 640), (300, 200), (480, 640), (320, 320)]:
         img = rng.integers(0, 256, (*shape, 3), np.uint8)
         tensor, lb = pre(img)
         ref = _reference_tensor(img, (320, 320), placement, rgb, scale, mean, std)
         got = tensor.transpose(0, 3, 1, 2) if nhwc else tensor
-        np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-6)
+        assert got.dtype == dtype
+        tol = 1e-3 if dtype == np.float16 else 1e-6  # float16: 11 significant bits
+        np.testing.assert_allclose(got, ref, rtol=tol, atol=tol)
         assert lb == fit(shape[0], shape[1], (320, 320), placement)
     assert pre(img)[0] is tensor  # one buffer, no allocation per frame
 

@@ -1,7 +1,10 @@
 """mono_ir: an ONNX object detector (YOLOv8/YOLO11, YOLOv5 or YOLOX layout) on the left image.
 
 Works with the packaged demo crab detector and with any model exported from those
-toolchains: input size, labels and colour order come from params, else the model.
+toolchains: input size, labels and colour order come from params, else the model. Each
+layout gets its own toolchain's pre- and post-processing unless params or metadata say
+otherwise: Ultralytics (v5, v8, 11) a centred letterbox, RGB, /255 and per-class NMS;
+YOLOX the image at the top-left, BGR, no scaling and class-agnostic NMS (its ONNX demo).
 """
 
 from __future__ import annotations
@@ -9,7 +12,8 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Mapping
-from typing import Annotated, Any, Literal
+from dataclasses import dataclass
+from typing import Annotated, Any, Literal, cast
 
 import msgspec
 import numpy as np
@@ -17,13 +21,14 @@ from trapflow_workers.common import check_frame, load_labels, model_path, parse_
 from trapflow_workers.onnx_session import ModelParams, Session, open_session
 from trapflow_workers.yolo_decode import (
     DEFAULT_STRIDES,
+    LAYOUTS,
     Layout,
     check_layout,
     decode,
     detect_layout,
-    letterbox,
     nms,
 )
+from trapflow_workers.yolo_preprocess import PAD_VALUE, PLACEMENTS, Placement, Preprocessor
 
 from trapflow.errors import WorkerError
 from trapflow.messages import Detection, MonoIR
@@ -38,15 +43,23 @@ Side = Annotated[int, msgspec.Meta(ge=16, le=4096)]
 class DetectorParams(ModelParams):
     """`pools.mono.params`: every key is optional (empty model: the packaged one)."""
 
-    layout: Literal["auto", "yolov8", "yolov5", "yolox"] = "auto"
-    """Output decoder; auto chooses from the output shape."""
+    layout: Literal["auto", "yolov8", "yolov5", "yolox", "yolox_decoded"] = "auto"
+    """Output decoder; auto = metadata `layout`, else chosen from the output shape (and for
+    YOLOX from its values: raw grid offsets or boxes decoded in the graph)."""
     confidence: Unit = 0.25
-    """Detections below this score are dropped."""
+    """Detections at or below this score are dropped."""
     iou: Unit = 0.45
-    """NMS IoU threshold (per class)."""
+    """NMS IoU threshold."""
+    agnostic_nms: bool | None = None
+    """NMS across classes; default: true for YOLOX (its ONNX demo), false otherwise."""
     max_detections: Annotated[int, msgspec.Meta(ge=1, le=1000)] = 100
     input_size: tuple[Side, Side] | None = None
     """(height, width) for models with a dynamic input; default: the model's, else 640x640."""
+    letterbox: Literal["auto", "center", "topleft"] = "auto"
+    """Where the resized image goes in the input; auto = metadata `letterbox`, else topleft
+    for YOLOX (its preproc) and center otherwise (Ultralytics' LetterBox)."""
+    pad_value: Annotated[int, msgspec.Meta(ge=0, le=255)] | None = None
+    """Grey level of the padding; default: metadata `pad_value`, else 114."""
     color: Literal["auto", "rgb", "bgr"] = "auto"
     """Channel order fed to the model; auto = metadata `color_order`, else bgr for yolox, rgb."""
     scale: float | None = None
@@ -59,6 +72,38 @@ class DetectorParams(ModelParams):
     """Head strides for yolox grid decoding."""
     image: Literal["left", "right"] = "left"
     """Which image of the pair to analyse."""
+
+
+def _metadata_choice(
+    meta: Mapping[str, str], key: str, allowed: tuple[str, ...], model: str, param: str, pool: str
+) -> str | None:
+    """A metadata value that must be one of `allowed`; None when the key is absent."""
+    raw = meta.get(key)
+    if raw is None:
+        return None
+    value = raw.strip().lower()
+    if value not in allowed:
+        raise WorkerError(
+            f"model {model} metadata {key!r}: expected one of {', '.join(allowed)}, got "
+            f"{raw[:40]!r} (fix the metadata or set pools.{pool}.params.{param})"
+        )
+    return value
+
+
+def _metadata_number(
+    meta: Mapping[str, str], key: str, model: str, param: str, pool: str
+) -> float | None:
+    """A numeric metadata value; None when the key is absent."""
+    raw = meta.get(key)
+    if raw is None:
+        return None
+    try:
+        return float(raw)
+    except ValueError:
+        raise WorkerError(
+            f"model {model} metadata {key!r}: expected a number, got {raw[:40]!r} "
+            f"(fix the metadata or set pools.{pool}.params.{param})"
+        ) from None
 
 
 def _metadata_size(meta: Mapping[str, str]) -> tuple[int, int] | None:
@@ -76,8 +121,49 @@ def _metadata_size(meta: Mapping[str, str]) -> tuple[int, int] | None:
     return None
 
 
+@dataclass(frozen=True)
+class InputSpec:
+    """How frames become the model's input: placement, padding, channel order, scaling."""
+
+    placement: Placement
+    pad_value: int
+    rgb: bool
+    scale: float
+
+
+def input_spec(
+    p: DetectorParams, meta: Mapping[str, str], yolox: bool, model: str, pool: str
+) -> InputSpec:
+    """Each setting from params, else the model's metadata, else the layout's toolchain."""
+    placement = p.letterbox if p.letterbox != "auto" else None
+    if placement is None:
+        placement = _metadata_choice(meta, "letterbox", PLACEMENTS, model, "letterbox", pool)
+    color = p.color if p.color != "auto" else None
+    if color is None:
+        color = _metadata_choice(meta, "color_order", ("rgb", "bgr"), model, "color", pool)
+    scale = p.scale
+    if scale is None:
+        scale = _metadata_number(meta, "scale", model, "scale", pool)
+    pad = p.pad_value
+    if pad is None:
+        value = _metadata_number(meta, "pad_value", model, "pad_value", pool)
+        if value is not None and not (0 <= value <= 255 and value == int(value)):
+            raise WorkerError(
+                f"model {model} metadata 'pad_value': expected an integer 0..255, got "
+                f"{meta['pad_value'][:40]!r} (fix the metadata or set "
+                f"pools.{pool}.params.pad_value)"
+            )
+        pad = None if value is None else int(value)
+    return InputSpec(
+        placement=cast(Placement, placement or ("topleft" if yolox else "center")),
+        pad_value=PAD_VALUE if pad is None else pad,
+        rgb=(color or ("bgr" if yolox else "rgb")) == "rgb",
+        scale=(1.0 if yolox else 1.0 / 255.0) if scale is None else scale,
+    )
+
+
 class CrabDetector(Worker):
-    """Letterbox -> ONNX model -> decoder -> class-aware NMS -> boxes in image pixels."""
+    """Letterbox -> ONNX model -> decoder -> NMS -> boxes in image pixels, as the toolchain does."""
 
     def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
         p = parse_params(params, DetectorParams, ctx.pool)
@@ -100,43 +186,56 @@ class CrabDetector(Worker):
         size = p.input_size or static or _metadata_size(meta) or (640, 640)
         self.input_hw: tuple[int, int] = (int(size[0]), int(size[1]))
         self.input_name = inp.name
-        self.dtype = self.session.input_dtype()
+        dtype = self.session.input_dtype()
         self.labels = load_labels(p.labels, path, meta)
-        self.layout = self._probe_layout(path.name, meta)
-        color = p.color if p.color != "auto" else meta.get("color_order", "").lower()
-        if color not in ("rgb", "bgr"):
-            color = "bgr" if self.layout == "yolox" else "rgb"
-        self.rgb = color == "rgb"
-        if p.scale is not None:
-            self.scale = p.scale
-        elif "scale" in meta:
-            self.scale = float(meta["scale"])
-        else:
-            self.scale = 1.0 if self.layout == "yolox" else 1.0 / 255.0
-        self.mean = np.asarray(p.mean, np.float32).reshape(3, 1, 1)
-        self.std = np.asarray(p.std, np.float32).reshape(3, 1, 1)
+        self.layout = self._probe_layout(path.name, meta, dtype, ctx.pool)
+        yolox = self.layout.startswith("yolox")
+        spec = input_spec(p, meta, yolox, path.name, ctx.pool)
+        self.agnostic = p.agnostic_nms if p.agnostic_nms is not None else yolox
+        # YOLOX's demo NMS counts box edges as whole pixels (x2 - x1 + 1).
+        self.edge_pixel = yolox
+        self.preprocess = Preprocessor(
+            self.input_hw,
+            placement=spec.placement,
+            fill=spec.pad_value,
+            rgb=spec.rgb,
+            scale=spec.scale,
+            mean=p.mean,
+            std=p.std,
+            nhwc=self.nhwc,
+            dtype=dtype,
+        )
         log.info(
-            "detector %s: layout %s, input %dx%d, %s, %d classes",
+            "detector %s: layout %s, input %dx%d, letterbox %s pad %d, %s, scale %.6g, "
+            "%s NMS, %d classes",
             path.name,
             self.layout,
             self.input_hw[1],
             self.input_hw[0],
-            color,
+            spec.placement,
+            spec.pad_value,
+            "rgb" if spec.rgb else "bgr",
+            spec.scale,
+            "class-agnostic" if self.agnostic else "per-class",
             self.nc,
         )
 
-    def _probe_layout(self, name: str, meta: Mapping[str, str]) -> Layout:
-        """Run the model once on a blank input: the output shape fixes the decoder."""
-        out = self.session.run(
-            {self.input_name: self._blob(np.full((*self.input_hw, 3), 114, np.uint8), probe=True)}
-        )[0]
+    def _probe_layout(
+        self, name: str, meta: Mapping[str, str], dtype: type[np.floating], pool: str
+    ) -> Layout:
+        """Run the model once on a blank grey input: the output fixes the decoder."""
+        h, w = self.input_hw
+        blank = np.full((1, h, w, 3) if self.nhwc else (1, 3, h, w), PAD_VALUE, dtype)
+        out = self.session.run({self.input_name: blank})[0]
         shape = tuple(int(v) for v in out.shape)
-        forced = self.p.layout if self.p.layout != "auto" else meta.get("layout", "auto")
+        forced = self.p.layout if self.p.layout != "auto" else None
+        if forced is None:
+            forced = _metadata_choice(meta, "layout", LAYOUTS, name, "layout", pool)
         nc = len(self.labels) if self.labels else None
-        if forced in ("yolov8", "yolov5", "yolox"):
-            layout: Layout = forced
+        if forced:
+            layout = cast(Layout, forced)
         else:
-            layout = detect_layout(shape, self.input_hw, nc, self.p.strides)
+            layout = detect_layout(shape, self.input_hw, nc, self.p.strides, sample=out)
         self.nc = check_layout(layout, shape, self.input_hw, self.p.strides)
         if nc is not None and nc != self.nc:
             raise WorkerError(
@@ -145,25 +244,23 @@ class CrabDetector(Worker):
             )
         return layout
 
-    def _blob(self, img: np.ndarray, probe: bool = False) -> np.ndarray:
-        if not probe and self.rgb:
-            img = img[:, :, ::-1]
-        x = img.transpose(2, 0, 1).astype(np.float32) * np.float32(self.scale if not probe else 1.0)
-        if not probe:
-            x = (x - self.mean) / self.std
-        if self.nhwc:
-            x = x.transpose(1, 2, 0)
-        return np.ascontiguousarray(x[None], dtype=self.dtype)
-
     def process(self, pair: Pair) -> MonoIR:
         check_frame(pair)
         image = pair.left if self.p.image == "left" else pair.right
-        boxed, lb = letterbox(image, self.input_hw)
-        out = self.session.run({self.input_name: self._blob(boxed)})[0]
+        tensor, lb = self.preprocess(image)
+        out = self.session.run({self.input_name: tensor})[0]
         boxes, scores, ids = decode(
             out, self.layout, self.p.confidence, self.input_hw, self.p.strides
         )
-        keep = nms(boxes, scores, ids, self.p.iou, self.p.max_detections)
+        keep = nms(
+            boxes,
+            scores,
+            ids,
+            self.p.iou,
+            self.p.max_detections,
+            agnostic=self.agnostic,
+            pixel=lb.scale if self.edge_pixel else 0.0,
+        )
         mapped = lb.to_image(boxes[keep], image.shape[1], image.shape[0])
         dets = [
             Detection(

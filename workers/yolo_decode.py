@@ -1,63 +1,28 @@
-"""Pure-numpy pre- and post-processing for YOLO-family detectors: letterbox, decoders, NMS.
+"""Pure-numpy post-processing for YOLO-family detectors: layout detection, decoders, NMS.
 
 Layouts (batch 1):
-  yolov8  [1, 4+nc, N]  Ultralytics YOLOv8 / YOLO11: cx, cy, w, h, class scores
-  yolov5  [1, N, 5+nc]  YOLOv5: cx, cy, w, h, objectness, class scores
-  yolox   [1, N, 5+nc]  YOLOX exported without decode_in_inference: grid offsets and
-                        log sizes per stride, objectness and class scores (sigmoided)
+  yolov8         [1, 4+nc, N]  Ultralytics YOLOv8 / YOLO11: cx, cy, w, h, class scores
+  yolov5         [1, N, 5+nc]  YOLOv5: cx, cy, w, h, objectness, class scores
+  yolox          [1, N, 5+nc]  YOLOX as its export_onnx.py writes it by default (no
+                               --decode_in_inference): grid offsets and log sizes per
+                               stride, objectness and class scores (sigmoided)
+  yolox_decoded  [1, N, 5+nc]  YOLOX exported with --decode_in_inference: cx, cy, w, h in
+                               input pixels, objectness, class scores
+Scores are objectness x class score where there is an objectness column.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Literal
 
-import cv2
 import numpy as np
 
 from trapflow.errors import WorkerError
 
-Layout = Literal["yolov8", "yolov5", "yolox"]
-LAYOUTS: tuple[Layout, ...] = ("yolov8", "yolov5", "yolox")
+Layout = Literal["yolov8", "yolov5", "yolox", "yolox_decoded"]
+LAYOUTS: tuple[Layout, ...] = ("yolov8", "yolov5", "yolox", "yolox_decoded")
 DEFAULT_STRIDES = (8, 16, 32)
 MAX_CANDIDATES = 4096  # boxes kept for NMS, best first; bounds its quadratic cost
-
-
-@dataclass(frozen=True)
-class Letterbox:
-    """How an image was fitted into the model input: scale, then padding left/top."""
-
-    scale: float
-    pad_x: float
-    pad_y: float
-
-    def to_image(self, boxes: np.ndarray, width: int, height: int) -> np.ndarray:
-        """Map xyxy boxes from model input pixels back to the original image, clipped."""
-        out = boxes.astype(np.float64, copy=True)
-        out[:, [0, 2]] = (out[:, [0, 2]] - self.pad_x) / self.scale
-        out[:, [1, 3]] = (out[:, [1, 3]] - self.pad_y) / self.scale
-        out[:, [0, 2]] = out[:, [0, 2]].clip(0, width)
-        out[:, [1, 3]] = out[:, [1, 3]].clip(0, height)
-        return out
-
-
-def letterbox(
-    image: np.ndarray, size: tuple[int, int], fill: int = 114
-) -> tuple[np.ndarray, Letterbox]:
-    """Resize keeping the aspect ratio and pad to size (height, width), as Ultralytics does."""
-    h, w = image.shape[:2]
-    th, tw = size
-    r = min(th / h, tw / w)
-    nw, nh = int(round(w * r)), int(round(h * r))
-    dw, dh = (tw - nw) / 2.0, (th - nh) / 2.0
-    if (nw, nh) != (w, h):
-        image = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_LINEAR)
-    top, left = int(round(dh - 0.1)), int(round(dw - 0.1))
-    bottom, right = th - nh - top, tw - nw - left
-    out = cv2.copyMakeBorder(
-        image, top, bottom, left, right, cv2.BORDER_CONSTANT, value=(fill, fill, fill)
-    )
-    return out, Letterbox(scale=r, pad_x=float(left), pad_y=float(top))
 
 
 def grid_size(input_hw: tuple[int, int], strides: tuple[int, ...] = DEFAULT_STRIDES) -> int:
@@ -71,13 +36,44 @@ def detect_layout(
     input_hw: tuple[int, int],
     nc: int | None,
     strides: tuple[int, ...] = DEFAULT_STRIDES,
+    sample: np.ndarray | None = None,
 ) -> Layout:
     """Choose the decoder from the output shape; WorkerError when no decoder fits.
 
     With known class count nc the channel axis is unambiguous; without it the
     shorter axis is taken as channels. [1, N, 5+nc] is YOLOX when N equals the
     anchor-free grid size of the input, YOLOv5 (3 anchors per cell) otherwise.
+    A YOLOX output is raw grid offsets (`yolox`) unless `sample`, one output of
+    the model, shows boxes already decoded (`yolox_decoded`, see yolox_is_decoded).
     """
+    layout = _layout_of_shape(shape, input_hw, nc, strides)
+    if layout == "yolox" and sample is not None and yolox_is_decoded(sample, input_hw, strides):
+        return "yolox_decoded"
+    return layout
+
+
+def yolox_is_decoded(
+    output: np.ndarray, input_hw: tuple[int, int], strides: tuple[int, ...] = DEFAULT_STRIDES
+) -> bool:
+    """Whether a [1, N, 5+nc] YOLOX output holds box centres in input pixels.
+
+    Decoded centres sit near their grid cell's centre (xy ~ (cell + 0.5) * stride,
+    hundreds of pixels across the input); raw ones are offsets near 0..1 in every
+    cell. Whichever the centres lie closer to, over all cells, decides.
+    """
+    xy = np.asarray(output, dtype=np.float64)[0, :, :2]
+    grid, stride = _yolox_grid(input_hw, strides)
+    as_decoded = np.median(np.abs(xy - (grid + 0.5) * stride) / stride)
+    as_raw = np.median(np.abs(xy - 0.5))
+    return bool(as_decoded < as_raw)
+
+
+def _layout_of_shape(
+    shape: tuple[int, ...],
+    input_hw: tuple[int, int],
+    nc: int | None,
+    strides: tuple[int, ...],
+) -> Layout:
     if len(shape) != 3 or shape[0] != 1:
         raise WorkerError(
             f"detector output: expected [1, 4+nc, N] or [1, N, 5+nc], got {list(shape)}"
@@ -113,6 +109,8 @@ def check_layout(
     """Check that a (forced) layout fits the output shape; returns the class count."""
     if len(shape) != 3 or shape[0] != 1:
         raise WorkerError(f"detector output: expected rank 3 with batch 1, got {list(shape)}")
+    if layout not in LAYOUTS:
+        raise WorkerError(f"detector layout: expected one of {', '.join(LAYOUTS)}, got {layout!r}")
     nc = shape[1] - 4 if layout == "yolov8" else shape[2] - 5
     if nc < 1:
         raise WorkerError(
@@ -150,7 +148,7 @@ def decode(
     input_hw: tuple[int, int],
     strides: tuple[int, ...] = DEFAULT_STRIDES,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Candidate boxes (xyxy, model input pixels), scores and class ids with score >= conf."""
+    """Candidate boxes (xyxy, model input pixels), scores and class ids with score > conf."""
     out = np.asarray(output, dtype=np.float32)[0]
     if layout == "yolov8":
         rows = out.T
@@ -168,7 +166,7 @@ def decode(
             )
         class_ids = rows[:, 5:].argmax(axis=1)
         scores = rows[:, 4] * rows[np.arange(len(rows)), 5 + class_ids]
-    keep = scores >= conf
+    keep = scores > conf  # strictly above, as Ultralytics, YOLOv5 and YOLOX all filter
     boxes, scores, class_ids = boxes[keep], scores[keep], class_ids[keep]
     if len(scores) > MAX_CANDIDATES:
         top = np.argsort(-scores)[:MAX_CANDIDATES]
@@ -176,32 +174,49 @@ def decode(
     return _xywh_to_xyxy(boxes), scores, class_ids
 
 
-def iou_one_to_many(box: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-    """IoU of one xyxy box with each of `boxes`."""
+def iou_one_to_many(box: np.ndarray, boxes: np.ndarray, pixel: float = 0.0) -> np.ndarray:
+    """IoU of one xyxy box with each of `boxes`.
+
+    `pixel` is added to every width and height, for toolchains that count box edges as
+    whole pixels: YOLOX's demo NMS takes x2 - x1 + 1 in image pixels, which is `pixel` = r
+    on boxes in model-input pixels (r: the letterbox scale).
+    """
     x1 = np.maximum(box[0], boxes[:, 0])
     y1 = np.maximum(box[1], boxes[:, 1])
     x2 = np.minimum(box[2], boxes[:, 2])
     y2 = np.minimum(box[3], boxes[:, 3])
-    inter = np.clip(x2 - x1, 0, None) * np.clip(y2 - y1, 0, None)
-    area = (box[2] - box[0]) * (box[3] - box[1])
-    areas = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+    inter = np.clip(x2 - x1 + pixel, 0, None) * np.clip(y2 - y1 + pixel, 0, None)
+    area = (box[2] - box[0] + pixel) * (box[3] - box[1] + pixel)
+    areas = (boxes[:, 2] - boxes[:, 0] + pixel) * (boxes[:, 3] - boxes[:, 1] + pixel)
     return np.asarray(inter / np.maximum(area + areas - inter, 1e-9))
 
 
 def nms(
-    boxes: np.ndarray, scores: np.ndarray, class_ids: np.ndarray, iou: float, max_det: int = 300
+    boxes: np.ndarray,
+    scores: np.ndarray,
+    class_ids: np.ndarray,
+    iou: float,
+    max_det: int = 300,
+    agnostic: bool = False,
+    pixel: float = 0.0,
 ) -> np.ndarray:
-    """Class-aware greedy NMS; indices of kept boxes, best score first."""
+    """Greedy NMS, per class unless `agnostic`; indices of kept boxes, best score first.
+
+    Per class is what Ultralytics and YOLOv5 do; YOLOX's ONNX demo (multiclass_nms) is
+    class-agnostic by default. `pixel`: see iou_one_to_many.
+    """
     if len(scores) == 0:
         return np.zeros(0, dtype=np.int64)
-    # Offsetting each class into its own region makes boxes of different classes disjoint.
-    span = float(np.abs(boxes).max()) + 1.0
-    shifted = boxes + (class_ids.astype(np.float64) * 2.0 * span)[:, None]
+    shifted = boxes.astype(np.float64)
+    if not agnostic:
+        # Offsetting each class into its own region makes boxes of different classes disjoint.
+        span = float(np.abs(boxes).max()) + 1.0 + pixel
+        shifted = shifted + (class_ids.astype(np.float64) * 2.0 * span)[:, None]
     order = np.argsort(-scores, kind="stable")
     kept: list[int] = []
     while order.size and len(kept) < max_det:
         i = int(order[0])
         kept.append(i)
         rest = order[1:]
-        order = rest[iou_one_to_many(shifted[i], shifted[rest]) <= iou]
+        order = rest[iou_one_to_many(shifted[i], shifted[rest], pixel) <= iou]
     return np.asarray(kept, dtype=np.int64)

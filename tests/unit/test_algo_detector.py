@@ -16,9 +16,11 @@ from trapflow_workers.testkit_onnx import constant_detector, yolo_tensor
 from trapflow.errors import WorkerError
 
 HW = (320, 320)
-# Boxes in model input pixels; a 640x480 frame is scaled by 0.5 and padded 40 px top.
+# Boxes in model input pixels; a 640x480 frame is scaled by 0.5 and padded 40 px top
+# (Ultralytics' centred letterbox) or placed at the top-left (YOLOX's preproc).
 INPUT_BOXES = [(40.0, 60.0, 120.0, 140.0), (200.0, 100.0, 260.0, 160.0)]
 IMAGE_BOXES = [(80.0, 40.0, 240.0, 200.0), (400.0, 120.0, 520.0, 240.0)]
+IMAGE_BOXES_TOPLEFT = [(80.0, 120.0, 240.0, 280.0), (400.0, 200.0, 520.0, 320.0)]
 
 
 def _model(tmp_path: Path, layout: str, n: int = 500, **kw: Any) -> Path:
@@ -40,7 +42,49 @@ def test_detects_known_boxes_in_image_pixels(tmp_path: Path, layout: str) -> Non
     dets = _run({"model": str(_model(tmp_path, layout)), "labels": str(labels)})
     assert [d.label for d in dets] == ["crab", "fish"]
     assert [d.confidence for d in dets] == pytest.approx([0.9, 0.6])
+    expected = IMAGE_BOXES_TOPLEFT if layout == "yolox" else IMAGE_BOXES
+    np.testing.assert_allclose([d.box for d in dets], expected, atol=0.01)
+
+
+@pytest.mark.parametrize(
+    ("layout", "placement", "rgb", "scale", "agnostic"),
+    [
+        ("yolov8", "center", True, 1 / 255, False),
+        ("yolov5", "center", True, 1 / 255, False),
+        ("yolox", "topleft", False, 1.0, True),
+    ],
+)
+def test_each_layout_gets_its_toolchains_processing(
+    tmp_path: Path, layout: str, placement: str, rgb: bool, scale: float, agnostic: bool
+) -> None:
+    det = CrabDetector()
+    det.configure({"model": str(_model(tmp_path, layout))}, make_context(pool="mono"))
+    pre = det.preprocess
+    assert (pre.placement, pre.fill, pre.rgb, pre.scale) == (placement, 114, rgb, scale)
+    assert det.agnostic is agnostic
+
+
+def test_preprocessing_from_params_then_metadata(tmp_path: Path) -> None:
+    """Params win over metadata, metadata over the layout's toolchain defaults."""
+    meta = {"letterbox": "topleft", "pad_value": "0", "color_order": "bgr", "scale": "1"}
+    dets = _run({"model": str(_model(tmp_path, "yolov8", metadata=meta))})
+    np.testing.assert_allclose([d.box for d in dets], IMAGE_BOXES_TOPLEFT, atol=0.01)
+    det = CrabDetector()
+    det.configure({"model": str(_model(tmp_path, "yolov8", metadata=meta))}, make_context())
+    assert (det.preprocess.fill, det.preprocess.rgb, det.preprocess.scale) == (0, False, 1.0)
+    dets = _run(
+        {"model": str(_model(tmp_path, "yolox")), "letterbox": "center", "agnostic_nms": False}
+    )
     np.testing.assert_allclose([d.box for d in dets], IMAGE_BOXES, atol=0.01)
+    frame = np.full((480, 640, 3), 200, np.uint8)
+    det.configure(
+        {"model": str(_model(tmp_path, "yolov8")), "pad_value": 0, "color": "bgr"},
+        make_context(pool="mono"),
+    )
+    tensor, lb = det.preprocess(frame)
+    assert (lb.pad_x, lb.pad_y) == (0, 40)
+    assert tensor[0, :, 0, 0].tolist() == [0.0, 0.0, 0.0]  # the padding
+    assert tensor[0, :, 100, 100].tolist() == pytest.approx([200 / 255] * 3)
 
 
 def test_labels_from_ultralytics_metadata_and_layout_override(tmp_path: Path) -> None:
@@ -92,6 +136,33 @@ def test_provider_fallback_logs_the_provider_used(
             "fixed input of 320x320",
         ),
         ({"model": "{tmp}/odd.onnx"}, "odd", "matches no decoder"),
+        ({"model": "{tmp}/yolov8.onnx", "letterbox": "middle"}, "yolov8", r"params\.letterbox"),
+        ({"model": "{tmp}/yolov8.onnx", "pad_value": 256}, "yolov8", r"params\.pad_value"),
+        (
+            {"model": "{tmp}/yolov8.onnx"},
+            "meta:letterbox=middle",
+            "metadata 'letterbox': expected one of center, topleft, got 'middle'",
+        ),
+        (
+            {"model": "{tmp}/yolov8.onnx"},
+            "meta:pad_value=300",
+            "metadata 'pad_value': expected an integer 0..255, got '300'",
+        ),
+        (
+            {"model": "{tmp}/yolov8.onnx"},
+            "meta:scale=1/255",
+            r"metadata 'scale': expected a number, got '1/255' .*params\.scale",
+        ),
+        (
+            {"model": "{tmp}/yolov8.onnx"},
+            "meta:color_order=bgra",
+            r"metadata 'color_order': expected one of rgb, bgr, got 'bgra' .*params\.color\)",
+        ),
+        (
+            {"model": "{tmp}/yolov8.onnx"},
+            "meta:layout=yolov9",
+            "metadata 'layout': expected one of yolov8, yolov5, yolox, yolox_decoded",
+        ),
     ],
 )
 def test_configure_rejects(
@@ -101,6 +172,9 @@ def test_configure_rejects(
         (tmp_path / "bad.onnx").write_bytes(b"not a model")
     elif setup == "odd":
         constant_detector(tmp_path / "odd.onnx", np.zeros((1, 4, 3), np.float32), HW)
+    elif setup and setup.startswith("meta:"):
+        key, value = setup[5:].split("=", 1)
+        _model(tmp_path, "yolov8", metadata={key: value})
     elif setup:
         _model(tmp_path, setup)
     (tmp_path / "three.txt").write_text("a\nb\nc\n")

@@ -1,4 +1,4 @@
-"""Letterbox, layout detection, decoders and NMS of the YOLO post-processing (pure numpy)."""
+"""Letterbox and input tensor, layout detection, decoders and NMS for YOLO-family detectors."""
 
 from __future__ import annotations
 
@@ -6,13 +6,15 @@ import numpy as np
 import pytest
 from trapflow_workers.testkit_onnx import yolo_tensor
 from trapflow_workers.yolo_decode import (
+    DEFAULT_STRIDES,
+    _yolox_grid,
     check_layout,
     decode,
     detect_layout,
     grid_size,
-    letterbox,
     nms,
 )
+from trapflow_workers.yolo_preprocess import Placement, Preprocessor, fit, letterbox
 
 from trapflow.errors import WorkerError
 
@@ -84,3 +86,109 @@ def test_confidence_threshold_filters() -> None:
     out = yolo_tensor("yolov8", BOXES, [0, 1], [0.9, 0.2], nc=2, input_hw=(320, 320), n=50)
     _, scores, _ = decode(out, "yolov8", 0.25, (320, 320))
     assert scores.tolist() == pytest.approx([0.9])
+
+
+@pytest.mark.parametrize(
+    ("shape", "size", "placement", "expected"),
+    [
+        # (height, width) -> (scale, pad_x, pad_y, width, height)
+        ((720, 1280), (640, 640), "center", (0.5, 0, 140, 640, 360)),
+        ((720, 1280), (640, 640), "topleft", (0.5, 0, 0, 640, 360)),
+        ((1080, 810), (640, 640), "center", (640 / 1080, 80, 0, 480, 640)),
+        # 640 * 0.65 = 277.55 (427 rows): YOLOX truncates, Ultralytics rounds and
+        # puts the odd padding pixel at the bottom.
+        ((427, 640), (416, 416), "topleft", (0.65, 0, 0, 416, 277)),
+        ((427, 640), (416, 416), "center", (0.65, 0, 69, 416, 278)),
+    ],
+)
+def test_fit_places_the_image_as_each_toolchain(
+    shape: tuple[int, int], size: tuple[int, int], placement: Placement, expected: tuple
+) -> None:
+    lb = fit(shape[0], shape[1], size, placement)
+    assert (lb.scale, lb.pad_x, lb.pad_y, lb.width, lb.height) == pytest.approx(expected)
+
+
+def _reference_tensor(
+    img: np.ndarray,
+    size: tuple[int, int],
+    placement: Placement,
+    rgb: bool,
+    scale: float,
+    mean: tuple[float, float, float],
+    std: tuple[float, float, float],
+) -> np.ndarray:
+    boxed, _ = letterbox(img, size, 114, placement)
+    x = boxed[:, :, ::-1] if rgb else boxed
+    x = x.transpose(2, 0, 1).astype(np.float32)
+    x = x / np.float32(255.0) if scale == 1 / 255 else x * np.float32(scale)
+    x = (x - np.float32(mean).reshape(3, 1, 1)) / np.float32(std).reshape(3, 1, 1)
+    return x[None]
+
+
+@pytest.mark.parametrize(
+    ("placement", "rgb", "scale", "mean", "std", "nhwc", "dtype"),
+    [
+        ("center", True, 1 / 255, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), False, np.float32),
+        ("topleft", False, 1.0, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), False, np.float32),
+        ("center", True, 0.5, (0.4, 0.5, 0.6), (0.2, 0.25, 0.3), True, np.float32),
+        ("topleft", True, 1 / 255, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), False, np.float16),
+    ],
+)
+def test_preprocessor_equals_letterbox_then_conversion(
+    placement: Placement,
+    rgb: bool,
+    scale: float,
+    mean: tuple[float, float, float],
+    std: tuple[float, float, float],
+    nhwc: bool,
+    dtype: type[np.floating],
+) -> None:
+    rng = np.random.default_rng(3)
+    pre = Preprocessor((320, 320), placement, 114, rgb, scale, mean, std, nhwc, dtype)
+    # Frames of changing sizes: the padding is rebuilt, the buffer reused.
+    for shape in [(480, 640), (300, 200), (480, 640), (320, 320)]:
+        img = rng.integers(0, 256, (*shape, 3), np.uint8)
+        tensor, lb = pre(img)
+        ref = _reference_tensor(img, (320, 320), placement, rgb, scale, mean, std)
+        got = tensor.transpose(0, 3, 1, 2) if nhwc else tensor
+        assert got.dtype == dtype
+        tol = 1e-3 if dtype == np.float16 else 1e-6  # float16: 11 significant bits
+        np.testing.assert_allclose(got, ref, rtol=tol, atol=tol)
+        assert lb == fit(shape[0], shape[1], (320, 320), placement)
+    assert pre(img)[0] is tensor  # one buffer, no allocation per frame
+
+
+def test_preprocessor_divides_by_255_bit_for_bit() -> None:
+    """Ultralytics divides by 255; multiplying by 1/255 differs in the last bit."""
+    img = np.arange(256, dtype=np.uint8).repeat(3).reshape(16, 16, 3)
+    tensor, _ = Preprocessor((16, 16), "center", 114, True, 1 / 255)(img)
+    expected = img[:, :, ::-1].transpose(2, 0, 1).astype(np.float32) / np.float32(255.0)
+    assert np.array_equal(tensor[0], expected)
+
+
+def test_yolox_raw_and_decoded_outputs_are_told_apart() -> None:
+    hw = (320, 320)
+    raw = yolo_tensor("yolox", BOXES, [0, 2], [0.9, 0.8], nc=3, input_hw=hw)
+    grid, stride = _yolox_grid(hw, DEFAULT_STRIDES)
+    decoded = raw.copy()
+    decoded[0, :, :2] = (raw[0, :, :2] + grid) * stride
+    decoded[0, :, 2:4] = np.exp(raw[0, :, 2:4]) * stride
+    assert detect_layout(raw.shape, hw, 3, sample=raw) == "yolox"
+    assert detect_layout(decoded.shape, hw, 3, sample=decoded) == "yolox_decoded"
+    for layout, out in (("yolox", raw), ("yolox_decoded", decoded)):
+        boxes, scores, ids = decode(out, layout, 0.25, hw)  # type: ignore[arg-type]
+        order = np.argsort(-scores)
+        np.testing.assert_allclose(boxes[order], BOXES, atol=1e-3)
+        assert ids[order].tolist() == [0, 2]
+
+
+def test_nms_class_agnostic_and_whole_pixel_edges() -> None:
+    boxes = np.array([[0, 0, 10, 10], [0, 0, 10, 10], [0, 0, 9, 12]], float)
+    scores = np.array([0.9, 0.8, 0.7])
+    ids = np.array([0, 1, 0])
+    assert nms(boxes, scores, ids, iou=0.5).tolist() == [0, 1]
+    assert nms(boxes, scores, ids, iou=0.5, agnostic=True).tolist() == [0]
+    # IoU of the first and last box: 90/120 = 0.75 as areas, 110/(121+130-110) = 0.780
+    # with YOLOX's +1 pixel edges; a threshold between the two tells them apart.
+    assert nms(boxes, scores, ids, iou=0.77, agnostic=True).tolist() == [0, 2]
+    assert nms(boxes, scores, ids, iou=0.77, agnostic=True, pixel=1.0).tolist() == [0]

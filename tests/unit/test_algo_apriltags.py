@@ -1,4 +1,4 @@
-"""AprilTag poses against tags rendered with a known pose."""
+"""AprilTag poses against tags rendered with a known pose, in the C library's tag frame."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ from typing import Any
 
 import numpy as np
 import pytest
-from trapflow_workers.apriltags import AprilTags
+from trapflow_workers import apriltags
+from trapflow_workers.apriltags import AprilTags, tag_object_points
 from trapflow_workers.testkit import make_context, make_pair
 from trapflow_workers.testkit_scenes import pose, rot_x, rot_z, tag_image
 
@@ -24,12 +25,27 @@ def _detector(**params: Any) -> AprilTags:
     return tags
 
 
+# tag_image draws OpenCV's marker (its code turned 180 deg from the official tag image) in a
+# frame x right, y up, z out of it; the C library's frame of that printed tag (x right, y down
+# of the upright official image, z into the tag) is that frame turned 180 deg about y.
+OPENCV_DRAWN_TO_C = np.diag([-1.0, 1.0, -1.0, 1.0])
+
+
 def _facing(yaw_deg: float, tilt_deg: float, t: tuple[float, float, float]) -> np.ndarray:
-    # A tag facing the camera has its z axis pointing back at it: rotate pi about x.
-    r = rot_x(math.pi) @ rot_z(math.radians(yaw_deg)) @ rot_x(math.radians(tilt_deg))
+    """Tag (C library frame) to camera: upright and facing the camera at yaw = tilt = 0."""
+    r = rot_z(math.radians(yaw_deg)) @ rot_x(math.radians(tilt_deg))
     return pose(r, np.array(t))
 
 
+def _render(tag_id: int, size: float, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The tag seen at pose truth (C library frame) and its corners p0..p3 in pixels."""
+    img, _ = tag_image(RIG, tag_id, size, truth @ OPENCV_DRAWN_TO_C)
+    cam = (truth[:3, :3] @ tag_object_points(size).T).T + truth[:3, 3]
+    uv = (RIG.K @ cam.T).T
+    return img, uv[:, :2] / uv[:, 2:]
+
+
+@pytest.mark.parametrize("detector", ["apriltag", "opencv"])
 @pytest.mark.parametrize(
     ("tag_id", "yaw", "tilt", "t"),
     [
@@ -40,11 +56,13 @@ def _facing(yaw_deg: float, tilt_deg: float, t: tuple[float, float, float]) -> n
     ],
 )
 def test_pose_matches_rendered_tag(
-    tag_id: int, yaw: float, tilt: float, t: tuple[float, float, float]
+    tag_id: int, yaw: float, tilt: float, t: tuple[float, float, float], detector: str
 ) -> None:
+    """Both detectors report the C library's corner order and frame (regression, issue 12:
+    OpenCV's order and a pose turned 180 deg about the viewing axis were reported)."""
     truth = _facing(yaw, tilt, t)
-    img, corners = tag_image(RIG, tag_id, 0.1, truth)
-    res = _detector(tag_size_m=0.1).process(make_pair(img))
+    img, corners = _render(tag_id, 0.1, truth)
+    res = _detector(tag_size_m=0.1, detector=detector).process(make_pair(img))
     assert [tag.id for tag in res.tags] == [tag_id]
     tag = res.tags[0]
     np.testing.assert_allclose(tag.corners, corners, atol=1.0)
@@ -57,14 +75,14 @@ def test_pose_matches_rendered_tag(
 
 def test_per_id_size_scales_the_distance() -> None:
     truth = _facing(0, 0, (0.0, 0.0, 1.0))
-    img, _ = tag_image(RIG, 5, 0.1, truth)
+    img, _ = _render(5, 0.1, truth)
     tag = _detector(tag_size_m=0.1, sizes={5: 0.2}).process(make_pair(img)).tags[0]
     assert tag.translation[2] == pytest.approx(2.0, rel=0.01)
 
 
 def test_empty_scene_and_other_family() -> None:
     assert _detector().process(make_pair(np.full((720, 1280, 3), 90, np.uint8))).tags == []
-    img, _ = tag_image(RIG, 3, 0.1, _facing(0, 0, (0, 0, 1.0)))
+    img, _ = _render(3, 0.1, _facing(0, 0, (0, 0, 1.0)))
     assert _detector(family="25h9").process(make_pair(img)).tags == []
 
 
@@ -73,6 +91,10 @@ def test_empty_scene_and_other_family() -> None:
     [
         ({"family": "41h12"}, r"pools\.tags\.params\.family"),
         ({"tag_size_m": -1}, r"pools\.tags\.params\.tag_size_m"),
+        ({"refine": "apriltag"}, r"pools\.tags\.params\.refine"),
+        ({"detector": "aruco"}, r"pools\.tags\.params\.detector"),
+        ({"decimate": 0.5}, r"pools\.tags\.params\.decimate"),
+        ({"detector": "apriltag", "family": "36h10"}, r"detector: expected a family .*'36h10'"),
         ({"calibration": "{tmp}/missing.yaml"}, "cannot read calibration"),
         ({"calibration": "{tmp}/c.yaml"}, "missing field 'cx'"),
     ],
@@ -88,3 +110,11 @@ def test_wrong_frame_size_is_a_worker_error() -> None:
     small = np.zeros((480, 640, 3), np.uint8)
     with pytest.raises(WorkerError, match="expected 1280x720"):
         _detector().process(make_pair(small))
+
+
+def test_without_the_c_library(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The default needs no C library; asking for it fails at configure with the fix."""
+    monkeypatch.setattr(apriltags, "_c_library_available", lambda: False)
+    assert _detector().backend == "opencv"
+    with pytest.raises(WorkerError, match=r"pip install trapflow\[tags\]"):
+        _detector(detector="apriltag")

@@ -3,7 +3,7 @@
 Detector: OpenCV's ArUco APRILTAG dictionaries by default, with their corners put in the C
 library's order; or the AprilTag C library itself (`detector: apriltag`, through pupil-apriltags,
 the `tags` extra). On the C library's own test photos it finds 46 of 47 tags with corners within
-0.14 px of its expectations; OpenCV finds fewer, with corners 1.4-2 px inside the square.
+0.14 px of its expectations; OpenCV places 34 of them, corners 1.4 px inside the square (median).
 
 Corners, in the order of the C library's `det->p` (counter-clockwise in the image): p0 bottom-left,
 p1 bottom-right, p2 top-right, p3 top-left of the tag as printed upright (as the official tag
@@ -17,7 +17,7 @@ printed upright, z into the tag; p0..p3 sit at (-s/2, s/2), (s/2, s/2), (s/2, -s
 
 Pose: IPPE on the four corners (OpenCV's SOLVEPNP_IPPE_SQUARE, whose corner order is p0..p3),
 both solutions refined to the least reprojection error, the lower one kept. It agrees with the
-C library's own estimate (orthogonal iteration) within 0.13 deg on its test photos' well-determined
+C library's own estimate (orthogonal iteration) within 0.1 deg on its test photos' well-determined
 tags; where a tag's two tilts reproject alike the two may pick different ones, and the C library
 returned a reflection (det -1) for 2 of its 46 test tags.
 """

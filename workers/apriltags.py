@@ -1,14 +1,18 @@
 """tags: AprilTag detection with pose, corners and tag frame as the AprilTag C library has them.
 
-Detector: OpenCV's ArUco APRILTAG dictionaries by default, with their corners put in the C
-library's order; or the AprilTag C library itself (`detector: apriltag`, through pupil-apriltags,
-the `tags` extra). On the C library's own test photos it finds 46 of 47 tags with corners within
-0.14 px of its expectations; OpenCV places 34 of them, corners 1.4 px inside the square (median).
+Detector: the AprilTag C library itself (through pupil-apriltags, the optional `tags` extra) when
+it is installed, else OpenCV's ArUco APRILTAG dictionaries with their corners put in the C
+library's order. On the C library's own test photos the library finds 46 of 47 tags with corners
+within 0.14 px of its expectations; OpenCV places 34 of them, 1.4 px inside the square (median).
+At 1280x720 on one thread the library took 73 ms (28 ms at decimate 2) where OpenCV took 57 ms.
 
 Corners, in the order of the C library's `det->p` (counter-clockwise in the image): p0 bottom-left,
 p1 bottom-right, p2 top-right, p3 top-left of the tag as printed upright (as the official tag
 images are drawn). OpenCV's dictionaries store each code turned 180 degrees, so its first corner is
 the C library's p1 and its order runs the other way: C order = OpenCV corners [1, 0, 3, 2].
+Positions are in OpenCV's pixel convention (a pixel's centre at integer coordinates), the one of
+the rig's intrinsics and of every other trapflow result: the C library's own numbers are 0.5 px
+larger in x and y (its pixel centres sit at +0.5).
 
 Tag frame (apriltag_pose.h): origin at the tag centre, x to the right and y down of the tag as
 printed upright, z into the tag; p0..p3 sit at (-s/2, s/2), (s/2, s/2), (s/2, -s/2), (-s/2, -s/2).
@@ -48,10 +52,12 @@ FAMILIES = {
     "25h9": cv2.aruco.DICT_APRILTAG_25h9,
     "16h5": cv2.aruco.DICT_APRILTAG_16h5,
 }
-# Families given to the C library. 36h10 is not in it any more; pupil-apriltags 1.0.4 corrupts
-# its heap when a second tag16h5 detector is made in one process (measured): 16h5 stays on OpenCV.
-C_FAMILIES = {"36h11": "tag36h11", "25h9": "tag25h9"}
+# Families given to the C library (36h10 is not in it any more).
+C_FAMILIES = {"36h11": "tag36h11", "25h9": "tag25h9", "16h5": "tag16h5"}
 OPENCV_TO_C = [1, 0, 3, 2]
+# The C library's pixel grid puts a pixel's centre at +0.5, OpenCV's (and so the rig's K) at 0:
+# on tags warped at 30 random poses its corners sat +0.501, +0.502 px (sd 0.02) from the truth.
+C_PIXEL_CENTRE = 0.5
 Pos = Annotated[float, msgspec.Meta(gt=0)]
 
 
@@ -70,10 +76,10 @@ class TagParams(Params):
     """fx, fy, cx, cy in pixels, instead of the source's rig."""
     image: Literal["left", "right"] = "left"
     """Which image of the pair to search (both share the intrinsics once rectified)."""
-    detector: Literal["opencv", "apriltag"] = "opencv"
-    """opencv: OpenCV's ArUco dictionaries (corners 1.4-2 px inside the square, fewer small
-    tags); apriltag: the AprilTag C library (`pip install trapflow[tags]`; 36h11 and 25h9),
-    corners as the library's own, 2-3x the time at decimate 1."""
+    detector: Literal["auto", "apriltag", "opencv"] = "auto"
+    """apriltag: the AprilTag C library (`pip install trapflow[tags]`; all families but 36h10);
+    opencv: OpenCV's ArUco dictionaries (corners 1.4 px inside the square, fewer small tags);
+    auto: the C library when it is installed and has the family, else OpenCV."""
     refine: bool = True
     """Refine the corners: the C library's edge fit, or OpenCV's cornerSubPix. Off only to
     reproduce the C library's own test settings."""
@@ -86,10 +92,14 @@ class TagParams(Params):
 
 
 @functools.lru_cache(maxsize=8)
-def _c_detector(family: str, decimate: float, refine: bool, threads: int) -> Any:
-    # One per process and settings, kept to the end: a detector is asked for on every
-    # reconfigure, and pupil-apriltags 1.0.4 frees the families before the detector that still
-    # reads them (use after free: 6 of 7 runs crashed at exit). At exit the process drops it.
+def c_library_detector(
+    family: str, decimate: float = 1.0, refine: bool = True, threads: int = 1
+) -> Any:
+    """A pupil-apriltags Detector, one per process and settings, never freed.
+
+    pupil-apriltags 1.0.4 frees the tag families before the detector that still reads them
+    (use after free): a freed detector that had run crashed the process in 6 of 7 runs.
+    """
     from pupil_apriltags import Detector
 
     det = Detector(
@@ -132,7 +142,9 @@ class AprilTags(Worker):
         self.rig = resolve_rig(p.calibration, p.intrinsics, None, ctx.rig)
         self.backend = self._backend(p, ctx.pool)
         if self.backend == "apriltag":
-            self.c_detector = _c_detector(C_FAMILIES[p.family], p.decimate, p.refine, p.threads)
+            self.c_detector = c_library_detector(
+                C_FAMILIES[p.family], p.decimate, p.refine, p.threads
+            )
         else:
             det = cv2.aruco.DetectorParameters()
             det.cornerRefinementMethod = (
@@ -151,22 +163,32 @@ class AprilTags(Worker):
             return "opencv"
         where = f"pools.{pool}.params.detector"
         if p.family not in C_FAMILIES:
+            if p.detector == "auto":
+                return "opencv"
             raise WorkerError(
                 f"{where}: expected a family the C library detector handles "
                 f"({', '.join(C_FAMILIES)}), got {p.family!r}; set detector: opencv"
             )
-        if not _c_library_available():
+        if _c_library_available():
+            return "apriltag"
+        if p.detector == "apriltag":
             raise WorkerError(
                 f"{where}: the AprilTag C library (pupil-apriltags) is not installed; "
                 "install it with `pip install trapflow[tags]`, or set detector: opencv"
             )
-        return "apriltag"
+        log.warning(
+            "tags: pupil-apriltags is not installed, so OpenCV's detector runs (corners 1.4 px "
+            "inside the square, fewer small tags); `pip install trapflow[tags]` for the C library"
+        )
+        return "opencv"
 
     def detect(self, gray: np.ndarray) -> list[tuple[int, np.ndarray]]:
         """(id, corners p0..p3 as a 4x2 float64 array) of every tag in a grey image."""
         if self.backend == "apriltag":
             dets = self.c_detector.detect(np.ascontiguousarray(gray))
-            return [(int(d.tag_id), np.asarray(d.corners, np.float64)) for d in dets]
+            return [
+                (int(d.tag_id), np.asarray(d.corners, np.float64) - C_PIXEL_CENTRE) for d in dets
+            ]
         corners, ids, _ = self.detector.detectMarkers(gray)
         if ids is None:
             return []

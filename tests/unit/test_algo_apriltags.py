@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 from trapflow_workers import apriltags
@@ -73,6 +76,24 @@ def test_pose_matches_rendered_tag(
     assert tag.error < 1.0
 
 
+@pytest.mark.parametrize("detector", ["apriltag", "opencv"])
+@pytest.mark.parametrize(
+    ("family", "code"),
+    [("25h9", cv2.aruco.DICT_APRILTAG_25h9), ("16h5", cv2.aruco.DICT_APRILTAG_16h5)],
+)
+def test_other_families_keep_the_order_and_frame(family: str, code: int, detector: str) -> None:
+    """OpenCV holds every APRILTAG family turned 180 deg; both detectors agree on all of them."""
+    truth = _facing(30, 25, (0.05, -0.03, 0.9))
+    img, _ = tag_image(RIG, 11, 0.1, truth @ OPENCV_DRAWN_TO_C, family=code)
+    cam = (truth[:3, :3] @ tag_object_points(0.1).T).T + truth[:3, 3]
+    uv = (RIG.K @ cam.T).T
+    tags = _detector(family=family, detector=detector, tag_size_m=0.1).process(make_pair(img)).tags
+    assert [t.id for t in tags] == [11]
+    np.testing.assert_allclose(tags[0].corners, uv[:, :2] / uv[:, 2:], atol=1.0)
+    r = np.reshape(tags[0].rotation, (3, 3))
+    assert math.degrees(math.acos(np.clip((np.trace(r.T @ truth[:3, :3]) - 1) / 2, -1, 1))) < 2
+
+
 def test_per_id_size_scales_the_distance() -> None:
     truth = _facing(0, 0, (0.0, 0.0, 1.0))
     img, _ = _render(5, 0.1, truth)
@@ -113,8 +134,39 @@ def test_wrong_frame_size_is_a_worker_error() -> None:
 
 
 def test_without_the_c_library(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The default needs no C library; asking for it fails at configure with the fix."""
+    """auto falls back to OpenCV (same order, same frame); asking for the C library fails at
+    configure with the fix."""
+    assert _detector().backend == "apriltag"
+    assert _detector(family="36h10").backend == "opencv"
     monkeypatch.setattr(apriltags, "_c_library_available", lambda: False)
     assert _detector().backend == "opencv"
     with pytest.raises(WorkerError, match=r"pip install trapflow\[tags\]"):
         _detector(detector="apriltag")
+
+
+@pytest.mark.timeout(120)
+def test_a_process_that_used_the_c_library_exits_cleanly() -> None:
+    """Regression: pupil-apriltags frees its tag families before the detector that still reads
+    them; a process whose detector had run on the synthetic world's 1280x720 frames crashed at
+    exit (SIGSEGV or a glibc abort) in 4 of 6 runs like these before detectors were kept."""
+    pytest.importorskip("pupil_apriltags")
+    code = (
+        "from trapflow.synth.options import SynthOptions\n"
+        "from trapflow.synth.render import World\n"
+        "from trapflow_workers.apriltags import AprilTags\n"
+        "from trapflow_workers.testkit import make_context, make_pair\n"
+        "from tests.unit.test_algo_apriltags import RIG\n"
+        "world = World(RIG, seed=2, moving=True, rate_hz=15.0,\n"
+        "              options=SynthOptions(tags=8, tag_size_m=0.12))\n"
+        "w = AprilTags()\n"
+        "w.configure({'detector': 'apriltag', 'tag_size_m': 0.12}, make_context(RIG))\n"
+        "found = 0\n"
+        "for i in (0, 6, 12):\n"
+        "    left, right, _ = world.render(i)\n"
+        "    found += len(w.process(make_pair(left, right)).tags)\n"
+        "assert found > 0\n"
+    )
+    for _ in range(2):
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                              cwd=Path(__file__).resolve().parents[2], timeout=100)  # fmt: skip
+        assert done.returncode == 0, done.stderr[-2000:]

@@ -3,7 +3,7 @@
 Detector: the AprilTag C library itself (through pupil-apriltags, the optional `tags` extra) when
 it is installed, else OpenCV's ArUco APRILTAG dictionaries with their corners put in the C
 library's order. On the C library's own test photos the library finds 46 of 47 tags with corners
-within 0.14 px of its expectations; OpenCV places 34 of them, 1.4 px inside the square (median).
+within 0.14 px of its expectations; OpenCV places 35 of them, 1.2 px inside the square (median).
 At 1280x720 on one thread the library took 73 ms (28 ms at decimate 2) where OpenCV took 57 ms.
 
 Corners, in the order of the C library's `det->p` (counter-clockwise in the image): p0 bottom-left,
@@ -78,24 +78,24 @@ class TagParams(Params):
     """Which image of the pair to search (both share the intrinsics once rectified)."""
     detector: Literal["auto", "apriltag", "opencv"] = "auto"
     """apriltag: the AprilTag C library (`pip install trapflow[tags]`; all families but 36h10);
-    opencv: OpenCV's ArUco dictionaries (corners 1.4 px inside the square, fewer small tags);
+    opencv: OpenCV's ArUco dictionaries (corners 1.2 px inside the square, fewer small tags);
     auto: the C library when it is installed and has the family, else OpenCV."""
     refine: bool = True
-    """Refine the corners: the C library's edge fit, or OpenCV's cornerSubPix. Off only to
-    reproduce the C library's own test settings."""
+    """OpenCV: refine the corners with cornerSubPix (without, poses are ~2x worse)."""
     decimate: Annotated[float, msgspec.Meta(ge=1, le=8)] = 1.0
-    """C library: find quads on an image this many times smaller (corners are still refined at
-    full size). 2 is ~3x faster at 1280x720 but misses tags under ~25 px, and on the synthetic
-    world one 12 cm tag's rotation was 7 deg off (3.9 at 1)."""
+    """C library: find quads on an image this many times smaller, then snap their edges back
+    to full-size gradients (refine_edges). 2 is ~3x faster at 1280x720 but found 29 of the 47
+    tags of the library's test photos (46 at 1). At 1 the quads are fitted at full size and
+    refine_edges stays off: on those photos it lost 2 tags, and it did not improve poses on
+    the synthetic world (median 0.05 deg without, 0.11 with, at 1280x720)."""
     threads: Annotated[int, msgspec.Meta(ge=1, le=8)] = 1
     """C library: threads of one detection (the pool's processes already share the cores)."""
 
 
 @functools.lru_cache(maxsize=8)
-def c_library_detector(
-    family: str, decimate: float = 1.0, refine: bool = True, threads: int = 1
-) -> Any:
-    """A pupil-apriltags Detector, one per process and settings, never freed.
+def c_library_detector(family: str, decimate: float = 1.0, threads: int = 1) -> Any:
+    """A pupil-apriltags Detector (edge refinement only when decimating, see TagParams), one
+    per process and settings, never freed.
 
     pupil-apriltags 1.0.4 frees the tag families before the detector that still reads them
     (use after free): a freed detector that had run crashed the process in 6 of 7 runs.
@@ -103,7 +103,7 @@ def c_library_detector(
     from pupil_apriltags import Detector
 
     det = Detector(
-        families=family, nthreads=threads, quad_decimate=decimate, refine_edges=int(refine)
+        families=family, nthreads=threads, quad_decimate=decimate, refine_edges=int(decimate > 1)
     )
     atexit.register(_leak, det)
     return det
@@ -143,7 +143,7 @@ class AprilTags(Worker):
         self.backend = self._backend(p, ctx.pool)
         if self.backend == "apriltag":
             self.c_detector = c_library_detector(
-                C_FAMILIES[p.family], p.decimate, p.refine, p.threads
+                C_FAMILIES[p.family], p.decimate, p.threads
             )
         else:
             det = cv2.aruco.DetectorParameters()
@@ -177,7 +177,7 @@ class AprilTags(Worker):
                 "install it with `pip install trapflow[tags]`, or set detector: opencv"
             )
         log.warning(
-            "tags: pupil-apriltags is not installed, so OpenCV's detector runs (corners 1.4 px "
+            "tags: pupil-apriltags is not installed, so OpenCV's detector runs (corners 1.2 px "
             "inside the square, fewer small tags); `pip install trapflow[tags]` for the C library"
         )
         return "opencv"

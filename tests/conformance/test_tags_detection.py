@@ -83,8 +83,8 @@ def test_corners_match_the_c_library_expectations(realdata: Path, name: str) -> 
     # (pairs reach workers as BGR: through BGR and back to grey one corner moves by 0.29 px).
     grey = cv2.imread(str(photo), cv2.IMREAD_GRAYSCALE)
     h, w = grey.shape
-    found = worker_for(w, h, detector="apriltag", decimate=1.0, refine=False).detect(grey)
-    ref = c_library_detector("tag36h11", decimate=1.0, refine=False)
+    found = worker_for(w, h, detector="apriltag").detect(grey)
+    ref = c_library_detector("tag36h11", decimate=1.0)
     ref_corners = [d.corners for d in ref.detect(grey)]
 
     def nearest(quads: list[np.ndarray], want: np.ndarray) -> float:

@@ -4,7 +4,8 @@ Detector: the AprilTag C library itself (through pupil-apriltags, the optional `
 it is installed, else OpenCV's ArUco APRILTAG dictionaries with their corners put in the C
 library's order. On the C library's own test photos the library finds 46 of 47 tags with corners
 within 0.14 px of its expectations; OpenCV places 35 of them, 1.2 px inside the square (median).
-At 1280x720 on one thread the library took 73 ms (28 ms at decimate 2) where OpenCV took 57 ms.
+At 1280x720, one thread, the library took 70-78 ms (25-46 at decimate 2), OpenCV 57-103 ms
+(medians of 30 runs over 3 sessions on a busy 2-core machine: the same cost within its noise).
 
 Corners, in the order of the C library's `det->p` (counter-clockwise in the image): p0 bottom-left,
 p1 bottom-right, p2 top-right, p3 top-left of the tag as printed upright (as the official tag

@@ -128,9 +128,9 @@ def tag_object_points(size_m: float) -> np.ndarray:
     return np.array([[-h, h, 0], [h, h, 0], [h, -h, 0], [-h, -h, 0]], np.float64)
 
 
-def _rms(obj: np.ndarray, rvec: Any, tvec: Any, K: np.ndarray, px: np.ndarray) -> float:  # noqa: N803
+def _rms(obj: np.ndarray, rvec: Any, tvec: Any, k: np.ndarray, px: np.ndarray) -> float:
     """Root mean square distance, in pixels, between the corners and their reprojection."""
-    proj, _ = cv2.projectPoints(obj, rvec, tvec, K, None)
+    proj, _ = cv2.projectPoints(obj, rvec, tvec, k, None)
     return float(np.sqrt(np.mean(np.sum((proj.reshape(4, 2) - px) ** 2, axis=1))))
 
 
@@ -143,9 +143,7 @@ class AprilTags(Worker):
         self.rig = resolve_rig(p.calibration, p.intrinsics, None, ctx.rig)
         self.backend = self._backend(p, ctx.pool)
         if self.backend == "apriltag":
-            self.c_detector = c_library_detector(
-                C_FAMILIES[p.family], p.decimate, p.threads
-            )
+            self.c_detector = c_library_detector(C_FAMILIES[p.family], p.decimate, p.threads)
         else:
             det = cv2.aruco.DetectorParameters()
             det.cornerRefinementMethod = (

@@ -54,7 +54,7 @@ def ambiguity(corners: np.ndarray, k: np.ndarray) -> float:
 def test_pose_matches_the_c_library_on_its_photos(realdata: Path, name: str) -> None:
     """Where the pose is well determined (second solution reprojects 2x worse), rotation within
     1 deg and translation within 1 % of the C library's. Elsewhere the C library's estimate
-    may be the other tilt or (2 of 44 tags here) a reflection; there trapflow's pose must
+    may be the other tilt or (2 of the 46 tags here) a reflection; there trapflow's pose must
     reproject at least as well as the C library's and be a proper rotation."""
     photo = kit_path(realdata, "02_apriltag36h11", "official_test_data", f"{name}.jpg")
     bgr = cv2.imread(str(photo))

@@ -52,10 +52,11 @@ def ambiguity(corners: np.ndarray, k: np.ndarray) -> float:
 
 @pytest.mark.parametrize("name", PHOTOS)
 def test_pose_matches_the_c_library_on_its_photos(realdata: Path, name: str) -> None:
-    """Where the pose is well determined (second solution reprojects 2x worse), rotation within
-    1 deg and translation within 1 % of the C library's. Elsewhere the C library's estimate
-    may be the other tilt or (2 of the 46 tags here) a reflection; there trapflow's pose must
-    reproject at least as well as the C library's and be a proper rotation."""
+    """Where the pose is well determined (second solution reprojects 2x worse: 11 of the 46
+    tags), rotation within 1 deg and translation within 1 % of the C library's (measured max
+    0.97 deg, 0.32 %: the two minimise different errors on corners of 15-45 px tags). Elsewhere
+    the C library's estimate may be the other tilt or (1 tag here) a reflection; there
+    trapflow's pose must reproject at least as well as the C library's and be a rotation."""
     photo = kit_path(realdata, "02_apriltag36h11", "official_test_data", f"{name}.jpg")
     bgr = cv2.imread(str(photo))
     h, w = bgr.shape[:2]

@@ -57,6 +57,8 @@ def normalize(res: messages.Result, decimals: int = 3) -> list[dict[str, Any]]:
             out["reinit"] = True
         return [{"stereo_vo": out}]
     if isinstance(b, messages.Tags):
+        if not b.tags:  # processed, nothing seen: one line, so it differs from "not processed"
+            return [{"tags": {**base, "corners": []}}]
         return [
             {"tags": {**base, "id": t.id, "corners": [[_r(x, 1), _r(y, 1)] for x, y in t.corners],
                       "rotation": [_r(v, nd) for v in t.rotation],

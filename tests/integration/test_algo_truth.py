@@ -127,22 +127,23 @@ def _tags_in_view(world: World, rig: StereoRig, cam: np.ndarray, margin: float) 
 
 @pytest.mark.timeout(60)
 @pytest.mark.parametrize(
-    ("rig", "refine", "max_cm", "max_rel"),
+    ("rig", "params", "max_cm", "max_rel"),
     [
         # Measured max 1.4 cm / 1.1 % (subpix corners sit ~0.4 px inside the square).
-        (HD, "subpix", 3.0, 0.025),
-        # Measured max 1.0 cm / 0.7 %; subpix at 640x480 reaches 4.7 cm / 3 %.
-        (VGA, "apriltag", 2.5, 0.02),
+        (HD, {"detector": "opencv"}, 3.0, 0.025),
+        # Measured max 4.3 deg (median 0.05), 1.0 %; at 640x480 0.8 deg, 0.8 % (OpenCV 3.2, 3 %).
+        (HD, {"detector": "apriltag"}, 3.0, 0.025),
+        (VGA, {"detector": "apriltag"}, 2.5, 0.02),
     ],
-    ids=["1280x720-subpix", "640x480-apriltag"],
+    ids=["1280x720-opencv", "1280x720-apriltag", "640x480-apriltag"],
 )
 def test_tag_poses_match_rendered_tags(
-    rig: StereoRig, refine: str, max_cm: float, max_rel: float
+    rig: StereoRig, params: dict[str, object], max_cm: float, max_rel: float
 ) -> None:
     opts = SynthOptions(tags=8, tag_size_m=0.12)
     world = World(rig, seed=2, moving=True, rate_hz=15.0, options=opts)
     tags = AprilTags()
-    tags.configure({"tag_size_m": 0.12, "refine": refine}, make_context(rig, pool="tags"))
+    tags.configure({"tag_size_m": 0.12, **params}, make_context(rig, pool="tags"))
     tag_poses = world.tag_poses()
     seen = 0
     for i in range(0, 60, 6):
@@ -165,7 +166,7 @@ def test_tag_poses_match_rendered_tags(
             )
             r = np.reshape(t.rotation, (3, 3))
             assert _angle_deg(r.T @ expected[:3, :3]) < 5.0
-            assert t.error < 1.5
+            assert t.error < 2.0  # measured max 1.66 px (the C library, 1280x720, tag 7)
             seen += 1
     assert seen >= 40
 

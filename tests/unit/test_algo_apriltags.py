@@ -1,14 +1,18 @@
-"""AprilTag poses against tags rendered with a known pose."""
+"""AprilTag poses against tags rendered with a known pose, in the C library's tag frame."""
 
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
-from trapflow_workers.apriltags import AprilTags
+from trapflow_workers import apriltags
+from trapflow_workers.apriltags import AprilTags, tag_object_points
 from trapflow_workers.testkit import make_context, make_pair
 from trapflow_workers.testkit_scenes import pose, rot_x, rot_z, tag_image
 
@@ -24,12 +28,27 @@ def _detector(**params: Any) -> AprilTags:
     return tags
 
 
+# tag_image draws OpenCV's marker (its code turned 180 deg from the official tag image) in a
+# frame x right, y up, z out of it; the C library's frame of that printed tag (x right, y down
+# of the upright official image, z into the tag) is that frame turned 180 deg about y.
+OPENCV_DRAWN_TO_C = np.diag([-1.0, 1.0, -1.0, 1.0])
+
+
 def _facing(yaw_deg: float, tilt_deg: float, t: tuple[float, float, float]) -> np.ndarray:
-    # A tag facing the camera has its z axis pointing back at it: rotate pi about x.
-    r = rot_x(math.pi) @ rot_z(math.radians(yaw_deg)) @ rot_x(math.radians(tilt_deg))
+    """Tag (C library frame) to camera: upright and facing the camera at yaw = tilt = 0."""
+    r = rot_z(math.radians(yaw_deg)) @ rot_x(math.radians(tilt_deg))
     return pose(r, np.array(t))
 
 
+def _render(tag_id: int, size: float, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The tag seen at pose truth (C library frame) and its corners p0..p3 in pixels."""
+    img, _ = tag_image(RIG, tag_id, size, truth @ OPENCV_DRAWN_TO_C)
+    cam = (truth[:3, :3] @ tag_object_points(size).T).T + truth[:3, 3]
+    uv = (RIG.K @ cam.T).T
+    return img, uv[:, :2] / uv[:, 2:]
+
+
+@pytest.mark.parametrize("detector", ["apriltag", "opencv"])
 @pytest.mark.parametrize(
     ("tag_id", "yaw", "tilt", "t"),
     [
@@ -40,11 +59,13 @@ def _facing(yaw_deg: float, tilt_deg: float, t: tuple[float, float, float]) -> n
     ],
 )
 def test_pose_matches_rendered_tag(
-    tag_id: int, yaw: float, tilt: float, t: tuple[float, float, float]
+    tag_id: int, yaw: float, tilt: float, t: tuple[float, float, float], detector: str
 ) -> None:
+    """Both detectors report the C library's corner order and frame (regression, issue 12:
+    OpenCV's order and a pose turned 180 deg about the viewing axis were reported)."""
     truth = _facing(yaw, tilt, t)
-    img, corners = tag_image(RIG, tag_id, 0.1, truth)
-    res = _detector(tag_size_m=0.1).process(make_pair(img))
+    img, corners = _render(tag_id, 0.1, truth)
+    res = _detector(tag_size_m=0.1, detector=detector).process(make_pair(img))
     assert [tag.id for tag in res.tags] == [tag_id]
     tag = res.tags[0]
     np.testing.assert_allclose(tag.corners, corners, atol=1.0)
@@ -55,16 +76,34 @@ def test_pose_matches_rendered_tag(
     assert tag.error < 1.0
 
 
+@pytest.mark.parametrize("detector", ["apriltag", "opencv"])
+@pytest.mark.parametrize(
+    ("family", "code"),
+    [("25h9", cv2.aruco.DICT_APRILTAG_25h9), ("16h5", cv2.aruco.DICT_APRILTAG_16h5)],
+)
+def test_other_families_keep_the_order_and_frame(family: str, code: int, detector: str) -> None:
+    """OpenCV holds every APRILTAG family turned 180 deg; both detectors agree on all of them."""
+    truth = _facing(30, 25, (0.05, -0.03, 0.9))
+    img, _ = tag_image(RIG, 11, 0.1, truth @ OPENCV_DRAWN_TO_C, family=code)
+    cam = (truth[:3, :3] @ tag_object_points(0.1).T).T + truth[:3, 3]
+    uv = (RIG.K @ cam.T).T
+    tags = _detector(family=family, detector=detector, tag_size_m=0.1).process(make_pair(img)).tags
+    assert [t.id for t in tags] == [11]
+    np.testing.assert_allclose(tags[0].corners, uv[:, :2] / uv[:, 2:], atol=1.0)
+    r = np.reshape(tags[0].rotation, (3, 3))
+    assert math.degrees(math.acos(np.clip((np.trace(r.T @ truth[:3, :3]) - 1) / 2, -1, 1))) < 2
+
+
 def test_per_id_size_scales_the_distance() -> None:
     truth = _facing(0, 0, (0.0, 0.0, 1.0))
-    img, _ = tag_image(RIG, 5, 0.1, truth)
+    img, _ = _render(5, 0.1, truth)
     tag = _detector(tag_size_m=0.1, sizes={5: 0.2}).process(make_pair(img)).tags[0]
     assert tag.translation[2] == pytest.approx(2.0, rel=0.01)
 
 
 def test_empty_scene_and_other_family() -> None:
     assert _detector().process(make_pair(np.full((720, 1280, 3), 90, np.uint8))).tags == []
-    img, _ = tag_image(RIG, 3, 0.1, _facing(0, 0, (0, 0, 1.0)))
+    img, _ = _render(3, 0.1, _facing(0, 0, (0, 0, 1.0)))
     assert _detector(family="25h9").process(make_pair(img)).tags == []
 
 
@@ -73,6 +112,10 @@ def test_empty_scene_and_other_family() -> None:
     [
         ({"family": "41h12"}, r"pools\.tags\.params\.family"),
         ({"tag_size_m": -1}, r"pools\.tags\.params\.tag_size_m"),
+        ({"refine": "apriltag"}, r"pools\.tags\.params\.refine"),
+        ({"detector": "aruco"}, r"pools\.tags\.params\.detector"),
+        ({"decimate": 0.5}, r"pools\.tags\.params\.decimate"),
+        ({"detector": "apriltag", "family": "36h10"}, r"detector: expected a family .*'36h10'"),
         ({"calibration": "{tmp}/missing.yaml"}, "cannot read calibration"),
         ({"calibration": "{tmp}/c.yaml"}, "missing field 'cx'"),
     ],
@@ -88,3 +131,42 @@ def test_wrong_frame_size_is_a_worker_error() -> None:
     small = np.zeros((480, 640, 3), np.uint8)
     with pytest.raises(WorkerError, match="expected 1280x720"):
         _detector().process(make_pair(small))
+
+
+def test_without_the_c_library(monkeypatch: pytest.MonkeyPatch) -> None:
+    """auto falls back to OpenCV (same order, same frame); asking for the C library fails at
+    configure with the fix."""
+    assert _detector().backend == "apriltag"
+    assert _detector(family="36h10").backend == "opencv"
+    monkeypatch.setattr(apriltags, "_c_library_available", lambda: False)
+    assert _detector().backend == "opencv"
+    with pytest.raises(WorkerError, match=r"pip install trapflow\[tags\]"):
+        _detector(detector="apriltag")
+
+
+@pytest.mark.timeout(120)
+def test_a_process_that_used_the_c_library_exits_cleanly() -> None:
+    """Regression: pupil-apriltags frees its tag families before the detector that still reads
+    them; a process whose detector had run on the synthetic world's 1280x720 frames crashed at
+    exit (SIGSEGV or a glibc abort) in 4 of 6 runs like these before detectors were kept."""
+    pytest.importorskip("pupil_apriltags")
+    code = (
+        "from trapflow.synth.options import SynthOptions\n"
+        "from trapflow.synth.render import World\n"
+        "from trapflow_workers.apriltags import AprilTags\n"
+        "from trapflow_workers.testkit import make_context, make_pair\n"
+        "from tests.unit.test_algo_apriltags import RIG\n"
+        "world = World(RIG, seed=2, moving=True, rate_hz=15.0,\n"
+        "              options=SynthOptions(tags=8, tag_size_m=0.12))\n"
+        "w = AprilTags()\n"
+        "w.configure({'detector': 'apriltag', 'tag_size_m': 0.12}, make_context(RIG))\n"
+        "found = 0\n"
+        "for i in (0, 6, 12):\n"
+        "    left, right, _ = world.render(i)\n"
+        "    found += len(w.process(make_pair(left, right)).tags)\n"
+        "assert found > 0\n"
+    )
+    for _ in range(2):
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                              cwd=Path(__file__).resolve().parents[2], timeout=100)  # fmt: skip
+        assert done.returncode == 0, done.stderr[-2000:]

@@ -58,3 +58,10 @@ def test_size_budget() -> None:
 
 def test_timestamp_is_utc_with_millis() -> None:
     assert timestamp(T) == "2025-07-07 12:52:43.120"
+
+
+def test_a_pair_without_tags_writes_one_line() -> None:
+    """Regression (issue 12): a pair the tags pool processed and found no tag in wrote no line,
+    so "processed, nothing found" could not be told from "not processed"."""
+    out = [dumps(o).decode() for o in normalize(builders.result(messages.Tags(), t_wall_ns=T))]
+    assert out == ['{"tags":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"corners":[]}}']

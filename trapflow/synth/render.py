@@ -442,15 +442,17 @@ class World:
     def tag_poses(self) -> dict[int, np.ndarray]:
         """4x4 tag-to-world poses (world = left camera of pair 0) of the floor's tags.
 
-        Tag frame as OpenCV's ArUco/AprilTag pose: origin at the centre, x to the
-        marker's right, y to the marker's top, z out of the plate (up from the floor).
+        Tag frame as the AprilTag C library's pose: origin at the centre, x to the right and
+        y down of the tag as printed upright, z into the plate (down into the floor). The
+        sprite draws OpenCV's marker, whose code is the printed tag turned 180 degrees.
         """
         out = {}
         for p in self.tags:
             z = float(self.floor.height_at(np.array([[p.x]]), np.array([[p.y]]))[0, 0]) + p.lift
             e1 = np.array([math.cos(p.yaw), math.sin(p.yaw), 0.0])
             up = -np.array([math.sin(p.yaw), -math.cos(p.yaw), 0.0])
-            r = np.stack([e1, up, np.cross(e1, up)], 1)
+            # OpenCV's marker frame (x right, y to its top, z up), turned 180 deg about y.
+            r = np.stack([-e1, up, -np.cross(e1, up)], 1)
             m = np.eye(4)
             m[:3, :3], m[:3, 3] = r, [p.x, p.y, z]
             out[p.id] = self.pose0_inv @ m

@@ -1,0 +1,51 @@
+"""The tags pool inside a pipeline: one results line for every pair it processed."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from trapflow_workers.testkit_scenes import pose, rot_x, tag_image
+
+from tests.conftest import Pipeline, write_config
+from trapflow.camera import StereoRig
+
+TAGGED = {1: 5, 4: 17}  # pair index -> tag id; the other pairs show no tag
+
+
+@pytest.mark.timeout(90)
+def test_every_processed_pair_writes_a_tags_line(spawn, run_dir: Path) -> None:
+    """Regression (issue 12): a pair without tags wrote no line, so a pair processed with
+    nothing found could not be told from a pair never processed."""
+    rig = StereoRig.from_fov(640, 480, 70.0, 0.12)
+    folder = run_dir.parent / "pairs"
+    for side in ("left", "right"):
+        (folder / side).mkdir(parents=True)
+    for i in range(6):
+        if i in TAGGED:
+            img, _ = tag_image(rig, TAGGED[i], 0.1, pose(rot_x(np.pi), np.array([0, 0, 0.6])))
+        else:
+            img = np.full((480, 640, 3), 90, np.uint8)
+        for side in ("left", "right"):
+            cv2.imwrite(str(folder / side / f"{i:04d}.png"), img)
+    cfg = write_config(run_dir.parent / "tags.yaml", {
+        "source": {"rate_hz": 5.0},
+        "pools": {"tags": {"count": 1, "policy": "fifo:16", "params": {"tag_size_m": 0.1}}},
+    })
+    args = ["--config", str(cfg), "--workers", "tags=1", "--source", f"images:{folder}",
+            "--size", "640x480", "--duration", "20"]  # fmt: skip
+    p: Pipeline = spawn(args, run_dir)
+    code, _, err = p.wait(60)
+    assert code == 0, err
+    lines = [r["tags"] for r in p.results() if "tags" in r]
+    by_seq: dict[int, list[dict[str, object]]] = {}
+    for line in lines:
+        by_seq.setdefault(int(line["seq"]), []).append(line)
+    assert sorted(by_seq) == list(range(6)), f"tags lines for pairs {sorted(by_seq)}"
+    for seq, got in by_seq.items():
+        if seq in TAGGED:
+            assert [g["id"] for g in got] == [TAGGED[seq]]
+        else:
+            assert got == [{"timestamp": got[0]["timestamp"], "seq": seq, "corners": []}]

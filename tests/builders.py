@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from trapflow import messages
+from trapflow.calibration import StereoCalibration
 from trapflow.camera import StereoRig
 
 
@@ -79,3 +80,14 @@ def kitti_calib(rig: StereoRig) -> str:
     p1 = (f"{rig.fx:.6e} 0 {rig.cx:.6e} {-rig.fx * rig.baseline_m:.6e} 0 {rig.fy:.6e} "
           f"{rig.cy:.6e} 0 0 0 1 0")
     return f"P0: {p0}\nP1: {p1}\nP2: {p0}\nP3: {p1}\n"
+
+
+def rectified_calibration(rig: StereoRig) -> StereoCalibration:
+    """A trapflow calibration of an already rectified rig (identity rotations, no distortion)."""
+    k = rig.K.tolist()
+    q = [[1, 0, 0, -rig.cx], [0, 1, 0, -rig.cy], [0, 0, 0, rig.fx], [0, 0, 1 / rig.baseline_m, 0]]
+    return StereoCalibration(
+        image_width=rig.width, image_height=rig.height, K1=k, D1=[0.0] * 5, K2=k, D2=[0.0] * 5,
+        R=np.eye(3).tolist(), T=[-rig.baseline_m, 0.0, 0.0], R1=np.eye(3).tolist(),
+        R2=np.eye(3).tolist(), P1=rig.projection().tolist(), P2=rig.projection(True).tolist(),
+        Q=q, baseline_m=rig.baseline_m)

@@ -21,9 +21,9 @@ import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from tests.builders import floor_scene, kitti_calib
+from tests.builders import floor_scene, kitti_calib, rectified_calibration
 from tests.conftest import REPO, Pipeline, write_config
-from trapflow.calibration import StereoCalibration, save_calibration
+from trapflow.calibration import save_calibration
 from trapflow.camera import StereoRig
 
 pytestmark = pytest.mark.timeout(180)
@@ -213,17 +213,6 @@ def test_status_shows_the_rig(spawn: Callable[..., Pipeline], run_dir: Path,
     assert f"rig calib {KITTI.id}: 752x480, fx 436.0" in text
     code, _out, err = p.stop()
     assert code == 0, err
-
-
-def rectified_calibration(rig: StereoRig) -> StereoCalibration:
-    """A trapflow calibration of an already rectified rig (identity rotations, no distortion)."""
-    k = rig.K.tolist()
-    q = [[1, 0, 0, -rig.cx], [0, 1, 0, -rig.cy], [0, 0, 0, rig.fx], [0, 0, 1 / rig.baseline_m, 0]]
-    return StereoCalibration(
-        image_width=rig.width, image_height=rig.height, K1=k, D1=[0.0] * 5, K2=k, D2=[0.0] * 5,
-        R=np.eye(3).tolist(), T=[-rig.baseline_m, 0.0, 0.0], R1=np.eye(3).tolist(),
-        R2=np.eye(3).tolist(), P1=rig.projection().tolist(), P2=rig.projection(True).tolist(),
-        Q=q, baseline_m=rig.baseline_m)
 
 
 def test_a_calibration_that_contradicts_the_frames_fails_at_start(

@@ -330,8 +330,10 @@ def test_sizing_from_config() -> None:
         "vo": {"count": 1, "policy": "ordered:16"},
         "scallop": {"count": 1, "policy": "fifo:4"},
     })})
-    # mono 2x2 + 1, vo 1 + 16, scallop 1 + 4, pre-roll 30, in transit 9
-    assert fr.ring_slots(cfg.pools.values(), preroll=30) == 5 + 17 + 5 + 30 + 9
+    # mono 2x2 + 1, vo 1 + 16, scallop 1 + 4, pre-roll 30, in transit 9 (running pools only,
+    # as the supervisor counts them)
+    running = [p for p in cfg.pools.values() if p.count > 0]
+    assert fr.ring_slots(running, preroll=30) == 5 + 17 + 5 + 30 + 9
     assert fr.slot_capacity(1280, 720) == 5_529_600
 
 

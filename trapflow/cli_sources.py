@@ -131,7 +131,7 @@ def replay(path: Path, rate: float, loop: bool, assert_lossless: bool,
            config_path: str | None, options: tuple[str, ...], run_dir: Path | None) -> None:
     """Feed a trapflow recording or a ROS 2 bag through the pipeline."""
     from trapflow import config as config_mod
-    from trapflow.camera import StereoRig
+    from trapflow.rig import from_config
     from trapflow.sources.replay import ReplaySource
 
     if assert_lossless and loop:
@@ -147,9 +147,8 @@ def replay(path: Path, rate: float, loop: bool, assert_lossless: bool,
         source = msgspec.structs.replace(cfg.source, kind="replay", uri=str(path), loop=loop,
                                          options={**cfg.source.options, **opts})
         cfg = msgspec.structs.replace(cfg, source=source).validated()
-        rig = StereoRig.from_fov(cfg.source.width, cfg.source.height, cfg.rig.hfov_deg,
-                                 cfg.rig.baseline_m)
-        pairs = ReplaySource(cfg.source, rig).count_pairs()  # also: one clear error up front
+        # Counting also gives one clear error up front.
+        pairs = ReplaySource(cfg.source, from_config(cfg)).count_pairs()
     except TrapflowError as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(f"replay {path}: {pairs} pairs at rate {rate:g}", err=True)

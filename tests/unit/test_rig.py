@@ -131,3 +131,16 @@ def test_rig_files(tmp_path: Path) -> None:
     assert rig.read_rig_file(tmp_path / "c.yaml", (752, 480)) == CALIB_TXT
     path = write_calibration(tmp_path / "full.yaml", CALIB_TXT)
     assert rig.read_rig_file(Path(path), (1, 1)) == CALIB_TXT  # its own image size wins
+
+
+def test_describe_skips_an_unreadable_first_image(tmp_path: Path) -> None:
+    """A 0-byte first file does not stop the start: the frame size comes from the next one."""
+    import cv2
+    import numpy as np
+
+    for side in ("left", "right"):
+        (tmp_path / side).mkdir()
+        (tmp_path / side / "000.png").write_bytes(b"")
+        cv2.imwrite(str(tmp_path / side / "001.png"), np.zeros((300, 400, 3), np.uint8))
+    cfg = config.from_data({"source": {"kind": "images", "uri": str(tmp_path)}})
+    assert rig.describe(cfg).rig.size == (400, 300)

@@ -22,6 +22,7 @@ log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm"}
 LAYOUTS = (("left", "right"), ("image_0", "image_1"), ("image_2", "image_3"))
+GEOMETRY_TRIES = 10  # left images tried for the frame size before giving up
 
 
 def list_images(folder: Path) -> list[Path]:
@@ -101,7 +102,14 @@ class ImagesSource(Source):
     def geometry(self) -> Geometry:
         """The first left image's size, and calib.txt's rig at that size when there is one."""
         pairs = self.pairs or self._scan()
-        first = self._load(pairs[0][0])
+        first = None
+        for left, _right in pairs[:GEOMETRY_TRIES]:  # an unreadable file is not the geometry
+            first = cv2.imread(str(left), cv2.IMREAD_COLOR)
+            if first is not None:
+                break
+        if first is None:
+            raise SourceError(f"images: none of the first {min(len(pairs), GEOMETRY_TRIES)} "
+                              f"left images in {self.root} can be read")
         size = (first.shape[1], first.shape[0])
         where = f"images in {self.root}"
         calib = self.root / "calib.txt"

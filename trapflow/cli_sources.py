@@ -11,6 +11,7 @@ from typing import Any
 import click
 import msgspec
 
+from trapflow.camera import StereoRig
 from trapflow.errors import TrapflowError
 from trapflow.messages import Stats
 from trapflow.signals import stop_on_signals
@@ -88,19 +89,36 @@ def record(run_dir: Path, endpoint: str | None, output: Path) -> None:
     """Record image pairs and results from a running pipeline to an MCAP rosbag2 file."""
     from trapflow.recorder import record as record_tap
 
+    rig = None
     if endpoint is None:
         from trapflow.config import Config
         from trapflow.transport import Endpoints
 
         endpoint = Endpoints.for_run(Config().network, run_dir).tap
+        rig = _running_rig(run_dir)
     stop = stop_on_signals()
     click.echo(f"recording {endpoint} to {output}; Ctrl-C to stop", err=True)
     try:
-        counts = record_tap(endpoint, output, stop)
+        counts = record_tap(endpoint, output, stop, rig=rig)
     except (TrapflowError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
     per_algo = ", ".join(f"{k} {v}" for k, v in sorted(counts.results.items())) or "none"
     click.echo(f"{output}: {counts.pairs} pairs, results: {per_algo}, malformed {counts.malformed}")
+
+
+def _running_rig(run_dir: Path) -> StereoRig | None:
+    """The rig of the pipeline running in run_dir (for CameraInfo), or None with a warning."""
+    from trapflow.control import request
+
+    try:
+        found = request(run_dir, "status").get("rig")
+        if found:
+            return msgspec.convert({k: v for k, v in found.items()
+                                    if k in StereoRig.__struct_fields__}, StereoRig)
+    except (TrapflowError, msgspec.ValidationError) as exc:
+        click.echo(f"warning: no rig from {run_dir} ({exc}); recording without CameraInfo",
+                   err=True)
+    return None
 
 
 def lossless_problems(pairs_read: int, stats: Stats) -> list[str]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import signal
 import subprocess
 import sys
 from collections.abc import Callable
@@ -18,13 +19,16 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
+from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from tests.builders import floor_scene, kitti_calib, rectified_calibration
-from tests.conftest import REPO, Pipeline, write_config
+from tests.conftest import REPO, Pipeline, poll_for, write_config
 from trapflow.calibration import save_calibration
 from trapflow.camera import StereoRig
+from trapflow.config import from_data
+from trapflow.rig import describe
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -231,3 +235,36 @@ def test_a_calibration_that_contradicts_the_frames_fails_at_start(
     assert code == 2, err
     lines = [line for line in err.splitlines() if "752x480" in line]
     assert len(lines) == 1 and "1280x720" in lines[0] and "calibrate" in lines[0], err
+
+
+def test_a_recording_keeps_the_rig_for_its_replay(
+    spawn: Callable[..., Pipeline], run_dir: Path, tmp_path: Path
+) -> None:
+    """`trapflow record` writes the running pipeline's rig as CameraInfo beside the images,
+    read back with rosbags (ROS 2 tooling's library), so a replay of a 752x480 KITTI run
+    computes with calib.txt's rig again, not the configured field of view."""
+    write_kitti(tmp_path / "seq", KITTI, 6)
+    p = spawn(["--source", f"images:{tmp_path / 'seq'}", "--workers", "vo=1", "--loop",
+               "--rate", "10"], run_dir)
+    p.wait_active(90)
+    out = tmp_path / "field.mcap"
+    recorder = subprocess.Popen(
+        [sys.executable, "-m", "trapflow", "record", "--run-dir", str(run_dir), "-o", str(out)],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        poll_for(lambda: len(p.results()) > 20, 40, what="pairs flowing while recording")
+    finally:
+        recorder.send_signal(signal.SIGINT)
+        _rout, rerr = recorder.communicate(timeout=20)
+    assert recorder.returncode == 0, rerr
+    code, _out, err = p.stop()
+    assert code == 0, err
+    with AnyReader([out]) as reader:
+        topics = {c.topic: c.msgtype for c in reader.connections}
+        info = next(reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()
+                    if c.topic == "/trapflow/right/camera_info")
+    assert topics["/trapflow/left/camera_info"] == "sensor_msgs/msg/CameraInfo"
+    assert (info.width, info.height) == (752, 480)
+    assert -info.p[3] / info.p[0] == pytest.approx(KITTI.baseline_m)
+    found = describe(from_data({"source": {"kind": "replay", "uri": str(out)}}))
+    assert found.rig.id == KITTI.id and "CameraInfo" in found.origin

@@ -94,14 +94,16 @@ def check_geometric_results(p: Pipeline, rig: StereoRig, n: int) -> None:
         assert np.linalg.norm(t["translation"]) == pytest.approx(np.hypot(x, HEIGHT_M), rel=0.02)
 
 
+@pytest.mark.parametrize("flags", [[], ["--size", "752x480"]], ids=["no-flags", "size"])
 def test_kitti_folder_runs_vo_and_tags_with_its_calib_txt(
-    spawn: Callable[..., Pipeline], run_dir: Path, tmp_path: Path
+    spawn: Callable[..., Pipeline], run_dir: Path, tmp_path: Path, flags: list[str]
 ) -> None:
     """Regression: a KITTI folder at 752x480 failed every vo and tags pair against the default
-    1280x720 rig while capture logged calib.txt's rig, and the run exited 0."""
+    1280x720 rig while capture logged calib.txt's rig, and the run exited 0; with --size, VO
+    ran on the configured field of view and baseline instead of calib.txt's."""
     write_kitti(tmp_path / "seq", KITTI, N)
     p = spawn(["--config", str(tags_config(tmp_path)), "--source", f"images:{tmp_path / 'seq'}",
-               "--workers", "vo=1,tags=1", "--rate", "10"], run_dir)
+               "--workers", "vo=1,tags=1", "--rate", "10", *flags], run_dir)
     code, _out, err = p.wait(150)
     assert code == 0, err
     check_geometric_results(p, KITTI, N)
@@ -268,3 +270,27 @@ def test_a_recording_keeps_the_rig_for_its_replay(
     assert -info.p[3] / info.p[0] == pytest.approx(KITTI.baseline_m)
     found = describe(from_data({"source": {"kind": "replay", "uri": str(out)}}))
     assert found.rig.id == KITTI.id and "CameraInfo" in found.origin
+
+
+def test_a_pair_of_another_size_is_skipped_at_capture(
+    spawn: Callable[..., Pipeline], run_dir: Path, tmp_path: Path
+) -> None:
+    """A pair that contradicts the rig is counted once at capture, with both sizes, instead of
+    being sent to fail in every pool."""
+    n, odd = 8, 3
+    write_kitti(tmp_path / "seq", KITTI, n)
+    for side in ("image_0", "image_1"):
+        path = tmp_path / "seq" / side / f"{odd:06d}.png"
+        cv2.imwrite(str(path), cv2.resize(cv2.imread(str(path)), (640, 400)))
+    p = spawn(["--source", f"images:{tmp_path / 'seq'}", "--workers", "vo=1", "--rate", "10"],
+              run_dir)
+    code, _out, err = p.wait(120)
+    assert code == 0, err
+    book = ledger(run_dir)
+    assert book["produced"] == n - 1
+    vo = book["pools"]["vo"]
+    assert (vo["processed"], vo["failed"], vo["lost"]) == (n - 1, 0, 0)
+    skipped = [line for line in err.splitlines() if "pair skipped" in line]
+    assert len(skipped) == 1 and "640x400" in skipped[0] and "752x480" in skipped[0], err
+    seqs = sorted(r["stereo_vo"]["seq"] for r in p.results() if "stereo_vo" in r)
+    assert seqs == list(range(n - 1))

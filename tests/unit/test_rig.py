@@ -144,3 +144,43 @@ def test_describe_skips_an_unreadable_first_image(tmp_path: Path) -> None:
         cv2.imwrite(str(tmp_path / side / "001.png"), np.zeros((300, 400, 3), np.uint8))
     cfg = config.from_data({"source": {"kind": "images", "uri": str(tmp_path)}})
     assert rig.describe(cfg).rig.size == (400, 300)
+
+
+@pytest.mark.parametrize(
+    ("infos", "image", "side", "expected"),
+    [
+        (["/cam0/camera_info", "/cam1/camera_info"], "/cam0/image_raw", "left",
+         "/cam0/camera_info"),
+        (["/stereo/left/camera_info", "/stereo/right/camera_info"], "/stereo/left/image_rect",
+         "left", "/stereo/left/camera_info"),
+        (["/trapflow/left/camera_info", "/trapflow/right/camera_info"],
+         "/trapflow/right/image/compressed", "right", "/trapflow/right/camera_info"),
+        (["/a/info", "/b/info"], "/c/image", "left", None),  # no way to tell: none
+        (["/left_info", "/right_info"], "/c/image", "right", "/right_info"),
+    ],
+)
+def test_camera_info_topic_beside_the_images(
+    infos: list[str], image: str, side: str, expected: str | None
+) -> None:
+    from trapflow.sources.replay import _info_topic
+
+    assert _info_topic(infos, image, side) == expected
+
+
+def test_rig_from_camera_info() -> None:
+    from types import SimpleNamespace
+
+    from trapflow.sources.replay import rig_from_camera_info
+
+    def info(r: StereoRig, right: bool, p: bool = True) -> SimpleNamespace:
+        return SimpleNamespace(width=r.width, height=r.height, k=list(r.K.ravel()),
+                               p=list(r.projection(right).ravel()) if p else [0.0] * 12)
+
+    got, note = rig_from_camera_info(info(CALIB_TXT, False), info(CALIB_TXT, True), 0.3)
+    assert got.id == CALIB_TXT.id and note == ""
+    # A monocular P (no -fx*B in the right one): the configured baseline, and a note saying so.
+    got, note = rig_from_camera_info(info(CALIB_TXT, False), info(CALIB_TXT, False), 0.3)
+    assert got.baseline_m == 0.3 and "rig.baseline_m" in note
+    # P unset (all zeros): intrinsics from K.
+    got, _ = rig_from_camera_info(info(CALIB_TXT, False, p=False), info(CALIB_TXT, True), 0.3)
+    assert (got.fx, got.fy, got.cx, got.cy) == (436.0, 435.0, 370.5, 235.2)

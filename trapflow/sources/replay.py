@@ -5,7 +5,8 @@ whose .msg definition the user gives), are paired by timestamp, and are delivere
 original timing scaled by `rate` (0: as fast as possible).
 
 source.options: rate (1.0), left_topic, right_topic, tolerance_s (half the frame period),
-msg_type + msg_def (path of a .msg file) + topic, left_field ('left'), right_field ('right').
+msg_type + msg_def (path of a .msg file) + topic, left_field ('left'), right_field ('right'),
+left_info_topic, right_info_topic (CameraInfo giving the rig; found beside the image topics).
 """
 
 from __future__ import annotations

@@ -90,6 +90,7 @@ class WorkerNode(Node):
             )
         self.plugin: Worker | None = None
         self.rig = spec.the_rig()
+        self.calib = self.rig.id
         self._reader: RingReader | None = None
         self._next_save = 0.0
         self.processed = 0
@@ -129,6 +130,7 @@ class WorkerNode(Node):
             self.set_state(INACTIVE, f"cannot start algorithm: {why}")
             return False
         self.plugin = plugin
+        self.calib = (plugin.rig or self.rig).id  # a plugin's own calibration wins
         self.set_state(ACTIVE)
         return True
 
@@ -168,8 +170,7 @@ class WorkerNode(Node):
     def _stamp(self, body: messages.Body) -> messages.Body:
         """A stereo result carries the id of the rig it was computed with (`calib`)."""
         if isinstance(body, STAMPED) and not body.calib:
-            assert self.plugin is not None
-            return msgspec.structs.replace(body, calib=(self.plugin.rig or self.rig).id)
+            return msgspec.structs.replace(body, calib=self.calib)
         return body
 
     def _save(self, left: np.ndarray, right: np.ndarray, result: messages.Result) -> None:

@@ -294,3 +294,22 @@ def test_a_pair_of_another_size_is_skipped_at_capture(
     assert len(skipped) == 1 and "640x400" in skipped[0] and "752x480" in skipped[0], err
     seqs = sorted(r["stereo_vo"]["seq"] for r in p.results() if "stereo_vo" in r)
     assert seqs == list(range(n - 1))
+
+
+def test_a_plugins_own_calibration_wins_and_its_id_is_reported(
+    spawn: Callable[..., Pipeline], run_dir: Path, tmp_path: Path
+) -> None:
+    """pools.vo.params.calibration, given explicitly, beats the source's calib.txt for that
+    pool, and VO's results name that rig, not the run's."""
+    write_kitti(tmp_path / "seq", KITTI, 4)
+    own = StereoRig(width=752, height=480, fx=440.0, fy=440.0, cx=376.0, cy=240.0,
+                    baseline_m=0.1)
+    (tmp_path / "own.yaml").write_text("fx: 440\nfy: 440\ncx: 376\ncy: 240\nbaseline_m: 0.1\n")
+    cfg = write_config(tmp_path / "cfg.yaml", {"pools": {
+        "vo": {"params": {"calibration": str(tmp_path / "own.yaml")}}}})
+    p = spawn(["--config", str(cfg), "--source", f"images:{tmp_path / 'seq'}",
+               "--workers", "vo=1", "--rate", "10"], run_dir)
+    code, _out, err = p.wait(120)
+    assert code == 0, err
+    vo = [r["stereo_vo"] for r in p.results() if "stereo_vo" in r]
+    assert len(vo) == 4 and {r["calib"] for r in vo} == {own.id} and own.id != KITTI.id

@@ -122,6 +122,8 @@ class Supervisor:
         """Consumers first so nothing sent is lost: normalizer, broker, workers; capture is
         spawned once they are all active (see run())."""
         sup, cfg, run = self.cfg.supervisor, self.cfg, self.run_dir
+        if self.rig is not None:
+            log.info("rig from %s: %s", self.rig_origin, self.rig.describe())
         self._add(NodeSpec("normalizer", "normalizer", cfg, run), sup.liveness_s)
         if cfg.modem.enabled:
             self._add(NodeSpec("modem", "modem", cfg, run), sup.liveness_s)
@@ -222,7 +224,6 @@ class Supervisor:
         except TrapflowError as exc:
             raise StartupError(f"source {c.source.kind}: {exc}") from None
         self.rig, self.rig_origin = found.rig, found.origin
-        log.info("rig from %s: %s", found.origin, found.rig.describe())
         for pool, pcfg in self.cfg.pools.items():
             if pcfg.count > 0:
                 try:

@@ -107,7 +107,9 @@ def test_kitti_folder_runs_vo_and_tags_with_its_calib_txt(
     code, _out, err = p.wait(150)
     assert code == 0, err
     check_geometric_results(p, KITTI, N)
-    assert f"calib {KITTI.id}" in (run_dir / "trapflow.log").read_text()
+    logged = (run_dir / "trapflow.log").read_text()
+    assert f"supervisor INFO rig from {tmp_path / 'seq' / 'calib.txt'}: 752x480" in logged
+    assert f"(calib {KITTI.id})" in logged
 
 
 def camera_info(ts: Any, t: int, rig: StereoRig, right: bool) -> Any:

@@ -168,11 +168,16 @@ class ReplaySource(Source):
 
     def geometry(self) -> Geometry:
         """The first left image's size, and the rig of the bag's CameraInfo pair if it has one."""
-        if self.opts.get("msg_type"):
-            return Geometry()  # a custom stereo message: its size shows at the first pair
         self.open()
         try:
-            return self._geometry()
+            msg_type = self.opts.get("msg_type")
+            if not msg_type:
+                return self._geometry()
+            first = next(self._custom_pairs(str(msg_type)), None)  # one stereo message
+            if first is None:
+                return Geometry()
+            img = image_to_bgr(first[1])
+            return Geometry(size=(img.shape[1], img.shape[0]), where=f"{msg_type} in {self.path}")
         finally:
             self.close()
 

@@ -192,7 +192,9 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
     cfg = configmod.from_data({
         "source": {"encoding": "raw" if kind == "raw" else "jpeg"},
         "pools": {f"p{i}": {"plugin": "noop", "count": workers, "policy": "fifo:8",
-                            "credit": 2} for i in range(pools)},
+                            "credit": 2} for i in range(pools)}
+                  # a pools: section merges over the defaults: switch the default pools off
+                  | {name: {"count": 0} for name in configmod.Config().pools},
         "frames": {"transport": frames},
         "log_level": "WARNING",
     })

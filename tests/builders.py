@@ -8,6 +8,8 @@ import cv2
 import numpy as np
 
 from trapflow import messages
+from trapflow.calibration import StereoCalibration
+from trapflow.camera import StereoRig
 
 
 def pair_header(seq: int = 0, width: int = 64, height: int = 48,
@@ -44,3 +46,48 @@ def result(body: messages.Body, seq: int = 7, t_wall_ns: int = 17518927631200000
            pool: str = "mono") -> messages.Result:
     return messages.Result(seq=seq, t_wall_ns=t_wall_ns, t_mono_ns=1, pool=pool,
                            worker=f"{pool}:0:1", proc_ns=1000, body=body)
+
+
+def floor_scene(rig: StereoRig, n: int, step_m: float = 0.02, height_m: float = 1.2,
+                tag_id: int = 7, tag_m: float = 0.25, seed: int = 5
+                ) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[np.ndarray]]:
+    """n rectified pairs of a textured floor with an AprilTag at the world origin, the rig
+    looking straight down and translating step_m per pair along world x; and the poses.
+
+    Rendered through exact homographies with the rig's own K and baseline (testkit_scenes),
+    independently of trapflow's synthetic world.
+    """
+    from trapflow_workers.testkit_scenes import FloorWorld, looking_down
+
+    world = FloorWorld.square(rig, 4.0, res_m=0.003, seed=seed)
+    side = int(round(tag_m / world.res_m))
+    marker = cv2.aruco.generateImageMarker(
+        cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11), tag_id, side)
+    quiet = side // 4
+    patch = np.full((side + 2 * quiet, side + 2 * quiet), 255, np.uint8)
+    # Seen from above, the camera's image axes are the floor's, transposed and reversed.
+    patch[quiet:quiet + side, quiet:quiet + side] = marker[::-1, ::-1].T
+    c = world.texture.shape[0] // 2 - patch.shape[0] // 2
+    world.texture[c:c + patch.shape[0], c:c + patch.shape[1]] = patch
+    poses = [looking_down(-step_m * (n - 1) / 2 + i * step_m, 0.0, height_m, 0.0, pitch=0.0)
+             for i in range(n)]
+    return [world.render(p) for p in poses], poses
+
+
+def kitti_calib(rig: StereoRig) -> str:
+    """A KITTI odometry calib.txt for a rectified rig (P0, P1 as KITTI writes them)."""
+    p0 = f"{rig.fx:.6e} 0 {rig.cx:.6e} 0 0 {rig.fy:.6e} {rig.cy:.6e} 0 0 0 1 0"
+    p1 = (f"{rig.fx:.6e} 0 {rig.cx:.6e} {-rig.fx * rig.baseline_m:.6e} 0 {rig.fy:.6e} "
+          f"{rig.cy:.6e} 0 0 0 1 0")
+    return f"P0: {p0}\nP1: {p1}\nP2: {p0}\nP3: {p1}\n"
+
+
+def rectified_calibration(rig: StereoRig) -> StereoCalibration:
+    """A trapflow calibration of an already rectified rig (identity rotations, no distortion)."""
+    k = rig.K.tolist()
+    q = [[1, 0, 0, -rig.cx], [0, 1, 0, -rig.cy], [0, 0, 0, rig.fx], [0, 0, 1 / rig.baseline_m, 0]]
+    return StereoCalibration(
+        image_width=rig.width, image_height=rig.height, K1=k, D1=[0.0] * 5, K2=k, D2=[0.0] * 5,
+        R=np.eye(3).tolist(), T=[-rig.baseline_m, 0.0, 0.0], R1=np.eye(3).tolist(),
+        R2=np.eye(3).tolist(), P1=rig.projection().tolist(), P2=rig.projection(True).tolist(),
+        Q=q, baseline_m=rig.baseline_m)

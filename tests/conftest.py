@@ -193,3 +193,11 @@ def prefix() -> Iterator[str]:
     yield p
     for name in fr.list_segments(p):
         os.unlink(os.path.join(fr.SHM_DIR, name))
+
+
+def only_pools(pools: dict[str, Any]) -> dict[str, Any]:
+    """A `pools:` section that runs exactly these pools: a user's pools merge over the default
+    pools, so the defaults it does not name are switched off here."""
+    from trapflow.config import Config
+
+    return {**{name: {"count": 0} for name in Config().pools if name not in pools}, **pools}

@@ -1,7 +1,11 @@
-"""The stereo rig model shared by sources and algorithms: pinhole intrinsics and baseline."""
+"""The stereo rig model shared by sources and algorithms: pinhole intrinsics and baseline.
+
+trapflow.rig decides which rig a run uses; this module only models one.
+"""
 
 from __future__ import annotations
 
+import hashlib
 import math
 
 import msgspec
@@ -32,6 +36,28 @@ class StereoRig(msgspec.Struct, frozen=True, kw_only=True):
             cy=(height - 1) / 2.0,
             baseline_m=baseline_m,
         )
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) of the images the rig describes."""
+        return self.width, self.height
+
+    @property
+    def id(self) -> str:
+        """A short id of the rig's numbers (8 hex digits): the `calib` of every stereo result.
+
+        BLAKE2b (4-byte digest) of `WxH fx fy cx cy baseline`, pixels to 1e-3 and metres to
+        1e-6: parsing noise does not change it, a different calibration does.
+        """
+        text = (f"{self.width}x{self.height} {self.fx:.3f} {self.fy:.3f} {self.cx:.3f} "
+                f"{self.cy:.3f} {self.baseline_m:.6f}")
+        return hashlib.blake2b(text.encode("ascii"), digest_size=4).hexdigest()
+
+    def describe(self) -> str:
+        """One line for logs and status: size, intrinsics, baseline and id."""
+        return (f"{self.width}x{self.height}, fx {self.fx:.1f} fy {self.fy:.1f}, "
+                f"cx {self.cx:.1f} cy {self.cy:.1f}, baseline {self.baseline_m:.3f} m "
+                f"(calib {self.id})")
 
     @property
     def K(self) -> np.ndarray:  # noqa: N802 - the usual name of the matrix

@@ -17,24 +17,16 @@ import numpy as np
 import zmq
 
 from trapflow import messages
-from trapflow.camera import StereoRig
 from trapflow.frame_ring import RingError, RingWriter
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.ratelog import RateLimitedLog
+from trapflow.rig import mismatch
 from trapflow.sources import Frames, Source, SourceError, open_source
 from trapflow.transport import LinkClient, LinkClosed, SocketSpec, open_socket
 
 log = logging.getLogger(__name__)
 
 RETRY_BACKOFF_S = (0.5, 1.0, 2.0, 5.0, 10.0)
-
-
-def rig_from_config(spec: NodeSpec) -> StereoRig:
-    """The source's own rig when the supervisor found one, else the configured field of view."""
-    if spec.rig is not None:
-        return spec.rig
-    c = spec.cfg
-    return StereoRig.from_fov(c.source.width, c.source.height, c.rig.hfov_deg, c.rig.baseline_m)
 
 
 class CaptureNode(Node):
@@ -46,8 +38,8 @@ class CaptureNode(Node):
             self.ctx, SocketSpec(zmq.PUSH, self.endpoints.capture, sndhwm=4)
         )
         self.src_cfg = self.cfg.source
-        self.source: Source = open_source(self.src_cfg, rig_from_config(spec),
-                                          self.cfg.rig.calibration)
+        self.rig = spec.the_rig()  # every pair sent must have its size
+        self.source: Source = open_source(self.src_cfg, self.rig, self.cfg.rig.calibration)
         # A restarted capture continues past its predecessor's numbers (the supervisor knows).
         self.seq = int(spec.extra.get("first_seq", 0))
         self.produced = 0
@@ -153,6 +145,11 @@ class CaptureNode(Node):
             self.failures += 1
             log.warning("left %s and right %s differ in shape; pair skipped",
                         f.left.shape, f.right.shape)
+            return
+        if (w, h) != self.rig.size:  # the workers would fail it: count it here, once
+            self.failures += 1
+            self.ratelog.warning("geometry", "pair skipped: %s", mismatch(
+                (w, h), f"source {self.src_cfg.kind}", self.rig, f"calib {self.rig.id}"))
             return
         left, right = self._encode(f.left), self._encode(f.right)
         slot: int | None = None

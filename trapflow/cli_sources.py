@@ -11,6 +11,7 @@ from typing import Any
 import click
 import msgspec
 
+from trapflow.camera import StereoRig
 from trapflow.errors import TrapflowError
 from trapflow.messages import Stats
 from trapflow.signals import stop_on_signals
@@ -101,19 +102,36 @@ def record(run_dir: Path, endpoint: str | None, output: Path) -> None:
     """Record image pairs and results from a running pipeline to an MCAP rosbag2 file."""
     from trapflow.recorder import record as record_tap
 
+    rig = None
     if endpoint is None:
         from trapflow.config import Config
         from trapflow.transport import Endpoints
 
         endpoint = Endpoints.for_run(Config().network, run_dir).tap
+        rig = _running_rig(run_dir)
     stop = stop_on_signals()
     click.echo(f"recording {endpoint} to {output}; Ctrl-C to stop", err=True)
     try:
-        counts = record_tap(endpoint, output, stop)
+        counts = record_tap(endpoint, output, stop, rig=rig)
     except (TrapflowError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
     per_algo = ", ".join(f"{k} {v}" for k, v in sorted(counts.results.items())) or "none"
     click.echo(f"{output}: {counts.pairs} pairs, results: {per_algo}, malformed {counts.malformed}")
+
+
+def _running_rig(run_dir: Path) -> StereoRig | None:
+    """The rig of the pipeline running in run_dir (for CameraInfo), or None with a warning."""
+    from trapflow.control import request
+
+    try:
+        found = request(run_dir, "status").get("rig")
+        if found:
+            return msgspec.convert({k: v for k, v in found.items()
+                                    if k in StereoRig.__struct_fields__}, StereoRig)
+    except (TrapflowError, msgspec.ValidationError) as exc:
+        click.echo(f"warning: no rig from {run_dir} ({exc}); recording without CameraInfo",
+                   err=True)
+    return None
 
 
 def lossless_problems(pairs_read: int, stats: Stats) -> list[str]:
@@ -144,7 +162,7 @@ def replay(path: Path, rate: float, loop: bool, assert_lossless: bool,
            config_path: str | None, options: tuple[str, ...], run_dir: Path | None) -> None:
     """Feed a trapflow recording or a ROS 2 bag through the pipeline."""
     from trapflow import config as config_mod
-    from trapflow.camera import StereoRig
+    from trapflow.rig import from_config
     from trapflow.sources.replay import ReplaySource
 
     if assert_lossless and loop:
@@ -160,9 +178,8 @@ def replay(path: Path, rate: float, loop: bool, assert_lossless: bool,
         source = msgspec.structs.replace(cfg.source, kind="replay", uri=str(path), loop=loop,
                                          options={**cfg.source.options, **opts})
         cfg = msgspec.structs.replace(cfg, source=source).validated()
-        rig = StereoRig.from_fov(cfg.source.width, cfg.source.height, cfg.rig.hfov_deg,
-                                 cfg.rig.baseline_m)
-        pairs = ReplaySource(cfg.source, rig).count_pairs()  # also: one clear error up front
+        # Counting also gives one clear error up front.
+        pairs = ReplaySource(cfg.source, from_config(cfg)).count_pairs()
     except TrapflowError as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(f"replay {path}: {pairs} pairs at rate {rate:g}", err=True)

@@ -174,21 +174,47 @@ class Config(_Section):
         return self.pools[pool].plugin or pool
 
 
+def _pool_data(name: str, pool: Any) -> Any:
+    """A user's pool merged key by key over that pool's defaults (a new name: PoolConfig's)."""
+    if not isinstance(pool, dict):
+        return pool  # not a mapping: left for msgspec to reject with the path
+    default = _default_pools().get(name)
+    base = msgspec.to_builtins(default) if default is not None else {}
+    return {**base, **pool}
+
+
+def _check_pool(name: str, pool: Any, origin: str) -> None:
+    """Validate one pool so that errors name the pool's leaf key, not `$.pools[...]`."""
+    policy = pool.get("policy") if isinstance(pool, dict) else None
+    if isinstance(policy, str):
+        try:
+            parse_policy(policy)
+        except ValueError as exc:
+            raise ConfigError(f"{origin}: {exc} - at `$.pools.{name}.policy`") from None
+    try:
+        msgspec.convert(pool, PoolConfig, strict=True)
+    except msgspec.ValidationError as exc:
+        msg = str(exc).replace("`$", f"`$.pools.{name}")
+        if "- at `$" not in msg:
+            msg += f" - at `$.pools.{name}`"
+        raise ConfigError(f"{origin}: {msg}") from None
+
+
 def from_data(data: Any, origin: str = "config") -> Config:
-    """Validate plain data (from YAML) into a Config; ConfigError names the bad key."""
+    """Validate plain data (from YAML) into a Config; ConfigError names the bad key.
+
+    A `pools:` section changes only what it names: each pool it gives is merged key by
+    key over that pool's defaults, and the default pools it does not name stay as they are.
+    """
     if data is None:
         data = {}
     pools = data.get("pools") if isinstance(data, dict) else None
     if isinstance(pools, dict):
-        # Validate pools one by one so that errors name the pool, not `$.pools[...]`.
+        merged = {name: msgspec.to_builtins(p) for name, p in _default_pools().items()}
         for name, pool in pools.items():
-            try:
-                msgspec.convert(pool, PoolConfig, strict=True)
-            except msgspec.ValidationError as exc:
-                msg = str(exc).replace("`$", f"`$.pools.{name}")
-                if "- at `$" not in msg:
-                    msg += f" - at `$.pools.{name}`"
-                raise ConfigError(f"{origin}: {msg}") from None
+            merged[name] = _pool_data(str(name), pool)
+            _check_pool(str(name), merged[name], origin)
+        data = {**data, "pools": merged}
     try:
         return msgspec.convert(data, Config, strict=True)
     except msgspec.ValidationError as exc:

@@ -40,6 +40,11 @@ def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
     if as_json or "nodes" not in reply:
         return json.dumps(reply, indent=2)
     lines = [f"run {reply['run_dir']}  up {reply['uptime_s']} s"]
+    r = reply.get("rig")
+    if r:
+        lines.append(f"rig calib {r['calib']}: {r['width']}x{r['height']}, fx {r['fx']:.1f} "
+                     f"fy {r['fy']:.1f} cx {r['cx']:.1f} cy {r['cy']:.1f}, baseline "
+                     f"{r['baseline_m']:.3f} m, from {r['origin']}")
     lines.append(f"{'node':<22} {'pid':>7} {'state':<12} {'restarts':>8}  reason")
     for n in reply["nodes"]:
         lines.append(f"{n['name']:<22} {n['pid'] or '-':>7} {n['state']:<12} "

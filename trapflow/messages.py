@@ -75,6 +75,7 @@ class StereoIR(Msg, frozen=True, tag="stereo_ir"):
 
     label: str
     confidence: float
+    calib: str = ""  # id of the stereo rig the pair was taken with (StereoRig.id)
 
 
 class StereoVO(Msg, frozen=True, tag="stereo_vo"):
@@ -86,6 +87,7 @@ class StereoVO(Msg, frozen=True, tag="stereo_vo"):
     pose: tuple[float, ...] = ()  # accumulated 3x4 [R|t], row major
     inliers: int = 0
     reinit: bool = False
+    calib: str = ""  # id of the rig VO computed with (StereoRig.id)
 
 
 class Tag(Msg, frozen=True):
@@ -102,6 +104,7 @@ class Tags(Msg, frozen=True, tag="tags"):
     """AprilTag detection with pose."""
 
     tags: list[Tag] = []
+    calib: str = ""  # id of the rig the poses were computed with (StereoRig.id)
 
 
 class Extra(Msg, frozen=True, tag="extra"):

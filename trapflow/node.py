@@ -65,8 +65,16 @@ class NodeSpec:
     run_dir: Path
     pool: str = ""
     index: int = 0
-    rig: StereoRig | None = None  # the source's rig (calibration), when it knows one
+    rig: StereoRig | None = None  # the run's rig, decided once by trapflow.rig at preflight
     extra: dict[str, Any] = field(default_factory=dict)
+
+    def the_rig(self) -> StereoRig:
+        """The run's rig; a node spawned without one (a test, a benchmark) gets the config's."""
+        if self.rig is not None:
+            return self.rig
+        from trapflow.rig import from_config  # the rig module imports sources: keep it lazy
+
+        return from_config(self.cfg)
 
 
 class Node:

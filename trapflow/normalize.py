@@ -31,7 +31,20 @@ def _rows(values: tuple[float, ...], nd: int) -> list[list[float]]:
 
 
 def normalize(res: messages.Result, decimals: int = 3) -> list[dict[str, Any]]:
-    """One JSON-able object per reported item of a result (one per detection or tag)."""
+    """One JSON-able object per reported item of a result (one per detection or tag).
+
+    Stereo results also carry `calib`, the id of the rig they were computed with.
+    """
+    objs = _items(res, decimals)
+    calib = getattr(res.body, "calib", "")
+    if calib:
+        for obj in objs:
+            for item in obj.values():
+                item["calib"] = calib
+    return objs
+
+
+def _items(res: messages.Result, decimals: int) -> list[dict[str, Any]]:
     base: dict[str, Any] = {"timestamp": timestamp(res.t_wall_ns), "seq": res.seq}
     b = res.body
     nd = decimals

@@ -51,6 +51,9 @@ class Worker:
 
     #: whether process() needs decoded images; False skips JPEG decoding entirely
     needs_images: bool = True
+    #: the rig a geometric plugin computes with when it is not the run's (its own
+    #: `calibration` param); the worker stamps this rig's id on stereo results as `calib`
+    rig: StereoRig | None = None
 
     def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
         """Load models, read parameters. Called once before activate()."""

@@ -1,6 +1,7 @@
 """Recordings: MCAP files with the ros2 profile that ROS 2 tools read as a rosbag2.
 
-Left and right images are sensor_msgs/msg/CompressedImage, pair headers and results are
+Left and right images are sensor_msgs/msg/CompressedImage (with the run's rig as
+sensor_msgs/msg/CameraInfo beside them when known), pair headers and results are
 std_msgs/msg/String JSON (one results topic per algorithm), every message stamped with its
 pair's capture time. The file is written as OUT.part and renamed on close, so an
 interrupted recording never leaves a half-written OUT behind. record() owns one SUB socket.
@@ -22,6 +23,7 @@ import numpy as np
 import zmq
 from mcap_ros2.writer import Writer
 
+from trapflow.camera import StereoRig
 from trapflow.errors import ProtocolError, TrapflowError
 from trapflow.messages import (
     MAX_RESULT_BYTES,
@@ -53,6 +55,17 @@ COMPRESSED_IMAGE_DEF = (
     + _SEP + "MSG: builtin_interfaces/Time\n" + _TIME_DEF
 )
 STRING_DEF = "string data\n"
+TOPIC_LEFT_INFO = "/trapflow/left/camera_info"
+TOPIC_RIGHT_INFO = "/trapflow/right/camera_info"
+CAMERA_INFO_DEF = (
+    "std_msgs/Header header\nuint32 height\nuint32 width\nstring distortion_model\n"
+    "float64[] d\nfloat64[9] k\nfloat64[9] r\nfloat64[12] p\nuint32 binning_x\n"
+    "uint32 binning_y\nsensor_msgs/RegionOfInterest roi\n"
+    + _SEP + "MSG: std_msgs/Header\n" + _HEADER_DEF
+    + _SEP + "MSG: builtin_interfaces/Time\n" + _TIME_DEF
+    + _SEP + "MSG: sensor_msgs/RegionOfInterest\n"
+    + "uint32 x_offset\nuint32 y_offset\nuint32 height\nuint32 width\nbool do_rectify\n"
+)
 
 
 class RecorderError(TrapflowError):
@@ -80,8 +93,9 @@ class RecordCounts:
 class Recorder:
     """Writes pairs and results to an MCAP recording; close() finishes and publishes the file."""
 
-    def __init__(self, out: str | Path) -> None:
+    def __init__(self, out: str | Path, rig: StereoRig | None = None) -> None:
         self.out = Path(out)
+        self.rig = rig  # the run's rig: written as CameraInfo beside each pair's images
         self.part = self.out.with_name(self.out.name + ".part")
         try:
             self._file: IO[bytes] = open(self.part, "wb")  # noqa: SIM115 - closed in close()
@@ -92,6 +106,8 @@ class Recorder:
             "sensor_msgs/msg/CompressedImage", COMPRESSED_IMAGE_DEF
         )
         self._string_schema = self._writer.register_msgdef("std_msgs/msg/String", STRING_DEF)
+        self._info_schema = self._writer.register_msgdef(
+            "sensor_msgs/msg/CameraInfo", CAMERA_INFO_DEF) if rig is not None else None
         self._seq_time: OrderedDict[int, int] = OrderedDict()
         self.counts = RecordCounts()
         self.closed = False
@@ -112,6 +128,8 @@ class Recorder:
                    "format": "jpeg", "data": bytes(data)}
             self._writer.write_message(topic, self._image_schema, msg, log_time=t,
                                        publish_time=t, sequence=header.seq)
+        if self.rig is not None and self.rig.size == (header.width, header.height):
+            self._camera_info(header.seq, t_left, t_right)
         meta = json.dumps(to_builtins(header), separators=(",", ":"))
         self._writer.write_message(TOPIC_PAIRS, self._string_schema, {"data": meta},
                                    log_time=t_left, publish_time=t_left, sequence=header.seq)
@@ -119,6 +137,22 @@ class Recorder:
         if len(self._seq_time) > _SEQ_MEMORY:
             self._seq_time.popitem(last=False)
         self.counts.pairs += 1
+
+    def _camera_info(self, seq: int, t_left: int, t_right: int) -> None:
+        """The rectified rig as a left/right CameraInfo pair, as camera_calibration writes it
+        (the right P carries -fx * baseline): what replay reads the rig back from."""
+        assert self.rig is not None and self._info_schema is not None
+        r = self.rig
+        for topic, frame_id, t, right in ((TOPIC_LEFT_INFO, FRAME_LEFT, t_left, False),
+                                          (TOPIC_RIGHT_INFO, FRAME_RIGHT, t_right, True)):
+            msg = {"header": {"stamp": _stamp(t), "frame_id": frame_id}, "height": r.height,
+                   "width": r.width, "distortion_model": "plumb_bob", "d": [0.0] * 5,
+                   "k": [float(v) for v in r.K.ravel()], "r": [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0],
+                   "p": [float(v) for v in r.projection(right).ravel()], "binning_x": 0,
+                   "binning_y": 0, "roi": {"x_offset": 0, "y_offset": 0, "height": 0,
+                                           "width": 0, "do_rectify": False}}
+            self._writer.write_message(topic, self._info_schema, msg, log_time=t,
+                                       publish_time=t, sequence=seq)
 
     @staticmethod
     def _jpeg(header: StereoPair, data: bytes | memoryview) -> bytes:
@@ -170,14 +204,16 @@ class Recorder:
 
 
 def record(endpoint: str, out: str | Path, stop: threading.Event,
-           counts: RecordCounts | None = None, poll_ms: int = 100) -> RecordCounts:
+           counts: RecordCounts | None = None, poll_ms: int = 100,
+           rig: StereoRig | None = None) -> RecordCounts:
     """Attach to the tap at endpoint and record image pairs and results until stop is set.
 
     counts (optional) is updated live so a caller can watch progress; it is also returned.
+    rig (the pipeline's, from its status) is written as CameraInfo beside the images.
     Malformed tap messages are counted and skipped. The file is closed cleanly however
     the loop ends (stop, Ctrl-C, an error).
     """
-    rec = Recorder(out)
+    rec = Recorder(out, rig)
     if counts is not None:
         rec.counts = counts
     ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context.instance()

@@ -25,13 +25,12 @@ from typing import IO, Any
 import msgspec
 import zmq
 
-from trapflow import messages, registry, run_totals
+from trapflow import messages, registry, rig, run_totals
 from trapflow.camera import StereoRig
 from trapflow.config import Config
 from trapflow.errors import ProtocolError, StartupError, TrapflowError
 from trapflow.frame_ring import FrameRing, cleanup_stale, ring_slots, slot_capacity
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, NodeSpec, node_main
-from trapflow.sources import open_source
 from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
 
 log = logging.getLogger(__name__)
@@ -113,7 +112,8 @@ class Supervisor:
         self._retired: messages.Stats | None = None  # what brokers that died had counted
         self._capture_base: dict[str, int] = {}  # what captures that died had counted
         self.t0 = time.monotonic()
-        self.rig: StereoRig | None = None
+        self.rig: StereoRig | None = None  # decided at preflight (trapflow.rig)
+        self.rig_origin = ""
         self.ring: FrameRing | None = None
 
     # --- the process graph --------------------------------------------------------------
@@ -122,6 +122,8 @@ class Supervisor:
         """Consumers first so nothing sent is lost: normalizer, broker, workers; capture is
         spawned once they are all active (see run())."""
         sup, cfg, run = self.cfg.supervisor, self.cfg, self.run_dir
+        if self.rig is not None:
+            log.info("rig from %s: %s", self.rig_origin, self.rig.describe())
         self._add(NodeSpec("normalizer", "normalizer", cfg, run), sup.liveness_s)
         if cfg.modem.enabled:
             self._add(NodeSpec("modem", "modem", cfg, run), sup.liveness_s)
@@ -213,16 +215,15 @@ class Supervisor:
     def _preflight(self) -> None:
         """Fail before spawning anything when the source or an algorithm cannot load.
 
-        Building the source (not opening it) also tells the rig every node uses: a
-        calibration file or a KITTI folder's calib.txt beats the configured field of view.
+        The source, asked without being opened, also tells the rig every node uses
+        (trapflow.rig: a calibration file, the source's own, its frame size, the config).
         """
         c = self.cfg
-        rig = StereoRig.from_fov(c.source.width, c.source.height, c.rig.hfov_deg,
-                                 c.rig.baseline_m)
         try:
-            self.rig = open_source(c.source, rig, c.rig.calibration).rig
+            found = rig.describe(c)
         except TrapflowError as exc:
             raise StartupError(f"source {c.source.kind}: {exc}") from None
+        self.rig, self.rig_origin = found.rig, found.origin
         for pool, pcfg in self.cfg.pools.items():
             if pcfg.count > 0:
                 try:
@@ -242,9 +243,8 @@ class Supervisor:
             return None
         pools = [p for p in c.pools.values() if p.count > 0 and not p.remote]
         slots = ring_slots(pools, c.frames.preroll_slots, c.frames.spare_slots)
-        w, h = c.source.width, c.source.height
-        if self.rig is not None:  # a file or camera source knows its own size
-            w, h = max(w, self.rig.width), max(h, self.rig.height)
+        # Sized from the rig: capture sends only pairs of the rig's size, so every one fits.
+        w, h = self.rig.size if self.rig is not None else (c.source.width, c.source.height)
         ring = FrameRing.create(slots, slot_capacity(w, h))
         log.info("frame ring %s: %d slots of %d bytes", ring.name, slots, ring.slot_size)
         return ring
@@ -448,6 +448,8 @@ class Supervisor:
                 for c in self.children
             ],
             "stats": _full_stats(self.stats) if self.stats else None,
+            "rig": ({"calib": self.rig.id, "origin": self.rig_origin,
+                     **msgspec.structs.asdict(self.rig)} if self.rig is not None else None),
             "ring": ({"segment": self.ring.name, "slots": self.ring.slots, **self.ring.counts()}
                      if self.ring is not None else None),
         }

@@ -19,7 +19,6 @@ import psutil
 import zmq
 
 from trapflow import messages, registry
-from trapflow.capture import rig_from_config
 from trapflow.errors import ProtocolError, WorkerError
 from trapflow.frame_ring import RingError, RingReader
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec, freeze_heap
@@ -32,6 +31,8 @@ log = logging.getLogger(__name__)
 # With a pool's `save: true`, one input pair and its result are kept per this interval.
 SAVE_INTERVAL_S = 1.0
 SEND_WAIT_MS = 1000  # how long a Done may wait for room in a busy broker's queue
+# Result bodies that depend on the stereo geometry, stamped with the rig's id.
+STAMPED = (messages.StereoIR, messages.StereoVO, messages.Tags)
 
 
 def decode_image(frame: Any, pair: messages.StereoPair, side: str) -> np.ndarray:
@@ -88,6 +89,8 @@ class WorkerNode(Node):
                 SocketSpec(zmq.DEALER, self.endpoints.workers, identity=self.ident.encode()),
             )
         self.plugin: Worker | None = None
+        self.rig = spec.the_rig()
+        self.calib = self.rig.id
         self._reader: RingReader | None = None
         self._next_save = 0.0
         self.processed = 0
@@ -116,7 +119,7 @@ class WorkerNode(Node):
             plugin = cls()
             ctx = Context(
                 pool=self.pool, worker=self.ident, run_dir=self.spec.run_dir,
-                rig=rig_from_config(self.spec), debug=self.pcfg.debug, save=self.pcfg.save,
+                rig=self.rig, debug=self.pcfg.debug, save=self.pcfg.save,
                 time=self.pcfg.time,
             )
             plugin.configure(self.pcfg.params, ctx)
@@ -127,6 +130,7 @@ class WorkerNode(Node):
             self.set_state(INACTIVE, f"cannot start algorithm: {why}")
             return False
         self.plugin = plugin
+        self.calib = (plugin.rig or self.rig).id  # a plugin's own calibration wins
         self.set_state(ACTIVE)
         return True
 
@@ -162,6 +166,12 @@ class WorkerNode(Node):
         self.plugin.shutdown()
         self.set_state(FINALIZED)
         return 0
+
+    def _stamp(self, body: messages.Body) -> messages.Body:
+        """A stereo result carries the id of the rig it was computed with (`calib`)."""
+        if isinstance(body, STAMPED) and not body.calib:
+            return msgspec.structs.replace(body, calib=self.calib)
+        return body
 
     def _save(self, left: np.ndarray, right: np.ndarray, result: messages.Result) -> None:
         """Debug aid (`save: true`): at most one input pair and its result per second."""
@@ -267,6 +277,7 @@ class WorkerNode(Node):
                                         reason=reason[:300], kind=type(exc).__name__)])
             return
         self.processed += 1
+        body = self._stamp(body)
         result = messages.Result(
             seq=header.seq, t_wall_ns=header.t_wall_ns, t_mono_ns=header.t_mono_ns,
             pool=self.pool, worker=self.ident, proc_ns=proc_ns, body=body,

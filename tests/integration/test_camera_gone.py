@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tests.conftest import Pipeline, poll_for, write_config
+from tests.conftest import Pipeline, only_pools, poll_for, write_config
 
 
 def _node(status: dict, name: str) -> dict:
@@ -28,7 +28,7 @@ def test_capture_goes_inactive_with_reason_and_recovers(spawn, run_dir: Path) ->
             cv2.imwrite(str(data / side / f"{i:04d}.png"), img)
     cfg = write_config(run_dir.parent / "cams.yaml", {
         "source": {"kind": "images", "uri": str(data), "rate_hz": 10.0, "loop": True},
-        "pools": {"fast": {"plugin": "digest", "policy": "ordered:32"}},
+        "pools": only_pools({"fast": {"plugin": "digest", "policy": "ordered:32"}}),
     })
     p: Pipeline = spawn(["--config", str(cfg)], run_dir)
     p.wait_active()

@@ -8,14 +8,14 @@ from pathlib import Path
 import cv2
 import pytest
 
-from tests.conftest import Pipeline, write_config
+from tests.conftest import Pipeline, only_pools, write_config
 
 
 @pytest.mark.timeout(90)
 def test_trigger_keeps_preroll_and_postroll_pairs(spawn, run_dir: Path) -> None:
     cfg = write_config(run_dir.parent / "events.yaml", {
         "source": {"width": 320, "height": 240, "rate_hz": 10.0},
-        "pools": {"stereo": {"plugin": "histogram", "policy": "latest"}},
+        "pools": only_pools({"stereo": {"plugin": "histogram", "policy": "latest"}}),
         "events": {"enabled": True, "pre_s": 1.0, "post_s": 1.0,
                    "triggers": [{"algorithm": "stereo_ir", "not_label": "nothing"}]},
     })

@@ -12,7 +12,7 @@ from pathlib import Path
 import psutil
 import pytest
 
-from tests.conftest import REPO, Pipeline, poll_for
+from tests.conftest import REPO, Pipeline, only_pools, poll_for
 
 SMALL = ["--size", "320x240", "--rate", "15"]
 
@@ -109,7 +109,7 @@ def test_save_flag_keeps_debug_pairs(spawn, run_dir: Path) -> None:
 
     cfg = write_config(run_dir.parent / "save.yaml", {
         "source": {"width": 320, "height": 240, "rate_hz": 10.0},
-        "pools": {"stereo": {"plugin": "histogram", "save": True, "time": True}},
+        "pools": only_pools({"stereo": {"plugin": "histogram", "save": True, "time": True}}),
     })
     p: Pipeline = spawn(["--config", str(cfg), "--duration", "5"], run_dir)
     code, _, err = p.wait(45)

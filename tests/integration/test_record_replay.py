@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from rosbags.highlevel import AnyReader
 
-from tests.conftest import REPO, Pipeline, poll_for, write_config
+from tests.conftest import REPO, Pipeline, only_pools, poll_for, write_config
 
 
 @pytest.mark.timeout(150)
@@ -37,7 +37,7 @@ def test_record_then_replay_lossless(spawn, run_dir: Path) -> None:
     assert n_left >= 10
     cfg = write_config(work / "replay.yaml", {
         "source": {"width": 320, "height": 240},
-        "pools": {"every": {"plugin": "digest", "policy": "ordered:64"}},
+        "pools": only_pools({"every": {"plugin": "digest", "policy": "ordered:64"}}),
     })
     replay = subprocess.run(
         [sys.executable, "-m", "trapflow", "replay", str(rec), "--rate", "0", "--assert-lossless",

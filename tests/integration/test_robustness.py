@@ -15,7 +15,7 @@ import pytest
 import zmq
 
 from tests import builders
-from tests.conftest import Pipeline, poll_for, recv, write_config
+from tests.conftest import Pipeline, only_pools, poll_for, recv, write_config
 from trapflow import messages
 
 SMALL = {"width": 320, "height": 240, "rate_hz": 15.0}
@@ -30,10 +30,10 @@ def test_slow_latest_pool_drops_while_fast_ordered_pool_gets_everything(
         spawn, run_dir: Path) -> None:
     cfg = write_config(run_dir.parent / "bp.yaml", {
         "source": SMALL,
-        "pools": {
+        "pools": only_pools({
             "slow": {"plugin": "slow", "policy": "latest", "params": {"delay_s": 1.0}},
             "fast": {"plugin": "noop", "policy": "ordered:64"},
-        },
+        }),
     })
     p: Pipeline = spawn(["--config", str(cfg), "--duration", "9"], run_dir)
     s1 = p.wait_active()
@@ -91,8 +91,8 @@ def test_crash_loop_gives_up_loudly_and_keeps_the_rest(spawn, run_dir: Path) -> 
     cfg = write_config(run_dir.parent / "crash.yaml", {
         "source": SMALL,
         "supervisor": {"max_restarts": 2, "restart_backoff_s": 0.1},
-        "pools": {"bad": {"plugin": "crash", "params": {"after": 3}},
-                  "vo": {"policy": "ordered"}},
+        "pools": only_pools({"bad": {"plugin": "crash", "params": {"after": 3}},
+                  "vo": {"policy": "ordered"}}),
     })
     p: Pipeline = spawn(["--config", str(cfg)], run_dir)
 
@@ -162,7 +162,8 @@ def test_malformed_messages_on_every_bound_socket(spawn, run_dir: Path, zctx) ->
 def test_plugin_that_cannot_start_fails_the_start_with_one_line(spawn, run_dir: Path) -> None:
     cfg = write_config(run_dir.parent / "bad.yaml", {
         "source": SMALL,
-        "pools": {"mono": {"plugin": "crash", "params": {"fail": "model file missing: x.onnx"}}},
+        "pools": only_pools(
+            {"mono": {"plugin": "crash", "params": {"fail": "model file missing: x.onnx"}}}),
     })
     p: Pipeline = spawn(["--config", str(cfg), "--duration", "30"], run_dir)
     code, _, err = p.wait(45)
@@ -192,7 +193,7 @@ def test_tcp_port_in_use_is_reported(spawn, run_dir: Path) -> None:
         # The broker's capture endpoint is base_port + 0.
         cfg = write_config(run_dir.parent / "tcp.yaml", {
             "source": SMALL, "network": {"transport": "tcp", "base_port": port},
-            "pools": {"vo": {"policy": "ordered"}},
+            "pools": only_pools({"vo": {"policy": "ordered"}}),
         })
         p: Pipeline = spawn(["--config", str(cfg), "--duration", "10"], run_dir)
         code, _, err = p.wait(45)
@@ -207,13 +208,13 @@ def test_ledger_accounts_for_every_pair(spawn, run_dir: Path) -> None:
     """Every pair capture produced ends, per pool, in exactly one state."""
     cfg = write_config(run_dir.parent / "ledger.yaml", {
         "source": SMALL,
-        "pools": {
+        "pools": only_pools({
             "fast": {"plugin": "noop", "policy": "ordered:64"},
             "slow": {"plugin": "slow", "policy": "latest", "params": {"delay_s": 0.4}},
             "flaky": {"plugin": "flaky", "policy": "fifo:8", "params": {"every": 3}},
             "stuck": {"plugin": "slow", "policy": "fifo:4", "timeout_s": 1.0,
                       "params": {"delay_s": 2.5}},
-        },
+        }),
     })
     p: Pipeline = spawn(["--config", str(cfg), "--duration", "10"], run_dir)
     code, out, err = p.wait(60)
@@ -240,7 +241,7 @@ def test_model_that_does_not_load_names_the_file(spawn, run_dir: Path) -> None:
     bad.write_bytes(b"\x08\x07this is not a protobuf model")
     cfg = write_config(run_dir.parent / "model.yaml", {
         "source": SMALL,
-        "pools": {"mono": {"plugin": "crab_detector", "params": {"model": str(bad)}}},
+        "pools": only_pools({"mono": {"plugin": "crab_detector", "params": {"model": str(bad)}}}),
     })
     p: Pipeline = spawn(["--config", str(cfg), "--duration", "20"], run_dir)
     code, _, err = p.wait(45)
@@ -254,7 +255,7 @@ def _ordered_noop(path: Path, restart_backoff_s: float) -> Path:
     return write_config(path, {
         "source": SMALL,
         "supervisor": {"restart_backoff_s": restart_backoff_s},
-        "pools": {"fast": {"plugin": "noop", "policy": "ordered:64"}},
+        "pools": only_pools({"fast": {"plugin": "noop", "policy": "ordered:64"}}),
     })
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import Pipeline, poll_for, write_config
+from tests.conftest import Pipeline, only_pools, poll_for, write_config
 from trapflow.frame_ring import list_segments
 
 SMALL = {"width": 320, "height": 240, "rate_hz": 15.0}
@@ -22,10 +22,10 @@ def test_local_shm_and_remote_byte_paths_give_identical_pixels(spawn, run_dir: P
     cfg = write_config(run_dir.parent / "paths.yaml", {
         "source": {**SMALL, "encoding": "raw"},
         "frames": {"transport": "shm"},
-        "pools": {
+        "pools": only_pools({
             "local": {"plugin": "digest", "policy": "ordered:64"},
             "remote": {"plugin": "digest", "policy": "ordered:64", "remote": True},
-        },
+        }),
     })
     p: Pipeline = spawn(["--config", str(cfg), "--duration", "7"], run_dir)
     code, _, err = p.wait(60)
@@ -47,10 +47,10 @@ def test_local_shm_and_remote_byte_paths_give_identical_pixels(spawn, run_dir: P
 def test_ring_does_not_leak_and_dead_workers_return_slots(spawn, run_dir: Path) -> None:
     cfg = write_config(run_dir.parent / "leak.yaml", {
         "source": SMALL,
-        "pools": {
+        "pools": only_pools({
             "slow": {"plugin": "slow", "policy": "latest", "params": {"delay_s": 1.5}},
             "fast": {"plugin": "noop", "policy": "ordered:16"},
-        },
+        }),
     })
     p: Pipeline = spawn(["--config", str(cfg)], run_dir)
     st = p.wait_active()

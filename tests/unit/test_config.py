@@ -116,3 +116,62 @@ def test_parse_policy(text: str, policy: Policy) -> None:
 def test_parse_policy_rejects(text: str) -> None:
     with pytest.raises(ValueError, match="expected latest, fifo:N or ordered"):
         parse_policy(text)
+
+
+DEFAULTS = config.Config().pools
+
+
+@pytest.mark.parametrize(
+    ("pools", "pool", "expected"),
+    [
+        # A pool named with one key keeps that pool's other defaults (issue 12, item 3).
+        ({"vo": {"params": {"calibration": "calib.txt"}}}, "vo",
+         {"policy": "ordered:16", "count": 1, "params": {"calibration": "calib.txt"}}),
+        ({"vo": {"count": 0}}, "vo", {"policy": "ordered:16", "count": 0}),
+        ({"mono": {"count": 3}}, "mono", {"policy": "latest", "nice": 5, "count": 3}),
+        ({"stereo": {"policy": "fifo:4"}}, "stereo", {"policy": "fifo:4", "nice": 10}),
+        # Pools the file does not name keep theirs.
+        ({"vo": {"count": 0}}, "stereo", {"count": 1, "policy": "latest", "nice": 10}),
+        ({"vo": {"count": 0}}, "tags", {"count": 0, "policy": "latest", "nice": 5}),
+        ({}, "vo", {"count": 1, "policy": "ordered:16"}),
+        # A new pool name starts from the generic pool defaults.
+        ({"noop": {"count": 2}}, "noop", {"count": 2, "policy": "latest", "nice": 0}),
+        ({"brightness": {"plugin": "m:C"}}, "brightness", {"plugin": "m:C", "count": 1}),
+    ],
+)
+def test_pools_merge_over_defaults(
+    pools: dict[str, object], pool: str, expected: dict[str, object]
+) -> None:
+    """Regression: a `pools:` section used to replace the whole default pool table."""
+    cfg = config.from_data({"pools": pools}, "test.yaml")
+    assert set(DEFAULTS) <= set(cfg.pools)
+    got = msgspec.to_builtins(cfg.pools[pool])
+    assert {k: got[k] for k in expected} == expected
+
+
+@pytest.mark.parametrize(
+    ("pools", "error"),
+    [
+        ({"vo": {"policy": "newest"}}, r"got 'newest' - at `\$.pools.vo.policy`"),
+        ({"vo": {"policy": "fifo:0"}}, r"\$.pools.vo.policy`"),
+        ({"vo": {"policy": 3}}, r"Expected `str`, got `int` - at `\$.pools.vo.policy`"),
+        ({"vo": {"count": 2}}, "ordered policy takes count 0 or 1, got 2"),
+        ({"vo": {"params": []}}, r"\$.pools.vo.params`"),
+        ({"vo": {"affinity": [-1]}}, r"\$.pools.vo.affinity\[0\]`"),
+        ({"vo": None}, r"Expected `object`, got `null` - at `\$.pools.vo`"),
+        ({"mono": 3}, r"Expected `object`, got `int` - at `\$.pools.mono`"),
+        ({"noop": {"colour": 1}}, r"unknown field `colour` - at `\$.pools.noop`"),
+    ],
+)
+def test_merged_pool_errors_name_the_leaf_key(pools: dict[str, object], error: str) -> None:
+    with pytest.raises(ConfigError, match=error):
+        config.from_data({"pools": pools}, "test.yaml")
+
+
+def test_workers_still_choose_which_pools_run_after_a_merge() -> None:
+    cfg = config.from_data({"pools": {"vo": {"params": {"x": 1}}}}, "test.yaml")
+    cfg = config.with_workers(cfg, {"vo": 1, "tags": 2}, ["vo", "tags"])
+    assert {n: p.count for n, p in cfg.pools.items()} == {
+        "mono": 0, "stereo": 0, "vo": 1, "tags": 2}
+    assert cfg.pools["vo"].policy == "ordered:16"
+    assert cfg.pools["vo"].params == {"x": 1}

@@ -173,3 +173,24 @@ def test_split_packets_cuts_frames_and_loose_bytes() -> None:
     buf += f2[3:]
     assert split_packets(buf) == [f2]
     assert not buf
+
+
+@pytest.mark.parametrize("index", [1, 3, 5])  # stereo_ir, stereo_vo, tags
+def test_calib_id_rides_in_four_bytes(index: int) -> None:
+    """A stereo record's rig id (8 hex digits) costs 4 bytes (and a tags record's field mask
+    one more) and stays compact, not generic."""
+    record, budget = RECORDS[index]
+    key = next(iter(record))
+    stamped = {key: {**record[key], "calib": "0a1b2c3d"}}
+    codec = LinkCodec()
+    plain, data = codec.encode(record), codec.encode(stamped)
+    assert data[0] != GENERIC and len(data) == len(plain) + (5 if key == "tags" else 4)
+    assert codec.decode(data) == stamped
+
+
+@pytest.mark.parametrize("calib", ["0A1B2C3D", "0a1b2c", "not-hex!", 12345678])
+def test_other_calib_values_still_round_trip(calib: Any) -> None:
+    record = {"stereo_ir": {"timestamp": TS, "seq": 1, "label": "crab", "confidence": 0.5,
+                            "calib": calib}}
+    codec = LinkCodec()
+    assert codec.decode(codec.encode(record)) == record

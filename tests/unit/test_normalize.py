@@ -65,3 +65,19 @@ def test_a_pair_without_tags_writes_one_line() -> None:
     so "processed, nothing found" could not be told from "not processed"."""
     out = [dumps(o).decode() for o in normalize(builders.result(messages.Tags(), t_wall_ns=T))]
     assert out == ['{"tags":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"corners":[]}}']
+
+
+def test_stereo_results_carry_the_rig_id() -> None:
+    """Every stereo line names the calibration it was computed with; mono lines do not."""
+    bodies = [
+        messages.StereoIR(label="scallop", confidence=0.9, calib="0a1b2c3d"),
+        messages.StereoVO(ok=False, calib="0a1b2c3d"),
+        messages.Tags(tags=[messages.Tag(id=i, corners=[(0, 0)] * 4) for i in range(2)],
+                      calib="0a1b2c3d"),
+    ]
+    for body in bodies:
+        objs = normalize(builders.result(body))
+        assert objs and all(next(iter(o.values()))["calib"] == "0a1b2c3d" for o in objs)
+    mono = normalize(builders.result(messages.MonoIR()))
+    assert "calib" not in mono[0]["mono_ir"]
+    assert "calib" not in normalize(builders.result(messages.StereoVO(ok=False)))[0]["stereo_vo"]

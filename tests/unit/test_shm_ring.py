@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from tests import builders
+from tests.conftest import only_pools
 from trapflow import config as configmod
 from trapflow import frame_ring as fr
 from trapflow import messages
@@ -324,13 +325,15 @@ def test_cleanup_removes_only_segments_of_dead_owners(prefix: str) -> None:
 
 
 def test_sizing_from_config() -> None:
-    cfg = configmod.from_data({"pools": {
+    cfg = configmod.from_data({"pools": only_pools({
         "mono": {"count": 2, "credit": 2, "policy": "latest"},
         "vo": {"count": 1, "policy": "ordered:16"},
         "scallop": {"count": 1, "policy": "fifo:4"},
-    }})
-    # mono 2x2 + 1, vo 1 + 16, scallop 1 + 4, pre-roll 30, in transit 9
-    assert fr.ring_slots(cfg.pools.values(), preroll=30) == 5 + 17 + 5 + 30 + 9
+    })})
+    # mono 2x2 + 1, vo 1 + 16, scallop 1 + 4, pre-roll 30, in transit 9 (running pools only,
+    # as the supervisor counts them)
+    running = [p for p in cfg.pools.values() if p.count > 0]
+    assert fr.ring_slots(running, preroll=30) == 5 + 17 + 5 + 30 + 9
     assert fr.slot_capacity(1280, 720) == 5_529_600
 
 

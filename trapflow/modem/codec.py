@@ -309,6 +309,21 @@ def _dec_records(r: Reader, ctx: _Ctx) -> Any:
     return [_decode(r.take(r.uvarint()), ctx) for _ in range(r.uvarint())]
 
 
+def _enc_calib(out: bytearray, v: Any, ctx: _Ctx) -> None:
+    # A rig id (StereoRig.id): 8 hex digits ride as 4 bytes; anything else goes generic.
+    if not isinstance(v, str) or len(v) != 8 or v != v.lower():
+        raise _Unfit
+    try:
+        out += bytes.fromhex(v)
+    except ValueError:
+        raise _Unfit from None
+
+
+def _dec_calib(r: Reader, ctx: _Ctx) -> Any:
+    return r.take(4).hex()
+
+
+CALIB = (_enc_calib, _dec_calib)
 TS = (_enc_ts, _dec_ts)
 UINT = (_enc_uint, _dec_uint)
 BOOL = (_enc_bool, _dec_bool)
@@ -320,13 +335,15 @@ CONF = (_enc_conf, _dec_conf)
 KINDS: dict[int, tuple[str, list[tuple[str, tuple[Enc, Dec]]]]] = {
     1: ("mono_ir", [("timestamp", TS), ("seq", UINT), ("label", LABEL), ("confidence", CONF),
                     ("box", (_enc_box, _dec_box))]),
-    2: ("stereo_ir", [("timestamp", TS), ("seq", UINT), ("label", LABEL), ("confidence", CONF)]),
+    2: ("stereo_ir", [("timestamp", TS), ("seq", UINT), ("label", LABEL), ("confidence", CONF),
+                      ("calib", CALIB)]),
     3: ("stereo_vo", [("timestamp", TS), ("seq", UINT), ("ok", BOOL), ("Rt", (_enc_rt, _dec_rt)),
-                      ("inliers", UINT)]),
+                      ("inliers", UINT), ("calib", CALIB)]),
     4: ("tags", [("timestamp", TS), ("seq", UINT), ("id", UINT),
                  ("corners", (_enc_corners, _dec_corners)),
                  ("rotation", (_enc_rotation, _dec_rotation)),
-                 ("translation", _fixed_list(10000, 3)), ("error", _fixed(1000))]),
+                 ("translation", _fixed_list(10000, 3)), ("error", _fixed(1000)),
+                 ("calib", CALIB)]),
     5: ("health", [("timestamp", TS), ("uptime_s", UINT), ("cpu_pct", _fixed(10)),
                    ("load1", _fixed(100)), ("temp_c", _fixed(10)), ("mem_pct", _fixed(10)),
                    ("disk_free_mb", UINT), ("backlog", UINT), ("link", STR),

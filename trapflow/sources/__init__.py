@@ -5,12 +5,20 @@ from __future__ import annotations
 from trapflow.camera import StereoRig
 from trapflow.config import SourceConfig
 from trapflow.errors import ConfigError
-from trapflow.sources.base import Frames, Source, SourceError
+from trapflow.sources.base import Frames, Geometry, Source, SourceError
 from trapflow.sources.spec import parse_source_spec
 
-__all__ = ["Frames", "Source", "SourceError", "open_source", "parse_source_spec", "KINDS"]
+__all__ = ["Frames", "Geometry", "Source", "SourceError", "build_source", "open_source",
+           "parse_source_spec", "KINDS"]
 
 KINDS = ("synthetic", "video", "images", "v4l2", "picamera2", "gst", "replay")
+
+
+def build_source(cfg: SourceConfig, rig: StereoRig) -> Source:
+    """The source the config names, unopened and without rectification."""
+    if cfg.kind not in KINDS:
+        raise ConfigError(f"source.kind: expected one of {', '.join(KINDS)}, got {cfg.kind!r}")
+    return _build(cfg, rig)
 
 
 def _build(cfg: SourceConfig, rig: StereoRig) -> Source:
@@ -51,10 +59,9 @@ def open_source(cfg: SourceConfig, rig: StereoRig, calibration: str | None = Non
 
     A calibration file (the argument, i.e. rig.calibration, or source.options.rectify)
     makes every pair rectified with maps computed once here; its rig replaces `rig`.
+    `rig` is the run's rig (trapflow.rig.resolve), which the source then delivers.
     """
-    if cfg.kind not in KINDS:
-        raise ConfigError(f"source.kind: expected one of {', '.join(KINDS)}, got {cfg.kind!r}")
-    source = _build(cfg, rig)
+    source = build_source(cfg, rig)
     rectify = cfg.options.get("rectify", calibration)
     if rectify:
         from trapflow.calibration import load_calibration

@@ -30,6 +30,16 @@ class Frames:
         return self.t_right_ns - self.t_left_ns
 
 
+@dataclass(frozen=True)
+class Geometry:
+    """What a source knows of its own geometry before it is opened (trapflow.rig decides)."""
+
+    size: tuple[int, int] | None = None  # (width, height) of its real frames
+    rig: StereoRig | None = None  # its own calibration: KITTI calib.txt, CameraInfo
+    origin: str = ""  # where the rig came from, e.g. "calib.txt in DIR"
+    where: str = ""  # what the frames are, for messages: "images in DIR"
+
+
 class Source:
     """Base of every source. Capture calls open(), then read() at its rate, then close()."""
 
@@ -40,6 +50,11 @@ class Source:
 
     def __init__(self, rig: StereoRig) -> None:
         self.rig = rig
+
+    def geometry(self) -> Geometry:
+        """Its frame size and own calibration where it can tell without being opened
+        (a file's first frame, a calib.txt, CameraInfo); a live camera tells nothing."""
+        return Geometry()
 
     def open(self) -> None:
         """Acquire the device or file; raise SourceError with a reason."""

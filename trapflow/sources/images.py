@@ -15,12 +15,14 @@ import numpy as np
 
 from trapflow.camera import StereoRig
 from trapflow.config import SourceConfig
-from trapflow.sources.base import Frames, Source, SourceError
+from trapflow.errors import ConfigError
+from trapflow.sources.base import Frames, Geometry, Source, SourceError
 
 log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm"}
 LAYOUTS = (("left", "right"), ("image_0", "image_1"), ("image_2", "image_3"))
+GEOMETRY_TRIES = 10  # left images tried for the frame size before giving up
 
 
 def list_images(folder: Path) -> list[Path]:
@@ -42,25 +44,13 @@ def read_times(path: Path) -> list[int]:
 
 
 def read_kitti_calib(path: Path, width: int, height: int) -> StereoRig:
-    """The rig from a KITTI calib.txt: intrinsics from P0, baseline from P1."""
-    rows: dict[str, list[float]] = {}
-    for line in path.read_text(encoding="utf-8").splitlines():
-        key, sep, rest = line.partition(":")
-        if sep:
-            try:
-                rows[key.strip()] = [float(v) for v in rest.split()]
-            except ValueError:
-                raise SourceError(f"images: {path}: row {key!r} is not numbers") from None
-    for key in ("P0", "P1"):
-        if len(rows.get(key, [])) != 12:
-            raise SourceError(f"images: {path}: expected a {key}: row of 12 numbers")
-    p0 = np.array(rows["P0"]).reshape(3, 4)
-    p1 = np.array(rows["P1"]).reshape(3, 4)
-    if p1[0, 0] == 0:
-        raise SourceError(f"images: {path}: P1 has a zero focal length")
-    return StereoRig(width=width, height=height, fx=float(p0[0, 0]), fy=float(p0[1, 1]),
-                     cx=float(p0[0, 2]), cy=float(p0[1, 2]),
-                     baseline_m=float(-p1[0, 3] / p1[0, 0]))
+    """The rig from a KITTI calib.txt (trapflow.rig reads it); SourceError says what is wrong."""
+    from trapflow.rig import read_kitti_calib as read
+
+    try:
+        return read(path, (width, height))
+    except ConfigError as exc:
+        raise SourceError(f"images: {exc}") from None
 
 
 def pair_files(left: list[Path], right: list[Path]) -> list[tuple[Path, Path]]:
@@ -94,7 +84,8 @@ class ImagesSource(Source):
         self._t0 = 0
         self._period_ns = int(1e9 / cfg.rate_hz)
 
-    def open(self) -> None:
+    def _scan(self) -> list[tuple[Path, Path]]:
+        """The folder's image pairs; SourceError when it has none or no known layout."""
         root = self.root
         if not root.is_dir():
             raise SourceError(f"images: folder not found: {root}")
@@ -103,21 +94,43 @@ class ImagesSource(Source):
         if sides is None:
             names = " or ".join(f"{a}/ and {b}/" for a, b in LAYOUTS)
             raise SourceError(f"images: {root} has no {names} subfolders")
-        self.pairs = pair_files(list_images(sides[0]), list_images(sides[1]))
-        if not self.pairs:
+        pairs = pair_files(list_images(sides[0]), list_images(sides[1]))
+        if not pairs:
             raise SourceError(f"images: no images in {sides[0]} and {sides[1]}")
+        return pairs
+
+    def geometry(self) -> Geometry:
+        """The first left image's size, and calib.txt's rig at that size when there is one."""
+        pairs = self.pairs or self._scan()
+        first = None
+        for left, _right in pairs[:GEOMETRY_TRIES]:  # an unreadable file is not the geometry
+            first = cv2.imread(str(left), cv2.IMREAD_COLOR)
+            if first is not None:
+                break
+        if first is None:
+            raise SourceError(f"images: none of the first {min(len(pairs), GEOMETRY_TRIES)} "
+                              f"left images in {self.root} can be read")
+        size = (first.shape[1], first.shape[0])
+        where = f"images in {self.root}"
+        calib = self.root / "calib.txt"
+        if calib.is_file():
+            return Geometry(size=size, rig=read_kitti_calib(calib, *size),
+                            origin=f"{calib}", where=where)
+        return Geometry(size=size, where=where)
+
+    def open(self) -> None:
+        root = self.root
+        self.pairs = self._scan()
         times_path = root / "times.txt"
         if times_path.is_file():
             self.times = read_times(times_path)
             if len(self.times) < len(self.pairs):
                 raise SourceError(f"images: {times_path} has {len(self.times)} times "
                                   f"for {len(self.pairs)} pairs")
-        calib = root / "calib.txt"
-        if calib.is_file():
-            first = self._load(self.pairs[0][0])
-            self.rig = read_kitti_calib(calib, first.shape[1], first.shape[0])
-            log.info("images: rig from %s: fx %.1f, baseline %.3f m",
-                     calib, self.rig.fx, self.rig.baseline_m)
+        geometry = self.geometry()
+        if geometry.rig is not None:
+            self.rig = geometry.rig
+            log.info("images: rig from %s: %s", geometry.origin, self.rig.describe())
         self._t0 = time.monotonic_ns()
 
     @staticmethod

@@ -5,7 +5,8 @@ whose .msg definition the user gives), are paired by timestamp, and are delivere
 original timing scaled by `rate` (0: as fast as possible).
 
 source.options: rate (1.0), left_topic, right_topic, tolerance_s (half the frame period),
-msg_type + msg_def (path of a .msg file) + topic, left_field ('left'), right_field ('right').
+msg_type + msg_def (path of a .msg file) + topic, left_field ('left'), right_field ('right'),
+left_info_topic, right_info_topic (CameraInfo giving the rig; found beside the image topics).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from trapflow.camera import StereoRig
 from trapflow.config import SourceConfig
-from trapflow.sources.base import Frames, Source, SourceError
+from trapflow.sources.base import Frames, Geometry, Source, SourceError
 from trapflow.sources.sync import SkewStats, StereoSync
 
 log = logging.getLogger(__name__)
@@ -32,6 +33,7 @@ log = logging.getLogger(__name__)
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
 IMAGE_TYPES = (IMAGE, COMPRESSED)
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 Pair = tuple[int, Any, int, Any]
 
 # ROS image encodings -> (channels, OpenCV conversion to BGR or None)
@@ -99,6 +101,42 @@ def _pick_topics(conns: list[Connection], left: str | None, right: str | None) -
                       "set source.options left_topic and right_topic")
 
 
+def _namespace(topic: str) -> str:
+    return topic.rsplit("/", 1)[0]
+
+
+def _info_topic(infos: list[str], image: str, side: str) -> str | None:
+    """The CameraInfo topic beside an image topic (same namespace), else the one named `side`."""
+    ns = _namespace(image)
+    while ns:
+        near = [t for t in infos if t.startswith(ns + "/")]
+        if len(near) == 1:
+            return near[0]
+        ns = _namespace(ns)
+    named = [t for t in infos if side in t.lower()]
+    return named[0] if len(named) == 1 else None
+
+
+def rig_from_camera_info(
+    left: Any, right: Any, fallback_baseline_m: float
+) -> tuple[StereoRig, str]:
+    """The rectified rig of a left/right CameraInfo pair: intrinsics from the left P (K when
+    P is unset), baseline -P_right[0,3] / P_right[0,0]; and a note when the baseline is not
+    in the messages (a monocular P), so the configured one is used."""
+    p = [float(v) for v in left.p]
+    k = [float(v) for v in left.k]
+    fx, fy, cx, cy = (p[0], p[5], p[2], p[6]) if p[0] > 0 else (k[0], k[4], k[2], k[5])
+    pr = [float(v) for v in right.p]
+    note = ""
+    if pr[0] > 0 and -pr[3] / pr[0] > 0:
+        baseline = -pr[3] / pr[0]
+    else:
+        baseline, note = fallback_baseline_m, ", baseline from rig.baseline_m"
+    rig = StereoRig(width=int(left.width), height=int(left.height), fx=fx, fy=fy, cx=cx, cy=cy,
+                    baseline_m=baseline)
+    return rig, note
+
+
 class ReplaySource(Source):
     """`replay:PATH`: a recording fed back with its original timing."""
 
@@ -125,6 +163,58 @@ class ReplaySource(Source):
         self._mono_first = 0
         self._lap_offset = 0
         self._t_last = 0
+
+    # -- geometry -----------------------------------------------------------------
+
+    def geometry(self) -> Geometry:
+        """The first left image's size, and the rig of the bag's CameraInfo pair if it has one."""
+        self.open()
+        try:
+            msg_type = self.opts.get("msg_type")
+            if not msg_type:
+                return self._geometry()
+            first = next(self._custom_pairs(str(msg_type)), None)  # one stereo message
+            if first is None:
+                return Geometry()
+            img = image_to_bgr(first[1])
+            return Geometry(size=(img.shape[1], img.shape[0]), where=f"{msg_type} in {self.path}")
+        finally:
+            self.close()
+
+    def _geometry(self) -> Geometry:
+        reader = self._reader
+        assert reader is not None
+        conns = reader.connections
+        lt, rt = _pick_topics(conns, self.opts.get("left_topic"), self.opts.get("right_topic"))
+        where = f"{lt} in {self.path}"
+        first = next(reader.messages(connections=[c for c in conns if c.topic == lt]), None)
+        if first is None:
+            return Geometry(where=where)
+        img = image_to_bgr(reader.deserialize(first[2], first[0].msgtype))
+        size = (img.shape[1], img.shape[0])
+        infos = sorted({c.topic for c in conns if c.msgtype == CAMERA_INFO})
+        topics = (self.opts.get("left_info_topic") or _info_topic(infos, lt, "left"),
+                  self.opts.get("right_info_topic") or _info_topic(infos, rt, "right"))
+        if not infos or None in topics or topics[0] == topics[1]:
+            if infos:
+                log.warning("replay: cannot tell which of %s belongs to %s and %s; set "
+                            "source.options left_info_topic and right_info_topic",
+                            ", ".join(infos), lt, rt)
+            return Geometry(size=size, where=where)
+        msgs = []
+        for topic in topics:
+            found = next(reader.messages(connections=[c for c in conns if c.topic == topic]),
+                         None)
+            if found is None:
+                return Geometry(size=size, where=where)
+            msgs.append(reader.deserialize(found[2], found[0].msgtype))
+        rig, note = rig_from_camera_info(msgs[0], msgs[1], self.rig.baseline_m)
+        if rig.size != size:
+            log.warning("replay: %s says %dx%d, but the images are %dx%d; CameraInfo ignored",
+                        topics[0], rig.width, rig.height, *size)
+            return Geometry(size=size, where=where)
+        return Geometry(size=size, rig=rig, where=where,
+                        origin=f"CameraInfo {topics[0]}, {topics[1]} in {self.path}{note}")
 
     # -- opening and pairing -------------------------------------------------------
 

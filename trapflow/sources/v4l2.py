@@ -47,4 +47,11 @@ class V4L2Source(LiveStereoSource):
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.cfg.height)
         cap.set(cv2.CAP_PROP_FPS, self.cfg.rate_hz)
         cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # latest frame, not a stale queue
+        got = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
+        if all(got) and got != self.rig.size:  # the driver chose another size: fail now
+            cap.release()
+            raise SourceError(
+                f"v4l2: {side} camera {arg} gives {got[0]}x{got[1]}, but the rig is "
+                f"{self.rig.width}x{self.rig.height}: give --size {got[0]}x{got[1]} "
+                "(source.width/height) or a calibration for that size")
         return opencv_grab(cap), cap.release

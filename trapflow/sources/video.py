@@ -11,7 +11,7 @@ import numpy as np
 
 from trapflow.camera import StereoRig
 from trapflow.config import SourceConfig
-from trapflow.sources.base import Frames, Source, SourceError
+from trapflow.sources.base import Frames, Geometry, Source, SourceError
 from trapflow.sources.spec import split_pair
 
 log = logging.getLogger(__name__)
@@ -47,6 +47,19 @@ class VideoSource(Source):
         self._index = 0  # frames delivered, across loops: the time base
         self._period_ns = int(1e9 / cfg.rate_hz)
         self._t0 = 0
+
+    def geometry(self) -> Geometry:
+        """The first frame's size (half of it across for a side-by-side file)."""
+        cap = open_video(self.paths[0])
+        try:
+            ok, img = cap.read()
+        finally:
+            cap.release()
+        if not ok or img is None:
+            raise SourceError(f"video: no frame could be decoded from {self.paths[0]}")
+        h, w = img.shape[:2]
+        return Geometry(size=(w if len(self.paths) > 1 else w // 2, h),
+                        where=f"video {self.cfg.uri}")
 
     def open(self) -> None:
         self._caps = [open_video(p) for p in self.paths]

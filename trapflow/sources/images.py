@@ -10,12 +10,12 @@ import logging
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from trapflow.camera import StereoRig
 from trapflow.config import SourceConfig
-from trapflow.sources.base import Frames, Source, SourceError
+from trapflow.sources.base import Frames, SkipPair, Source, SourceError
+from trapflow.sources.decode import decode_bgr, same_size
 
 log = logging.getLogger(__name__)
 
@@ -122,10 +122,12 @@ class ImagesSource(Source):
 
     @staticmethod
     def _load(path: Path) -> np.ndarray:
-        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if img is None:
-            raise SourceError(f"images: cannot read {path} (missing or not an image)")
-        return img
+        """One image, decoded strictly; SkipPair when empty, cut short or not an image."""
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise SkipPair("unreadable", f"images: cannot read {path}: {exc.strerror}") from None
+        return decode_bgr(data, f"images: {path}")
 
     def _time(self, i: int) -> int:
         if self.times is None:
@@ -142,10 +144,11 @@ class ImagesSource(Source):
                 return None
             self._i = 0
         lp, rp = self.pairs[self._i]
-        left, right = self._load(lp), self._load(rp)
-        if left.shape != right.shape:
-            raise SourceError(f"images: {lp.name} and {rp.name} differ in size")
         t = self._t0 + self._time(self._i)
+        # Past this pair before reading it: an unreadable one is skipped, never retried.
         self._i += 1
         self._index += 1
+        left, right = self._load(lp), self._load(rp)
+        same_size(left, right,
+                  f"images: {lp.parent.name}/{lp.name} and {rp.parent.name}/{rp.name}")
         return Frames(left=left, right=right, t_left_ns=t, t_right_ns=t)

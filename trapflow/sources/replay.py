@@ -198,7 +198,7 @@ class ReplaySource(Source):
         conns = [c for c in reader.connections if c.topic in (lt, rt)]
         sync: StereoSync[Msg] = StereoSync(self._tolerance(conns), max_pending=64)
         sync.stats = self.skew
-        for index, (conn, t_bag, raw) in enumerate(reader.messages(connections=conns)):
+        for index, (conn, t_bag, raw) in enumerate(self._messages(conns)):
             msg = self._deserialize(raw, conn, index)
             t = stamp_ns(msg, t_bag)
             (sync.push_left if conn.topic == lt else sync.push_right)(t, (index, msg))
@@ -216,7 +216,7 @@ class ReplaySource(Source):
             raise SourceError(f"replay: no topic of type {msg_type} in {self.path}")
         lf = str(self.opts.get("left_field", "left"))
         rf = str(self.opts.get("right_field", "right"))
-        for index, (conn, t_bag, raw) in enumerate(reader.messages(connections=conns)):
+        for index, (conn, t_bag, raw) in enumerate(self._messages(conns)):
             msg = self._deserialize(raw, conn, index)
             if isinstance(msg, Undecodable):
                 yield t_bag, (index, msg), t_bag, (index, msg)
@@ -228,6 +228,19 @@ class ReplaySource(Source):
             tl, tr = stamp_ns(left, stamp_ns(msg, t_bag)), stamp_ns(right, stamp_ns(msg, t_bag))
             self.skew.add(tl - tr)
             yield tl, (index, left), tr, (index, right)
+
+    def _messages(self, conns: list[Connection]) -> Iterator[tuple[Connection, int, bytes]]:
+        """The raw messages; a recording damaged mid-file (a chunk that fails its checksum)
+        ends with a SourceError naming where: nothing after it can be trusted in order."""
+        assert self._reader is not None
+        index = 0
+        try:
+            for item in self._reader.messages(connections=conns):
+                yield item
+                index += 1
+        except Exception as exc:  # rosbags raises many types for a damaged file
+            raise SourceError(f"replay: {self.path} is damaged after message {index}: "
+                              f"{type(exc).__name__}: {exc}") from None
 
     def _deserialize(self, raw: bytes, conn: Connection, index: int) -> Any:
         """The message, or Undecodable with the reason (the pair is skipped, the bag goes on)."""

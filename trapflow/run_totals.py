@@ -50,7 +50,7 @@ def verdict(source: str, capture: dict[str, int], gave_up: str | None, finished:
     """Why a run failed, one phrase per cause; empty when it did not.
 
     A finite source that could not go on (gave_up: its reason), one that ended having read
-    no pair at all, and a pool that failed (or timed out on) every pair it was given.
+    no pair at all, and a pool that failed every pair it was given (and processed none).
     """
     problems = []
     if gave_up is not None:
@@ -61,9 +61,9 @@ def verdict(source: str, capture: dict[str, int], gave_up: str | None, finished:
         problems.append(f"source {source}: none of its {capture['failed']} pairs could be "
                         f"read ({kinds}); see trapflow.log")
     for name, p in sorted(stats.pools.items() if stats else ()):
-        failed = p.errors + p.timed_out
-        if failed and p.processed == 0:
+        # Failed, not timed out: a pool that only ran out of time is slow, not broken.
+        if p.errors and p.processed == 0:
             kinds = ", ".join(f"{k} {n}" for k, n in p.failures.items())
-            problems.append(f"pool {name} failed every pair it was given ({failed}"
+            problems.append(f"pool {name} failed every pair it was given ({p.errors}"
                             f"{f': {kinds}' if kinds else ''}); see trapflow.log")
     return problems

@@ -258,7 +258,8 @@ def recover(part: str | Path, out: str | Path) -> int:
         src: IO[bytes] = open(part, "rb")  # noqa: SIM115 - closed below
     except OSError as exc:
         raise RecorderError(f"recover: cannot read {part}: {exc.strerror}") from None
-    tmp = out.with_name(out.name + PART_SUFFIX)
+    # Not OUT.part: that is the input itself when it is recovered under its intended name.
+    tmp = out.with_name(out.name + ".recovering")
     try:
         copied = _copy_complete(part, src, tmp)
     except BaseException:

@@ -175,3 +175,24 @@ def test_assert_lossless_fails_on_dropped_or_failed_pairs(run_dir: Path) -> None
                  "--workers", "every=1", "--size", f"{W}x{H}", "--run-dir", str(work / "ok")])
     assert ok.returncode == 0, ok.stderr + ok.stdout
     assert "pairs read 30, delivered 30" in ok.stdout
+
+
+@pytest.mark.timeout(90)
+def test_pairs_too_large_for_the_ring_are_counted(spawn, run_dir: Path) -> None:
+    """Regression (issue 12, item 1): with raw pairs, images larger than the ring's slots were
+    skipped at capture and appeared nowhere in the totals or the ledger."""
+    d = run_dir.parent / "pairs"
+    write_folder(d, 6)
+    for side, name in ((0, "left"), (1, "right")):  # pair 3 is four times the slot's size
+        cv2.imwrite(str(d / name / "000003.jpg"), noise(3, side, 2 * W, 2 * H))
+    cfg = pools_config(run_dir.parent / "c.yaml",
+                       every={"plugin": "digest", "policy": "ordered:64"})
+    p: Pipeline = spawn(["--config", str(cfg), "--workers", "every=1", "--source",
+                         f"images:{d}", "--size", f"{W}x{H}", "--encoding", "raw"], run_dir)
+    code, out, err = p.wait(60)
+    assert code == 0, err
+    ledger = json.loads((run_dir / "ledger.json").read_text())
+    assert ledger["capture_failures"] == {"too_large": 1}
+    assert ledger["produced"] == 5 and ledger["pools"]["every"]["processed"] == 5
+    assert "1 failed at capture (too_large 1)" in out
+    assert err.count("does not fit a ring slot") == 1

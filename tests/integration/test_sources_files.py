@@ -200,3 +200,18 @@ def test_each_bad_pair_is_skipped_once_with_its_reason(
     assert got == [0, 1, 3, 4]
     assert len(skipped) == 1 and skipped[0].kind == kind
     assert re.search(error, str(skipped[0])), str(skipped[0])
+
+
+def test_a_folder_that_disappears_is_a_source_error_not_a_skipped_pair(tmp_path: Path) -> None:
+    """A removed disk is not one bad file: the source cannot go on (a finite run ends with
+    status 1 saying so; a looping one is retried with back-off like a camera)."""
+    write_pngs(tmp_path / "d" / "left", 0, 3)
+    write_pngs(tmp_path / "d" / "right", 1, 3)
+    src = make("images", str(tmp_path / "d"))
+    src.open()
+    assert src.read() is not None
+    (tmp_path / "d").rename(tmp_path / "gone")
+    with pytest.raises(SourceError, match="images: folder .*left not found") as info:
+        src.read()
+    assert not isinstance(info.value, SkipPair)
+    src.close()

@@ -120,12 +120,14 @@ class ImagesSource(Source):
                      calib, self.rig.fx, self.rig.baseline_m)
         self._t0 = time.monotonic_ns()
 
-    @staticmethod
-    def _load(path: Path) -> np.ndarray:
+    def _load(self, path: Path) -> np.ndarray:
         """One image, decoded strictly; SkipPair when empty, cut short or not an image."""
         try:
             data = path.read_bytes()
         except OSError as exc:
+            if not path.parent.is_dir():  # the disk or folder is gone, not one file
+                raise SourceError(f"images: folder {path.parent} not found "
+                                  "(disk removed or folder moved?)") from None
             raise SkipPair("unreadable", f"images: cannot read {path}: {exc.strerror}") from None
         return decode_bgr(data, f"images: {path}")
 

@@ -20,7 +20,18 @@ def _fail(exc: TrapflowError) -> NoReturn:
     raise failed(exc) from None
 
 
-@click.group()
+class TrapflowGroup(click.Group):
+    """Any trapflow error a command lets through ends it by the exit-code policy, never
+    with a traceback (modem and dataset commands included)."""
+
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except TrapflowError as exc:
+            raise failed(exc) from None
+
+
+@click.group(cls=TrapflowGroup)
 @click.version_option(package_name="trapflow")
 def main() -> None:
     """trapflow: stereo capture, worker pools over ZeroMQ, compact results."""

@@ -484,6 +484,8 @@ class Supervisor:
         parts = [f"{up:6.1f}s | in {s.rate_in:5.1f}/s ({s.pairs_in})"]
         if cap["dropped"]:
             parts[0] += f" capture-drop {cap['dropped']}"
+        if cap["failed"]:
+            parts[0] += f" capture-fail {cap['failed']}"
         for name, p in s.pools.items():
             parts.append(
                 f"{name} {p.workers}w {p.rate:5.1f}/s drop {p.dropped} "

@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Any
 
 import pytest
 from click.testing import CliRunner
 
 from trapflow import run_totals
-from trapflow.cli import main
+from trapflow.cli import TrapflowGroup, main
+from trapflow.errors import ConfigError, ProtocolError, StartupError, TrapflowError
 from trapflow.messages import PoolStats, Stats
 
 
@@ -61,7 +63,24 @@ def test_every_command_follows_the_exit_code_policy(
         assert res.output.strip().startswith("trapflow: error: "), res.output
 
 
-def _pool(**kw: int) -> PoolStats:
+@pytest.mark.parametrize(
+    ("error", "code"),
+    [(ConfigError("bad key"), 2), (StartupError("socket in use"), 2),
+     (ProtocolError("bad frame"), 1), (TrapflowError("modem gone"), 1)],
+)
+def test_an_error_a_command_lets_through_follows_the_policy(error: Exception, code: int) -> None:
+    group = TrapflowGroup()
+
+    @group.command()
+    def boom() -> None:
+        raise error
+
+    res = CliRunner().invoke(group, ["boom"])
+    assert res.exit_code == code
+    assert res.output == f"trapflow: error: {error}\n"  # one line, no traceback
+
+
+def _pool(**kw: Any) -> PoolStats:
     return PoolStats(workers=0, **kw)  # the final stats: every worker has stopped
 
 

@@ -107,6 +107,7 @@ class CaptureNode(Node):
             except SkipPair as exc:  # the source is past it: count, say once, go on
                 self._fail(exc.kind, "skipped a pair: %s", exc)
                 self.beat()
+                next_ns = time.monotonic_ns()  # a pair never sent costs no period
                 continue
             except SourceError as exc:
                 if self.source.finite:  # a file or recording will not get better by waiting

@@ -358,7 +358,7 @@ class Supervisor:
 
     def capture_counts(self) -> dict[str, int]:
         """Capture's counters over the whole run, across its restarts."""
-        cur = self._child("capture").counters
+        cur = next((c.counters for c in self.children if c.spec.role == "capture"), {})
         keys = {*CAPTURE_TOTALS, *(k for k in (*self._capture_base, *cur)
                                    if k.startswith(FAILED_PREFIX))}
         return {k: self._capture_base.get(k, 0) + cur.get(k, 0) for k in sorted(keys)}
@@ -549,6 +549,8 @@ class Supervisor:
     def _judge(self) -> None:
         """Exit status 1 with one line when the source could not go on or a pool failed
         every pair it was given (a run that produced nothing useful never exits 0)."""
+        if not self.children:  # stopped before boot: the error raised says it all
+            return
         capture = self._child("capture")
         problems = run_totals.verdict(
             self.cfg.source.kind, self.capture_counts(),

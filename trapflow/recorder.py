@@ -138,7 +138,10 @@ class Recorder:
         if self.closed or time.monotonic() - self._flushed < FLUSH_INTERVAL_S:
             return
         self._flushed = time.monotonic()
-        self._writer._writer.flush()  # type: ignore[no-untyped-call] # ends the chunk, writes
+        # mcap_ros2's Writer has no flush of its own; its mcap Writer's ends the chunk in
+        # progress and writes it out. Measured with kill -9 at 10 pairs/s of 160x120: without
+        # it up to a 1 MB chunk is lost (about 5 s; 27 of 80 pairs in one run), with it < 1 s.
+        self._writer._writer.flush()  # type: ignore[no-untyped-call]
         os.fsync(self._file.fileno())
 
     @staticmethod

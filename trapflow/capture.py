@@ -2,7 +2,9 @@
 
 Owns a PUSH to the broker (with the shared-memory ring, a local link carrying
 descriptors). Capture never waits for an algorithm: when the broker is not
-reading, the pair is dropped here and counted.
+reading, the pair is dropped here and counted. A pair it cannot read or place (a bad
+file, an undecodable message, too large for the ring) is counted as failed, by kind,
+and skipped; a finite source that fails otherwise ends the run (live ones are retried).
 """
 
 from __future__ import annotations
@@ -21,7 +23,8 @@ from trapflow.frame_ring import RingError, RingWriter
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.ratelog import RateLimitedLog
 from trapflow.rig import mismatch
-from trapflow.sources import Frames, Source, SourceError, open_source
+from trapflow.run_totals import FAILED_PREFIX
+from trapflow.sources import Frames, SkipPair, Source, SourceError, open_source
 from trapflow.transport import LinkClient, LinkClosed, SocketSpec, open_socket
 
 log = logging.getLogger(__name__)
@@ -44,7 +47,9 @@ class CaptureNode(Node):
         self.seq = int(spec.extra.get("first_seq", 0))
         self.produced = 0
         self.dropped = 0
-        self.failures = 0
+        self.failed: dict[str, int] = {}  # pairs skipped at capture, by kind
+        self.source_errors = 0  # a live source lost and reopened
+        self.gave_up = 0  # 1 once a finite source failed for good (the reason is in the state)
         self.jpeg_params = [int(cv2.IMWRITE_JPEG_QUALITY), self.src_cfg.jpeg_quality]
         # With a shared-memory ring each pair is written once there; only a descriptor is sent.
         ring_name = spec.extra.get("ring")
@@ -54,8 +59,10 @@ class CaptureNode(Node):
         self.ratelog = RateLimitedLog(log)
 
     def counters(self) -> dict[str, int]:
-        out = {"produced": self.produced, "dropped": self.dropped, "failures": self.failures,
-               "next_seq": self.seq}
+        out = {"produced": self.produced, "dropped": self.dropped,
+               "failed": sum(self.failed.values()), "source_errors": self.source_errors,
+               "source_gave_up": self.gave_up, "next_seq": self.seq}
+        out.update({f"{FAILED_PREFIX}{kind}": n for kind, n in self.failed.items()})
         sync = getattr(self.source, "sync", None)  # live cameras paired by timestamp
         if sync is not None:
             for k, v in sync.stats.as_dict().items():
@@ -89,8 +96,20 @@ class CaptureNode(Node):
                 next_ns = max(next_ns + period_ns, time.monotonic_ns() - period_ns)
             try:
                 frames = self.source.read()
+            except SkipPair as exc:  # the source is past it: count, say once, go on
+                self._fail(exc.kind, "skipped a pair: %s", exc)
+                self.beat()
+                next_ns = time.monotonic_ns()  # a pair never sent costs no period
+                continue
             except SourceError as exc:
-                self.failures += 1
+                if self.source.finite:  # a file or recording will not get better by waiting
+                    log.error("source failed; no more pairs: %s", exc)
+                    self.gave_up = 1
+                    self.set_state(FINALIZED, f"source failed: {exc}")
+                    self.source.close()
+                    self.beat()
+                    return 0
+                self.source_errors += 1
                 self.set_state(INACTIVE, f"source failed: {exc}")
                 self.source.close()
                 attempt = 0
@@ -115,6 +134,10 @@ class CaptureNode(Node):
         if self.ring is not None:
             self.ring.close()
         super().close()
+
+    def _fail(self, kind: str, msg: str, *args: object) -> None:
+        self.failed[kind] = self.failed.get(kind, 0) + 1
+        log.warning(msg, *args)
 
     def _acquire(self) -> int | None:
         """A free ring slot; a finite source waits for one (back-pressure), a live one never."""
@@ -142,12 +165,11 @@ class CaptureNode(Node):
     def _send(self, f: Frames) -> None:
         h, w = f.left.shape[:2]
         if f.right.shape != f.left.shape:
-            self.failures += 1
-            log.warning("left %s and right %s differ in shape; pair skipped",
-                        f.left.shape, f.right.shape)
+            self._fail("size", "left %s and right %s differ in shape; pair skipped",
+                       f.left.shape, f.right.shape)
             return
         if (w, h) != self.rig.size:  # the workers would fail it: count it here, once
-            self.failures += 1
+            self.failed["geometry"] = self.failed.get("geometry", 0) + 1
             self.ratelog.warning("geometry", "pair skipped: %s", mismatch(
                 (w, h), f"source {self.src_cfg.kind}", self.rig, f"calib {self.rig.id}"))
             return
@@ -162,8 +184,9 @@ class CaptureNode(Node):
                 ref = self.ring.write(slot, left, right)
             except RingError as exc:
                 self.ring.release(slot)
-                self.failures += 1
-                log.warning("pair does not fit a ring slot; skipped: %s", exc)
+                self.failed["too_large"] = self.failed.get("too_large", 0) + 1
+                self.ratelog.warning("too_large", "pair does not fit a ring slot; skipped: %s",
+                                     exc)
                 return
         seq = self.seq
         self.seq += 1

@@ -4,52 +4,34 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import click
 
 from trapflow import config as configmod
 from trapflow import registry
-from trapflow.cli_sources import SourceSpecType
-from trapflow.errors import ConfigError, TrapflowError
+from trapflow.cli_exit import CommandFailed, failed
+from trapflow.cli_sources import SizeType, SourceSpecType, WorkersType
+from trapflow.errors import EXIT_USAGE, TrapflowError
 
 
-class WorkersType(click.ParamType[dict[str, int]]):
-    """`NAME=COUNT[,NAME=COUNT...]`, rejected with click's usage error when malformed."""
+def _fail(exc: TrapflowError) -> NoReturn:
+    """End the command with the error's one line and the status the policy gives it."""
+    raise failed(exc) from None
 
-    name = "NAME=COUNT[,...]"
 
-    def convert(self, value: Any, param: click.Parameter | None,
-                ctx: click.Context | None) -> dict[str, int]:
-        if isinstance(value, dict):
-            return value
+class TrapflowGroup(click.Group):
+    """Any trapflow error a command lets through ends it by the exit-code policy, never
+    with a traceback (modem and dataset commands included)."""
+
+    def invoke(self, ctx: click.Context) -> Any:
         try:
-            return configmod.parse_workers(str(value))
-        except ConfigError as exc:
-            self.fail(str(exc), param, ctx)
+            return super().invoke(ctx)
+        except TrapflowError as exc:
+            raise failed(exc) from None
 
 
-class SizeType(click.ParamType[tuple[int, int]]):
-    """`WIDTHxHEIGHT`."""
-
-    name = "WxH"
-
-    def convert(self, value: Any, param: click.Parameter | None,
-                ctx: click.Context | None) -> tuple[int, int]:
-        if isinstance(value, tuple):
-            return value
-        w, sep, h = str(value).lower().partition("x")
-        if not sep or not w.isdigit() or not h.isdigit():
-            self.fail(f"expected WIDTHxHEIGHT such as 1280x720, got {value!r}", param, ctx)
-        return int(w), int(h)
-
-
-def _fail(exc: TrapflowError) -> None:
-    click.echo(f"trapflow: error: {exc}", err=True)
-    sys.exit(2)
-
-
-@click.group()
+@click.group(cls=TrapflowGroup)
 @click.version_option(package_name="trapflow")
 def main() -> None:
     """trapflow: stereo capture, worker pools over ZeroMQ, compact results."""
@@ -79,7 +61,7 @@ def start(config_path: str | None, workers: dict[str, int] | None, duration: flo
           encoding: str | None, seed: int | None, moving: bool | None,
           source_spec: tuple[str, str] | None, loop: bool | None) -> None:
     """Run the pipeline: capture, broker, worker pools and normalizer."""
-    from trapflow.supervisor import start as run_pipeline
+    from trapflow.supervisor import run as run_pipeline
 
     try:
         cfg = configmod.load(config_path)
@@ -101,10 +83,15 @@ def start(config_path: str | None, workers: dict[str, int] | None, duration: flo
         cfg = configmod.with_source(cfg, **src)
         if workers is not None:
             cfg = configmod.with_workers(cfg, workers, registry.known_names())
-        code = run_pipeline(cfg, run_dir, duration, announce=click.echo)
+    except TrapflowError as exc:
+        raise CommandFailed(str(exc), EXIT_USAGE) from None
+    try:
+        result = run_pipeline(cfg, run_dir, duration, announce=click.echo)
     except TrapflowError as exc:
         _fail(exc)
-    sys.exit(code)
+    if result.code != 0:
+        raise CommandFailed(result.failure or f"the pipeline stopped with status {result.code}",
+                            result.code)
 
 
 @main.command()
@@ -153,7 +140,7 @@ def _add_commands() -> None:
     from trapflow.modem import cli as cli_modem
 
     for cmd in (*cli_modem.COMMANDS, cli_sources.calibrate, cli_sources.record,
-                cli_sources.replay, cli_dataset.dataset):
+                cli_sources.replay, cli_sources.recover, cli_dataset.dataset):
         main.add_command(cmd)
 
 

@@ -1,4 +1,11 @@
-"""The exception hierarchy: every error trapflow raises on purpose derives from TrapflowError."""
+"""The exception hierarchy: every error trapflow raises on purpose derives from TrapflowError.
+
+Also the exit-code policy every command follows (README, "Exit status"): 0 when it did
+what was asked, 1 when it ran and failed, 2 when it could not start as asked (a bad
+option, config or input named on the command line).
+"""
+
+EXIT_OK, EXIT_FAILURE, EXIT_USAGE = 0, 1, 2
 
 
 class TrapflowError(Exception):
@@ -19,3 +26,8 @@ class WorkerError(TrapflowError):
 
 class StartupError(TrapflowError):
     """A pipeline piece cannot start (socket in use, run directory locked...)."""
+
+
+def exit_code(exc: TrapflowError) -> int:
+    """The exit status for an error that ends a command: 2 for usage or config, else 1."""
+    return EXIT_USAGE if isinstance(exc, (ConfigError, StartupError)) else EXIT_FAILURE

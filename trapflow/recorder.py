@@ -4,13 +4,17 @@ Left and right images are sensor_msgs/msg/CompressedImage (with the run's rig as
 sensor_msgs/msg/CameraInfo beside them when known), pair headers and results are
 std_msgs/msg/String JSON (one results topic per algorithm), every message stamped with its
 pair's capture time. The file is written as OUT.part and renamed on close, so an
-interrupted recording never leaves a half-written OUT behind. record() owns one SUB socket.
+interrupted recording never leaves a half-written OUT behind. Every second the chunk in
+progress is closed and the file synced, so a recorder killed by a crash or a power cut
+loses at most that second: recover() copies every complete message of the .part into a
+valid MCAP. record() owns one SUB socket.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import os
 import threading
 import time
 from collections import OrderedDict
@@ -21,6 +25,9 @@ from typing import IO, Any
 import cv2
 import numpy as np
 import zmq
+from mcap.records import Channel, Header, Message, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import Writer as McapWriter
 from mcap_ros2.writer import Writer
 
 from trapflow.camera import StereoRig
@@ -44,6 +51,10 @@ FRAME_LEFT = "trapflow_left"
 FRAME_RIGHT = "trapflow_right"
 RAW_JPEG_QUALITY = 90
 _SEQ_MEMORY = 4096  # pairs whose capture time a late result can still find
+# A chunk is closed (and the file fsynced) at least this often: what a kill -9 can lose.
+# Each closed chunk costs a few hundred bytes of index and one fsync; at 1 s, nothing.
+FLUSH_INTERVAL_S = 1.0
+PART_SUFFIX = ".part"
 
 # The standard ROS 2 definitions, flattened the way rosbag2 stores them in MCAP schemas.
 _TIME_DEF = "int32 sec\nuint32 nanosec\n"
@@ -111,6 +122,7 @@ class Recorder:
         self._seq_time: OrderedDict[int, int] = OrderedDict()
         self.counts = RecordCounts()
         self.closed = False
+        self._flushed = time.monotonic()
 
     def add_pair(
         self, header: StereoPair, left: bytes | memoryview, right: bytes | memoryview
@@ -137,6 +149,18 @@ class Recorder:
         if len(self._seq_time) > _SEQ_MEMORY:
             self._seq_time.popitem(last=False)
         self.counts.pairs += 1
+        self.maybe_flush()
+
+    def maybe_flush(self) -> None:
+        """Close the chunk in progress and sync the file when the flush interval has passed."""
+        if self.closed or time.monotonic() - self._flushed < FLUSH_INTERVAL_S:
+            return
+        self._flushed = time.monotonic()
+        # mcap_ros2's Writer has no flush of its own; its mcap Writer's ends the chunk in
+        # progress and writes it out. Measured with kill -9 at 10 pairs/s of 160x120: without
+        # it up to a 1 MB chunk is lost (about 5 s; 27 of 80 pairs in one run), with it < 1 s.
+        self._writer._writer.flush()  # type: ignore[no-untyped-call]
+        os.fsync(self._file.fileno())
 
     def _camera_info(self, seq: int, t_left: int, t_right: int) -> None:
         """The rectified rig as a left/right CameraInfo pair, as camera_calibration writes it
@@ -184,6 +208,7 @@ class Recorder:
                                    {"data": text.strip()}, log_time=t, publish_time=t,
                                    sequence=seq if isinstance(seq, int) and seq >= 0 else 0)
         self.counts.results[algo] = self.counts.results.get(algo, 0) + 1
+        self.maybe_flush()
 
     def close(self) -> None:
         """Write the MCAP summary and footer, then move OUT.part to OUT. Idempotent."""
@@ -226,6 +251,7 @@ def record(endpoint: str, out: str | Path, stop: threading.Event,
         sub.connect(endpoint)
         while not stop.is_set():
             if not sub.poll(poll_ms):
+                rec.maybe_flush()  # a quiet pipeline: what came last is on disk all the same
                 continue
             frames = sub.recv_multipart(copy=False)
             topic = frames[0].bytes
@@ -248,3 +274,71 @@ def record(endpoint: str, out: str | Path, stop: threading.Event,
         rec.close()
     log.info("record: %d pairs, %d results in %s", rec.counts.pairs, rec.counts.total_results, out)
     return rec.counts
+
+
+def recovered_name(part: Path) -> Path:
+    """Where recover() writes by default: the name the recording was meant to have."""
+    name = part.name
+    return part.with_name(name[: -len(PART_SUFFIX)] if name.endswith(PART_SUFFIX)
+                          else f"{part.stem}.recovered{part.suffix or '.mcap'}")
+
+
+def recover(part: str | Path, out: str | Path) -> int:
+    """Copy every complete message of a cut recording (OUT.part of a killed recorder, or an
+    MCAP without its summary) into a valid MCAP at out; returns how many were copied.
+
+    The cut file is read as a stream up to its first incomplete or damaged record (a chunk
+    is checked against its CRC); schemas, channels and messages are copied byte for byte.
+    """
+    part, out = Path(part), Path(out)
+    if out.resolve() == part.resolve():
+        raise RecorderError(f"recover: output {out} is the input; name another file")
+    try:
+        src: IO[bytes] = open(part, "rb")  # noqa: SIM115 - closed below
+    except OSError as exc:
+        raise RecorderError(f"recover: cannot read {part}: {exc.strerror}") from None
+    # Not OUT.part: that is the input itself when it is recovered under its intended name.
+    tmp = out.with_name(out.name + ".recovering")
+    try:
+        copied = _copy_complete(part, src, tmp)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    tmp.replace(out)
+    return copied
+
+
+def _copy_complete(part: Path, src: IO[bytes], tmp: Path) -> int:
+    copied = 0
+    schemas: dict[int, int] = {}
+    channels: dict[int, int] = {}
+    with src, open(tmp, "wb") as dst:
+        writer = McapWriter(dst)
+        started = False
+        try:
+            for record in StreamReader(src, validate_crcs=True).records:
+                if isinstance(record, Header):
+                    writer.start(profile=record.profile, library=record.library)
+                    started = True
+                elif not started:
+                    raise RecorderError(f"recover: {part} does not start with an MCAP header")
+                elif isinstance(record, Schema):
+                    schemas[record.id] = writer.register_schema(record.name, record.encoding,
+                                                                record.data)
+                elif isinstance(record, Channel):
+                    channels[record.id] = writer.register_channel(
+                        record.topic, record.message_encoding,
+                        schemas.get(record.schema_id, 0), record.metadata)
+                elif isinstance(record, Message) and record.channel_id in channels:
+                    writer.add_message(channels[record.channel_id], record.log_time,
+                                       record.data, record.publish_time, record.sequence)
+                    copied += 1
+        except RecorderError:
+            raise
+        except Exception as exc:  # the cut: a short read, a half chunk, a CRC that fails
+            log.info("recover: %s ends after %d complete messages (%s: %s)",
+                     part, copied, type(exc).__name__, exc)
+        if not started:
+            raise RecorderError(f"recover: {part} is not an MCAP recording (no header)")
+        writer.finish()  # type: ignore[no-untyped-call]
+    return copied

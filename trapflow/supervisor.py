@@ -28,7 +28,7 @@ import zmq
 from trapflow import messages, registry, rig, run_totals
 from trapflow.camera import StereoRig
 from trapflow.config import Config
-from trapflow.errors import ProtocolError, StartupError, TrapflowError
+from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError, TrapflowError
 from trapflow.frame_ring import FrameRing, cleanup_stale, ring_slots, slot_capacity
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, NodeSpec, node_main
 from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
@@ -39,9 +39,10 @@ log = logging.getLogger(__name__)
 STARTUP_TIMEOUT_S = 60.0
 # Stop ladder: capture first (no new pairs), then workers and broker, the normalizer last.
 STOP_ORDER = ("capture", "worker", "events", "broker", "normalizer", "modem")
-CAPTURE_TOTALS = ("produced", "dropped", "failures")  # summed over capture restarts
+# Summed over capture restarts, with every failed_<kind> (pairs skipped at capture).
+CAPTURE_TOTALS = ("produced", "dropped", "failed", "source_errors")
+FAILED_PREFIX = run_totals.FAILED_PREFIX
 SEQ_RESTART_GAP = 100  # extra seqs skipped at a capture restart, beyond the heartbeat lag
-EXIT_OK, EXIT_FAILED, EXIT_STARTUP = 0, 1, 2
 LOCK_FILE = "supervisor.lock"
 
 
@@ -107,6 +108,7 @@ class Supervisor:
         self.children: list[Child] = []
         self.stop_requested = False
         self.exit_code = EXIT_OK
+        self.failure: str | None = None  # one line: why the run failed (exit status 1)
         self.stats: messages.Stats | None = None  # the run's totals, all brokers
         self._broker_stats: messages.Stats | None = None  # the live broker's own
         self._retired: messages.Stats | None = None  # what brokers that died had counted
@@ -187,6 +189,7 @@ class Supervisor:
             self._supervise()
         finally:
             self._stop_all()
+            self._judge()
             self._print_totals()
             self.ctx.destroy(linger=0)
             self._stop_logging()
@@ -345,8 +348,9 @@ class Supervisor:
     def _retire_capture(self, c: Child) -> None:
         """A restarted capture goes on counting, and numbering pairs past any its predecessor
         may have sent after its last heartbeat: a pool sees a gap, never a repeated seq."""
-        for key in CAPTURE_TOTALS:
-            self._capture_base[key] = self._capture_base.get(key, 0) + c.counters.get(key, 0)
+        for key, n in c.counters.items():
+            if key in CAPTURE_TOTALS or key.startswith(FAILED_PREFIX):
+                self._capture_base[key] = self._capture_base.get(key, 0) + n
         rate = max(self.cfg.source.rate_hz, 1.0)
         margin = int(rate * (self.cfg.supervisor.heartbeat_interval_s + 1.0)) + SEQ_RESTART_GAP
         c.spec.extra["first_seq"] = c.counters.get("next_seq", 0) + margin
@@ -354,8 +358,10 @@ class Supervisor:
 
     def capture_counts(self) -> dict[str, int]:
         """Capture's counters over the whole run, across its restarts."""
-        cur = self._child("capture").counters
-        return {k: self._capture_base.get(k, 0) + cur.get(k, 0) for k in CAPTURE_TOTALS}
+        cur = next((c.counters for c in self.children if c.spec.role == "capture"), {})
+        keys = {*CAPTURE_TOTALS, *(k for k in (*self._capture_base, *cur)
+                                   if k.startswith(FAILED_PREFIX))}
+        return {k: self._capture_base.get(k, 0) + cur.get(k, 0) for k in sorted(keys)}
 
     def _retire_broker(self) -> None:
         """A restarted broker counts from zero: the run's totals keep what its predecessor saw."""
@@ -414,7 +420,8 @@ class Supervisor:
                 log.error("%s: %s", c.name, c.reason)
                 if c.spec.role != "worker":
                     log.error("%s is essential; stopping the pipeline", c.name)
-                    self.exit_code = EXIT_FAILED
+                    self.exit_code = EXIT_FAILURE
+                    self.failure = self.failure or f"{c.name} {c.reason}"
                     self.stop_requested = True
                 continue
             c.restarts.append(now)
@@ -479,6 +486,8 @@ class Supervisor:
         parts = [f"{up:6.1f}s | in {s.rate_in:5.1f}/s ({s.pairs_in})"]
         if cap["dropped"]:
             parts[0] += f" capture-drop {cap['dropped']}"
+        if cap["failed"]:
+            parts[0] += f" capture-fail {cap['failed']}"
         for name, p in s.pools.items():
             parts.append(
                 f"{name} {p.workers}w {p.rate:5.1f}/s drop {p.dropped} "
@@ -502,6 +511,9 @@ class Supervisor:
         out: dict[str, Any] = {
             "produced": produced,
             "dropped_at_capture": cap.get("dropped", 0),  # the broker was not reading
+            # Read but never sent: unreadable, cut short, two sizes, too large for the ring.
+            "failed_at_capture": cap.get("failed", 0),
+            "capture_failures": run_totals.capture_failures(cap),
             "reached_broker": s.pairs_in if s else 0,
             "pools": {},
         }
@@ -521,8 +533,11 @@ class Supervisor:
         ledger = self.ledger()
         (self.run_dir / "ledger.json").write_text(json.dumps(ledger, indent=1) + "\n")
         if self.stats is not None:
+            failed = ledger["failed_at_capture"]
+            kinds = ", ".join(f"{k} {v}" for k, v in ledger["capture_failures"].items())
             self.out.write(f"totals: {ledger['produced']} pairs captured, "
-                           f"{ledger['reached_broker']} reached the broker\n")
+                           f"{ledger['reached_broker']} reached the broker"
+                           f"{f', {failed} failed at capture ({kinds})' if failed else ''}\n")
             for name, p in ledger["pools"].items():
                 kinds = ", ".join(f"{k} {v}" for k, v in p["failures"].items())
                 self.out.write(
@@ -532,6 +547,23 @@ class Supervisor:
                     f"restarts {self._pool_restarts(name)}\n")
         self.out.write(f"results: {self.run_dir / self.cfg.normalizer.results_file}\n")
         self.out.flush()
+
+    def _judge(self) -> None:
+        """Exit status 1 with one line when the source could not go on or a pool failed
+        every pair it was given (a run that produced nothing useful never exits 0)."""
+        if not self.children:  # stopped before boot: the error raised says it all
+            return
+        capture = self._child("capture")
+        problems = run_totals.verdict(
+            self.cfg.source.kind, self.capture_counts(),
+            capture.reason if capture.counters.get("source_gave_up") else None,
+            capture.finished, self.stats)
+        if self.failure:
+            problems.insert(0, self.failure)
+        if problems:
+            self.exit_code = EXIT_FAILURE
+            self.failure = "; ".join(problems)
+            log.error("run failed: %s", self.failure)
 
     # --- stopping -------------------------------------------------------------------------
 
@@ -580,12 +612,23 @@ class Supervisor:
         self.log_queue.close()
 
 
+@dataclass
+class RunResult:
+    """How a run ended: its exit status, the run's totals, and the one-line failure if any."""
+
+    code: int
+    stats: messages.Stats | None
+    failure: str | None = None
+    capture_failures: dict[str, int] = field(default_factory=dict)  # pairs skipped, by kind
+
+
 def run(cfg: Config, run_dir: Path | None = None, duration: float | None = None,
         out: IO[str] | None = None, announce: Callable[[str], None] | None = None,
-        ) -> tuple[int, messages.Stats | None]:
+        ) -> RunResult:
     """Run a pipeline until duration, a signal, or the end of a finite source.
 
-    Returns the exit status and the last stats the broker published (the run's totals).
+    Returns the exit status, the last stats the broker published (the run's totals) and,
+    when the status is 1, the line that says why.
     """
     if run_dir is None:
         run_dir = default_run_dir()
@@ -595,10 +638,11 @@ def run(cfg: Config, run_dir: Path | None = None, duration: float | None = None,
         announce(f"run directory: {run_dir}")
     sup = Supervisor(cfg, run_dir, duration, out)
     code = sup.run()
-    return code, sup.stats
+    return RunResult(code, sup.stats, sup.failure,
+                     run_totals.capture_failures(sup.capture_counts()))
 
 
 def start(cfg: Config, run_dir: Path | None = None, duration: float | None = None,
           out: IO[str] | None = None, announce: Callable[[str], None] | None = None) -> int:
     """run(), returning only the exit status."""
-    return run(cfg, run_dir, duration, out, announce)[0]
+    return run(cfg, run_dir, duration, out, announce).code

@@ -52,7 +52,7 @@ def test_calibrate_command_errors(args: list[str], code: int, error: str) -> Non
 @pytest.mark.parametrize(
     ("args", "code", "error"),
     [
-        (["missing.mcap"], 1, "recording not found"),
+        (["missing.mcap"], 2, "recording not found"),
         (["x.mcap", "--rate", "-1"], 2, "--rate"),
         (["x.mcap", "--loop", "--assert-lossless"], 2, "needs a finite replay"),
         (["x.mcap", "--option", "novalue"], 2, "expected KEY=VALUE"),
@@ -69,11 +69,27 @@ def test_lossless_problems() -> None:
     off = PoolStats(workers=0)
     stats = Stats(t_wall_ns=0, uptime_s=1, pairs_in=10, rate_in=1, malformed=0,
                   pools={"mono": full, "vo": short, "tags": off})
-    expected = "pool vo: processed 8 of 10 (dropped 2, lost 0, errors 0)"
-    assert lossless_problems(10, stats) == [expected]
-    assert lossless_problems(12, msgspec_replace(stats, pools={"mono": full}))[0].startswith(
-        "read 12 pairs from the recording, 10 entered")
-    assert lossless_problems(10, msgspec_replace(stats, pools={"mono": full})) == []
+    expected = "pool vo: processed 8 of 10 (dropped 2, failed 0, timed out 0, lost 0)"
+    assert lossless_problems(10, stats, ["mono", "vo"]) == [expected]
+    assert lossless_problems(12, msgspec_replace(stats, pools={"mono": full}), ["mono"])[0] \
+        .startswith("read 12 pairs from the recording, 10 entered")
+    assert lossless_problems(10, msgspec_replace(stats, pools={"mono": full}), ["mono"]) == []
+    assert lossless_problems(10, stats, ["mono"], {"undecodable": 2, "size": 1}) == [
+        "3 pairs failed at capture (size 1, undecodable 2)"]
+
+
+def test_lossless_judges_every_pool_that_ran_though_its_workers_have_stopped() -> None:
+    """Regression (issue 12, item 7): the final stats show 0 workers per pool, so the check
+    skipped every pool and passed with 130 of 175 pairs dropped and VO failing 40 of 40."""
+    stopped = Stats(t_wall_ns=0, uptime_s=9, pairs_in=175, rate_in=0, malformed=0, pools={
+        "mono": PoolStats(workers=0, processed=45, dropped=130),
+        "vo": PoolStats(workers=0, processed=0, errors=40, lost=135)})
+    assert lossless_problems(175, stopped, ["mono", "vo"]) == [
+        "pool mono: processed 45 of 175 (dropped 130, failed 0, timed out 0, lost 0)",
+        "pool vo: processed 0 of 175 (dropped 0, failed 40, timed out 0, lost 135)"]
+    # A pool that ran but never appears in the stats processed nothing.
+    assert lossless_problems(175, stopped, ["tags"]) == [
+        "pool tags: processed 0 of 175 (dropped 0, failed 0, timed out 0, lost 0)"]
 
 
 def msgspec_replace(stats: Stats, **kw: object) -> Stats:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from pathlib import Path
 
@@ -12,7 +13,7 @@ import pytest
 from trapflow.camera import StereoRig
 from trapflow.config import SourceConfig
 from trapflow.sources import SourceError, open_source
-from trapflow.sources.base import Frames, Source
+from trapflow.sources.base import Frames, SkipPair, Source
 
 RIG = StereoRig.from_fov(64, 48, 70.0, 0.12)
 W, H = 64, 48
@@ -131,12 +132,86 @@ def test_bad_inputs_fail_with_one_clear_reason(
     src.close()
 
 
-def test_unreadable_image_names_the_file(tmp_path: Path) -> None:
-    write_pngs(tmp_path / "left", 0, 2)
-    write_pngs(tmp_path / "right", 1, 2)
+def test_unreadable_image_names_the_file_and_the_folder_goes_on(tmp_path: Path) -> None:
+    """Regression (issue 12, item 2): one unreadable file was retried forever; now read()
+    raises SkipPair once for it, naming the file, and the next read() is the next pair."""
+    write_pngs(tmp_path / "left", 0, 3)
+    write_pngs(tmp_path / "right", 1, 3)
     (tmp_path / "left" / "000001.png").write_bytes(b"garbage")
     src = make("images", str(tmp_path))
     src.open()
-    assert src.read() is not None
-    with pytest.raises(SourceError, match="cannot read .*000001.png"):
+    first = src.read()
+    assert first is not None and index_of(first.left, 0) == 0
+    with pytest.raises(SkipPair, match="no image decoder accepts") as info:
         src.read()
+    assert "000001.png" in str(info.value) and info.value.kind == "unreadable"
+    third = src.read()
+    assert third is not None and index_of(third.left, 0) == 2
+    assert src.read() is None
+    src.close()
+
+
+def _bad_left(kind: str) -> Callable[[Path], None]:
+    def damage(folder: Path) -> None:
+        target = folder / "left" / "000002.png"
+        if kind == "empty":
+            target.write_bytes(b"")
+        elif kind == "garbage":
+            target.write_bytes(b"\x89PNG but not really" * 4)
+        elif kind == "cut":
+            target.write_bytes(target.read_bytes()[:-30])
+        elif kind == "size":
+            cv2.imwrite(str(folder / "right" / "000002.png"), np.zeros((H // 2, W, 3), np.uint8))
+        elif kind == "missing":
+            target.unlink()
+            target.mkdir()  # a name that cannot be read as a file
+    return damage
+
+
+@pytest.mark.parametrize(
+    ("damage", "kind", "error"),
+    [
+        ("empty", "unreadable", "000002.png: empty"),
+        ("garbage", "unreadable", "000002.png: .* no image decoder accepts"),
+        ("cut", "truncated", "000002.png: PNG of .* has no IEND chunk"),
+        ("size", "size", "left/000002.png and right/000002.png: left is 64x48, right is 64x24"),
+        ("missing", "unreadable", "cannot read .*000002.png"),
+    ],
+)
+def test_each_bad_pair_is_skipped_once_with_its_reason(
+    tmp_path: Path, damage: str, kind: str, error: str
+) -> None:
+    write_pngs(tmp_path / "left", 0, 5)
+    write_pngs(tmp_path / "right", 1, 5)
+    _bad_left(damage)(tmp_path)
+    src = make("images", str(tmp_path))
+    src.open()
+    got, skipped = [], []
+    for _ in range(10):  # a bounded loop: a source that retried would never reach None
+        try:
+            f = src.read()
+        except SkipPair as exc:
+            skipped.append(exc)
+            continue
+        if f is None:
+            break
+        got.append(index_of(f.left, 0))
+    src.close()
+    assert got == [0, 1, 3, 4]
+    assert len(skipped) == 1 and skipped[0].kind == kind
+    assert re.search(error, str(skipped[0])), str(skipped[0])
+
+
+def test_a_folder_that_disappears_is_a_source_error_not_a_skipped_pair(tmp_path: Path) -> None:
+    """A removed disk is not one bad file: the source cannot go on (a finite run ends with
+    status 1 saying so; a looping one is retried with back-off like a camera)."""
+    write_pngs(tmp_path / "d" / "left", 0, 3)
+    write_pngs(tmp_path / "d" / "right", 1, 3)
+    src = make("images", str(tmp_path / "d"))
+    src.open()
+    assert src.read() is not None
+    (tmp_path / "d").rename(tmp_path / "gone")
+    with pytest.raises(SourceError, match="images: folder .*left not found") as info:
+        src.read()
+    assert not isinstance(info.value, SkipPair)
+    src.close()

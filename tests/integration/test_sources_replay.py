@@ -15,7 +15,7 @@ from trapflow.camera import StereoRig
 from trapflow.config import SourceConfig
 from trapflow.messages import StereoPair
 from trapflow.recorder import Recorder
-from trapflow.sources import SourceError, open_source
+from trapflow.sources import SkipPair, SourceError, open_source
 from trapflow.sources.base import Frames, Source
 from trapflow.sources.replay import ReplaySource
 
@@ -176,3 +176,91 @@ def test_bad_recordings_fail_with_one_clear_reason(
         src.open()
         src.read()
     src.close()
+
+
+def compressed(t: int, data: bytes) -> Any:
+    Compressed = TS.types["sensor_msgs/msg/CompressedImage"]
+    return Compressed(header=header(t, "cam"), format="jpeg",
+                      data=np.frombuffer(data, np.uint8))
+
+
+def write_faulty_bag(path: Path, n: int) -> dict[int, str]:
+    """CompressedImage pairs where pair 1's left message does not deserialize, pair 3's left
+    is not a JPEG, pair 4's right is cut short and pair 6's right has another size."""
+    faults = {1: "undecodable", 3: "unreadable", 4: "truncated", 6: "size"}
+    ctype = "sensor_msgs/msg/CompressedImage"
+    with Writer(path, version=8, storage_plugin=StoragePlugin.MCAP) as w:
+        cl = w.add_connection("/left/image/compressed", ctype, typestore=TS)
+        cr = w.add_connection("/right/image/compressed", ctype, typestore=TS)
+        for i in range(n):
+            t = T0 + i * PERIOD
+            jl = cv2.imencode(".jpg", img(i, 0))[1].tobytes()
+            jr = cv2.imencode(".jpg", img(i, 1))[1].tobytes()
+            if faults.get(i) == "unreadable":
+                jl = b"\xff\xd8 but no image at all \xff\xd9"
+            if faults.get(i) == "truncated":
+                jr = jr[: len(jr) // 2]
+            if faults.get(i) == "size":
+                jr = cv2.imencode(".jpg", np.zeros((H // 2, W // 2, 3), np.uint8))[1].tobytes()
+            left = TS.serialize_cdr(compressed(t, jl), ctype)
+            if faults.get(i) == "undecodable":
+                left = left[:24]  # a CDR message cut inside its data field
+            w.write(cl, t, left)
+            w.write(cr, t, TS.serialize_cdr(compressed(t, jr), ctype))
+    return faults
+
+
+def test_bag_messages_that_do_not_decode_are_skipped_and_the_bag_goes_on(tmp_path: Path) -> None:
+    """Regression (issue 12, item 2): a bag message that did not decode was retried forever."""
+    faults = write_faulty_bag(tmp_path / "bag", 8)
+    src = make(tmp_path / "bag")
+    src.open()
+    got, skipped = [], []
+    for _ in range(20):
+        try:
+            f = src.read()
+        except SkipPair as exc:
+            skipped.append(exc)
+            continue
+        if f is None:
+            break
+        got.append(level(f.left, 0))
+    src.close()
+    assert got == [i for i in range(8) if i not in faults]
+    assert [e.kind for e in skipped] == list(faults.values())
+    # Each names the message: index i*2 is pair i's left, i*2+1 its right (time order).
+    assert "message 2 on /left/image/compressed" in str(skipped[0])
+    assert "bag message 6:" in str(skipped[1])
+    assert "message 9: CompressedImage ('jpeg'): JPEG of" in str(skipped[2])
+    assert "messages 12 and 13: left is 64x48, right is 32x24" in str(skipped[3])
+    assert isinstance(src, ReplaySource) and src.pairs_read == 8
+
+
+def test_a_recording_damaged_mid_file_ends_the_source_with_where(tmp_path: Path) -> None:
+    """A chunk that fails its checksum: the pairs before it are read, then one SourceError
+    (not a SkipPair: nothing after it can be trusted in order) names the place."""
+    rec = tmp_path / "run.mcap"
+    with Recorder(rec) as r:
+        for i in range(40):
+            h = StereoPair(seq=i, t_wall_ns=T0 + i * PERIOD, t_mono_ns=i, t_left_ns=i,
+                           t_right_ns=i, skew_ns=0, encoding="jpeg", width=W, height=H)
+            noise = np.random.default_rng(i).integers(0, 255, (H, W, 3), np.uint8)
+            jpg = cv2.imencode(".jpg", noise)[1].tobytes()
+            r.add_pair(h, jpg, jpg)
+            if i % 10 == 9:
+                r._writer._writer.flush()  # four chunks of ten pairs
+    data = bytearray(rec.read_bytes())
+    mid = len(data) // 2
+    data[mid : mid + 64] = bytes(64)
+    rec.write_bytes(bytes(data))
+    src = make(rec)
+    src.open()
+    got = 0
+    with pytest.raises(SourceError, match="run.mcap is damaged after message") as info:
+        for _ in range(50):
+            if src.read() is None:
+                break
+            got += 1
+    src.close()
+    assert not isinstance(info.value, SkipPair)
+    assert 10 <= got < 40

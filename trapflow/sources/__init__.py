@@ -5,11 +5,11 @@ from __future__ import annotations
 from trapflow.camera import StereoRig
 from trapflow.config import SourceConfig
 from trapflow.errors import ConfigError
-from trapflow.sources.base import Frames, Geometry, Source, SourceError
+from trapflow.sources.base import Frames, Geometry, SkipPair, Source, SourceError
 from trapflow.sources.spec import parse_source_spec
 
-__all__ = ["Frames", "Geometry", "Source", "SourceError", "build_source", "open_source",
-           "parse_source_spec", "KINDS"]
+__all__ = ["Frames", "Geometry", "SkipPair", "Source", "SourceError", "build_source",
+           "open_source", "parse_source_spec", "KINDS"]
 
 KINDS = ("synthetic", "video", "images", "v4l2", "picamera2", "gst", "replay")
 

@@ -15,6 +15,18 @@ class SourceError(TrapflowError):
     """A source cannot open or stopped delivering frames (camera gone, file unreadable)."""
 
 
+class SkipPair(SourceError):
+    """One pair of a finite source cannot be read; the source has moved past it and goes on.
+
+    `kind` is a short class of the fault for the ledger (unreadable, truncated, size,
+    undecodable); the message names the file or message index, for a log line of its own.
+    """
+
+    def __init__(self, kind: str, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
 @dataclass
 class Frames:
     """One stereo capture: BGR uint8 images and their monotonic capture times."""

@@ -10,13 +10,13 @@ import logging
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from trapflow.camera import StereoRig
 from trapflow.config import SourceConfig
 from trapflow.errors import ConfigError
-from trapflow.sources.base import Frames, Geometry, Source, SourceError
+from trapflow.sources.base import Frames, Geometry, SkipPair, Source, SourceError
+from trapflow.sources.decode import decode_bgr, same_size
 
 log = logging.getLogger(__name__)
 
@@ -104,9 +104,11 @@ class ImagesSource(Source):
         pairs = self.pairs or self._scan()
         first = None
         for left, _right in pairs[:GEOMETRY_TRIES]:  # an unreadable file is not the geometry
-            first = cv2.imread(str(left), cv2.IMREAD_COLOR)
-            if first is not None:
-                break
+            try:
+                first = self._load(left)
+            except SkipPair:
+                continue
+            break
         if first is None:
             raise SourceError(f"images: none of the first {min(len(pairs), GEOMETRY_TRIES)} "
                               f"left images in {self.root} can be read")
@@ -133,12 +135,16 @@ class ImagesSource(Source):
             log.info("images: rig from %s: %s", geometry.origin, self.rig.describe())
         self._t0 = time.monotonic_ns()
 
-    @staticmethod
-    def _load(path: Path) -> np.ndarray:
-        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if img is None:
-            raise SourceError(f"images: cannot read {path} (missing or not an image)")
-        return img
+    def _load(self, path: Path) -> np.ndarray:
+        """One image, decoded strictly; SkipPair when empty, cut short or not an image."""
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            if not path.parent.is_dir():  # the disk or folder is gone, not one file
+                raise SourceError(f"images: folder {path.parent} not found "
+                                  "(disk removed or folder moved?)") from None
+            raise SkipPair("unreadable", f"images: cannot read {path}: {exc.strerror}") from None
+        return decode_bgr(data, f"images: {path}")
 
     def _time(self, i: int) -> int:
         if self.times is None:
@@ -155,10 +161,11 @@ class ImagesSource(Source):
                 return None
             self._i = 0
         lp, rp = self.pairs[self._i]
-        left, right = self._load(lp), self._load(rp)
-        if left.shape != right.shape:
-            raise SourceError(f"images: {lp.name} and {rp.name} differ in size")
         t = self._t0 + self._time(self._i)
+        # Past this pair before reading it: an unreadable one is skipped, never retried.
         self._i += 1
         self._index += 1
+        left, right = self._load(lp), self._load(rp)
+        same_size(left, right,
+                  f"images: {lp.parent.name}/{lp.name} and {rp.parent.name}/{rp.name}")
         return Frames(left=left, right=right, t_left_ns=t, t_right_ns=t)

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from trapflow.calibration import StereoCalibration
-from trapflow.sources.base import Frames, Source, SourceError
+from trapflow.sources.base import Frames, SkipPair, Source, SourceError
 
 
 class Rectifier:
@@ -59,7 +59,12 @@ class RectifiedSource(Source):
         frames = self.inner.read()
         if frames is None:
             return None
-        frames.left, frames.right = self.rectifier.apply(frames.left, frames.right)
+        try:
+            frames.left, frames.right = self.rectifier.apply(frames.left, frames.right)
+        except SourceError as exc:
+            if self.finite:  # one odd file in a folder: skip it, the next pair may fit
+                raise SkipPair("size", str(exc)) from None
+            raise
         return frames
 
     def close(self) -> None:

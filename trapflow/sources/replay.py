@@ -25,7 +25,8 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from trapflow.camera import StereoRig
 from trapflow.config import SourceConfig
-from trapflow.sources.base import Frames, Geometry, Source, SourceError
+from trapflow.sources.base import Frames, Geometry, SkipPair, Source, SourceError
+from trapflow.sources.decode import decode_bgr, same_size
 from trapflow.sources.sync import SkewStats, StereoSync
 
 log = logging.getLogger(__name__)
@@ -34,7 +35,9 @@ IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
 IMAGE_TYPES = (IMAGE, COMPRESSED)
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
-Pair = tuple[int, Any, int, Any]
+# (t_left, left, t_right, right); each image is (message index, message, or why it is unusable)
+Pair = tuple[int, "Msg", int, "Msg"]
+Msg = tuple[int, Any]
 
 # ROS image encodings -> (channels, OpenCV conversion to BGR or None)
 _ENCODINGS: dict[str, tuple[int, int | None]] = {
@@ -44,28 +47,38 @@ _ENCODINGS: dict[str, tuple[int, int | None]] = {
 }
 
 
-def image_to_bgr(msg: Any) -> np.ndarray:
-    """A sensor_msgs Image or CompressedImage as a BGR uint8 array; SourceError if unusable."""
+class Undecodable:
+    """A bag message that could not be deserialized: it still pairs, then is skipped."""
+
+    def __init__(self, reason: str) -> None:
+        self.reason = reason
+
+
+def image_to_bgr(msg: Any, where: str = "replay") -> np.ndarray:
+    """A sensor_msgs Image or CompressedImage as a BGR uint8 array; SkipPair if unusable."""
+    if isinstance(msg, Undecodable):
+        raise SkipPair("undecodable", f"{where}: {msg.reason}")
     if hasattr(msg, "format"):  # CompressedImage
-        img = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_COLOR)
-        if img is None:
-            raise SourceError(f"replay: cannot decode a CompressedImage (format {msg.format!r})")
-        return img
+        return decode_bgr(bytes(msg.data), f"{where}: CompressedImage ({msg.format!r})")
     enc = str(msg.encoding)
     if enc == "mono16" or enc == "16UC1":
         raw16 = np.frombuffer(bytes(msg.data), dtype=">u2" if msg.is_bigendian else "<u2")
-        rows16 = raw16.reshape(msg.height, msg.step // 2)[:, : msg.width]
+        try:
+            rows16 = raw16.reshape(msg.height, msg.step // 2)[:, : msg.width]
+        except ValueError:
+            raise SkipPair("undecodable", f"{where}: {enc} Image of {raw16.size * 2} bytes "
+                                          f"does not fit {msg.height} rows of {msg.step}") from None
         return cv2.cvtColor((rows16 >> 8).astype(np.uint8), cv2.COLOR_GRAY2BGR)
     if enc not in _ENCODINGS:
-        raise SourceError(f"replay: Image encoding {enc!r} unsupported; expected one of "
-                          f"{', '.join([*_ENCODINGS, 'mono16'])}")
+        raise SkipPair("undecodable", f"{where}: Image encoding {enc!r} unsupported; expected "
+                                      f"one of {', '.join([*_ENCODINGS, 'mono16'])}")
     ch, conv = _ENCODINGS[enc]
     raw = np.frombuffer(bytes(msg.data), np.uint8)
     try:
         rows = raw.reshape(msg.height, msg.step)[:, : msg.width * ch]
     except ValueError:
-        raise SourceError(f"replay: Image of {raw.size} bytes does not fit "
-                          f"{msg.height} rows of {msg.step}") from None
+        raise SkipPair("undecodable", f"{where}: Image of {raw.size} bytes does not fit "
+                                      f"{msg.height} rows of {msg.step}") from None
     img = rows.reshape(msg.height, msg.width, ch)
     return np.ascontiguousarray(img) if conv is None else cv2.cvtColor(img, conv)
 
@@ -176,7 +189,7 @@ class ReplaySource(Source):
             first = next(self._custom_pairs(str(msg_type)), None)  # one stereo message
             if first is None:
                 return Geometry()
-            img = image_to_bgr(first[1])
+            img = image_to_bgr(first[1][1])
             return Geometry(size=(img.shape[1], img.shape[0]), where=f"{msg_type} in {self.path}")
         finally:
             self.close()
@@ -227,8 +240,11 @@ class ReplaySource(Source):
             self._reader.open()
         except Exception as exc:  # noqa: BLE001 - rosbags raises many types for a bad file
             self._reader = None
+            cut = self.path.name.endswith(".part") or "magic" in str(exc)
+            hint = (f"; it looks cut short (a recorder killed mid-run): `trapflow recover "
+                    f"{self.path}` keeps its complete messages" if cut else "")
             raise SourceError(f"replay: cannot read {self.path} as a ROS 2 bag or MCAP "
-                              f"recording: {exc}") from None
+                              f"recording: {exc}{hint}") from None
         self._register_custom()
         self._it = self._pairs()
         self._mono_first = time.monotonic_ns()
@@ -270,12 +286,12 @@ class ReplaySource(Source):
         lt, rt = _pick_topics(reader.connections, self.opts.get("left_topic"),
                               self.opts.get("right_topic"))
         conns = [c for c in reader.connections if c.topic in (lt, rt)]
-        sync: StereoSync[Any] = StereoSync(self._tolerance(conns), max_pending=64)
+        sync: StereoSync[Msg] = StereoSync(self._tolerance(conns), max_pending=64)
         sync.stats = self.skew
-        for conn, t_bag, raw in reader.messages(connections=conns):
-            msg = reader.deserialize(raw, conn.msgtype)
+        for index, (conn, t_bag, raw) in enumerate(self._messages(conns)):
+            msg = self._deserialize(raw, conn, index)
             t = stamp_ns(msg, t_bag)
-            (sync.push_left if conn.topic == lt else sync.push_right)(t, msg)
+            (sync.push_left if conn.topic == lt else sync.push_right)(t, (index, msg))
             while (pair := sync.pop()) is not None:
                 yield pair
         sync.flush()
@@ -290,15 +306,40 @@ class ReplaySource(Source):
             raise SourceError(f"replay: no topic of type {msg_type} in {self.path}")
         lf = str(self.opts.get("left_field", "left"))
         rf = str(self.opts.get("right_field", "right"))
-        for conn, t_bag, raw in reader.messages(connections=conns):
-            msg = reader.deserialize(raw, conn.msgtype)
+        for index, (conn, t_bag, raw) in enumerate(self._messages(conns)):
+            msg = self._deserialize(raw, conn, index)
+            if isinstance(msg, Undecodable):
+                yield t_bag, (index, msg), t_bag, (index, msg)
+                continue
             try:
                 left, right = getattr(msg, lf), getattr(msg, rf)
             except AttributeError:
                 raise SourceError(f"replay: {msg_type} has no fields {lf!r} and {rf!r}") from None
             tl, tr = stamp_ns(left, stamp_ns(msg, t_bag)), stamp_ns(right, stamp_ns(msg, t_bag))
             self.skew.add(tl - tr)
-            yield tl, left, tr, right
+            yield tl, (index, left), tr, (index, right)
+
+    def _messages(self, conns: list[Connection]) -> Iterator[tuple[Connection, int, bytes]]:
+        """The raw messages; a recording damaged mid-file (a chunk that fails its checksum)
+        ends with a SourceError naming where: nothing after it can be trusted in order."""
+        assert self._reader is not None
+        index = 0
+        try:
+            for item in self._reader.messages(connections=conns):
+                yield item
+                index += 1
+        except Exception as exc:  # rosbags raises many types for a damaged file
+            raise SourceError(f"replay: {self.path} is damaged after message {index}: "
+                              f"{type(exc).__name__}: {exc}") from None
+
+    def _deserialize(self, raw: bytes, conn: Connection, index: int) -> Any:
+        """The message, or Undecodable with the reason (the pair is skipped, the bag goes on)."""
+        assert self._reader is not None
+        try:
+            return self._reader.deserialize(raw, conn.msgtype)
+        except Exception as exc:  # rosbags raises many types for bad bytes
+            return Undecodable(f"message {index} on {conn.topic} ({conn.msgtype}, "
+                               f"{len(raw)} bytes) does not decode: {type(exc).__name__}: {exc}")
 
     # -- delivery -----------------------------------------------------------------
 
@@ -330,8 +371,11 @@ class ReplaySource(Source):
             delay = due - time.monotonic_ns()
             if delay > 0:
                 time.sleep(delay / 1e9)
-        left, right = image_to_bgr(lmsg), image_to_bgr(rmsg)
-        self.pairs_read += 1
+        self.pairs_read += 1  # counted read whether or not it decodes: it is one pair
+        (il, lm), (ir, rm) = lmsg, rmsg
+        left = image_to_bgr(lm, f"replay: {self.path.name} message {il}")
+        right = image_to_bgr(rm, f"replay: {self.path.name} message {ir}")
+        same_size(left, right, f"replay: {self.path.name} messages {il} and {ir}")
         now = time.monotonic_ns()
         return Frames(left=left, right=right, t_left_ns=now, t_right_ns=now + (tr - tl))
 

@@ -12,6 +12,7 @@ import numpy as np
 from trapflow.camera import StereoRig
 from trapflow.config import SourceConfig
 from trapflow.sources.base import Frames, Geometry, Source, SourceError
+from trapflow.sources.decode import same_size
 from trapflow.sources.spec import split_pair
 
 log = logging.getLogger(__name__)
@@ -97,13 +98,10 @@ class VideoSource(Source):
             left, right = img[:, :half], img[:, half : 2 * half]
         else:
             left, right = images
-            if left.shape != right.shape:
-                raise SourceError(
-                    f"video: left is {left.shape[1]}x{left.shape[0]}, "
-                    f"right is {right.shape[1]}x{right.shape[0]}; expected the same size"
-                )
         t = self._t0 + self._index * self._period_ns
         self._index += 1
+        if len(images) == 2:  # a frame pair of two sizes is skipped; the files go on
+            same_size(left, right, f"video: frame {self._index - 1}")
         return Frames(left=np.ascontiguousarray(left), right=np.ascontiguousarray(right),
                       t_left_ns=t, t_right_ns=t)
 

@@ -225,7 +225,9 @@ class Supervisor:
         try:
             found = rig.describe(c)
         except TrapflowError as exc:
-            raise StartupError(f"source {c.source.kind}: {exc}") from None
+            why = str(exc)  # source errors mostly name their kind already
+            prefix = "" if why.startswith(f"{c.source.kind}:") else f"{c.source.kind}: "
+            raise StartupError(f"source {prefix}{why}") from None
         self.rig, self.rig_origin = found.rig, found.origin
         for pool, pcfg in self.cfg.pools.items():
             if pcfg.count > 0:

@@ -89,9 +89,10 @@ def test_a_folder_with_no_readable_pair_fails_with_one_line(spawn, run_dir: Path
         (d / "left" / f"{i:06d}.jpg").write_bytes(b"")
     p: Pipeline = spawn(["--workers", "vo=1", "--source", f"images:{d}"], run_dir)
     code, _, err = p.wait(60)
-    assert code == 1, err
-    assert errors(err) == ["trapflow: error: source images: none of its 3 pairs could be read "
-                           "(unreadable 3); see trapflow.log"]
+    # Found before anything starts, so it is an input error (status 2), named in one line.
+    assert code == 2, err
+    assert errors(err) == [f"trapflow: error: source images: none of the first 3 left images "
+                           f"in {d} can be read"]
 
 
 @pytest.mark.timeout(90)
@@ -178,9 +179,11 @@ def test_assert_lossless_fails_on_dropped_or_failed_pairs(run_dir: Path) -> None
 
 
 @pytest.mark.timeout(90)
-def test_pairs_too_large_for_the_ring_are_counted(spawn, run_dir: Path) -> None:
+def test_pairs_larger_than_the_rig_are_counted(spawn, run_dir: Path) -> None:
     """Regression (issue 12, item 1): with raw pairs, images larger than the ring's slots were
-    skipped at capture and appeared nowhere in the totals or the ledger."""
+    skipped at capture and appeared nowhere in the totals or the ledger. The ring is sized
+    from the source's rig now, so a pair of another size is caught before the ring, as a pair
+    that contradicts the rig, and counted as such."""
     d = run_dir.parent / "pairs"
     write_folder(d, 6)
     for side, name in ((0, "left"), (1, "right")):  # pair 3 is four times the slot's size
@@ -192,7 +195,7 @@ def test_pairs_too_large_for_the_ring_are_counted(spawn, run_dir: Path) -> None:
     code, out, err = p.wait(60)
     assert code == 0, err
     ledger = json.loads((run_dir / "ledger.json").read_text())
-    assert ledger["capture_failures"] == {"too_large": 1}
+    assert ledger["capture_failures"] == {"geometry": 1}
     assert ledger["produced"] == 5 and ledger["pools"]["every"]["processed"] == 5
-    assert "1 failed at capture (too_large 1)" in out
-    assert err.count("does not fit a ring slot") == 1
+    assert "1 failed at capture (geometry 1)" in out
+    assert err.count("pair skipped") == 1

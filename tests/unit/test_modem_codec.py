@@ -57,7 +57,11 @@ def test_golden_bytes() -> None:
     """The link encoding is a wire contract with the surface: pinned byte for byte."""
     rec, _ = RECORDS[0]
     assert LinkCodec().encode(rec).hex() == "011fe1e7d9e8900a11018e6c9c01cc01ce01"
-    assert frame(DATA, b"\x01\x02").hex() == "a55a020101024deb"
+    assert frame(DATA, b"\x01\x02").hex() == "a55a02030102238b"
+    # Link protocol 2: DATA and ACK payloads open with the outbox's 4-byte session id.
+    session = bytes.fromhex("c0ffee01")
+    assert data_payload(session, 300, [(301, b"\x07")]).hex() == "c0ffee01ac02010107"
+    assert ack_payload(session, [301, 300]).hex() == "c0ffee01ac0201"
 
 
 @pytest.mark.parametrize(("record", "budget"), RECORDS)
@@ -127,8 +131,30 @@ def test_varints(value: int) -> None:
 
 def test_arq_payloads() -> None:
     msgs = [(105, b"abc"), (300, b""), (101, b"\x00" * 40)]
-    assert parse_data(data_payload(100, msgs)) == (100, msgs)
-    assert parse_ack(ack_payload([9, 3, 1000, 3])) == [3, 9, 1000]
+    assert parse_data(data_payload(b"\x00\x01\x02\x03", 100, msgs)) == (
+        b"\x00\x01\x02\x03", 100, msgs)  # fmt: skip
+    assert parse_ack(ack_payload(b"abcd", [9, 3, 1000, 3])) == (b"abcd", [3, 9, 1000])
+    assert parse_ack(ack_payload(b"abcd", [])) == (b"abcd", [])
+
+
+@pytest.mark.parametrize(
+    ("call", "error"),
+    [
+        (lambda: data_payload(b"abc", 0, []), "expected a session id of 4 bytes, got 3"),
+        (lambda: data_payload(b"abcde", 0, []), "expected a session id of 4 bytes, got 5"),
+        (lambda: ack_payload(b"", [1]), "expected a session id of 4 bytes, got 0"),
+        (lambda: parse_data(b"abc"), "expected 4 bytes at byte 0, got 3"),
+        (lambda: parse_data(b"abcd"), "expected a varint at byte 4"),
+        (lambda: parse_data(b"abcd\x00\x01"), "expected a varint at byte 6"),
+        (lambda: parse_data(b"abcd\x00\x01\x05ab"), "expected 5 bytes at byte 7, got 2"),
+        (lambda: parse_ack(b"ab"), "expected 4 bytes at byte 0, got 2"),
+        (lambda: parse_ack(b"abcd\x80"), "expected a varint at byte 5"),
+    ],
+)
+def test_arq_payloads_reject(call: Any, error: str) -> None:
+    """Link protocol 2 payloads without a whole session id, or cut short, are refused."""
+    with pytest.raises(ProtocolError, match=error):
+        call()
 
 
 def test_deframer_recovers_frames_from_garbage() -> None:

@@ -14,7 +14,9 @@ import pytest
 from trapflow.modem.codec import LinkCodec
 from trapflow.modem.frame import ACK, DATA, Deframer, data_payload, frame, parse_ack
 from trapflow.modem.surface import SurfaceReceiver
-from trapflow.modem.surface_state import SurfaceState, load_state
+from trapflow.modem.surface_state import SessionState, SurfaceState, load_state
+
+SESSION = bytes.fromhex("5e551011")
 
 
 class BytePort:
@@ -44,7 +46,7 @@ class BytePort:
 
     def acked(self) -> list[int]:
         return [i for kind, p in Deframer().feed(bytes(self.sent)) if kind == ACK
-                for i in parse_ack(p)]  # fmt: skip
+                for i in parse_ack(p)[1]]  # fmt: skip
 
 
 def scallop(i: int) -> dict[str, Any]:
@@ -52,9 +54,20 @@ def scallop(i: int) -> dict[str, Any]:
                           "confidence": 0.9}}  # fmt: skip
 
 
-def data(floor: int, ids: list[int]) -> bytes:
+def data(floor: int, ids: list[int], session: bytes = SESSION) -> bytes:
     codec = LinkCodec()
-    return frame(DATA, data_payload(floor, [(i, codec.encode(scallop(i))) for i in ids]))
+    return frame(DATA, data_payload(session, floor, [(i, codec.encode(scallop(i))) for i in ids]))
+
+
+def memory(rx: SurfaceReceiver, session: bytes = SESSION) -> tuple[int, set[int]]:
+    """(floor, seen) the receiver keeps for a session."""
+    return rx.sessions[session].floor, rx.sessions[session].seen
+
+
+def saved(state: Path, session: bytes = SESSION) -> tuple[int, list[int]]:
+    """(floor, seen) the state file keeps for a session."""
+    (one,) = [s for s in load_state(state).sessions if s.id == session.hex()]
+    return one.floor, one.seen
 
 
 def receive(out_path: Path, state: Path | None, *frames: bytes) -> tuple[SurfaceReceiver, BytePort]:
@@ -99,11 +112,20 @@ def test_without_state_file_a_restart_forgets(tmp_path: Path) -> None:
     ("content", "error"),
     [
         (b"", "corrupt"),
-        (b'{"version": 1, "floor": 3, "se', "corrupt"),
+        (b'{"version": 2, "sessions": [{"id": "5e551011", "fl', "corrupt"),
         (b"\xff\xfe garbage", "corrupt"),
+        (b"[2]", "Expected `object`, got `array`"),
+        (b'{"version": "2"}', "Expected `int`, got `str` - at `$.version`"),
+        (b'{"version": 2, "sessions": [{"id": "5e551011", "floor": -1}]}',
+         "Expected `int` >= 0 - at `$.sessions[0].floor`"),
+        (b'{"version": 2, "sessions": [{"id": "5E55", "floor": 0}]}',
+         "Expected `str` matching regex"),
+        (b'{"version": 3, "sessions": []}', "Expected `int` <= 2 - at `$.version`"),
+        (b'{"version": 0, "sessions": []}', "Expected `int` >= 2 - at `$.version`"),
+        (b'{"version": 2, "sessions": [{"id": "5e551011", "seen": ["a"]}]}',
+         "Expected `int`, got `str`"),
+        (b'{"version": 2, "sessions": [], "x": 1}', "unknown field `x`"),
         (b'{"version": 1, "floor": -1, "seen": []}', "Expected `int` >= 0 - at `$.floor`"),
-        (b'{"version": 2, "floor": 0, "seen": []}', "Expected `int` <= 1 - at `$.version`"),
-        (b'{"version": 1, "floor": 0, "seen": ["a"]}', "Expected `int`, got `str`"),
         (b'{"version": 1, "floor": 0, "seen": [], "x": 1}', "unknown field `x`"),
         (None, "unreadable"),  # a directory where the file should be
     ],
@@ -119,9 +141,12 @@ def test_corrupt_state_warns_and_starts_empty(
     with caplog.at_level(logging.WARNING, logger="trapflow.modem.surface_state"):
         rx, port = receive(out, state, data(0, [0]))
     assert str(state) in caplog.text and error in caplog.text
-    assert (rx.floor, rx.written) == (0, 1)
+    assert (memory(rx), rx.written) == ((0, {0}), 1)
     if content is not None:  # the bad file is replaced by a good one at the first save
-        assert load_state(state) == SurfaceState(floor=0, seen=[0], output=load_state(state).output)
+        assert load_state(state) == SurfaceState(
+            sessions=[SessionState(id=SESSION.hex(), floor=0, seen=[0])],
+            output=load_state(state).output,
+        )
         assert port.acked() == [0]
     else:  # cannot save over a directory: never acknowledged, so the sender keeps it
         assert port.acked() == [] and rx.state_saves == 0
@@ -130,16 +155,15 @@ def test_corrupt_state_warns_and_starts_empty(
 def test_floor_pruning_after_reload(tmp_path: Path) -> None:
     out, state = tmp_path / "surface.jsonl", tmp_path / "surface.jsonl.state"
     receive(out, state, data(0, [0, 1, 2, 3, 4]))
-    assert load_state(state).seen == [0, 1, 2, 3, 4]
+    assert saved(state) == (0, [0, 1, 2, 3, 4])
     # Restarted: the sender settled 0..2, retransmits 3 (ack lost) and sends 5.
     second, _ = receive(out, state, data(3, [3, 5]))
-    assert (second.floor, second.seen) == (3, {3, 4, 5})
-    saved = load_state(state)
-    assert (saved.floor, saved.seen) == (3, [3, 4, 5])
+    assert memory(second) == (3, {3, 4, 5})
+    assert saved(state) == (3, [3, 4, 5])
     # Restarted again: a stale frame's id below the floor is settled, never written.
     third, _ = receive(out, state, data(0, [2]), data(3, [4, 6]), data(6, [6, 7]))
     assert (third.written, third.duplicates) == (2, 3)
-    assert (load_state(state).floor, load_state(state).seen) == (6, [6, 7])
+    assert saved(state) == (6, [6, 7])
     assert seqs(out) == [0, 1, 2, 3, 4, 5, 6, 7]
 
 

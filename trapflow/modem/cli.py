@@ -49,9 +49,10 @@ def _output(path: Path | None) -> Iterator[IO[bytes]]:
     "state_path",
     type=click.Path(dir_okay=False, path_type=Path),
     default=None,
-    help="File remembering which messages were written, so a restarted surface writes a "
-    "retransmission only once (default: OUTPUT.state beside a regular output file; with "
-    "standard output and no --state the memory is lost when the command stops).",
+    help="File remembering which messages of which outbox session were written, so a "
+    "restarted surface writes a retransmission only once (default: OUTPUT.state beside a "
+    "regular output file; with standard output and no --state the memory is lost when the "
+    "command stops).",
 )
 @click.option("--baudrate", type=click.IntRange(50, 4_000_000), default=9600, show_default=True)
 @click.option("--labels", default=None, help="Comma-separated label table (must match the box).")

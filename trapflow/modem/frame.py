@@ -4,6 +4,12 @@ The one module (with link_codec) that knows the link's byte format. A frame is
 `A5 5A | len | type | payload[len] | crc16` with the CRC (CCITT) over len, type and
 payload. The deframer resynchronises on garbage, counts what it throws away, and
 never raises on bad input.
+
+Both ARQ payloads start with the 4-byte session id of the outbox the records come
+from (created with the outbox, kept in it): message ids are the outbox's seqs, which a
+fresh outbox numbers from 1 again, so the surface keeps its de-duplication per session
+and the sender takes only acknowledgements of its own session. Link protocol 1 (types
+1 and 2, without a session) is still recognised, so that it can be refused by name.
 """
 
 from __future__ import annotations
@@ -18,9 +24,17 @@ HEADER = len(SYNC) + 2  # sync, len, type
 OVERHEAD = HEADER + 2  # plus the CRC
 MAX_PAYLOAD = 255
 
-DATA = 0x01  # box -> surface: floor, then (msg id, body) pairs
-ACK = 0x02  # surface -> box: message ids received
-FRAME_TYPES = (DATA, ACK)
+LEGACY_DATA = 0x01  # link protocol 1, no session: refused and counted, never acknowledged
+LEGACY_ACK = 0x02  # link protocol 1, no session: ignored by the sender
+DATA = 0x03  # box -> surface: session, floor, then (msg id, body) pairs
+ACK = 0x04  # surface -> box: session, message ids received
+LEGACY_TYPES = (LEGACY_DATA, LEGACY_ACK)
+FRAME_TYPES = (DATA, ACK, *LEGACY_TYPES)
+
+SESSION_BYTES = 4
+"""Size of an outbox's session id. One in 2**32 fresh outboxes collides with the one
+before (and its records would be taken for retransmissions); 4 bytes are 4 % of a full
+DATA frame at the default 96-byte payload."""
 
 
 def crc16(data: bytes) -> int:
@@ -184,9 +198,16 @@ class Reader:
 # --- ARQ payloads -----------------------------------------------------------------
 
 
-def data_payload(floor: int, messages: Iterable[tuple[int, bytes]]) -> bytes:
-    """DATA: the sender's floor (every id below it is settled), then (id, body) pairs."""
-    out = bytearray()
+def _check_session(session: bytes) -> None:
+    if len(session) != SESSION_BYTES:
+        raise ProtocolError(f"expected a session id of {SESSION_BYTES} bytes, got {len(session)}")
+
+
+def data_payload(session: bytes, floor: int, messages: Iterable[tuple[int, bytes]]) -> bytes:
+    """DATA: the outbox's session id, the sender's floor (every id below it is settled),
+    then (id, body) pairs."""
+    _check_session(session)
+    out = bytearray(session)
     put_uvarint(out, floor)
     for msg_id, body in messages:
         put_uvarint(out, msg_id - floor)
@@ -203,20 +224,23 @@ def message_cost(floor: int, msg_id: int, body: bytes) -> int:
     return len(out) + len(body)
 
 
-def parse_data(payload: bytes) -> tuple[int, list[tuple[int, bytes]]]:
-    """Inverse of data_payload; ProtocolError on a malformed payload."""
+def parse_data(payload: bytes) -> tuple[bytes, int, list[tuple[int, bytes]]]:
+    """Inverse of data_payload: (session, floor, messages); ProtocolError when malformed."""
     r = Reader(payload)
+    session = r.take(SESSION_BYTES)
     floor = r.uvarint()
     messages = []
     while not r.done():
         msg_id = floor + r.uvarint()
         messages.append((msg_id, r.take(r.uvarint())))
-    return floor, messages
+    return session, floor, messages
 
 
-def ack_payload(ids: Iterable[int]) -> bytes:
-    """ACK: message ids, sorted and delta-coded."""
-    out = bytearray()
+def ack_payload(session: bytes, ids: Iterable[int]) -> bytes:
+    """ACK: the session id the acknowledged DATA carried, then its message ids, sorted and
+    delta-coded."""
+    _check_session(session)
+    out = bytearray(session)
     prev = 0
     for msg_id in sorted(set(ids)):
         put_uvarint(out, msg_id - prev)
@@ -224,12 +248,13 @@ def ack_payload(ids: Iterable[int]) -> bytes:
     return bytes(out)
 
 
-def parse_ack(payload: bytes) -> list[int]:
-    """Inverse of ack_payload."""
+def parse_ack(payload: bytes) -> tuple[bytes, list[int]]:
+    """Inverse of ack_payload: (session, ids)."""
     r = Reader(payload)
+    session = r.take(SESSION_BYTES)
     ids = []
     prev = 0
     while not r.done():
         prev += r.uvarint()
         ids.append(prev)
-    return ids
+    return session, ids

@@ -2,7 +2,9 @@
 
 One SQLite file in WAL mode shared by the appender (the normalizer) and the modem
 sender, each its own process. Records are append-only and checksummed; the sender
-marks them resolved (acknowledged, expired, aggregated) in a separate table.
+marks them resolved (acknowledged, expired, aggregated) in a separate table. A fresh
+outbox draws a random session id, kept in the file: the link carries it so the surface
+tells this outbox's record numbers from those of an earlier one.
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import secrets
 import shutil
 import sqlite3
 import struct
@@ -23,6 +26,7 @@ from typing import Annotated, Any
 import msgspec
 
 from trapflow.errors import TrapflowError
+from trapflow.modem.frame import SESSION_BYTES
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +53,10 @@ CREATE TABLE IF NOT EXISTS resolved(
 );
 CREATE TABLE IF NOT EXISTS tried(           -- records sent at least once: never aggregated
     seq INTEGER PRIMARY KEY
+);
+CREATE TABLE IF NOT EXISTS meta(           -- the outbox's identity: 'session' -> 4 bytes
+    key TEXT PRIMARY KEY,
+    value BLOB NOT NULL
 );
 CREATE TABLE IF NOT EXISTS sent(            -- link ledger for the hourly byte budget
     t_ns INTEGER NOT NULL,
@@ -82,6 +90,10 @@ class OutboxConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
 
 class OutboxFull(TrapflowError):
     """The outbox is at its quota (or the disk is nearly full): the record was not stored."""
+
+
+class OutboxError(TrapflowError):
+    """The outbox file cannot be used as it is (its identity is damaged)."""
 
 
 class Stored(msgspec.Struct, frozen=True):
@@ -145,6 +157,34 @@ class _Store:
         self._last_sync = time.monotonic()
         self.syncs = 0
         self._fsync_dir()
+        self.session = self._session()
+
+    def _session(self) -> bytes:
+        """The outbox's session id, drawn and stored (durably) by whoever opens it first."""
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                row = self._db.execute("SELECT value FROM meta WHERE key='session'").fetchone()
+                if row is None:
+                    value = secrets.token_bytes(SESSION_BYTES)
+                    self._db.execute("INSERT INTO meta(key, value) VALUES ('session', ?)", (value,))
+                    created = True
+                else:
+                    value, created = bytes(row[0]), False
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            if created:
+                _Store.sync(self)  # an id the surface saw must not change after a power cut
+                log.info("outbox %s: new session %s", self.path, value.hex())
+        if len(value) != SESSION_BYTES:
+            raise OutboxError(
+                f"expected a {SESSION_BYTES}-byte session id in the meta table of outbox "
+                f"{self.path}, got {len(value)} bytes; the file is damaged: move it aside "
+                "(a new outbox gets a new session) and keep it for its unsent records"
+            )
+        return value
 
     def _fsync_dir(self) -> None:
         # A new file is only durable once its directory entry is.

@@ -24,6 +24,7 @@ from trapflow.modem.frame import (
     ACK,
     DATA,
     OVERHEAD,
+    SESSION_BYTES,
     Deframer,
     data_payload,
     frame,
@@ -78,6 +79,7 @@ class ModemSender:
     ) -> None:
         self.cfg = cfg or ModemConfig()
         self.queue = OutboxQueue(outbox_path, outbox_cfg or OutboxConfig())
+        self.session = self.queue.session
         self.port = LinkPort(port, self.cfg.baudrate, self.cfg.reopen_interval_s)
         self.codec = LinkCodec(self.cfg.labels)
         self.deframer = Deframer()
@@ -98,8 +100,9 @@ class ModemSender:
         self.counters = collections.Counter[str]()
         self.blocked = ""
         self._backlog = 0
-        # Worst case around a body in a DATA payload: floor, id delta (5 bytes each), length.
-        self._max_body = self.cfg.max_frame_payload - 12
+        # Worst case around a body in a DATA payload: session, floor, id delta (5 bytes
+        # each), length.
+        self._max_body = self.cfg.max_frame_payload - 12 - SESSION_BYTES
 
     # --- the loop -----------------------------------------------------------------
 
@@ -149,9 +152,15 @@ class ModemSender:
                 self.counters["unexpected_frames"] += 1
                 continue
             try:
-                acked.extend(parse_ack(payload))
+                session, got = parse_ack(payload)
             except ProtocolError:
                 self.counters["bad_acks"] += 1
+                continue
+            if session != self.session:
+                # The ids are another outbox's seqs: settling them would drop our own records.
+                self.counters["foreign_acks"] += 1
+                continue
+            acked.extend(got)
         if not acked:
             return
         # Every acknowledged id is on the surface, even one whose wait already timed out
@@ -337,7 +346,7 @@ class ModemSender:
             self.blocked = ""
             return False
         floor = self.floor()
-        head = bytearray()
+        head = bytearray(self.session)
         put_uvarint(head, floor)
         size = len(head)
         batch: list[tuple[_Class, _Msg]] = []
@@ -354,7 +363,9 @@ class ModemSender:
         wall = time.time_ns()
         if not self._budget_ok(nbytes, wall):
             return False
-        wire = frame(DATA, data_payload(floor, ((m.stored.seq, m.body) for _, m in batch)))
+        wire = frame(
+            DATA, data_payload(self.session, floor, ((m.stored.seq, m.body) for _, m in batch))
+        )
         if not self.port.write(wire):
             self._requeue_all()
             return False
@@ -395,6 +406,7 @@ class ModemSender:
             "reason": self.port.reason,
             "blocked": self.blocked,
             "port": self.port.url,
+            "session": self.session.hex(),
             "bytes_last_hour": self._ledger_bytes,
             "bytes_per_hour": self.cfg.bytes_per_hour,
             "backlog": self._backlog,

@@ -2,7 +2,10 @@
 
 Reads frames from a serial port, acknowledges every DATA frame, drops messages it
 has already written (retransmissions), decodes the rest and writes JSON lines.
-With a state file the memory of written ids survives a restart of the surface.
+The memory of written ids is kept per outbox session (the id every DATA frame carries):
+a frame of a session not heard from before starts that session's memory empty, so a
+fresh outbox's records (numbered from 1 again) are written, never taken for
+retransmissions. With a state file the memory survives a restart of the surface.
 """
 
 from __future__ import annotations
@@ -20,11 +23,36 @@ import msgspec
 
 from trapflow.errors import ProtocolError
 from trapflow.modem.codec import DEFAULT_LABELS, LinkCodec
-from trapflow.modem.frame import ACK, DATA, Deframer, ack_payload, frame, parse_data
+from trapflow.modem.frame import (
+    ACK,
+    DATA,
+    LEGACY_DATA,
+    Deframer,
+    ack_payload,
+    frame,
+    parse_data,
+)
 from trapflow.modem.port import LinkPort
-from trapflow.modem.surface_state import OutputMark, SurfaceState, load_state, save_state
+from trapflow.modem.surface_state import (
+    MAX_SESSIONS,
+    OutputMark,
+    SessionState,
+    SurfaceState,
+    load_state,
+    save_state,
+)
 
 log = logging.getLogger(__name__)
+
+
+class Dedup:
+    """One session's memory: its sender's floor and the ids at or above it written."""
+
+    __slots__ = ("floor", "seen")
+
+    def __init__(self, floor: int = 0, seen: set[int] | None = None) -> None:
+        self.floor = floor  # every id below it is settled at the sender
+        self.seen = set() if seen is None else seen
 
 
 class SurfaceReceiver:
@@ -46,8 +74,11 @@ class SurfaceReceiver:
         self.deframer = Deframer()
         self.fsync_interval_s = fsync_interval_s
         self._last_fsync = time.monotonic()
-        self.floor = 0  # every id below it is settled at the sender
-        self.seen: set[int] = set()
+        # Per session id, the one heard from longest ago first.
+        self.sessions: dict[bytes, Dedup] = {}
+        self.current = b""  # the session of the last DATA frame
+        self.new_sessions = 0
+        self.legacy_frames = 0
         self.written = 0
         self.duplicates = 0
         self.undecodable = 0
@@ -79,21 +110,35 @@ class SurfaceReceiver:
             return 0
         new = 0
         for kind, payload in self.deframer.feed(data):
+            if kind == LEGACY_DATA:
+                self._legacy()
+                continue
             if kind != DATA:
                 self.bad_frames += 1
                 continue
             try:
-                floor, messages = parse_data(payload)
+                session, floor, messages = parse_data(payload)
             except ProtocolError:
                 self.bad_frames += 1
                 continue
-            written = self._accept(floor, messages)
+            written = self._accept(session, floor, messages)
             new += written
             # Acknowledge only once the lines are written (and, with a state file, the ids
             # saved): an ack means "on the surface", and never again written as new.
             if self._commit(written > 0):
-                self.port.write(frame(ACK, ack_payload(i for i, _ in messages)))
+                self.port.write(frame(ACK, ack_payload(session, (i for i, _ in messages))))
         return new
+
+    def _legacy(self) -> None:
+        """A DATA frame of link protocol 1: without a session its ids mean nothing here."""
+        self.legacy_frames += 1
+        if self.legacy_frames == 1:
+            log.error(
+                "DATA frame of link protocol 1 (no outbox session) on %s: expected protocol 2; "
+                "not acknowledged, so the box keeps its records; update trapflow on the box "
+                "to this surface's version",
+                self.port.url,
+            )
 
     def _commit(self, wrote: bool) -> bool:
         """Flush the output and save the state when new ids came; False if it could not."""
@@ -129,12 +174,17 @@ class SurfaceReceiver:
     def _snapshot(self) -> SurfaceState:
         st = self._output_stat()
         mark = None if st is None else OutputMark(dev=st.st_dev, ino=st.st_ino, size=st.st_size)
-        return SurfaceState(floor=self.floor, seen=sorted(self.seen), output=mark)
+        sessions = [
+            SessionState(id=sid.hex(), floor=d.floor, seen=sorted(d.seen))
+            for sid, d in self.sessions.items()
+        ]
+        return SurfaceState(sessions=sessions, output=mark)
 
     def _load(self, path: Path) -> None:
         state = load_state(path)
-        self.floor = state.floor
-        self.seen = set(state.seen)
+        self.sessions = {bytes.fromhex(s.id): Dedup(s.floor, set(s.seen)) for s in state.sessions}
+        if self.sessions:
+            self.current = next(reversed(self.sessions))
         st = self._output_stat()
         mark = state.output
         if mark is None or st is None or (st.st_dev, st.st_ino) != (mark.dev, mark.ino):
@@ -163,16 +213,32 @@ class SurfaceReceiver:
                 mark.size,
             )
 
-    def _accept(self, floor: int, messages: list[tuple[int, bytes]]) -> int:
-        if floor > self.floor:
-            self.floor = floor
-            self.seen = {i for i in self.seen if i >= floor}
+    def _session(self, session: bytes) -> Dedup:
+        """The session's memory, now the most recent; a new one is empty (all ids new)."""
+        dedup = self.sessions.pop(session, None)
+        if dedup is None:
+            dedup = Dedup()
+            self.new_sessions += 1
+            log.info("outbox session %s: first frame, every message of it is new", session.hex())
+            while len(self.sessions) >= MAX_SESSIONS:
+                old = next(iter(self.sessions))
+                del self.sessions[old]
+                log.info("outbox session %s forgotten: %d newer ones", old.hex(), MAX_SESSIONS)
+        self.sessions[session] = dedup
+        self.current = session
+        return dedup
+
+    def _accept(self, session: bytes, floor: int, messages: list[tuple[int, bytes]]) -> int:
+        dedup = self._session(session)
+        if floor > dedup.floor:
+            dedup.floor = floor
+            dedup.seen = {i for i in dedup.seen if i >= floor}
         new = 0
         for msg_id, body in messages:
-            if msg_id < self.floor or msg_id in self.seen:
+            if msg_id < dedup.floor or msg_id in dedup.seen:
                 self.duplicates += 1
                 continue
-            self.seen.add(msg_id)
+            dedup.seen.add(msg_id)
             try:
                 record = self.codec.decode(body)
             except ProtocolError as exc:
@@ -202,7 +268,11 @@ class SurfaceReceiver:
             "duplicates": self.duplicates,
             "undecodable": self.undecodable,
             "bad_frames": self.bad_frames,
-            "floor": self.floor,
+            "session": self.current.hex(),
+            "floor": self.sessions[self.current].floor if self.current else 0,
+            "sessions": len(self.sessions),
+            "new_sessions": self.new_sessions,
+            "legacy_frames": self.legacy_frames,
             "state_saves": self.state_saves,
             "cut_bytes": self.cut_bytes,
             "link": self.deframer.stats(),

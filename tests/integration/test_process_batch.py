@@ -107,7 +107,7 @@ def test_process_equals_the_live_pipeline_pair_for_pair(spawn, run_dir: Path) ->
     assert by_pair(batch) == want
     seqs = [next(iter(x.values()))["seq"] for x in batch]
     assert seqs == sorted(seqs), "results.jsonl is not in time order"
-    assert "dashboard http" in err and "pairs/s" in err and "ETA" in err
+    assert "; dashboard " in err and "pairs/s" in err and "ETA" in err
     ledger = json.loads((out / "scene" / "ledger.json").read_text())
     assert ledger["read"] == N and ledger["processed"] == dict.fromkeys(pools, N)
     assert "scene: 10/10 pairs read" in stdout

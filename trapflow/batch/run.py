@@ -9,6 +9,7 @@ chunk = its lines + its ledger, written atomically), summary.txt and summary.jso
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import json
 import logging
 import os
@@ -173,9 +174,13 @@ def process(cfg: Config, inputs: list[Input], out: Path, opts: Options,
     t0 = time.monotonic()
     out.mkdir(parents=True, exist_ok=True)
     with dask_client(opts) as client:
-        dashboard = str(getattr(client, "dashboard_link", "") or "")
-        err(f"dask: {len(client.scheduler_info().get('workers', {}))} workers at "
-            f"{client.scheduler.address}; dashboard {dashboard or 'not available'}")
+        info = client.scheduler_info()
+        dashboard = str(client.dashboard_link or "")
+        # The scheduler answers on that address either way; its pages need bokeh.
+        note = "" if importlib.util.find_spec("bokeh") else (
+            " (its pages need bokeh installed where the scheduler runs)")
+        err(f"dask: {len(info.get('workers', {}))} workers at {client.scheduler.address}; "
+            f"dashboard {dashboard or 'not served'}{note}")
         counts = {inp.name: client.submit(count_positions, cfg_data, inp, retries=opts.retries,
                                           pure=False) for inp in inputs}
         reports = {inp.name: InputReport(inp) for inp in inputs}

@@ -228,3 +228,51 @@ def run_process_remote(args: list[str], timeout: float = 90) -> tuple[int, str, 
     out = subprocess.run([sys.executable, "-m", "trapflow", "process", *args],
                          capture_output=True, text=True, timeout=timeout, cwd=REPO)
     return out.returncode, out.stdout, out.stderr
+
+
+@pytest.mark.timeout(150)
+def test_killed_mid_run_then_resumed_skips_the_finished_chunks(tmp_path: Path) -> None:
+    """kill -9 of the whole `process` (client, nannies, workers) mid-run, then the same
+    command: the chunks finished before the kill are not run again, the rest are, and the
+    results are complete. A chunk cut by the kill left no file that counts as finished."""
+    scene = write_scene(tmp_path / "scene")
+    cfg = write_config(tmp_path / "c.yaml", {"pools": only_pools({
+        "s": {"plugin": "slow", "params": {"delay_s": 0.4}}})})
+    out = tmp_path / "out"
+    args = [sys.executable, "-m", "trapflow", "process", str(scene), "--config", str(cfg),
+            "--workers", "s", "--out", str(out), "--local", "2", "--chunk", "1"]
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True, cwd=REPO)
+    chunks = out / "scene" / "chunks"
+    seen: dict[int, psutil.Process] = {}
+
+    def finished() -> list[Path]:
+        for kid in psutil.Process(proc.pid).children(recursive=True):
+            seen.setdefault(kid.pid, kid)
+        return sorted(chunks.glob("*.json")) if chunks.is_dir() else []
+
+    try:
+        deadline = time.monotonic() + 60
+        while len(finished()) < 2:
+            assert proc.poll() is None, "process ended before it could be interrupted"
+            assert time.monotonic() < deadline, "no chunk finished within 60 s"
+            time.sleep(0.05)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+    _gone, alive = psutil.wait_procs(list(seen.values()), timeout=10)
+    assert not [p.pid for p in alive if p.status() != psutil.STATUS_ZOMBIE]
+    before = {p.name: p.stat().st_mtime_ns for p in chunks.iterdir()
+              if not p.name.startswith(".")}
+    done = [p for p in before if p.endswith(".json")]
+    assert 2 <= len(done) < N, done
+    code, _o, err = run_process(args[4:])
+    assert code == 0, err
+    assert f"resume: {len(done)} finished chunks" in err
+    for name in done:
+        assert (chunks / name).stat().st_mtime_ns == before[name], name
+    ledger = json.loads((out / "scene" / "ledger.json").read_text())
+    assert ledger["processed"] == {"s": N}
+    assert sum(c["status"] == "resumed" for c in ledger["chunks"]) == len(done)
+    assert [next(iter(x.values()))["seq"] for x in read_lines(out / "scene" /
+                                                               "results.jsonl")] == list(range(N))

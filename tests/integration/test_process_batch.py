@@ -276,3 +276,45 @@ def test_killed_mid_run_then_resumed_skips_the_finished_chunks(tmp_path: Path) -
     assert sum(c["status"] == "resumed" for c in ledger["chunks"]) == len(done)
     assert [next(iter(x.values()))["seq"] for x in read_lines(out / "scene" /
                                                                "results.jsonl")] == list(range(N))
+
+
+@pytest.mark.timeout(150)
+def test_a_folder_tree_of_a_bag_and_a_recording_each_chunk_reads_its_own_pairs(
+        tmp_path: Path) -> None:
+    """A tree holding a ROS 2 bag (written by rosbags, one right frame missing) and a trapflow
+    recording, cut into chunks of 2 on 2 workers: every pair's Digest of its decoded pixels
+    equals the digest of the images written into the file, computed here with OpenCV."""
+    import hashlib
+
+    from rosbags.rosbag2 import StoragePlugin
+
+    from tests.integration.test_sources_replay import img, write_bag, write_trapflow
+
+    tree = tmp_path / "deploy"
+    (tree / "day1").mkdir(parents=True)
+    write_bag(tree / "day1" / "bag", 8, StoragePlugin.SQLITE3, drop_right=3)
+    write_trapflow(tree / "run.mcap", 5)
+    cfg = write_config(tmp_path / "c.yaml", {"source": {"encoding": "raw"},
+                                             "pools": only_pools({"d": {"plugin": "digest"}})})
+    out = tmp_path / "out"
+    code, stdout, err = run_process([str(tree), "--config", str(cfg), "--workers", "d",
+                                     "--out", str(out), "--local", "2", "--chunk", "2"])
+    assert code == 0, err
+
+    def digest(left: Any, right: Any) -> str:
+        h = hashlib.sha1(left.tobytes())
+        h.update(right.tobytes())
+        return h.hexdigest()[:16]
+
+    def jpeg(i: int, side: int) -> Any:
+        return cv2.imdecode(cv2.imencode(".jpg", img(i, side))[1], cv2.IMREAD_COLOR)
+
+    want = {
+        "deploy__day1__bag": [digest(img(i, 0), img(i, 1)) for i in (0, 1, 2, 4, 5, 6, 7)],
+        "deploy__run.mcap": [digest(jpeg(i, 0), jpeg(i, 1)) for i in range(5)],
+    }
+    for name, digests in want.items():
+        got = [x["digest"] for x in read_lines(out / name / "results.jsonl")]
+        assert [x["seq"] for x in got] == list(range(len(digests))), name
+        assert [x["sha1"] for x in got] == digests, name
+        assert f"{name}: {len(digests)}/{len(digests)} pairs read" in stdout

@@ -10,6 +10,7 @@ Writes process.json and process.md into --out.
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import tempfile
 import time
@@ -60,7 +61,8 @@ def on_cluster(cfg: Config, inp: Input, workers: int, opts: Options, out: Path) 
         times = []
         for name in ("cold", "warm"):
             t1 = time.perf_counter()
-            process(cfg, [inp], out / name, run, echo=lambda s: None)
+            process(cfg, [inp], out / name, run, echo=lambda s: None,
+                    progress_stream=io.StringIO())
             times.append(time.perf_counter() - t1)
     return {"workers": workers, "cluster_start_s": round(started, 2), "cold_s": times[0],
             "seconds": times[1]}

@@ -19,7 +19,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import msgspec
 
@@ -132,23 +132,32 @@ def _finished(task: ChunkTask) -> dict[str, Any] | None:
 
 
 class Progress:
-    """One line over chunks and pairs with rate and ETA, redrawn in place on a terminal."""
+    """One line over chunks and pairs with rate and ETA: redrawn in place on a terminal,
+    else written at most every LOG_INTERVAL_S (and once at the end) for a log file."""
 
-    def __init__(self, chunks: int, pairs: int, echo_err: Echo, tty: bool) -> None:
+    LOG_INTERVAL_S = 5.0
+
+    def __init__(self, chunks: int, pairs: int, stream: IO[str]) -> None:
         self.chunks, self.pairs = chunks, pairs
         self.done_chunks = self.done_pairs = 0
         self.t0 = time.monotonic()
         self.next_draw = 0.0
-        self.echo_err, self.tty = echo_err, tty
+        self.stream = stream
+        self.tty = stream.isatty()
 
     def add(self, pairs: int) -> None:
         self.done_chunks += 1
         self.done_pairs += pairs
         now = time.monotonic()
-        if self.tty and now < self.next_draw and self.done_chunks < self.chunks:
+        last = self.done_chunks >= self.chunks
+        if now < self.next_draw and not last:
             return
-        self.next_draw = now + PROGRESS_INTERVAL_S
-        self.echo_err(self.line(now))
+        self.next_draw = now + (PROGRESS_INTERVAL_S if self.tty else self.LOG_INTERVAL_S)
+        if self.tty:
+            self.stream.write("\r" + self.line(now) + ("\n" if last else ""))
+        else:
+            self.stream.write(self.line(now) + "\n")
+        self.stream.flush()
 
     def line(self, now: float) -> str:
         elapsed = max(now - self.t0, 1e-9)
@@ -162,9 +171,11 @@ class Progress:
                 f"{self.done_pairs}/{self.pairs}  {rate:.1f} pairs/s  ETA {eta}")
 
 
-def process(cfg: Config, inputs: list[Input], out: Path, opts: Options,
-            echo: Echo, echo_err: Echo | None = None) -> Summary:
-    """Run every input's chunks on the cluster; write results, ledgers and the summary."""
+def process(cfg: Config, inputs: list[Input], out: Path, opts: Options, echo: Echo,
+            echo_err: Echo | None = None, progress_stream: IO[str] | None = None) -> Summary:
+    """Run every input's chunks on the cluster; write results, ledgers and the summary.
+    `echo` gets a line per input at the end, `echo_err` notes, `progress_stream` (default
+    stderr) the progress line."""
     err = echo_err or echo
     unknown = [p for p in opts.pools if p not in cfg.pools]
     if unknown:
@@ -209,7 +220,7 @@ def process(cfg: Config, inputs: list[Input], out: Path, opts: Options,
                 futures[fut] = task
         if resumed:
             err(f"resume: {resumed} finished chunks in {out} skipped")
-        progress = Progress(len(futures), total_pairs, err, sys.stderr.isatty())
+        progress = Progress(len(futures), total_pairs, progress_stream or sys.stderr)
         for fut in _distributed().as_completed(list(futures)):
             task = futures[fut]
             chunk = task.chunk

@@ -1,4 +1,5 @@
-"""Logging that cannot flood: one line per key per interval, with a count of the rest."""
+"""Logging that cannot flood: one line per key per interval, with a count of the rest;
+and names that came from the wire, escaped so that they cannot forge or garble a line."""
 
 from __future__ import annotations
 
@@ -27,3 +28,15 @@ class RateLimitedLog:
             self._log.warning(msg + " (and %d more since the last report)", *args, n)
         else:
             self._log.warning(msg, *args)
+
+
+MAX_WIRE_CHARS = 200  # a logged name from the wire is cut to this many characters
+
+
+def wire(value: str | bytes) -> str:
+    """A name that came from the wire, fit for a log line: escaped like repr() (a newline
+    or a control byte shows as \\n or \\x1b, never raw), at most MAX_WIRE_CHARS long."""
+    text = value.decode("utf-8", "backslashreplace") if isinstance(value, bytes) else value
+    cut = text[:MAX_WIRE_CHARS]
+    out = repr(cut)[1:-1]
+    return out + "..." if len(text) > MAX_WIRE_CHARS else out

@@ -26,10 +26,12 @@ from trapflow.frame_ring import HELD, FrameRing
 from trapflow.node import ACTIVE, Node, NodeSpec
 from trapflow.ratelog import RateLimitedLog, wire
 from trapflow.transport import (
+    PAIR_MAX_MSG_BYTES,
     Link,
     LinkClosed,
     Poller,
     SocketSpec,
+    TapGate,
     accept_link,
     listen_link,
     open_socket,
@@ -52,14 +54,17 @@ class BrokerNode(Node):
     def __init__(self, spec: NodeSpec) -> None:
         super().__init__(spec)
         ep = self.endpoints
-        self.pull = open_socket(self.ctx, SocketSpec(zmq.PULL, ep.capture, bind=True, rcvhwm=8))
+        self.pull = open_socket(self.ctx, SocketSpec(zmq.PULL, ep.capture, bind=True, rcvhwm=8,
+                                                     max_msg_bytes=PAIR_MAX_MSG_BYTES))
         self.router = open_socket(
             self.ctx, SocketSpec(zmq.ROUTER, ep.workers, bind=True, router_mandatory=True)
         )
         # XPUB tells us what taps subscribe to, so nothing is published that nobody reads;
         # a small high-water mark: a slow tap loses messages instead of holding the broker.
-        self.tap = open_socket(self.ctx, SocketSpec(zmq.XPUB, ep.tap, bind=True, sndhwm=32))
-        self.subscriptions: set[bytes] = set()
+        # Manual: only prefixes of the tap's topics are taken (TapGate), nothing else is kept.
+        self.tap = open_socket(self.ctx, SocketSpec(zmq.XPUB, ep.tap, bind=True, sndhwm=32,
+                                                    xpub_manual=True))
+        self.gate = TapGate(self.tap, messages.TAP_TOPICS)
         self.wanted: dict[bytes, bool] = {}
         self._jobs: dict[tuple[str, int], bytes] = {}
         pools = {
@@ -111,6 +116,7 @@ class BrokerNode(Node):
         return {"pairs_in": self.state.pairs_in, "malformed": self.malformed,
                 "held": self.state.held(), "results_waiting": len(self._out) + len(self._unacked),
                 "results_dropped": self.results_dropped, "late_answers": self.state.late,
+                "refused_subscriptions": self.gate.refused,
                 **{f"rejected_{k}": n for k, n in self.state.rejected.items()},
                 **{f"refused_{k}": n for k, n in self.refused.items()}}
 
@@ -312,7 +318,7 @@ class BrokerNode(Node):
         elif isinstance(msg, messages.Failed):
             actions = self.state.job_done(ident, msg.pool, msg.seq, False, now, msg.kind)
             if not any(isinstance(a, Rejected) for a in actions):
-                self.ratelog.warning("failed:" + wire(msg.pool), "%s failed pair %d: %s",
+                self.ratelog.warning("failed:" + msg.pool, "%s failed pair %d: %s",
                                      wire(msg.worker), msg.seq, wire(msg.reason))
             self._apply(actions)
 
@@ -360,8 +366,8 @@ class BrokerNode(Node):
             elif isinstance(action, Evicted):
                 # A worker told to stop leaves on purpose; anything else is news.
                 level = logging.INFO if action.reason == messages.GONE_STOPPING else logging.WARNING
-                log.log(
-                    level, "evicted worker %s of pool %s (%s); pairs lost: %s",
+                self.ratelog.log(
+                    level, f"evicted:{level}", "evicted worker %s of pool %s (%s); pairs lost: %s",
                     wire(action.worker), action.pool, wire(action.reason),
                     list(action.lost) or "none",
                 )
@@ -430,19 +436,9 @@ class BrokerNode(Node):
             log.warning("freed %d ring slots held by a previous broker", n)
 
     def _on_subscriptions(self) -> None:
-        # XPUB passes the first subscribe and the last unsubscribe of each topic prefix.
         self.poller.touch(self.tap)
-        while True:
-            try:
-                msg = self.tap.recv(zmq.NOBLOCK)
-            except zmq.Again:
-                break
-            if msg[:1] == b"\x01":
-                self.subscriptions.add(msg[1:])
-            elif msg[:1] == b"\x00":
-                self.subscriptions.discard(msg[1:])
-        self.wanted = {t: any(t.startswith(p) for p in self.subscriptions)
-                       for t in messages.TAP_TOPICS}
+        if self.gate.drain():
+            self.wanted = {t: self.gate.wanted(t) for t in messages.TAP_TOPICS}
 
     def _publish(self, topic: bytes, *frames: Any) -> None:
         self.poller.touch(self.tap)

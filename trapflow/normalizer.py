@@ -24,6 +24,7 @@ from trapflow.normalize import dumps, normalize
 from trapflow.ratelog import RateLimitedLog
 from trapflow.transport import (
     LINK_RETRY_S,
+    TAP_RCVHWM,
     LinkClient,
     LinkClosed,
     SocketSpec,
@@ -43,8 +44,9 @@ class NormalizerNode(Node):
         self.link = LinkClient(ep.results_link)  # results from the broker
         # A tap that remembers only prefixes of its one topic (TapGate), whoever subscribes.
         self.pub = open_socket(self.ctx, SocketSpec(zmq.XPUB, ep.results_tap, bind=True,
-                                                    sndhwm=256, xpub_manual=True))
-        self.gate = TapGate(self.pub, (messages.TOPIC_RESULT,))
+                                                    sndhwm=256, rcvhwm=TAP_RCVHWM,
+                                                    xpub_manual=True))
+        self.gate = TapGate(self.pub, (messages.TOPIC_RESULT,), ep.results_tap)
         ncfg = self.cfg.normalizer
         self.path = spec.run_dir / ncfg.results_file
         # Unbuffered: a batch is in the kernel (safe from a crash of this process) before it is
@@ -61,7 +63,7 @@ class NormalizerNode(Node):
 
     def counters(self) -> dict[str, int]:
         return {"lines": self.lines, "malformed": self.malformed, "outbox_refused": self.refused,
-                "refused_subscriptions": self.gate.refused}
+                "refused_subscriptions": self.gate.refused, "tap_resets": self.gate.resets}
 
     def run(self) -> int:
         ncfg = self.cfg.normalizer

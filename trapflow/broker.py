@@ -65,7 +65,7 @@ class BrokerNode(Node):
         # Manual: only prefixes of the tap's topics are taken (TapGate), nothing else is kept.
         self.tap = open_socket(self.ctx, SocketSpec(zmq.XPUB, ep.tap, bind=True, sndhwm=32,
                                                     rcvhwm=TAP_RCVHWM, xpub_manual=True))
-        self.gate = TapGate(self.tap, messages.TAP_TOPICS, ep.tap)
+        self.gate = TapGate(self.tap, messages.TAP_TOPICS)
         self.wanted: dict[bytes, bool] = {}
         self._jobs: dict[tuple[str, int], bytes] = {}
         pools = {
@@ -117,7 +117,7 @@ class BrokerNode(Node):
         return {"pairs_in": self.state.pairs_in, "malformed": self.malformed,
                 "held": self.state.held(), "results_waiting": len(self._out) + len(self._unacked),
                 "results_dropped": self.results_dropped, "late_answers": self.state.late,
-                "refused_subscriptions": self.gate.refused, "tap_resets": self.gate.resets,
+                "refused_subscriptions": self.gate.refused,
                 **{f"rejected_{k}": n for k, n in self.state.rejected.items()},
                 **{f"refused_{k}": n for k, n in self.refused.items()}}
 

@@ -46,7 +46,7 @@ class NormalizerNode(Node):
         self.pub = open_socket(self.ctx, SocketSpec(zmq.XPUB, ep.results_tap, bind=True,
                                                     sndhwm=256, rcvhwm=TAP_RCVHWM,
                                                     xpub_manual=True))
-        self.gate = TapGate(self.pub, (messages.TOPIC_RESULT,), ep.results_tap)
+        self.gate = TapGate(self.pub, (messages.TOPIC_RESULT,))
         ncfg = self.cfg.normalizer
         self.path = spec.run_dir / ncfg.results_file
         # Unbuffered: a batch is in the kernel (safe from a crash of this process) before it is
@@ -63,7 +63,7 @@ class NormalizerNode(Node):
 
     def counters(self) -> dict[str, int]:
         return {"lines": self.lines, "malformed": self.malformed, "outbox_refused": self.refused,
-                "refused_subscriptions": self.gate.refused, "tap_resets": self.gate.resets}
+                "refused_subscriptions": self.gate.refused}
 
     def run(self) -> int:
         ncfg = self.cfg.normalizer

@@ -13,7 +13,6 @@ import errno
 import os
 import select
 import socket
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -144,33 +143,25 @@ def open_socket(ctx: zmq.Context[zmq.Socket[bytes]], spec: SocketSpec) -> zmq.So
     return sock
 
 
-# A tap drops every connection once this many subscriptions were refused since it last did.
-# libzmq itself keeps every subscription a peer sends (about 600 bytes each, for as long as
-# that peer stays connected), whatever the application does with it; dropping the
-# connections frees them. Honest readers reconnect within a second and subscribe again.
-TAP_REFUSED_BEFORE_RESET = 256
-TAP_RCVHWM = 64  # subscriptions taken from one peer per pass: the most kept before a reset
-_REBIND_TRIES = 40
+TAP_RCVHWM = 64  # subscription messages queued from one peer before libzmq stops reading it
 
 
 class TapGate:
     """The subscriptions a bound tap (XPUB, xpub_manual) takes: only prefixes of its topics.
 
     A subscription that is no prefix of a topic would never match anything, so refusing it
-    changes nothing for a reader; counts per prefix say which topics somebody reads. Past
-    TAP_REFUSED_BEFORE_RESET refusals, every connection is dropped (unbind, bind again):
-    what a subscriber can make a tap remember is bounded, however long it stays.
+    changes nothing for a reader; counts per prefix say which topics somebody reads. What
+    the process keeps is bounded by the prefixes of a few short topics. (libzmq itself still
+    records every subscription a connected peer sent, about 600 bytes each, until that peer
+    disconnects; who may connect at all is the run directory's permissions' business.)
     """
 
-    def __init__(self, sock: zmq.Socket[bytes], topics: Sequence[bytes], endpoint: str) -> None:
+    def __init__(self, sock: zmq.Socket[bytes], topics: Sequence[bytes]) -> None:
         self.sock = sock
         self.topics = tuple(topics)
-        self.endpoint = endpoint
         self._valid = {t[:i] for t in self.topics for i in range(len(t) + 1)}
         self.readers: dict[bytes, int] = {}
         self.refused = 0
-        self.resets = 0
-        self._strikes = 0
 
     def drain(self) -> bool:
         """Take the subscription messages waiting (never blocks); True if readers changed."""
@@ -183,10 +174,6 @@ class TapGate:
             prefix = msg[1:]
             if msg[:1] not in (b"\x00", b"\x01") or prefix not in self._valid:
                 self.refused += 1  # no topic starts so: it could never match
-                self._strikes += 1
-                if self._strikes >= TAP_REFUSED_BEFORE_RESET:
-                    self.reset()
-                    changed = True
                 continue
             if msg[:1] == b"\x01":
                 self.sock.setsockopt(zmq.SUBSCRIBE, prefix)  # for the peer that sent it
@@ -199,23 +186,6 @@ class TapGate:
                 else:
                     self.readers.pop(prefix, None)
             changed = True
-        return changed
-
-    def reset(self) -> None:
-        """Drop every connection (and what libzmq keeps of their subscriptions)."""
-        self._strikes = 0
-        self.resets += 1
-        self.readers.clear()
-        self.sock.unbind(self.endpoint)
-        for _ in range(_REBIND_TRIES):
-            try:
-                self.sock.bind(self.endpoint)
-                return
-            except zmq.ZMQError as exc:  # a TCP port is free again a moment after unbind
-                if exc.errno != errno.EADDRINUSE:
-                    raise
-                time.sleep(0.025)
-        self.sock.bind(self.endpoint)  # raises: cannot take the tap's address back
 
     def wanted(self, topic: bytes) -> bool:
         """Somebody reads topic (subscribed to a prefix of it)."""

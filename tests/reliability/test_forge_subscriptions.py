@@ -19,12 +19,12 @@ from trapflow import messages
 
 # Measured without the caps (issue 16): 20 subscriptions of 64 KB added 63 MB to the broker
 # and to the normalizer, 10,000 small random ones 10-19 MB. With them, a 64 KB subscription
-# costs its sender the connection (ZMQ_MAXMSGSIZE); a tap keeps at most
-# TAP_REFUSED_BEFORE_RESET + TAP_RCVHWM per peer (here 256 + 30 x 64) refused subscriptions
-# at ~600 bytes each before it drops every connection, ~1.3 MB; add the sockets' buffers
-# (about 64 KB a connection, 31 connections, ~2 MB) and the run's own drift over a few
-# seconds. 8 MB sits above that and below the smallest growth seen without the caps.
-MAX_GROWTH_BYTES = 8 << 20
+# costs its sender the connection (ZMQ_MAXMSGSIZE) and the processes keep only prefixes of
+# their topics. What remains is libzmq's own record of each subscription a connected peer
+# sent (about 600 bytes: 10,000 of them ~6 MB, freed for reuse when the peer leaves), the
+# sockets' buffers (about 64 KB a connection, 31 connections, ~2 MB) and the run's drift.
+# 10 MB sits above that and far below the 63 MB of the huge subscriptions alone.
+MAX_GROWTH_BYTES = 10 << 20
 BIG = 64 << 10  # one huge subscription
 SMALL_SUBS = 10_000
 
@@ -70,17 +70,16 @@ def test_huge_and_many_subscriptions_leave_broker_and_normalizer_memory_flat(
             for _ in range(SMALL_SUBS // 10):
                 sub.setsockopt(zmq.SUBSCRIBE, rng.randbytes(rng.randint(1, 16)))
 
-        def defended() -> dict[str, dict[str, int]] | None:  # counters come with heartbeats
+        def refused() -> dict[str, dict[str, int]] | None:  # counters come with heartbeats
             s = p.status()
             if not s:
                 return None
             c = {name: _node(s, name)["counters"] for name in pids}
-            ok = all(x.get("refused_subscriptions", 0) >= 256 and x.get("tap_resets", 0) >= 1
-                     for x in c.values())
+            ok = all(x.get("refused_subscriptions", 0) >= SMALL_SUBS * 0.99 for x in c.values())
             return c if ok else None
 
-        poll_for(defended, 30, interval=0.5, what="small subscriptions refused, taps reset")
-        time.sleep(5.0)  # the subscribers reconnect after every reset and send them all again
+        poll_for(refused, 30, interval=0.5, what="the small subscriptions refused")
+        time.sleep(2.0)
         during = {name: _rss(pid) for name, pid in pids.items()}
         # A real reader still gets its topics from both taps, under attack.
         for ep in taps:
@@ -94,7 +93,7 @@ def test_huge_and_many_subscriptions_leave_broker_and_normalizer_memory_flat(
             if reader.poll(200):
                 got.add(reader.recv_multipart()[0])
         assert got == want
-        counts = defended() or {}
+        counts = refused() or {}
     finally:
         for sub in hostile:
             sub.close(linger=0)

@@ -255,6 +255,10 @@ class BrokerState:
             for p in self._pools.values()
         }
 
+    def worker_pools(self) -> dict[bytes, str]:
+        """Every worker the state knows (live), and its pool."""
+        return {w: p.name for p in self._pools.values() for w in p.workers}
+
     def drained(self) -> bool:
         """Nothing pending or in flight anywhere."""
         return not self._holders

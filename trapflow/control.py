@@ -58,4 +58,12 @@ def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
         lines.append(f"{'pool':<10}" + "".join(f"{k:>11}" for k in keys))
         for name, p in stats["pools"].items():
             lines.append(f"{name:<10}" + "".join(f"{p.get(k, 0):>11}" for k in keys))
+        remote = stats.get("remote") or []
+        if remote:
+            lines.append(f"{'remote worker':<34} {'host':<16} {'pool':<10} {'state':<8} "
+                         f"{'processed':>9} {'rate':>7}  reason")
+        for r in remote:
+            lines.append(f"{r['worker']:<34} {r['host']:<16} {r['pool']:<10} {r['state']:<8} "
+                         f"{r.get('processed', 0):>9} {r.get('rate', 0.0):>7}  "
+                         f"{r.get('reason', '')}")
     return "\n".join(lines)

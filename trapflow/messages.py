@@ -214,7 +214,41 @@ class Failed(Msg, frozen=True, tag="failed"):
     kind: str = "error"  # short class of the failure (exception name), for the ledger
 
 
-WorkerMsg = Union[Ready, Alive, Done, Failed, Gone]
+# --- remote workers (another host, over CURVE) -------------------------------------
+
+_Short = Annotated[str, msgspec.Meta(min_length=1, max_length=128)]
+
+
+class PoolRequest(Msg, frozen=True, tag="pool_request"):
+    """`trapflow worker` -> broker: how does this pool run? Answered by a Welcome."""
+
+    pool: _Short
+    host: _Short
+
+
+class Hello(Msg, frozen=True, tag="hello"):
+    """A remote worker process joins a pool; `owner` is its local supervisor's identity,
+    which may tell of its death (Gone). Answered by a Welcome; Ready follows."""
+
+    worker: _Short
+    pool: _Short
+    host: _Short
+    owner: _Short
+
+
+class Welcome(Msg, frozen=True, tag="welcome"):
+    """Broker -> remote: the pool's plugin configuration and the run's rig, as plain data
+    (the receiver validates them into its own Structs), or why it may not join."""
+
+    pool: str
+    plugin: str = ""
+    pool_config: dict[str, Any] = {}
+    rig: dict[str, Any] = {}
+    heartbeat_interval_s: float = 1.0
+    error: str = ""
+
+
+WorkerMsg = Union[Ready, Alive, Done, Failed, Gone, Hello, PoolRequest]
 
 
 # --- stats and control ----------------------------------------------------------
@@ -237,6 +271,18 @@ class PoolStats(Msg, frozen=True):
     rate: float = 0.0  # processed per second over the last interval
 
 
+class RemoteWorker(Msg, frozen=True):
+    """One worker process on another host, as the broker sees it."""
+
+    worker: str
+    host: str
+    pool: str
+    state: str  # active, evicted
+    processed: int = 0
+    rate: float = 0.0  # processed per second over the last interval
+    reason: str = ""  # why it was evicted
+
+
 class Stats(Msg, frozen=True, tag="stats"):
     """Published once a second on the tap: the numbers every view reads."""
 
@@ -246,6 +292,7 @@ class Stats(Msg, frozen=True, tag="stats"):
     rate_in: float
     malformed: int
     pools: dict[str, PoolStats]
+    remote: list[RemoteWorker] = []
 
 
 class StatusRequest(Msg, frozen=True, tag="status"):
@@ -340,12 +387,22 @@ def decode_job(data: Buffer) -> Job:
     return job
 
 
-def decode_worker_msg(data: Buffer) -> Ready | Alive | Done | Failed | Gone:
+AnyWorkerMsg = Ready | Alive | Done | Failed | Gone | Hello | PoolRequest
+
+
+def decode_worker_msg(data: Buffer) -> AnyWorkerMsg:
     """Decode frame 0 of a message a worker (or the supervisor) sent to the broker."""
-    msg: Ready | Alive | Done | Failed | Gone = _decode(
-        _worker_dec, data, "worker message", MAX_HEADER_BYTES
-    )
+    msg: AnyWorkerMsg = _decode(_worker_dec, data, "worker message", MAX_HEADER_BYTES)
     return msg
+
+
+_welcome_dec = msgspec.msgpack.Decoder(Welcome)
+
+
+def decode_welcome(data: Buffer) -> Welcome:
+    """Decode the broker's answer to a PoolRequest or Hello."""
+    welcome: Welcome = _decode(_welcome_dec, data, "welcome", MAX_RESULT_BYTES)
+    return welcome
 
 
 def decode_results_ack(data: Buffer) -> ResultsAck:
@@ -394,6 +451,17 @@ def decode_control(data: Buffer) -> StatusRequest | StopRequest:
 def worker_identity(pool: str, index: int, pid: int) -> str:
     """The routing identity of one worker process (new with every restart)."""
     return f"{pool}:{index}:{pid}"
+
+
+def remote_identity(pool: str, host: str, index: int, pid: int) -> str:
+    """The routing identity of a worker process on another host: never a local one's
+    (those have no '@'), so a remote peer cannot answer for a local worker."""
+    return f"{pool}@{host}:{index}:{pid}"
+
+
+def owner_identity(host: str, pid: int) -> str:
+    """The identity of a `trapflow worker` supervisor on another host."""
+    return f"owner@{host}:{pid}"
 
 
 # Tap topics: the first frame of every tap message.

@@ -45,6 +45,7 @@ ROLES = {
     "capture": "trapflow.capture:CaptureNode",
     "broker": "trapflow.broker:BrokerNode",
     "worker": "trapflow.worker:WorkerNode",
+    "remote_worker": "trapflow.remote_worker:RemoteWorkerNode",  # `trapflow worker`
     "normalizer": "trapflow.normalizer:NormalizerNode",
     "modem": "trapflow.modem.node:ModemNode",
     "events": "trapflow.events_node:EventsNode",

@@ -130,7 +130,7 @@ class Supervisor:
         self._add(NodeSpec("normalizer", "normalizer", cfg, run), sup.liveness_s)
         if cfg.modem.enabled:
             self._add(NodeSpec("modem", "modem", cfg, run), sup.liveness_s)
-        self._add(NodeSpec("broker", "broker", cfg, run), sup.liveness_s)
+        self._add(NodeSpec("broker", "broker", cfg, run, rig=self.rig), sup.liveness_s)
         if cfg.events.enabled:
             self._add(NodeSpec("events", "events", cfg, run), sup.liveness_s)
         for pool, pcfg in cfg.pools.items():
@@ -247,7 +247,8 @@ class Supervisor:
         c = self.cfg
         if c.frames.transport != "shm":
             return None
-        pools = [p for p in c.pools.values() if p.count > 0 and not p.remote]
+        # A remote pool's pending pairs hold slots too (its remote workers get copies).
+        pools = [p for p in c.pools.values() if p.count > 0 or p.remote]
         slots = ring_slots(pools, c.frames.preroll_slots, c.frames.spare_slots)
         # Sized from the rig: capture sends only pairs of the rig's size, so every one fits.
         w, h = self.rig.size if self.rig is not None else (c.source.width, c.source.height)

@@ -78,16 +78,13 @@ class WorkerNode(Node):
         super().__init__(spec)
         self.pool = spec.pool
         self.pcfg = self.cfg.pools[self.pool]
-        self.ident = messages.worker_identity(self.pool, spec.index, os.getpid())
+        self.ident = self._identity()
         # Local workers of the ring get descriptors over a local link; others, bytes over zmq.
         self.local = bool(spec.extra.get("ring")) and not self.pcfg.remote
         self.link = LinkClient(self.endpoints.workers_link)
         self.dealer: zmq.Socket[bytes] | None = None
         if not self.local:
-            self.dealer = open_socket(
-                self.ctx,
-                SocketSpec(zmq.DEALER, self.endpoints.workers, identity=self.ident.encode()),
-            )
+            self.dealer = self._open_dealer()
         self.plugin: Worker | None = None
         self.rig = spec.the_rig()
         self.calib = self.rig.id
@@ -99,6 +96,15 @@ class WorkerNode(Node):
         self.ratelog = RateLimitedLog(log)
         if self.pcfg.debug:
             logging.getLogger().setLevel(logging.DEBUG)
+
+    def _identity(self) -> str:
+        """The routing identity of this process (a remote worker names its host too)."""
+        return messages.worker_identity(self.pool, self.spec.index, os.getpid())
+
+    def _open_dealer(self) -> zmq.Socket[bytes]:
+        """The DEALER to the broker, for workers that get the bytes (remote: true)."""
+        return open_socket(
+            self.ctx, SocketSpec(zmq.DEALER, self.endpoints.workers, identity=self.ident.encode()))
 
     def counters(self) -> dict[str, int]:
         stale = self._reader.rejected if self._reader is not None else 0

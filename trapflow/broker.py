@@ -389,8 +389,9 @@ class BrokerNode(Node):
                     if why:
                         self._refuse(why, "refused remote %s '%s': %s", type(msg).__name__,
                                      wire(ident.decode("utf-8", "replace")), welcome.error)
-                    elif isinstance(msg, messages.Hello):
-                        self.remotes.joined(ident, msg.host, msg.pool, msg.owner.encode())
+                    elif isinstance(msg, messages.Hello) and not self.remotes.joined(
+                            ident, msg.host, msg.pool, msg.owner.encode()):
+                        continue  # the hello of every heartbeat: known, nothing to answer
                     sock.send_multipart([ident, messages.encode(welcome)])
                 elif isinstance(msg, messages.Gone):
                     target = msg.worker.encode()

@@ -32,17 +32,18 @@ class RemoteWorkers:
     def __init__(self) -> None:
         self.known: dict[bytes, _Remote] = {}
 
-    def joined(self, ident: bytes, host: str, pool: str, owner: bytes) -> None:
+    def joined(self, ident: bytes, host: str, pool: str, owner: bytes) -> bool:
         """A Hello was accepted: this identity belongs to that pool, host and owner.
 
         A worker says hello again with every heartbeat (so a restarted broker learns it);
-        the same hello again changes nothing.
+        the same hello again changes nothing and returns False.
         """
         r = self.known.get(ident)
         if r is not None and (r.host, r.pool, r.owner) == (host, pool, owner):
-            return
+            return False
         self.known.pop(ident, None)
         self.known[ident] = _Remote(host, pool, owner)
+        return True
 
     def pool_of(self, ident: bytes) -> str | None:
         """The pool a remote identity joined, or None if it never said hello."""

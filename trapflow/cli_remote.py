@@ -50,8 +50,11 @@ def _loopback(endpoint: str) -> bool:
 @click.option("--name", "host_name", help="This host's name in status (default: hostname).")
 @click.option("--run-dir", type=click.Path(file_okay=False, path_type=Path),
               help="Where debug output of `save: true` goes (default: a temporary folder).")
+@click.option("--timeout", "join_timeout", type=click.FloatRange(min=0, min_open=True),
+              default=10.0, show_default=True,
+              help="Give up when the pipeline has not answered within this many seconds.")
 def worker(endpoint: str, pool: str, count: int, keys: Path | None, host_name: str | None,
-           run_dir: Path | None) -> None:
+           run_dir: Path | None, join_timeout: float) -> None:
     """Join a running pipeline's pool from this host: COUNT workers, restarted if they die."""
     import logging
 
@@ -67,7 +70,8 @@ def worker(endpoint: str, pool: str, count: int, keys: Path | None, host_name: s
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
-        sys.exit(run(endpoint, pool, count, keys, host, run_dir, announce=click.echo))
+        sys.exit(run(endpoint, pool, count, keys, host, run_dir, join_timeout,
+                     announce=click.echo))
     except TrapflowError as exc:
         raise bad_input(exc) from None
 

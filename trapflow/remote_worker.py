@@ -162,8 +162,10 @@ class RemotePool:
     """The small supervisor of `trapflow worker`: count processes, restarted when they die."""
 
     def __init__(self, join: JoinSpec, pool: str, count: int, run_dir: Path,
-                 announce: Callable[[str], None] = print) -> None:
+                 announce: Callable[[str], None] = print,
+                 join_timeout_s: float = JOIN_TIMEOUT_S) -> None:
         self.join, self.pool, self.count, self.run_dir = join, pool, count, run_dir
+        self.join_timeout_s = join_timeout_s
         self.announce = announce
         self.stopping = False
         self.mp = mp.get_context("spawn")
@@ -179,7 +181,7 @@ class RemotePool:
         try:
             self.sock = open_socket(ctx, dealer_spec(self.join, self.join.owner))
             welcome = ask(self.sock, messages.PoolRequest(pool=self.pool, host=self.join.host),
-                          self.join.endpoint)
+                          self.join.endpoint, self.join_timeout_s)
             cfg, rig = config_from(welcome, self.pool)
             registry.resolve(cfg.plugin_of(self.pool))  # fail here, not in every process
             self.announce(f"joined pool {self.pool!r} at {self.join.endpoint} as "
@@ -258,7 +260,8 @@ class RemotePool:
 
 
 def run(endpoint: str, pool: str, count: int, keys: Path | None, host: str,
-        run_dir: Path | None = None, announce: Callable[[str], None] = print) -> int:
+        run_dir: Path | None = None, join_timeout_s: float = JOIN_TIMEOUT_S,
+        announce: Callable[[str], None] = print) -> int:
     """`trapflow worker`: join the pipeline at endpoint with count processes of pool."""
     if not pool.isidentifier():
         raise ConfigError(f"--pool: expected a pool name (an identifier), got {pool!r}")
@@ -270,7 +273,7 @@ def run(endpoint: str, pool: str, count: int, keys: Path | None, host: str,
         run_dir = Path(tmp.name)
     run_dir.mkdir(parents=True, exist_ok=True)
     try:
-        return RemotePool(join, pool, count, run_dir, announce).run()
+        return RemotePool(join, pool, count, run_dir, announce, join_timeout_s).run()
     finally:
         if tmp is not None:
             tmp.cleanup()

@@ -254,6 +254,37 @@ def test_kill_9_of_a_remote_worker_loses_only_its_pairs_and_the_pool_goes_on(
     assert code == 0, err
 
 
+@pytest.mark.timeout(150)
+def test_remote_workers_rejoin_a_broker_restarted_after_kill_9(
+        spawn: Callable[..., Pipeline], remote: Callable[..., RemoteWorker], run_dir: Path,
+        keys: dict[str, Path]) -> None:
+    """The pipeline's side dies: the broker killed with SIGKILL is restarted by the
+    supervisor and binds the remote port again; the same remote worker process (no
+    restart on its host) joins the new broker by its next heartbeat's hello and goes on."""
+    bind = f"tcp://127.0.0.1:{free_port()}"
+    cfg = remote_config(run_dir.parent / "broker.yaml", bind, keys, {
+        "far": {"plugin": "digest", "policy": "latest", "count": 0, "remote": True},
+    }, {**SMALL, "rate_hz": 5.0})
+    p = spawn(["--config", str(cfg)], run_dir)
+    st = p.wait_active()
+    broker = next(n["pid"] for n in st["nodes"] if n["name"] == "broker")
+    w = remote("--connect", bind, "--pool", "far", "--keys", str(keys["worker"]))
+    first = poll_for(lambda: [r for r in remote_rows(p, "far") if r.get("processed", 0) >= 3],
+                     40, interval=0.3, what="the remote worker processing")[0]
+    os.kill(broker, signal.SIGKILL)
+    poll_for(lambda: (s := p.status()) and any(
+        n["name"] == "broker" and n["pid"] != broker and n["state"] == "active"
+        for n in s["nodes"]), 30, interval=0.3, what="a new broker")
+    again = poll_for(lambda: [r for r in remote_rows(p, "far") if r.get("processed", 0) >= 3
+                              and r["state"] == "active"], 30, interval=0.3,
+                     what="the remote worker processing for the new broker")[0]
+    assert again["worker"] == first["worker"]  # the same process: it was never restarted
+    code, _, err = w.stop()
+    assert code == 0, err
+    code, _, err = p.stop(signal.SIGINT, timeout=20)
+    assert code == 0, err
+
+
 NETNS = "tf-remote-test"
 VETH_HOST, VETH_NS = "tfr0", "tfr1"
 HOST_IP, NS_IP = "10.231.77.1", "10.231.77.2"

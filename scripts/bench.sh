@@ -9,6 +9,8 @@ PY=${PYTHON:-python}
 mkdir -p "$OUT"
 echo "[bench] transport (broker path vs raw pyzmq)" >&2
 "$PY" scripts/bench_transport.py --out "$OUT" > /dev/null
+echo "[bench] remote pools (tcp with CURVE vs raw pyzmq over tcp)" >&2
+"$PY" scripts/bench_remote.py --out "$OUT" > /dev/null
 for part in bench_shm bench_synth; do
   if [ -f "scripts/$part.py" ]; then
     echo "[bench] $part" >&2
@@ -24,7 +26,7 @@ echo "[bench] modem link" >&2
 {
   echo "# trapflow benchmark, $(date -u '+%Y-%m-%d %H:%M UTC'), $(nproc) cores"
   echo
-  for md in "$OUT"/transport.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/bench_algorithms.md \
+  for md in "$OUT"/transport.md "$OUT"/remote.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/bench_algorithms.md \
             "$OUT"/process.md; do
     [ -f "$md" ] && cat "$md" && echo
   done

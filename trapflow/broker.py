@@ -155,6 +155,7 @@ class BrokerNode(Node):
             if now >= next_tick:
                 next_tick = now + TICK_INTERVAL_S
                 self._apply(self.state.tick(now))
+                self._evict_silent_hosts(now)
                 if now - self._last_stats >= STATS_INTERVAL_S:
                     self._publish_stats(now)
                 self.beat()
@@ -361,6 +362,13 @@ class BrokerNode(Node):
                  "CURVE, authorised keys in " + rc.authorized_keys if rc.curve else "loopback, "
                  "no keys")
 
+    def _evict_silent_hosts(self, now: float) -> None:
+        """Workers whose host's supervisor went silent are gone with it: their pairs lost."""
+        liveness = self.cfg.supervisor.liveness_s
+        for ident in self.remotes.silent(now, liveness, self.state.worker_pools()):
+            self._apply(self.state.worker_gone(
+                ident, f"its host's supervisor silent for more than {liveness:g} s", now))
+
     def _on_handshakes(self) -> None:
         assert self.monitor is not None
         self.poller.touch(self.monitor)
@@ -390,9 +398,11 @@ class BrokerNode(Node):
                         self._refuse(why, "refused remote %s '%s': %s", type(msg).__name__,
                                      wire(ident.decode("utf-8", "replace")), welcome.error)
                     elif isinstance(msg, messages.Hello) and not self.remotes.joined(
-                            ident, msg.host, msg.pool, msg.owner.encode()):
+                            ident, msg.host, msg.pool, msg.owner.encode(), time.monotonic()):
                         continue  # the hello of every heartbeat: known, nothing to answer
                     sock.send_multipart([ident, messages.encode(welcome)])
+                elif isinstance(msg, messages.HostAlive):
+                    self.remotes.owner_seen(ident, time.monotonic())
                 elif isinstance(msg, messages.Gone):
                     target = msg.worker.encode()
                     if not self.remotes.may_report(ident, target):
@@ -598,8 +608,9 @@ class BrokerNode(Node):
 
 def _local_msg(msg: messages.AnyWorkerMsg) -> messages.Ready | messages.Alive | messages.Done \
         | messages.Failed | messages.Gone:
-    """Hello and PoolRequest belong to the remote socket; on a local path they are refused."""
-    if isinstance(msg, (messages.Hello, messages.PoolRequest)):
+    """Hello, PoolRequest and HostAlive belong to the remote socket; on a local path they
+    are refused."""
+    if isinstance(msg, (messages.Hello, messages.PoolRequest, messages.HostAlive)):
         raise ProtocolError(f"worker message: expected ready, alive, done, failed or gone on "
                             f"a local path, got {type(msg).__name__} (remote workers connect "
                             f"to network.remote.bind)")

@@ -31,8 +31,9 @@ class RemoteWorkers:
 
     def __init__(self) -> None:
         self.known: dict[bytes, _Remote] = {}
+        self.owners: dict[bytes, float] = {}  # supervisor identity -> last heard (HostAlive)
 
-    def joined(self, ident: bytes, host: str, pool: str, owner: bytes) -> bool:
+    def joined(self, ident: bytes, host: str, pool: str, owner: bytes, now: float) -> bool:
         """A Hello was accepted: this identity belongs to that pool, host and owner.
 
         A worker says hello again with every heartbeat (so a restarted broker learns it);
@@ -43,7 +44,24 @@ class RemoteWorkers:
             return False
         self.known.pop(ident, None)
         self.known[ident] = _Remote(host, pool, owner)
+        self.owners.setdefault(owner, now)  # a new owner gets its liveness from now on
+        self._forget_owners()
         return True
+
+    def owner_seen(self, owner: bytes, now: float) -> None:
+        """A supervisor's heartbeat; only one that started a known worker is remembered."""
+        if owner in self.owners:
+            self.owners[owner] = now
+
+    def silent(self, now: float, liveness_s: float, live: Mapping[bytes, str]) -> list[bytes]:
+        """Live remote workers whose supervisor was not heard for liveness_s: host gone."""
+        return [i for i, r in self.known.items() if i in live
+                and now - self.owners.get(r.owner, now) > liveness_s]
+
+    def _forget_owners(self) -> None:
+        used = {r.owner for r in self.known.values()}
+        for owner in [o for o in self.owners if o not in used]:
+            del self.owners[owner]
 
     def pool_of(self, ident: bytes) -> str | None:
         """The pool a remote identity joined, or None if it never said hello."""
@@ -70,6 +88,7 @@ class RemoteWorkers:
         gone = [i for i, x in self.known.items() if x.reason]
         for old in gone[:max(0, len(gone) - MAX_EVICTED_SHOWN)]:
             del self.known[old]
+        self._forget_owners()
 
     def stats(self, dt: float, live: Mapping[bytes, str]) -> list[RemoteWorker]:
         """Every known remote worker with its state and rate over the last dt seconds."""

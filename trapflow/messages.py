@@ -236,6 +236,13 @@ class Hello(Msg, frozen=True, tag="hello"):
     owner: _Short
 
 
+class HostAlive(Msg, frozen=True, tag="host_alive"):
+    """A `trapflow worker` supervisor's heartbeat: its host is up. Its workers are silent
+    while they compute; when their supervisor is silent too, the host is gone."""
+
+    host: _Short
+
+
 class Welcome(Msg, frozen=True, tag="welcome"):
     """Broker -> remote: the pool's plugin configuration and the run's rig, as plain data
     (the receiver validates them into its own Structs), or why it may not join."""
@@ -248,7 +255,7 @@ class Welcome(Msg, frozen=True, tag="welcome"):
     error: str = ""
 
 
-WorkerMsg = Union[Ready, Alive, Done, Failed, Gone, Hello, PoolRequest]
+WorkerMsg = Union[Ready, Alive, Done, Failed, Gone, Hello, PoolRequest, HostAlive]
 
 
 # --- stats and control ----------------------------------------------------------
@@ -387,7 +394,7 @@ def decode_job(data: Buffer) -> Job:
     return job
 
 
-AnyWorkerMsg = Ready | Alive | Done | Failed | Gone | Hello | PoolRequest
+AnyWorkerMsg = Ready | Alive | Done | Failed | Gone | Hello | PoolRequest | HostAlive
 
 
 def decode_worker_msg(data: Buffer) -> AnyWorkerMsg:

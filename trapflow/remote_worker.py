@@ -202,8 +202,12 @@ class RemotePool:
         signal.signal(signal.SIGTERM, _stop)
 
     def _supervise(self, cfg: configmod.Config, rig: StereoRig, queue: Any) -> None:
+        next_alive = 0.0
         while not self.stopping:
             now = time.monotonic()
+            if now >= next_alive:  # this host is up, even while every worker computes
+                next_alive = now + cfg.supervisor.heartbeat_interval_s
+                self._send(messages.HostAlive(host=self.join.host))
             for p in self.procs:
                 if p.proc is None:
                     if now >= p.restart_at:
@@ -228,17 +232,19 @@ class RemotePool:
         code = p.proc.exitcode
         reason = f"exited with status {code}" if code is not None and code >= 0 else (
             f"killed by signal {-(code or 0)}")
-        try:
-            self.sock.send(messages.encode(messages.Gone(worker=ident, reason=reason)),
-                           zmq.NOBLOCK)
-        except zmq.Again:
-            pass  # the broker evicts it at its timeout instead
+        self._send(messages.Gone(worker=ident, reason=reason))
         p.quick_deaths = 0 if now - p.started >= STABLE_S else p.quick_deaths + 1
         delay = min(RESTART_BACKOFF_S * 2 ** max(p.quick_deaths - 1, 0), RESTART_BACKOFF_MAX_S)
         log.warning("worker %s %s; restarting in %.1f s", ident, reason, delay)
         p.proc.join(0)
         p.proc, p.restart_at = None, now + delay
         p.restarts += 1
+
+    def _send(self, msg: messages.Msg) -> None:
+        try:
+            self.sock.send(messages.encode(msg), zmq.NOBLOCK)
+        except zmq.Again:
+            pass  # not connected (broker restarting): the broker's own timeouts decide
 
     def _drain(self) -> None:
         """Late Welcomes (a request sent twice) are read and forgotten."""

@@ -285,6 +285,46 @@ def test_remote_workers_rejoin_a_broker_restarted_after_kill_9(
     assert code == 0, err
 
 
+@pytest.mark.timeout(150)
+def test_a_silent_host_loses_its_workers_pairs_and_they_rejoin_when_it_wakes(
+        spawn: Callable[..., Pipeline], remote: Callable[..., RemoteWorker], run_dir: Path,
+        keys: dict[str, Path]) -> None:
+    """A host that stops answering (every `trapflow worker` process stopped with SIGSTOP,
+    as a Jetson that hangs or loses power): after the liveness its workers are evicted and
+    the pair one held is lost, not left to time out; woken, they join again."""
+    bind = f"tcp://127.0.0.1:{free_port()}"
+    cfg = remote_config(run_dir.parent / "silent.yaml", bind, keys, {
+        "far": {"plugin": "slow", "policy": "latest", "count": 0, "remote": True,
+                "params": {"delay_s": 0.5}, "timeout_s": 120.0},
+    }, {**SMALL, "rate_hz": 5.0})
+    p = spawn(["--config", str(cfg)], run_dir)
+    p.wait_active()
+    w = remote("--connect", bind, "--pool", "far", "--keys", str(keys["worker"]))
+    first = poll_for(lambda: [r for r in remote_rows(p, "far") if r.get("processed", 0) >= 2],
+                     40, interval=0.3, what="the remote worker processing")[0]
+    poll_for(lambda: (s := p.status()) and s["stats"]["pools"]["far"]["in_flight"] == 1, 10,
+             interval=0.05, what="the remote worker holding a pair")
+    tree = [psutil.Process(w.proc.pid), *w.children()]
+    for proc in tree:
+        proc.suspend()
+    try:
+        row = poll_for(lambda: [r for r in remote_rows(p, "far") if r["state"] == "evicted"],
+                       20, interval=0.3, what="the silent host's worker evicted")[0]
+        assert row["worker"] == first["worker"] and "silent" in row["reason"]
+        far = poll_for(p.status, 5, what="status")["stats"]["pools"]["far"]
+        assert far["lost"] == 1 and far["timed_out"] == 0 and far["workers"] == 0
+    finally:
+        for proc in tree:
+            proc.resume()
+    poll_for(lambda: [r for r in remote_rows(p, "far") if r["state"] == "active"
+                      and r.get("processed", 0) > first.get("processed", 0) + 1], 30,
+             interval=0.3, what="the woken worker processing again")
+    code, _, err = w.stop()
+    assert code == 0, err
+    code, _, err = p.stop(signal.SIGINT, timeout=20)
+    assert code == 0, err
+
+
 NETNS = "tf-remote-test"
 VETH_HOST, VETH_NS = "tfr0", "tfr1"
 HOST_IP, NS_IP = "10.231.77.1", "10.231.77.2"

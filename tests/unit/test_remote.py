@@ -110,8 +110,8 @@ def test_curve_sockets_talk_only_with_the_servers_key(tmp_path: Path,
 
 def test_remote_table_joins_reports_and_bounds_evicted() -> None:
     t = RemoteWorkers()
-    assert t.joined(b"far@j:0:1", "j", "far", b"owner@j:9")
-    assert not t.joined(b"far@j:0:1", "j", "far", b"owner@j:9")  # a heartbeat's hello
+    assert t.joined(b"far@j:0:1", "j", "far", b"owner@j:9", 0.0)
+    assert not t.joined(b"far@j:0:1", "j", "far", b"owner@j:9", 0.5)  # a heartbeat's hello
     assert t.pool_of(b"far@j:0:1") == "far" and t.pool_of(b"x") is None
     assert t.may_report(b"far@j:0:1", b"far@j:0:1")
     assert t.may_report(b"owner@j:9", b"far@j:0:1")
@@ -125,14 +125,38 @@ def test_remote_table_joins_reports_and_bounds_evicted() -> None:
     [row] = t.stats(1.0, {})
     assert (row.state, row.reason, row.rate) == ("evicted", "killed by signal 9", 0.0)
     for i in range(MAX_EVICTED_SHOWN + 5):
-        t.joined(f"far@j:{i}:2".encode(), "j", "far", b"o")
+        t.joined(f"far@j:{i}:2".encode(), "j", "far", b"o", 0.0)
         t.evicted(f"far@j:{i}:2".encode(), "gone")
     assert len(t.known) == MAX_EVICTED_SHOWN
+    assert set(t.owners) == {b"o"}  # owners of forgotten workers are forgotten too
+
+
+@pytest.mark.parametrize("heard,now,expected", [
+    (None, 4.0, []),  # joined at 0, within liveness
+    (None, 5.5, [b"far@j:0:1", b"far@j:1:1"]),  # never heard since: host gone
+    (3.0, 5.5, []),  # its supervisor's heartbeat came
+    (3.0, 8.5, [b"far@j:0:1", b"far@j:1:1"]),
+])
+def test_workers_of_a_silent_host_are_named(heard: float | None, now: float,
+                                            expected: list[bytes]) -> None:
+    t = RemoteWorkers()
+    for i in range(2):
+        t.joined(f"far@j:{i}:1".encode(), "j", "far", b"owner@j:9", 0.0)
+    t.joined(b"far@k:0:1", "k", "far", b"owner@k:9", 0.0)
+    t.owner_seen(b"owner@k:9", now)  # the other host is fine
+    t.owner_seen(b"owner@x:1", now)  # a stranger's heartbeat is not remembered
+    if heard is not None:
+        t.owner_seen(b"owner@j:9", heard)
+    live = {i: "far" for i in t.known}
+    assert t.silent(now, 5.0, live) == expected
+    assert b"owner@x:1" not in t.owners
+    assert t.silent(now, 5.0, {}) == []  # only live workers are evicted
 
 
 @pytest.mark.parametrize("msg,error", [
     (messages.Hello(worker="far@j:0:1", pool="far", host="j", owner="o"), "local path"),
     (messages.PoolRequest(pool="far", host="j"), "local path"),
+    (messages.HostAlive(host="j"), "local path"),
 ])
 def test_join_messages_are_refused_on_local_paths(msg: messages.Msg, error: str) -> None:
     with pytest.raises(ProtocolError, match=error):

@@ -211,3 +211,25 @@ def test_worker_command_rejects_bad_input(args: list[str], error: str) -> None:
     res = CliRunner().invoke(main, ["worker", *args])
     assert res.exit_code == 2, res.output
     assert error in res.output
+
+
+def test_status_lists_remote_workers_with_host_state_and_rate() -> None:
+    from trapflow.control import format_status
+
+    stats = messages.Stats(t_wall_ns=1, uptime_s=1.0, pairs_in=3, rate_in=1.0, malformed=0,
+                           pools={"far": messages.PoolStats(workers=1)}, remote=[
+                               messages.RemoteWorker(worker="far@jet:0:7", host="jet",
+                                                     pool="far", state="active", processed=4,
+                                                     rate=2.5),
+                               messages.RemoteWorker(worker="far@jet:1:8", host="jet",
+                                                     pool="far", state="evicted",
+                                                     reason="killed by signal 9")])
+    # As the control socket sends it: JSON, where zero fields of the wire form are absent.
+    reply = {"run_dir": "r", "uptime_s": 1.0, "nodes": [],
+             "stats": msgspec.json.decode(msgspec.json.encode(
+                 {**msgspec.structs.asdict(stats)}))}
+    text = format_status(reply)
+    rows = [line.split() for line in text.splitlines() if line.startswith("far@")]
+    assert rows[0][:6] == ["far@jet:0:7", "jet", "far", "active", "4", "2.5"]
+    assert rows[1][:6] == ["far@jet:1:8", "jet", "far", "evicted", "0", "0.0"]
+    assert text.rstrip().endswith("killed by signal 9")

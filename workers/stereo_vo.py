@@ -103,6 +103,17 @@ def _from_rt(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     return out
 
 
+def _image_disparity(left: np.ndarray, right: np.ndarray) -> float:
+    """The dominant disparity of a rectified pair (phase correlation), in pixels.
+
+    Needs no units: a guess from the rig (a point 2 m away) is fx * baseline / 2 only when the
+    calibration is in metres, and far off the image when it is in millimetres or squares."""
+    h, w = left.shape
+    window = cv2.createHanningWindow((w, h), cv2.CV_32F)  # the image borders do not vote
+    (dx, _), _ = cv2.phaseCorrelate(left.astype(np.float32), right.astype(np.float32), window)
+    return max(0.0, -float(dx))
+
+
 def _angle_deg(r: np.ndarray) -> float:
     return math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(r)) - 1.0) / 2.0))))
 
@@ -134,7 +145,7 @@ class StereoOdometry(Worker):
         self.key_to_prev = np.eye(4)  # previous ok pair's camera in the keyframe's frame
         self.velocity = np.eye(4)  # last motion, for the prediction
         self.lost = 0
-        self.prior_disp = self.rig.fx * self.rig.baseline_m / 2.0  # a point 2 m away
+        self.prior_disp: float | None = None  # median disparity of the last keyframe
 
     def _lk(
         self, src: np.ndarray, dst: np.ndarray, pts: np.ndarray, guess: np.ndarray
@@ -177,6 +188,8 @@ class StereoOdometry(Worker):
         pts = self._corners(left)
         if len(pts) < self.p.min_inliers:
             return None
+        if self.prior_disp is None:
+            self.prior_disp = _image_disparity(left, right)
         guess = pts - np.array([self.prior_disp, 0], np.float32)
         pr, ok = self._lk(left, right, pts, guess)
         back, ok_b = self._lk(right, left, pr, pts)

@@ -30,11 +30,16 @@ CORNERS = 500  # the reference tracks as many corners as trapflow does by defaul
 
 
 @pytest.fixture(scope="session")
-def scene_frames(pytestconfig: pytest.Config) -> dict[str, tuple[list[np.ndarray], list[Path]]]:
+def scene_frames(pytestconfig: pytest.Config, tmp_path_factory: pytest.TempPathFactory
+                 ) -> dict[str, tuple[list[np.ndarray], list[Path]]]:
     """Both sequences as PNG pairs, rendered once and kept in pytest's cache folder under the
-    hash of the renderer's source (rendering takes about a minute on two cores)."""
-    source = Path(vo_scene.__file__).read_bytes()
-    cache = pytestconfig.cache.mkdir(f"vo_scene_{hashlib.sha256(source).hexdigest()[:16]}")
+    hash of the renderer's source (rendering takes about a minute on two cores); in a
+    temporary folder when the cache is switched off."""
+    key = hashlib.sha256(Path(vo_scene.__file__).read_bytes()).hexdigest()[:16]
+    if pytestconfig.cache is not None:
+        cache = pytestconfig.cache.mkdir(f"vo_scene_{key}")
+    else:
+        cache = tmp_path_factory.mktemp("vo_scene")
     return {name: vo_scene.sequence(name, cache) for name in vo_scene.SEQUENCES}
 
 

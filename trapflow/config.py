@@ -85,6 +85,7 @@ class NormalizerConfig(_Section):
     flush_interval_s: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.5
     fsync_interval_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 5.0
     decimals: Annotated[int, msgspec.Meta(ge=0, le=9)] = 3
+    """Digits kept in the float fields of plugin-defined results (built-in fields keep theirs)."""
 
 
 class SupervisorConfig(_Section):

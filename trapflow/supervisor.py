@@ -38,7 +38,7 @@ log = logging.getLogger(__name__)
 # How long every node has to report its first state before start-up is declared failed.
 STARTUP_TIMEOUT_S = 60.0
 # Stop ladder: capture first (no new pairs), then workers and broker, the normalizer last.
-STOP_ORDER = ("capture", "worker", "events", "broker", "normalizer", "modem")
+STOP_ORDER = ("viewer", "capture", "worker", "events", "broker", "normalizer", "modem")
 # Summed over capture restarts, with every failed_<kind> (pairs skipped at capture).
 CAPTURE_TOTALS = ("produced", "dropped", "failed", "source_errors")
 FAILED_PREFIX = run_totals.FAILED_PREFIX
@@ -138,6 +138,8 @@ class Supervisor:
                                 rig=self.rig)
                 self._add(spec, max(sup.liveness_s, pcfg.timeout_s))
         self._add(NodeSpec("capture", "capture", cfg, run, rig=self.rig), sup.liveness_s)
+        if cfg.viewer.enabled:  # reads the taps and the control socket like `trapflow view`
+            self._add(NodeSpec("viewer", "viewer", cfg, run), sup.liveness_s)
         for child in self.children:
             if child.spec.role != "capture":
                 self._spawn(child)
@@ -459,6 +461,7 @@ class Supervisor:
             "stats": _full_stats(self.stats) if self.stats else None,
             "rig": ({"calib": self.rig.id, "origin": self.rig_origin,
                      **msgspec.structs.asdict(self.rig)} if self.rig is not None else None),
+            "ledger": self.ledger(),
             "ring": ({"segment": self.ring.name, "slots": self.ring.slots, **self.ring.counts()}
                      if self.ring is not None else None),
         }

@@ -112,6 +112,11 @@ function drawVO(vo) {
     i ? ctx.lineTo(px, py) : ctx.moveTo(px, py);
   });
   ctx.stroke();
+  const [lx, lz] = vo.path[vo.path.length - 1];
+  ctx.fillStyle = "#ffdd33";
+  ctx.beginPath();
+  ctx.arc(c.width / 2 + (lx - cx) * s, c.height / 2 - (lz - cz) * s, 4, 0, 2 * Math.PI);
+  ctx.fill(); // where the rig is now
   c.dataset.points = vo.path.length;
 }
 

@@ -44,6 +44,9 @@ CAPTURE_TOTALS = ("produced", "dropped", "failed", "source_errors")
 FAILED_PREFIX = run_totals.FAILED_PREFIX
 SEQ_RESTART_GAP = 100  # extra seqs skipped at a capture restart, beyond the heartbeat lag
 LOCK_FILE = "supervisor.lock"
+# Roles the pipeline goes on without once their restart budget is spent; any other is
+# essential and stops the run. A viewer that keeps crashing must never stop the trap.
+NON_ESSENTIAL = ("worker", "viewer")
 
 
 @dataclass
@@ -422,7 +425,7 @@ class Supervisor:
                     f"gave up after {len(c.restarts)} restarts in {sup.restart_window_s:g} s "
                     f"(last exit status {code})")
                 log.error("%s: %s", c.name, c.reason)
-                if c.spec.role != "worker":
+                if c.spec.role not in NON_ESSENTIAL:
                     log.error("%s is essential; stopping the pipeline", c.name)
                     self.exit_code = EXIT_FAILURE
                     self.failure = self.failure or f"{c.name} {c.reason}"

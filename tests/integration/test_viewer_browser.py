@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tests.conftest import Pipeline
+from tests.conftest import Pipeline, write_config
 from tests.integration.viewer_util import (
     CHROMIUM_ARGS,
     browser_skip_reason,
@@ -40,16 +40,19 @@ def page(run_dir: Path) -> Iterator[Any]:
             ctx.close()
 
 
-def _start(spawn: Any, run_dir: Path) -> tuple[Pipeline, str]:
+def _start(spawn: Any, run_dir: Path, *args: str) -> tuple[Pipeline, str]:
     port = free_port()
-    p: Pipeline = spawn(["--size", "640x360", "--view", f"127.0.0.1:{port}"], run_dir)
+    p: Pipeline = spawn(["--size", "640x360", "--view", f"127.0.0.1:{port}", *args], run_dir)
     p.wait_active(90)
     return p, f"http://127.0.0.1:{port}/"
 
 
 @pytest.mark.timeout(150)
 def test_page_draws_a_detected_box_and_moving_charts(spawn, run_dir: Path, page: Any) -> None:
-    p, url = _start(spawn, run_dir)
+    cfg = write_config(run_dir.parent / "events.yaml", {"events": {
+        "enabled": True, "pre_s": 0.5, "post_s": 1.0,
+        "triggers": [{"algorithm": "mono_ir", "label": "crab"}]}})
+    p, url = _start(spawn, run_dir, "--config", str(cfg))
     page.goto(url)
     # A pair with at least one drawn detection box, from the synthetic crabs.
     page.wait_for_function("window.trapflow.frames > 0 && window.trapflow.boxes > 0",
@@ -61,6 +64,10 @@ def test_page_draws_a_detected_box_and_moving_charts(spawn, run_dir: Path, page:
         timeout=10_000)
     assert page.locator("#nodes td", has_text="viewer").count() == 1
     assert "processed" in page.inner_text("#ledger")
+    # An event folder written by the events node, shown with its first image as thumbnail.
+    page.wait_for_function(
+        "[...document.querySelectorAll('#events img')].some(i => i.complete && i.naturalWidth)",
+        timeout=30_000)
     png = page.locator("#left").screenshot()
     img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
     assert img is not None and img.shape[1] >= 320

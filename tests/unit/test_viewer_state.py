@@ -205,3 +205,34 @@ def test_raw_pair_is_served_as_jpeg() -> None:
     out = cv2.imdecode(np.frombuffer(_jpeg(frame, "left"), np.uint8), cv2.IMREAD_COLOR)
     assert out.shape == (48, 64, 3)
     assert out[20, 30, 2] > 200 and out[5, 5].max() < 30
+
+
+@pytest.mark.parametrize(("rel", "served"), [
+    ("ev1/left/00000001.jpg", True),
+    ("ev1/left/../left/00000001.jpg", True),
+    ("ev1/event.json", False),
+    ("../secret.jpg", False),
+    ("ev1/../../secret.jpg", False),
+    ("/etc/secret.jpg", False),
+    ("ev1/left/missing.jpg", False),
+])
+def test_event_images_only_from_the_events_folder(tmp_path: Path, rel: str, served: bool) -> None:
+    from trapflow.config import Config
+    from trapflow.viewer.taps import PipelineTaps
+
+    run = tmp_path / "run"
+    (run / "events" / "ev1" / "left").mkdir(parents=True)
+    (run / "events" / "ev1" / "left" / "00000001.jpg").write_bytes(b"\xff\xd8")
+    (run / "events" / "ev1" / "event.json").write_text("{}")
+    (run / "secret.jpg").write_bytes(b"no")
+    taps = PipelineTaps(Config(), run, ViewState())
+    try:
+        path = taps.event_file(rel)
+        assert (path is not None) == served
+        if served:
+            assert path == (run / "events" / "ev1" / "left" / "00000001.jpg").resolve()
+        taps.scan_events()
+        assert taps.state.events == [{"name": "ev1", "pairs": None, "open": True,
+                                      "thumb": "ev1/left/00000001.jpg"}]
+    finally:
+        taps.close()

@@ -20,16 +20,19 @@ import msgspec
 import zmq
 
 from trapflow import messages
-from trapflow.broker_state import BrokerState, Dispatch, Evicted, PoolSpec, Release
+from trapflow.broker_state import BrokerState, Dispatch, Evicted, PoolSpec, Rejected, Release
 from trapflow.errors import ProtocolError
 from trapflow.frame_ring import HELD, FrameRing
 from trapflow.node import ACTIVE, Node, NodeSpec
-from trapflow.ratelog import RateLimitedLog
+from trapflow.ratelog import RateLimitedLog, wire
 from trapflow.transport import (
+    PAIR_MAX_MSG_BYTES,
+    TAP_RCVHWM,
     Link,
     LinkClosed,
     Poller,
     SocketSpec,
+    TapGate,
     accept_link,
     listen_link,
     open_socket,
@@ -43,6 +46,7 @@ _NOBLOCK = int(zmq.NOBLOCK)  # a plain int: zmq's enum flags cost a conversion p
 TICK_INTERVAL_S = 0.1
 RESULTS_BATCH_BYTES = 64 << 10  # results leave in datagrams of about this size, or less
 MAX_WAITING_RESULTS = 100_000  # kept while no normalizer listens; beyond, the oldest go
+SUPERVISOR_IDENT = b"supervisor"  # the supervisor's DEALER identity on the workers socket
 
 
 class BrokerNode(Node):
@@ -51,14 +55,17 @@ class BrokerNode(Node):
     def __init__(self, spec: NodeSpec) -> None:
         super().__init__(spec)
         ep = self.endpoints
-        self.pull = open_socket(self.ctx, SocketSpec(zmq.PULL, ep.capture, bind=True, rcvhwm=8))
+        self.pull = open_socket(self.ctx, SocketSpec(zmq.PULL, ep.capture, bind=True, rcvhwm=8,
+                                                     max_msg_bytes=PAIR_MAX_MSG_BYTES))
         self.router = open_socket(
             self.ctx, SocketSpec(zmq.ROUTER, ep.workers, bind=True, router_mandatory=True)
         )
         # XPUB tells us what taps subscribe to, so nothing is published that nobody reads;
         # a small high-water mark: a slow tap loses messages instead of holding the broker.
-        self.tap = open_socket(self.ctx, SocketSpec(zmq.XPUB, ep.tap, bind=True, sndhwm=32))
-        self.subscriptions: set[bytes] = set()
+        # Manual: only prefixes of the tap's topics are taken (TapGate), nothing else is kept.
+        self.tap = open_socket(self.ctx, SocketSpec(zmq.XPUB, ep.tap, bind=True, sndhwm=32,
+                                                    rcvhwm=TAP_RCVHWM, xpub_manual=True))
+        self.gate = TapGate(self.tap, messages.TAP_TOPICS)
         self.wanted: dict[bytes, bool] = {}
         self._jobs: dict[tuple[str, int], bytes] = {}
         pools = {
@@ -96,6 +103,8 @@ class BrokerNode(Node):
         # Bounded: a normalizer that never acknowledges cannot grow the broker without limit.
         self._unacked: collections.deque[Any] = collections.deque(maxlen=MAX_WAITING_RESULTS)
         self.results_dropped = 0
+        # Refused from the wire, by reason (forged answers are counted in self.state.rejected).
+        self.refused: dict[str, int] = {}
         self.malformed = 0
         self.unroutable = 0
         self.ratelog = RateLimitedLog(log)
@@ -107,7 +116,10 @@ class BrokerNode(Node):
     def counters(self) -> dict[str, int]:
         return {"pairs_in": self.state.pairs_in, "malformed": self.malformed,
                 "held": self.state.held(), "results_waiting": len(self._out) + len(self._unacked),
-                "results_dropped": self.results_dropped}
+                "results_dropped": self.results_dropped, "late_answers": self.state.late,
+                "refused_subscriptions": self.gate.refused,
+                **{f"rejected_{k}": n for k, n in self.state.rejected.items()},
+                **{f"refused_{k}": n for k, n in self.refused.items()}}
 
     def run(self) -> int:
         self.set_state(ACTIVE)
@@ -196,7 +208,13 @@ class BrokerNode(Node):
             role = self.listeners[listener]
             if role == "results":  # a (restarted) normalizer: it gets what waited for it
                 if self.results_link is not None:
-                    self._drop_link(self.results_link, "replaced")
+                    self._drain_link(self.results_link)  # a dead predecessor's EOF, if any
+                if self.results_link is not None:  # one normalizer at a time
+                    self._refuse("second_normalizer",
+                                 "refused a second connection to the results link while the "
+                                 "normalizer's is live; only one normalizer may run")
+                    link.close()
+                    continue
                 self.results_link = link
             self.link_role[link] = role
             self.fds[link.fileno()] = link
@@ -221,6 +239,13 @@ class BrokerNode(Node):
                 ident = self.link_ident.get(link)
                 if ident is None:  # a worker names itself in its first message
                     ident = msg.worker.encode()
+                    if ident in self.worker_links:  # that name is another live link's
+                        self._refuse("duplicate_worker",
+                                     "refused a worker link naming itself '%s': a live link "
+                                     "has that name; every worker process has its own",
+                                     wire(msg.worker))
+                        self._drop_link(link, "duplicate name")
+                        return
                     self.link_ident[link] = ident
                     self.worker_links[ident] = link
                 self._on_worker_msg(ident, msg, [ident, *frames])  # as a ROUTER gives them
@@ -278,15 +303,25 @@ class BrokerNode(Node):
             if len(frames) != 3:
                 raise ProtocolError(
                     f"done: expected 3 frames [id, done, result], got {len(frames)}")
-            self._out.append(frames[2])
-            self._apply(self.state.job_done(ident, msg.pool, msg.seq, True, now))
+            actions = self.state.job_done(ident, msg.pool, msg.seq, True, now)
+            if not any(isinstance(a, Rejected) for a in actions):
+                self._out.append(frames[2])  # only an answer to a job this worker was given
+            self._apply(actions)
         elif isinstance(msg, messages.Gone):
-            self._apply(self.state.worker_gone(msg.worker.encode(), msg.reason, now))
+            # Only the supervisor tells of another worker's death; a worker, of its own.
+            gone = msg.worker.encode()
+            if ident not in (SUPERVISOR_IDENT, gone):
+                self._refuse("forged_gone", "refused a gone message for worker '%s' from '%s': "
+                             "only the supervisor or that worker may send it",
+                             wire(msg.worker), wire(ident))
+                return
+            self._apply(self.state.worker_gone(gone, msg.reason, now))
         elif isinstance(msg, messages.Failed):
-            self.ratelog.warning(
-                "failed:" + msg.pool, "%s failed pair %d: %s", msg.worker, msg.seq, msg.reason
-            )
-            self._apply(self.state.job_done(ident, msg.pool, msg.seq, False, now, msg.kind))
+            actions = self.state.job_done(ident, msg.pool, msg.seq, False, now, msg.kind)
+            if not any(isinstance(a, Rejected) for a in actions):
+                self.ratelog.warning("failed:" + msg.pool, "%s failed pair %d: %s",
+                                     wire(msg.worker), msg.seq, wire(msg.reason))
+            self._apply(actions)
 
     # --- actions --------------------------------------------------------------------
 
@@ -323,12 +358,18 @@ class BrokerNode(Node):
                 ref = self.refs.pop(action.seq, None)
                 if ref is not None and self.ring is not None:
                     self.ring.free_ref(ref)
+            elif isinstance(action, Rejected):
+                self.ratelog.warning(
+                    "rejected:" + action.reason,
+                    "dropped an answer from worker '%s' for pool '%s' pair %d (%s): it was not "
+                    "dispatched to that worker or was answered already", wire(action.worker),
+                    wire(action.pool), action.seq, action.reason)
             elif isinstance(action, Evicted):
                 # A worker told to stop leaves on purpose; anything else is news.
                 level = logging.INFO if action.reason == messages.GONE_STOPPING else logging.WARNING
-                log.log(
-                    level, "evicted worker %s of pool %s (%s); pairs lost: %s",
-                    action.worker.decode(errors="replace"), action.pool, action.reason,
+                self.ratelog.log(
+                    level, f"evicted:{level}", "evicted worker %s of pool %s (%s); pairs lost: %s",
+                    wire(action.worker), action.pool, wire(action.reason),
                     list(action.lost) or "none",
                 )
 
@@ -362,8 +403,16 @@ class BrokerNode(Node):
             del self._out[:n]
 
     def _on_ack(self, ack: messages.ResultsAck) -> None:
-        for _ in range(min(ack.count, len(self._unacked))):
+        """Only the live normalizer's link is read for acks; never more than it was sent."""
+        if not 0 < ack.count <= len(self._unacked):
+            self._refuse("bad_ack", "an acknowledgement of %d results exceeds the %d sent and "
+                         "not yet acknowledged; taking only those", ack.count, len(self._unacked))
+        for _ in range(min(max(ack.count, 0), len(self._unacked))):
             self._unacked.popleft()
+
+    def _refuse(self, reason: str, msg: str, *args: object) -> None:
+        self.refused[reason] = self.refused.get(reason, 0) + 1
+        self.ratelog.warning("refused:" + reason, msg, *args)
 
     def _payload(self, seq: int, copy: bool) -> list[Any]:
         """[header, left, right] bytes, or [header, ref] for local readers of the ring.
@@ -388,19 +437,9 @@ class BrokerNode(Node):
             log.warning("freed %d ring slots held by a previous broker", n)
 
     def _on_subscriptions(self) -> None:
-        # XPUB passes the first subscribe and the last unsubscribe of each topic prefix.
         self.poller.touch(self.tap)
-        while True:
-            try:
-                msg = self.tap.recv(zmq.NOBLOCK)
-            except zmq.Again:
-                break
-            if msg[:1] == b"\x01":
-                self.subscriptions.add(msg[1:])
-            elif msg[:1] == b"\x00":
-                self.subscriptions.discard(msg[1:])
-        self.wanted = {t: any(t.startswith(p) for p in self.subscriptions)
-                       for t in messages.TAP_TOPICS}
+        if self.gate.drain():
+            self.wanted = {t: self.gate.wanted(t) for t in messages.TAP_TOPICS}
 
     def _publish(self, topic: bytes, *frames: Any) -> None:
         self.poller.touch(self.tap)

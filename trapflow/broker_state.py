@@ -18,6 +18,14 @@ from trapflow.policy import Pending, Policy
 IDLE_LIVENESS_S = 5.0
 # Distinct failure kinds counted per pool; the rest are counted as "other".
 MAX_FAILURE_KINDS = 16
+# Pairs of evicted workers whose late answer is still taken (per worker, oldest forgotten).
+MAX_LATE_PER_WORKER = 64
+MAX_LATE_WORKERS = 256
+
+# Why an answer (Done or Failed) was refused: counted per reason, never applied.
+REJECT_UNKNOWN_POOL = "unknown_pool"
+REJECT_UNKNOWN_WORKER = "unknown_worker"
+REJECT_NOT_DISPATCHED = "not_dispatched"
 
 
 @dataclass(frozen=True)
@@ -47,7 +55,18 @@ class Evicted:
     reason: str
 
 
-Action = Dispatch | Release | Evicted
+@dataclass(frozen=True)
+class Rejected:
+    """An answer for a (worker, seq) that was never dispatched to that worker, or was
+    answered already: forged or confused. Nothing of it is applied; its result is dropped."""
+
+    worker: bytes
+    pool: str
+    seq: int
+    reason: str
+
+
+Action = Dispatch | Release | Evicted | Rejected
 
 
 @dataclass(frozen=True)
@@ -92,6 +111,10 @@ class BrokerState:
         self._pools = {n: _Pool(n, s, Pending(s.policy)) for n, s in pools.items()}
         self._holders: dict[int, int] = {}  # seq -> number of pools holding it
         self._idle_liveness = idle_liveness_s
+        # Evicted worker -> the pairs it held: its late answer is genuine (counted as late).
+        self._late: dict[bytes, dict[int, str]] = {}
+        self.rejected: dict[str, int] = {}
+        self.late = 0
         self.pairs_in = 0
 
     # --- events -------------------------------------------------------------------
@@ -135,16 +158,30 @@ class BrokerState:
     def job_done(
         self, ident: bytes, pool_name: str, seq: int, ok: bool, now: float, kind: str = "error"
     ) -> list[Action]:
-        """A worker finished (ok) or failed (with a kind) a pair; one credit comes back."""
+        """A worker finished (ok) or failed (with a kind) a pair; one credit comes back.
+
+        Only an answer for a pair dispatched to this very worker and not answered yet is
+        taken; anything else returns a single Rejected and changes nothing else. A worker
+        evicted while it held the pair (timed out, presumed dead) may still answer it once:
+        it rejoins with the credit, and the answer counts as late.
+        """
         pool = self._pools.get(pool_name)
         if pool is None:
-            return []
+            return self._reject(ident, pool_name, seq, REJECT_UNKNOWN_POOL)
         w = pool.workers.get(ident)
         actions: list[Action] = []
-        if w is None:
-            # Evicted earlier (its pair was counted lost); it is alive, so it rejoins.
-            w = pool.workers.setdefault(ident, _Worker(ident, pool_name))
-        elif seq in w.in_flight:
+        if w is None or seq not in w.in_flight:
+            late = self._late.get(ident)
+            if late is None or late.get(seq) != pool_name:
+                reason = REJECT_UNKNOWN_WORKER if w is None else REJECT_NOT_DISPATCHED
+                return self._reject(ident, pool_name, seq, reason)
+            del late[seq]  # its pair was counted when it was evicted; now it is answered
+            if not late:
+                del self._late[ident]
+            self.late += 1
+            if w is None:  # evicted earlier; it is alive, so it rejoins
+                w = pool.workers.setdefault(ident, _Worker(ident, pool_name))
+        else:
             del w.in_flight[seq]
             if ok:
                 pool.processed += 1
@@ -168,10 +205,10 @@ class BrokerState:
             for w in list(pool.workers.values()):
                 if w.in_flight and now - min(w.in_flight.values()) > pool.spec.timeout_s:
                     reason = f"job older than timeout_s={pool.spec.timeout_s:g}"
-                    actions.extend(self._evict(pool, w, reason, timed_out=True))
+                    actions.extend(self._evict(pool, w, reason, timed_out=True, late=True))
                 elif not w.in_flight and now - w.last_seen > self._idle_liveness:
                     reason = f"silent for more than {self._idle_liveness:g} s"
-                    actions.extend(self._evict(pool, w, reason))
+                    actions.extend(self._evict(pool, w, reason, late=True))
         return actions
 
     def worker_gone(self, ident: bytes, reason: str, now: float) -> list[Action]:
@@ -224,6 +261,21 @@ class BrokerState:
 
     # --- internals ----------------------------------------------------------------
 
+    def _reject(self, ident: bytes, pool: str, seq: int, reason: str) -> list[Action]:
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        return [Rejected(ident, pool, seq, reason)]
+
+    def _remember_late(self, ident: bytes, pool: str, lost: tuple[int, ...]) -> None:
+        if not lost:
+            return
+        late = self._late.setdefault(ident, {})
+        for seq in lost:
+            late[seq] = pool
+        while len(late) > MAX_LATE_PER_WORKER:
+            del late[next(iter(late))]
+        while len(self._late) > MAX_LATE_WORKERS:
+            del self._late[next(iter(self._late))]
+
     def _unhold(self, seq: int) -> list[Action]:
         n = self._holders.get(seq, 0) - 1
         if n > 0:
@@ -259,9 +311,12 @@ class BrokerState:
         return actions
 
     def _evict(self, pool: _Pool, w: _Worker, reason: str,
-               timed_out: bool = False) -> list[Action]:
+               timed_out: bool = False, late: bool = False) -> list[Action]:
+        """Forget a worker; late: it may be alive (slow or silent) and answer afterwards."""
         del pool.workers[w.ident]
         lost = tuple(sorted(w.in_flight))
+        if late:
+            self._remember_late(w.ident, pool.name, lost)
         if timed_out:
             pool.timed_out += len(lost)
         else:

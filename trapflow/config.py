@@ -99,6 +99,13 @@ class SupervisorConfig(_Section):
     stop_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=4)] = 2.0
 
 
+class LogFileConfig(_Section):
+    """trapflow.log in the run directory: rotated at max_bytes, keeping `backups` old files."""
+
+    max_bytes: Annotated[int, msgspec.Meta(ge=65536)] = 10 << 20
+    backups: Annotated[int, msgspec.Meta(ge=1, le=100)] = 3
+
+
 class NetworkConfig(_Section):
     """Endpoints: ipc:// in the run directory on one host, or tcp:// on a loopback host."""
 
@@ -173,6 +180,7 @@ class Config(_Section):
     events: EventsConfig = msgspec.field(default_factory=EventsConfig)
     viewer: ViewerConfig = msgspec.field(default_factory=ViewerConfig)
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    log_file: LogFileConfig = msgspec.field(default_factory=LogFileConfig)
 
     def __post_init__(self) -> None:
         for name, pool in self.pools.items():

@@ -22,7 +22,15 @@ from trapflow.modem.outbox import Outbox, OutboxFull
 from trapflow.node import ACTIVE, FINALIZED, Node, NodeSpec
 from trapflow.normalize import dumps, normalize
 from trapflow.ratelog import RateLimitedLog
-from trapflow.transport import LINK_RETRY_S, LinkClient, LinkClosed, SocketSpec, open_socket
+from trapflow.transport import (
+    LINK_RETRY_S,
+    TAP_RCVHWM,
+    LinkClient,
+    LinkClosed,
+    SocketSpec,
+    TapGate,
+    open_socket,
+)
 
 log = logging.getLogger(__name__)
 
@@ -34,8 +42,11 @@ class NormalizerNode(Node):
         super().__init__(spec)
         ep = self.endpoints
         self.link = LinkClient(ep.results_link)  # results from the broker
-        self.pub = open_socket(self.ctx, SocketSpec(zmq.PUB, ep.results_tap, bind=True,
-                                                    sndhwm=256))
+        # A tap that remembers only prefixes of its one topic (TapGate), whoever subscribes.
+        self.pub = open_socket(self.ctx, SocketSpec(zmq.XPUB, ep.results_tap, bind=True,
+                                                    sndhwm=256, rcvhwm=TAP_RCVHWM,
+                                                    xpub_manual=True))
+        self.gate = TapGate(self.pub, (messages.TOPIC_RESULT,))
         ncfg = self.cfg.normalizer
         self.path = spec.run_dir / ncfg.results_file
         # Unbuffered: a batch is in the kernel (safe from a crash of this process) before it is
@@ -51,7 +62,8 @@ class NormalizerNode(Node):
         self.ratelog = RateLimitedLog(log)
 
     def counters(self) -> dict[str, int]:
-        return {"lines": self.lines, "malformed": self.malformed, "outbox_refused": self.refused}
+        return {"lines": self.lines, "malformed": self.malformed, "outbox_refused": self.refused,
+                "refused_subscriptions": self.gate.refused}
 
     def run(self) -> int:
         ncfg = self.cfg.normalizer
@@ -60,6 +72,7 @@ class NormalizerNode(Node):
         dirty = False
         while not self.stopping:
             dirty |= self._receive(100)
+            self.gate.drain()  # subscriptions to the results tap
             now = time.monotonic()
             if dirty and now >= next_flush:
                 self.file.flush()
@@ -109,7 +122,7 @@ class NormalizerNode(Node):
             if written:  # one acknowledgement for all the batches written in this pass
                 link.send([messages.encode(messages.ResultsAck(count=written))])
         except LinkClosed as exc:  # a new broker will listen at the same path
-            log.info("results link: %s; reconnecting", exc)
+            self.ratelog.log(logging.INFO, "closed", "results link: %s; reconnecting", exc)
             self.link.drop()
         return dirty
 

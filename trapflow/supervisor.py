@@ -31,6 +31,7 @@ from trapflow.config import Config
 from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError, TrapflowError
 from trapflow.frame_ring import FrameRing, cleanup_stale, ring_slots, slot_capacity
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, NodeSpec, node_main
+from trapflow.ratelog import RateLimitedLog, wire
 from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
 
 log = logging.getLogger(__name__)
@@ -344,7 +345,7 @@ class Supervisor:
                 except zmq.Again:
                     break
                 except (ValueError, ProtocolError) as exc:
-                    log.warning("bad stats message: %s", exc)
+                    self.ratelog.warning("stats", "bad stats message: %s", wire(str(exc)))
         if self.control in events:
             self._on_control(self.control.recv())
 
@@ -381,7 +382,7 @@ class Supervisor:
         try:
             hb = messages.decode_heartbeat(data)
         except ProtocolError as exc:
-            log.warning("dropped malformed heartbeat: %s", exc)
+            self.ratelog.warning("heartbeat", "dropped malformed heartbeat: %s", wire(str(exc)))
             return
         for c in self.children:
             if c.name == hb.node and c.proc is not None and c.proc.pid == hb.pid:
@@ -470,9 +471,18 @@ class Supervisor:
         }
 
     def _on_control(self, data: bytes) -> None:
+        # A request is read whole: REP answers only after its last frame (else EFSM, exit 1).
+        extra = 0
+        while self.control.getsockopt(zmq.RCVMORE):
+            self.control.recv()
+            extra += 1
         try:
+            if extra:
+                raise ProtocolError(f"control request: expected 1 frame, got {extra + 1}; "
+                                    f"send one encoded StatusRequest or StopRequest")
             req = messages.decode_control(data)
         except ProtocolError as exc:
+            self.ratelog.warning("control", "refused a control request: %s", wire(str(exc)))
             self.control.send(msgspec.json.encode({"error": str(exc)}))
             return
         if isinstance(req, messages.StopRequest):
@@ -601,7 +611,10 @@ class Supervisor:
     def _start_logging(self) -> None:
         self.log_queue = self.mp.Queue()
         fmt = logging.Formatter("%(asctime)s %(processName)s %(name)s %(levelname)s %(message)s")
-        fileh = logging.FileHandler(self.run_dir / "trapflow.log")
+        self.ratelog = RateLimitedLog(log)  # warnings about messages from sockets
+        lcfg = self.cfg.log_file
+        fileh = logging.handlers.RotatingFileHandler(
+            self.run_dir / "trapflow.log", maxBytes=lcfg.max_bytes, backupCount=lcfg.backups)
         fileh.setFormatter(fmt)
         errh = logging.StreamHandler(sys.stderr)
         errh.setLevel(logging.WARNING)

@@ -77,6 +77,22 @@ class Endpoints:
         return cls(**urls)
 
 
+# The largest message part a bound socket takes from a peer (ZMQ_MAXMSGSIZE): a bigger one
+# disconnects that peer before anything is allocated. Each fits the largest legitimate
+# message with room to spare (ZeroMQ's handshake passes through the same limit).
+TAP_MAX_MSG_BYTES = 1024  # taps (XPUB) read only subscriptions: a topic prefix and one byte
+SMALL_MAX_MSG_BYTES = 64 << 10  # heartbeats, control requests: at most MAX_HEADER_BYTES each
+WORKERS_MAX_MSG_BYTES = messages.MAX_RESULT_BYTES + (64 << 10)  # a Done and its result
+PAIR_MAX_MSG_BYTES = messages.MAX_SIDE * messages.MAX_SIDE * 3  # one raw image of a pair
+_BOUND_MAX_MSG_BYTES: dict[int, int] = {
+    int(zmq.XPUB): TAP_MAX_MSG_BYTES,
+    int(zmq.PUB): TAP_MAX_MSG_BYTES,
+    int(zmq.PULL): SMALL_MAX_MSG_BYTES,  # heartbeats; the broker's capture PULL sets its own
+    int(zmq.REP): SMALL_MAX_MSG_BYTES,
+    int(zmq.ROUTER): WORKERS_MAX_MSG_BYTES,
+}
+
+
 @dataclass(frozen=True)
 class SocketSpec:
     """Everything needed to open one socket."""
@@ -89,6 +105,9 @@ class SocketSpec:
     identity: bytes | None = None
     subscribe: tuple[bytes, ...] = ()
     router_mandatory: bool = False
+    # Largest message part taken from a peer; None: a bound socket's default for its kind.
+    max_msg_bytes: int | None = None
+    xpub_manual: bool = False  # XPUB: the process decides which subscriptions count (TapGate)
 
 
 def open_socket(ctx: zmq.Context[zmq.Socket[bytes]], spec: SocketSpec) -> zmq.Socket[bytes]:
@@ -101,6 +120,13 @@ def open_socket(ctx: zmq.Context[zmq.Socket[bytes]], spec: SocketSpec) -> zmq.So
         sock.setsockopt(zmq.IDENTITY, spec.identity)
     if spec.router_mandatory:
         sock.setsockopt(zmq.ROUTER_MANDATORY, 1)
+    cap = spec.max_msg_bytes
+    if cap is None and spec.bind:
+        cap = _BOUND_MAX_MSG_BYTES.get(int(spec.kind))
+    if cap is not None:
+        sock.setsockopt(zmq.MAXMSGSIZE, cap)
+    if spec.xpub_manual:
+        sock.setsockopt(zmq.XPUB_MANUAL, 1)
     for topic in spec.subscribe:
         sock.setsockopt(zmq.SUBSCRIBE, topic)
     try:
@@ -115,6 +141,55 @@ def open_socket(ctx: zmq.Context[zmq.Socket[bytes]], spec: SocketSpec) -> zmq.So
             raise StartupError(f"cannot {verb} {spec.endpoint}: address already in use") from None
         raise StartupError(f"cannot {verb} {spec.endpoint}: {exc}") from None
     return sock
+
+
+TAP_RCVHWM = 64  # subscription messages queued from one peer before libzmq stops reading it
+
+
+class TapGate:
+    """The subscriptions a bound tap (XPUB, xpub_manual) takes: only prefixes of its topics.
+
+    A subscription that is no prefix of a topic would never match anything, so refusing it
+    changes nothing for a reader; counts per prefix say which topics somebody reads. What
+    the process keeps is bounded by the prefixes of a few short topics. (libzmq itself still
+    records every subscription a connected peer sent, about 600 bytes each, until that peer
+    disconnects; who may connect at all is the run directory's permissions' business.)
+    """
+
+    def __init__(self, sock: zmq.Socket[bytes], topics: Sequence[bytes]) -> None:
+        self.sock = sock
+        self.topics = tuple(topics)
+        self._valid = {t[:i] for t in self.topics for i in range(len(t) + 1)}
+        self.readers: dict[bytes, int] = {}
+        self.refused = 0
+
+    def drain(self) -> bool:
+        """Take the subscription messages waiting (never blocks); True if readers changed."""
+        changed = False
+        while True:
+            try:
+                msg = self.sock.recv(zmq.NOBLOCK)
+            except zmq.Again:
+                return changed
+            prefix = msg[1:]
+            if msg[:1] not in (b"\x00", b"\x01") or prefix not in self._valid:
+                self.refused += 1  # no topic starts so: it could never match
+                continue
+            if msg[:1] == b"\x01":
+                self.sock.setsockopt(zmq.SUBSCRIBE, prefix)  # for the peer that sent it
+                self.readers[prefix] = self.readers.get(prefix, 0) + 1
+            else:
+                self.sock.setsockopt(zmq.UNSUBSCRIBE, prefix)
+                left = self.readers.get(prefix, 0) - 1
+                if left > 0:
+                    self.readers[prefix] = left
+                else:
+                    self.readers.pop(prefix, None)
+            changed = True
+
+    def wanted(self, topic: bytes) -> bool:
+        """Somebody reads topic (subscribed to a prefix of it)."""
+        return any(topic.startswith(p) for p in self.readers)
 
 
 def new_context() -> zmq.Context[zmq.Socket[bytes]]:

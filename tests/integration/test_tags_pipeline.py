@@ -35,7 +35,7 @@ def test_every_processed_pair_writes_a_tags_line(spawn, run_dir: Path) -> None:
         "pools": {"tags": {"count": 1, "policy": "fifo:16", "params": {"tag_size_m": 0.1}}},
     })
     args = ["--config", str(cfg), "--workers", "tags=1", "--source", f"images:{folder}",
-            "--size", "640x480", "--duration", "20"]  # fmt: skip
+            "--duration", "20"]
     p: Pipeline = spawn(args, run_dir)
     code, _, err = p.wait(60)
     assert code == 0, err
@@ -44,8 +44,11 @@ def test_every_processed_pair_writes_a_tags_line(spawn, run_dir: Path) -> None:
     for line in lines:
         by_seq.setdefault(int(line["seq"]), []).append(line)
     assert sorted(by_seq) == list(range(6)), f"tags lines for pairs {sorted(by_seq)}"
+    calib = lines[0]["calib"]  # the rig's id, the same on every line
+    assert isinstance(calib, str) and len(calib) == 8
     for seq, got in by_seq.items():
         if seq in TAGGED:
             assert [g["id"] for g in got] == [TAGGED[seq]]
         else:
-            assert got == [{"timestamp": got[0]["timestamp"], "seq": seq, "corners": []}]
+            assert got == [{"timestamp": got[0]["timestamp"], "seq": seq, "corners": [],
+                            "calib": calib}]

@@ -6,7 +6,7 @@ import random
 
 import pytest
 
-from trapflow.broker_state import BrokerState, Dispatch, Evicted, PoolSpec, Release
+from trapflow.broker_state import BrokerState, Dispatch, Evicted, PoolSpec, Rejected, Release
 from trapflow.policy import parse_policy
 
 W1, W2 = b"w1", b"w2"
@@ -196,3 +196,66 @@ def test_every_pair_ends_in_exactly_one_counter(seed: int) -> None:
         assert st.pending == st.in_flight == 0
         assert st.processed + st.errors + st.dropped + st.timed_out + st.lost == seq
     assert sorted(released_seqs) == list(range(seq)) and s.drained()
+
+
+def _answered(s: BrokerState) -> tuple[int, int, int]:
+    st = s.pool_stats()["p"]
+    return st.processed, st.errors, st.in_flight
+
+
+@pytest.mark.parametrize(("who", "pool", "seq", "ok", "reason"), [
+    (W2, "p", 0, True, "unknown_worker"),  # a Done from a worker that was never given pair 0
+    (W2, "p", 0, False, "unknown_worker"),  # the same as a Failed
+    (W1, "nosuch", 0, True, "unknown_pool"),  # a pool that does not exist
+    (W1, "q", 0, True, "unknown_worker"),  # W1 is in pool p, not q
+    (W1, "p", 7, True, "not_dispatched"),  # a pair that never reached W1
+    (W1, "p", -1, True, "not_dispatched"),
+    (W1, "p", 2**62, True, "not_dispatched"),
+])
+def test_forged_answers_are_rejected_and_change_nothing(
+        who: bytes, pool: str, seq: int, ok: bool, reason: str) -> None:
+    """Issue 16 item 2: a Done for a pair never dispatched to that worker was written."""
+    s = state(p="latest", q="latest")
+    s.worker_ready(W1, "p", 1, 0.0)
+    s.worker_ready(W2, "q", 1, 0.0)
+    s.pair_arrived(0, 0.0)  # dispatched to W1 in p (and to W2 in q)
+    s.pair_arrived(1, 0.0)  # pending in p: W1 has no credit left
+    before = (_answered(s), s.held())
+    acts = s.job_done(who, pool, seq, ok, 0.5)
+    assert [(a.worker, a.pool, a.seq, a.reason) for a in acts if isinstance(a, Rejected)] == [
+        (who, pool, seq, reason)]
+    assert not dispatched(acts) and not released(acts)  # no credit came back
+    assert (_answered(s), s.held()) == before
+    assert s.rejected == {reason: 1}
+
+
+def test_second_answer_for_one_pair_is_rejected() -> None:
+    """Issue 16 item 2: a replayed Done (the same worker, the same pair) is taken once."""
+    s = state(p="latest")
+    s.worker_ready(W1, "p", 1, 0.0)
+    s.pair_arrived(0, 0.0)
+    assert released(s.job_done(W1, "p", 0, True, 0.1)) == [0]
+    acts = s.job_done(W1, "p", 0, True, 0.2)
+    assert [a.reason for a in acts if isinstance(a, Rejected)] == ["not_dispatched"]
+    assert s.pool_stats()["p"].processed == 1
+
+
+def test_late_answer_of_gone_worker_is_rejected() -> None:
+    """A worker whose process exited cannot answer: its name answering is someone else."""
+    s = state(p="latest")
+    s.worker_ready(W1, "p", 1, 0.0)
+    s.pair_arrived(0, 0.0)
+    s.worker_gone(W1, "exited", 0.5)
+    acts = s.job_done(W1, "p", 0, True, 0.6)
+    assert [a.reason for a in acts if isinstance(a, Rejected)] == ["unknown_worker"]
+
+
+def test_late_answer_of_timed_out_worker_is_taken_once() -> None:
+    s = state(p="latest")
+    s.worker_ready(W1, "p", 1, 0.0)
+    s.pair_arrived(0, 0.0)
+    s.tick(11.0)
+    assert not [a for a in s.job_done(W1, "p", 0, True, 11.5) if isinstance(a, Rejected)]
+    assert s.late == 1
+    again = s.job_done(W1, "p", 0, True, 11.6)
+    assert [a.reason for a in again if isinstance(a, Rejected)] == ["not_dispatched"]

@@ -50,6 +50,8 @@ def test_default_yaml_documents_the_defaults() -> None:
         ({"network": {"host": "0.0.0.0"}}, "expected a loopback host"),
         ({"network": {"transport": "udp"}}, r"\$.network.transport"),
         ({"log_level": "LOUD"}, r"\$.log_level"),
+        ({"log_file": {"max_bytes": 100}}, r">= 65536 - at `\$.log_file.max_bytes`"),
+        ({"log_file": {"backups": 0}}, r"\$.log_file.backups"),
         ([1, 2], "Expected `object`"),
     ],
 )

@@ -1,9 +1,10 @@
 """The viewer's side of a pipeline: its taps, its control socket and its event folders.
 
-Owns a SUB connected to the broker's tap (images, stats) and the normalizer's (results),
-and a REQ to the supervisor's control socket. Everything is non-blocking and polled by
-the server's loop: PUB sockets drop for a slow subscriber, so the pipeline never waits
-for the viewer; a small receive high-water mark drops old pairs here, not upstream.
+Owns a SUB on the broker's tap (images, stats), a SUB on the normalizer's (results; each
+tap takes only subscriptions to its own topics), and a REQ to the supervisor's control
+socket. Everything is non-blocking and polled by the server's loop: PUB sockets drop for
+a slow subscriber, so the pipeline never waits for the viewer; a small receive high-water
+mark drops old pairs here, not upstream.
 """
 
 from __future__ import annotations
@@ -42,10 +43,13 @@ class PipelineTaps:
         self.endpoints = Endpoints.for_run(cfg.network, run_dir)
         self.events_dir = run_dir / cfg.events.folder
         self.ctx = new_context()
-        self.sub = open_socket(self.ctx, SocketSpec(
-            zmq.SUB, self.endpoints.tap, rcvhwm=TAP_RCVHWM,
-            subscribe=(messages.TOPIC_IMAGE, messages.TOPIC_STATS, messages.TOPIC_RESULT)))
-        self.sub.connect(self.endpoints.results_tap)
+        self.subs = [
+            open_socket(self.ctx, SocketSpec(zmq.SUB, self.endpoints.tap, rcvhwm=TAP_RCVHWM,
+                                             subscribe=(messages.TOPIC_IMAGE,
+                                                        messages.TOPIC_STATS))),
+            open_socket(self.ctx, SocketSpec(zmq.SUB, self.endpoints.results_tap,
+                                             subscribe=(messages.TOPIC_RESULT,))),
+        ]
         self.req: zmq.Socket[bytes] | None = None
         self._req_sent = 0.0
         self._pending_stop = False
@@ -54,19 +58,21 @@ class PipelineTaps:
     # --- taps ------------------------------------------------------------------------
 
     def drain(self, now: float) -> int:
-        """Take what the taps hold (at most MAX_DRAIN messages) into the state."""
+        """Take what the taps hold (at most MAX_DRAIN messages from each) into the state."""
         n = 0
-        while n < MAX_DRAIN:
-            try:
-                frames = self.sub.recv_multipart(zmq.NOBLOCK, copy=True)
-            except zmq.Again:
-                break
-            n += 1
-            try:
-                self._feed(frames, now)
-            except (ProtocolError, ValueError) as exc:
-                self.state.malformed += 1
-                self.ratelog.warning("tap", "malformed tap message dropped: %s", exc)
+        for sub in self.subs:
+            budget = n + MAX_DRAIN
+            while n < budget:
+                try:
+                    frames = sub.recv_multipart(zmq.NOBLOCK, copy=True)
+                except zmq.Again:
+                    break
+                n += 1
+                try:
+                    self._feed(frames, now)
+                except (ProtocolError, ValueError) as exc:
+                    self.state.malformed += 1
+                    self.ratelog.warning("tap", "malformed tap message dropped: %s", exc)
         return n
 
     def _feed(self, frames: list[bytes], now: float) -> None:

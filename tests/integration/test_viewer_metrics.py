@@ -84,6 +84,12 @@ def test_view_attaches_to_a_running_pipeline(spawn, run_dir: Path, started_procs
     code, jpeg = get(f"http://127.0.0.1:{port}/frame/{state['frame']['seq']}/left.jpg")
     assert code == 200 and jpeg[:2] == b"\xff\xd8"
     assert {n["name"] for n in state["nodes"]} >= {"broker", "capture", "normalizer"}
+    # The viewer subscribes each tap only to its own topics: no tap counts it as refused.
+    status = p.status()
+    assert status is not None
+    for n in status["nodes"]:
+        if n["name"] in ("broker", "normalizer"):
+            assert n["counters"].get("refused_subscriptions", 0) == 0, n
     view.send_signal(signal.SIGINT)
     assert view.wait(10) == 0
     assert p.status() is not None, "detaching the viewer disturbed the pipeline"

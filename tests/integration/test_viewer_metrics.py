@@ -41,18 +41,30 @@ def test_metrics_scrape_and_textfile(spawn, run_dir: Path) -> None:
         s = _samples(body.decode())
         return s if s.get(("trapflow_pool_processed_pairs_total", (("pool", "mono"),))) else None
 
-    first = poll_for(scrape, 30, interval=0.5, what="/metrics with processed mono pairs")
+    kinds = {"mono": "mono_ir", "stereo": "stereo_ir", "vo": "stereo_vo"}
+
+    def complete(s: dict[Any, float]) -> bool:
+        """Every pool has results, latencies and processing times (the last come with the
+        workers' heartbeats in the status reply, up to two seconds behind the tap)."""
+        return all(
+            s.get(("trapflow_result_latency_seconds_count", (("algorithm", kinds[pool]),)), 0)
+            > 0 and s.get(("trapflow_pool_processing_seconds_count", (("pool", pool),)), 0) > 0
+            for pool in kinds)
+
+    first = poll_for(lambda: (s := scrape()) and complete(s) and s, 40, interval=0.5,
+                     what="/metrics with results, latencies and processing times of every pool")
     second = poll_for(lambda: (s := scrape()) and _processed(s, "mono") > _processed(first, "mono")
                       and s, 15, interval=0.5, what="the mono counter to grow")
-    status = p.status()
-    assert status is not None
-    for pool in ("mono", "stereo", "vo"):
-        assert _processed(second, pool) <= status["stats"]["pools"][pool]["processed"]
-        hist = second[("trapflow_result_latency_seconds_count",
-                       (("algorithm", {"mono": "mono_ir", "stereo": "stereo_ir",
-                                       "vo": "stereo_vo"}[pool]),))]
-        assert hist > 0
-        assert second[("trapflow_pool_processing_seconds_count", (("pool", pool),))] > 0
+    # The supervisor reads the same stats from the same tap, a moment later or sooner.
+    poll_for(lambda: (st := p.status()) and all(
+        _processed(second, pool) <= st["stats"]["pools"][pool]["processed"]
+        for pool in kinds), 10, interval=0.3,
+        what="the supervisor's counters to reach the scraped ones")
+    for pool in kinds:  # counters never go back
+        for name in ("trapflow_pool_processed_pairs_total", "trapflow_pool_received_pairs_total",
+                     "trapflow_pool_dropped_pairs_total"):
+            key = (name, (("pool", pool),))
+            assert second[key] >= first[key], key
     assert second[("trapflow_node_state", (("node", "viewer"), ("state", "active")))] == 1
     assert second[("trapflow_pipeline_up", ())] == 1
     # The textfile: there, parseable, the same families, and rewritten on its interval.
@@ -63,6 +75,9 @@ def test_metrics_scrape_and_textfile(spawn, run_dir: Path) -> None:
     poll_for(lambda: prom.read_text() != first_text, 15, what="the textfile rewritten")
     # A cross-site form post cannot stop the trap: the control header is required.
     assert post(f"http://127.0.0.1:{port}/api/stop") == 403
+    # Nor a page whose own name was rebound to 127.0.0.1 (DNS rebinding): Host must be local.
+    assert post(f"http://127.0.0.1:{port}/api/stop", {"X-Trapflow-Control": "stop",
+                                                      "Host": f"evil.example:{port}"}) == 403
     assert p.proc.poll() is None
     code, _, err = p.stop()
     assert code == 0, err

@@ -34,6 +34,9 @@ _TYPES = {".html": "text/html", ".js": "text/javascript", ".css": "text/css"}
 # A POST that changes the pipeline must carry this header: a page of another site cannot
 # set it on a cross-site form post, so a link elsewhere cannot stop the trap.
 CONTROL_HEADER = "X-Trapflow-Control"
+# Served on loopback, a control request must also name a loopback host: a site that
+# rebinds its own name to 127.0.0.1 sends its own name in the Host header.
+LOOPBACK_NAMES = ("127.0.0.1", "localhost", "::1")
 
 
 def _jpeg(frame: Frame, side: str) -> bytes:
@@ -57,6 +60,7 @@ class Viewer:
         mf = cfg.viewer.metrics_file
         self.metrics_file = Path(mf) if mf else None
         self._jpeg_cache: dict[tuple[int, str], bytes] = {}
+        self.loopback_only = cfg.viewer.host in LOOPBACK_NAMES
         self.app = web.Application()
         self.app.add_routes([
             web.get("/", self._static), web.get("/static/{name}", self._static),
@@ -146,6 +150,10 @@ class Viewer:
         if request.headers.get(CONTROL_HEADER) != "stop":
             raise web.HTTPForbidden(text=f"expected header {CONTROL_HEADER}: stop "
                                          "(sent by the viewer's own page)")
+        host = (request.url.host or "").strip("[]")
+        if self.loopback_only and host not in LOOPBACK_NAMES:
+            raise web.HTTPForbidden(text=f"expected a request to 127.0.0.1 or localhost, "
+                                         f"got Host {request.host!r}")
         self.taps.request_stop()
         log.warning("stop requested from the viewer")
         return web.json_response({"stopping": True})

@@ -154,6 +154,10 @@ def test_exposition_parses_and_follows_naming(tmp_path: Path) -> None:
     t = time.time_ns()
     for kind, fields in _line(messages.StereoIR(label="crab", confidence=0.5), 3, t):
         st.on_result(kind, fields, t / 1e9 + 0.2)
+    snap = st.snapshot(1.0)
+    assert snap["modem"] == {"state": "inactive", "reason": "no port", "backlog": 12,
+                             "in_flight": 0, "bytes_last_hour": 0}
+    assert [n["name"] for n in snap["nodes"]] == ["worker:mono:0", "modem"]
     reg = metrics.registry_for(st, tmp_path)
     fams = {f.name: f for f in text_string_to_metric_families(
         metrics.exposition(reg).decode())}

@@ -287,7 +287,8 @@ def encode(msg: Msg) -> bytes:
     return _enc.encode(msg)
 
 
-def _decode(dec: msgspec.msgpack.Decoder[Any], data: Buffer, what: str, limit: int) -> Any:
+def _decode(dec: msgspec.msgpack.Decoder[Any] | msgspec.json.Decoder[Any], data: Buffer,
+            what: str, limit: int) -> Any:
     buf = memoryview(data.buffer if hasattr(data, "buffer") else data)
     if buf.nbytes > limit:
         raise ProtocolError(f"{what}: expected at most {limit} bytes, got {buf.nbytes}")
@@ -381,6 +382,19 @@ def decode_truth(data: Buffer) -> Truth:
     """Decode a Truth message from the tap."""
     truth: Truth = _decode(_truth_dec, data, "truth", MAX_RESULT_BYTES)
     return truth
+
+
+_line_dec = msgspec.json.Decoder(dict[str, dict[str, Any]])
+
+
+def decode_result_line(data: Buffer) -> tuple[str, dict[str, Any]]:
+    """Decode one JSON line of the normalizer's result tap: (algorithm, its fields)."""
+    obj: dict[str, dict[str, Any]] = _decode(_line_dec, data, "result line", MAX_RESULT_BYTES)
+    if len(obj) != 1:
+        raise ProtocolError(f"result line: expected one key (the algorithm), got {len(obj)}: "
+                            f"{sorted(obj)[:5]}")
+    ((kind, fields),) = obj.items()
+    return kind, fields
 
 
 def decode_control(data: Buffer) -> StatusRequest | StopRequest:

@@ -48,6 +48,7 @@ ROLES = {
     "normalizer": "trapflow.normalizer:NormalizerNode",
     "modem": "trapflow.modem.node:ModemNode",
     "events": "trapflow.events_node:EventsNode",
+    "viewer": "trapflow.viewer.node:ViewerNode",
 }
 
 _PR_SET_PDEATHSIG = 1

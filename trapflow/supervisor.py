@@ -39,12 +39,15 @@ log = logging.getLogger(__name__)
 # How long every node has to report its first state before start-up is declared failed.
 STARTUP_TIMEOUT_S = 60.0
 # Stop ladder: capture first (no new pairs), then workers and broker, the normalizer last.
-STOP_ORDER = ("capture", "worker", "events", "broker", "normalizer", "modem")
+STOP_ORDER = ("viewer", "capture", "worker", "events", "broker", "normalizer", "modem")
 # Summed over capture restarts, with every failed_<kind> (pairs skipped at capture).
 CAPTURE_TOTALS = ("produced", "dropped", "failed", "source_errors")
 FAILED_PREFIX = run_totals.FAILED_PREFIX
 SEQ_RESTART_GAP = 100  # extra seqs skipped at a capture restart, beyond the heartbeat lag
 LOCK_FILE = "supervisor.lock"
+# Roles the pipeline goes on without once their restart budget is spent; any other is
+# essential and stops the run. A viewer that keeps crashing must never stop the trap.
+NON_ESSENTIAL = ("worker", "viewer")
 
 
 @dataclass
@@ -139,6 +142,8 @@ class Supervisor:
                                 rig=self.rig)
                 self._add(spec, max(sup.liveness_s, pcfg.timeout_s))
         self._add(NodeSpec("capture", "capture", cfg, run, rig=self.rig), sup.liveness_s)
+        if cfg.viewer.enabled:  # reads the taps and the control socket like `trapflow view`
+            self._add(NodeSpec("viewer", "viewer", cfg, run), sup.liveness_s)
         for child in self.children:
             if child.spec.role != "capture":
                 self._spawn(child)
@@ -421,7 +426,7 @@ class Supervisor:
                     f"gave up after {len(c.restarts)} restarts in {sup.restart_window_s:g} s "
                     f"(last exit status {code})")
                 log.error("%s: %s", c.name, c.reason)
-                if c.spec.role != "worker":
+                if c.spec.role not in NON_ESSENTIAL:
                     log.error("%s is essential; stopping the pipeline", c.name)
                     self.exit_code = EXIT_FAILURE
                     self.failure = self.failure or f"{c.name} {c.reason}"
@@ -460,6 +465,7 @@ class Supervisor:
             "stats": _full_stats(self.stats) if self.stats else None,
             "rig": ({"calib": self.rig.id, "origin": self.rig_origin,
                      **msgspec.structs.asdict(self.rig)} if self.rig is not None else None),
+            "ledger": self.ledger(),
             "ring": ({"segment": self.ring.name, "slots": self.ring.slots, **self.ring.counts()}
                      if self.ring is not None else None),
         }

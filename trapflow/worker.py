@@ -94,6 +94,7 @@ class WorkerNode(Node):
         self._reader: RingReader | None = None
         self._next_save = 0.0
         self.processed = 0
+        self.proc_us = 0  # processing time of every processed pair, summed (for /metrics)
         self.failed = 0
         self.free = self.pcfg.credit
         self.ratelog = RateLimitedLog(log)
@@ -102,7 +103,8 @@ class WorkerNode(Node):
 
     def counters(self) -> dict[str, int]:
         stale = self._reader.rejected if self._reader is not None else 0
-        return {"processed": self.processed, "failed": self.failed, "stale_reads": stale}
+        return {"processed": self.processed, "failed": self.failed, "stale_reads": stale,
+                "proc_us": self.proc_us}
 
     def _ring(self) -> RingReader:
         """The shared-memory ring, mapped once, on first use."""
@@ -277,6 +279,7 @@ class WorkerNode(Node):
                                         reason=reason[:300], kind=type(exc).__name__)])
             return
         self.processed += 1
+        self.proc_us += proc_ns // 1000
         body = self._stamp(body)
         result = messages.Result(
             seq=header.seq, t_wall_ns=header.t_wall_ns, t_mono_ns=header.t_mono_ns,

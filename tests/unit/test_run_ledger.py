@@ -1,0 +1,73 @@
+"""The run ledger without processes: capture counters across restarts, produced never below
+what reached the broker, one model for the status line, the ledger and the totals."""
+
+from __future__ import annotations
+
+import pytest
+
+from trapflow.messages import CaptureCounters, PoolStats, Stats
+from trapflow.run_ledger import RunLedger, totals_text
+
+
+def _stats(pairs_in: int, **pool: int) -> Stats:
+    return Stats(t_wall_ns=0, uptime_s=1.0, pairs_in=pairs_in, rate_in=2.0, malformed=0,
+                 pools={"vo": PoolStats(**pool)})
+
+
+@pytest.mark.parametrize("counters", [
+    {},
+    {"produced": 5, "dropped": 1, "failed": 2, "failed_size": 2, "next_seq": 9},
+    {"produced": 1, "source_gave_up": 1, "sync_pairs": 3, "sync_skew_us": 1500},
+])
+def test_capture_counters_survive_the_wire_form(counters: dict[str, int]) -> None:
+    c = CaptureCounters.from_counters(counters)
+    again = CaptureCounters.from_counters(c.to_counters())
+    assert again == c
+    assert c.failed == counters.get("failed", 0)
+
+
+def test_a_restarted_capture_goes_on_counting_and_numbering() -> None:
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=40, dropped=2, failures={"size": 1}, next_seq=40))
+    assert led.retire_capture(margin=110) == 150  # past anything sent after its last beat
+    led.on_capture(CaptureCounters(produced=7, failures={"size": 2, "truncated": 1},
+                                   next_seq=157))
+    c = led.capture()
+    assert (c.produced, c.dropped, c.failures) == (47, 2, {"size": 3, "truncated": 1})
+    assert led.capture_counts() == {"dropped": 2, "failed": 4, "failed_size": 3,
+                                    "failed_truncated": 1, "produced": 47,
+                                    "source_errors": 0}
+
+
+def test_produced_is_never_below_what_reached_the_broker() -> None:
+    """Regression (issue 16, item 4): a killed capture had not reported its last pairs, so
+    "produced" undercounted what the pools received (2,191 produced, 2,212 results)."""
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=90))
+    led.on_stats(_stats(100, received=100, processed=100))
+    ledger = led.ledger({"vo": "ordered"}, {"vo": 0})
+    assert ledger["produced"] == 100
+    assert ledger["pools"]["vo"]["lost"] == 0
+
+
+def test_a_dead_broker_keeps_its_counts_in_status_and_ledger() -> None:
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=130))
+    led.on_stats(_stats(100, received=100, processed=95, pending=3, in_flight=2, workers=1))
+    led.retire_broker()
+    led.on_stats(_stats(30, received=30, processed=30, workers=1, rate=2))
+    ledger = led.ledger({"vo": "ordered"}, {"vo": 3},
+                        {"gave_up": 1, "retries": 1, "capped": 0, "timeline": []})
+    vo = ledger["pools"]["vo"]
+    assert (vo["processed"], vo["lost"], vo["restarts"]) == (125, 5, 3)
+    assert ledger["reached_broker"] == 130
+    line = led.status_text(12.0, {"vo": 3})
+    assert "in   2.0/s (130)" in line and "vo 1w" in line and "rst 3" in line
+    text = totals_text(ledger)
+    assert "130 pairs captured" in text and "processed 125" in text and "restarts 3" in text
+    assert "1 give-ups, 1 retries" in text
+
+
+def test_no_stats_yet() -> None:
+    assert RunLedger().status_text(1.0, {}) == "   1.0s | waiting for stats"
+    assert RunLedger().ledger({}, {})["pools"] == {}

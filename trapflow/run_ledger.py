@@ -10,6 +10,7 @@ run failed (exit status 1) and the line that says why.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -17,7 +18,82 @@ import msgspec
 
 from trapflow.messages import FAILED_PREFIX, CaptureCounters, PoolStats, Stats
 
-__all__ = ["FAILED_PREFIX", "RunLedger", "capture_failures", "combine", "retire", "verdict"]
+__all__ = ["FAILED_PREFIX", "Delivered", "RunLedger", "capture_failures", "combine", "retire",
+           "verdict"]
+
+# The normalizer's heartbeat counters route:<pool>:<kind> say which pool's results become lines
+# of which kind (the first key of a results.jsonl line); results.jsonl itself has no pool.
+ROUTE_PREFIX = "route:"
+# Seqs remembered per kind to count a result written twice (resent to a restarted
+# normalizer before it acknowledged) once; resends are never further apart than this.
+RECENT_SEQS = 65536
+
+
+class _Line(msgspec.Struct):
+    seq: int = -1
+
+
+_line_dec = msgspec.json.Decoder(dict[str, _Line])
+
+
+class Delivered:
+    """Distinct results per kind in results.jsonl, fed its bytes as they are appended.
+
+    The results file is what was delivered: counting it (not what a dead broker or
+    normalizer last reported) makes the ledger agree with it pair by pair after kills.
+    A result of several lines (one per detection) counts once; so does one written twice.
+    """
+
+    def __init__(self) -> None:
+        self.counts: dict[str, int] = {}
+        self.offset = 0  # bytes of the file consumed (whole lines only)
+        self.unreadable = 0  # lines that are not a result (a torn write after a power cut)
+        self._recent: dict[str, tuple[set[int], deque[int]]] = {}
+        self._tail = b""
+
+    def feed(self, data: bytes) -> None:
+        """More bytes of the file, from where the last call ended."""
+        data = self._tail + data
+        end = data.rfind(b"\n") + 1
+        self._tail = data[end:]
+        self.offset += end
+        for line in data[:end].splitlines():
+            if line:
+                self._count(line)
+
+    def _count(self, line: bytes) -> None:
+        try:
+            obj = _line_dec.decode(line)
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            self.unreadable += 1
+            return
+        for kind, item in obj.items():
+            seen, order = self._recent.setdefault(kind, (set(), deque()))
+            if item.seq in seen:
+                return
+            seen.add(item.seq)
+            order.append(item.seq)
+            if len(order) > RECENT_SEQS:
+                seen.discard(order.popleft())
+            self.counts[kind] = self.counts.get(kind, 0) + 1
+            return
+
+    def by_pool(self, routes: dict[str, str]) -> dict[str, int]:
+        """Counts per pool, given kind -> pool routes."""
+        out: dict[str, int] = {}
+        for kind, pool in routes.items():
+            out[pool] = out.get(pool, 0) + self.counts.get(kind, 0)
+        return out
+
+
+def routes_of(counters: dict[str, int]) -> dict[str, str]:
+    """kind -> pool from the normalizer's route:<pool>:<kind> counters."""
+    out: dict[str, str] = {}
+    for key in counters:
+        if key.startswith(ROUTE_PREFIX):
+            pool, _, kind = key[len(ROUTE_PREFIX):].partition(":")
+            out[kind] = pool
+    return out
 _SUMMED = ("received", "dispatched", "dropped", "processed", "errors", "timed_out", "lost")
 
 
@@ -86,6 +162,8 @@ class RunLedger:
     _capture_base: CaptureCounters = field(default_factory=CaptureCounters)
     _capture: CaptureCounters | None = None  # the live capture's own
     seen_capture: bool = False
+    delivered: Delivered = field(default_factory=Delivered)  # results.jsonl, as written
+    routes: dict[str, str] = field(default_factory=dict)  # result kind -> pool
 
     # --- events ---------------------------------------------------------------------
 
@@ -96,6 +174,9 @@ class RunLedger:
     def on_capture(self, counters: CaptureCounters) -> None:
         self._capture = counters
         self.seen_capture = True
+
+    def on_normalizer(self, counters: dict[str, int]) -> None:
+        self.routes.update(routes_of(counters))
 
     def retire_broker(self) -> None:
         """A restarted broker counts from zero: the run's totals keep what it saw."""
@@ -154,13 +235,17 @@ class RunLedger:
             "reached_broker": s.pairs_in if s else 0,
             "pools": {},
         }
+        delivered = self.delivered.by_pool(self.routes)
         for name, p in (s.pools.items() if s else ()):
+            # Processed: the results written for this pool (known once its results are
+            # routed); lost: whatever else is not in a state, as the brokers counted them.
+            processed = delivered.get(name, p.processed)
+            ended = processed + p.dropped + p.timed_out + p.errors
             out["pools"][name] = {
-                "processed": p.processed, "dropped_by_policy": p.dropped,
+                "processed": processed, "dropped_by_policy": p.dropped,
                 "policy": policies.get(name, ""), "timed_out": p.timed_out,
                 "failed": p.errors, "failures": p.failures,
-                # Pairs the pool never saw (lost between capture and broker) count as lost.
-                "lost": p.lost + p.pending + p.in_flight + max(0, produced - p.received),
+                "lost": max(0, produced - ended),
                 "restarts": restarts.get(name, 0),
             }
         if supervision is not None:

@@ -52,6 +52,9 @@ log = logging.getLogger(__name__)
 STOP_ORDER = ("capture", "worker", "events", "broker", "normalizer", "modem")
 SEQ_RESTART_GAP = 100  # extra seqs skipped at a capture restart, beyond the heartbeat lag
 LOCK_FILE = "supervisor.lock"
+# results.jsonl is read incrementally for the ledger, at most this much per status tick.
+RESULTS_READ_BYTES = 4 << 20
+RESULTS_READS_AT_END = 10_000
 
 
 @dataclass
@@ -173,6 +176,9 @@ class Supervisor:
         """Start, supervise until stopped, stop; return the exit status."""
         self.run_dir.mkdir(parents=True, exist_ok=True)
         lock = self._lock_run_dir()
+        results = self.run_dir / self.cfg.normalizer.results_file
+        if results.exists():  # a reused run directory: this run's results start at its end
+            self.ledger_model.delivered.offset = results.stat().st_size
         self._preflight()
         self.endpoints = Endpoints.for_run(self.cfg.network, self.run_dir)
         self.ring = self._create_ring()
@@ -310,6 +316,7 @@ class Supervisor:
                 break
             if now >= next_status:
                 next_status = now + 1.0
+                self._read_results()
                 self._status_line()
 
     def _child(self, role: str) -> Child:
@@ -362,6 +369,18 @@ class Supervisor:
         c.counters = hb.counters
         if c.spec.role == "capture":
             self.ledger_model.on_capture(messages.CaptureCounters.from_counters(hb.counters))
+        elif c.spec.role == "normalizer":
+            self.ledger_model.on_normalizer(hb.counters)
+
+    def _read_results(self) -> None:
+        """Count what results.jsonl gained since the last call (the ledger's truth)."""
+        path = self.run_dir / self.cfg.normalizer.results_file
+        try:
+            with open(path, "rb") as f:
+                f.seek(self.ledger_model.delivered.offset)
+                self.ledger_model.delivered.feed(f.read(RESULTS_READ_BYTES))
+        except FileNotFoundError:
+            pass
 
     def _watch(self, now: float) -> None:
         """Processes into events (exits, time), the core's actions into effects."""
@@ -491,6 +510,11 @@ class Supervisor:
     def _print_totals(self) -> None:
         if self.out.isatty():
             self.out.write("\n")
+        for _ in range(RESULTS_READS_AT_END):
+            before = self.ledger_model.delivered.offset
+            self._read_results()
+            if self.ledger_model.delivered.offset == before:
+                break
         ledger = self.ledger()
         (self.run_dir / "ledger.json").write_text(json.dumps(ledger, indent=1) + "\n")
         if self.stats is not None:

@@ -3,10 +3,12 @@ what reached the broker, one model for the status line, the ledger and the total
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from trapflow.messages import CaptureCounters, PoolStats, Stats
-from trapflow.run_ledger import RunLedger, totals_text
+from trapflow.run_ledger import Delivered, RunLedger, totals_text
 
 
 def _stats(pairs_in: int, **pool: int) -> Stats:
@@ -71,3 +73,50 @@ def test_a_dead_broker_keeps_its_counts_in_status_and_ledger() -> None:
 def test_no_stats_yet() -> None:
     assert RunLedger().status_text(1.0, {}) == "   1.0s | waiting for stats"
     assert RunLedger().ledger({}, {})["pools"] == {}
+
+
+def _line(kind: str, seq: int, **extra: object) -> bytes:
+    return json.dumps({kind: {"timestamp": "t", "seq": seq, **extra}}).encode() + b"\n"
+
+
+@pytest.mark.parametrize(("lines", "counts", "unreadable"), [
+    ([_line("mono_ir", 1), _line("mono_ir", 2)], {"mono_ir": 2}, 0),
+    # one result, three detections: three lines, one pair
+    ([_line("mono_ir", 1, label="crab")] * 3, {"mono_ir": 1}, 0),
+    # resent to a restarted normalizer before it acknowledged: written twice, counted once
+    ([_line("stereo_vo", 5), _line("stereo_vo", 6), _line("stereo_vo", 5)], {"stereo_vo": 2}, 0),
+    ([_line("tags", 3), _line("stereo_vo", 3)], {"tags": 1, "stereo_vo": 1}, 0),
+    ([b'{"mono_ir":{"seq":4,"lab\n', _line("mono_ir", 5)], {"mono_ir": 1}, 1),  # torn write
+])
+def test_delivered_counts_distinct_results_per_kind(lines: list[bytes], counts: dict[str, int],
+                                                    unreadable: int) -> None:
+    whole = Delivered()
+    whole.feed(b"".join(lines))
+    assert (whole.counts, whole.unreadable) == (counts, unreadable)
+    # Fed in pieces that cut lines anywhere (the file read while the normalizer writes).
+    data = b"".join(lines)
+    pieces = Delivered()
+    for i in range(0, len(data), 7):
+        pieces.feed(data[i:i + 7])
+    assert (pieces.counts, pieces.unreadable, pieces.offset) == (counts, unreadable, len(data))
+
+
+def test_delivered_waits_for_the_end_of_a_line() -> None:
+    d = Delivered()
+    d.feed(_line("mono_ir", 1)[:-5])
+    assert d.counts == {} and d.offset == 0
+    d.feed(_line("mono_ir", 1)[-5:])
+    assert d.counts == {"mono_ir": 1}
+
+
+def test_processed_is_what_was_delivered_once_routed() -> None:
+    """Regression (issue 16, item 4): after a broker kill the ledger counted as lost pairs
+    whose results were written (its last stats were up to a second old)."""
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=100))
+    led.on_stats(_stats(100, received=100, processed=80, pending=5, in_flight=5, lost=10))
+    assert led.ledger({"vo": "ordered"}, {})["pools"]["vo"]["processed"] == 80  # not routed
+    led.on_normalizer({"lines": 97, "route:vo:stereo_vo": 1})
+    led.delivered.feed(b"".join(_line("stereo_vo", s) for s in range(97)))
+    vo = led.ledger({"vo": "ordered"}, {})["pools"]["vo"]
+    assert (vo["processed"], vo["lost"]) == (97, 3)

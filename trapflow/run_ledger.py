@@ -207,10 +207,16 @@ class RunLedger:
         return dict(sorted(out.items()))
 
     def produced(self) -> int:
-        """Pairs capture sent: what it reported, or what reached the broker when a capture
-        was killed before reporting its last pairs (the broker saw them, so they existed)."""
-        reached = self.stats.pairs_in if self.stats else 0
-        return max(self.capture().produced, reached)
+        """Pairs capture sent: what it reported, or, when a capture was killed before
+        reporting its last pairs, what demonstrably existed: what reached the brokers, or
+        what one pool accounts for (results written, dropped, timed out, failed)."""
+        s = self.stats
+        if s is None:
+            return self.capture().produced
+        delivered = self.delivered.by_pool(self.routes)
+        accounted = [delivered.get(n, p.processed) + p.dropped + p.timed_out + p.errors
+                     for n, p in s.pools.items()]
+        return max(self.capture().produced, s.pairs_in, *accounted)
 
     def drained(self) -> bool:
         """Every pair capture produced reached the broker and left every pool."""

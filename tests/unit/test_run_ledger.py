@@ -120,3 +120,15 @@ def test_processed_is_what_was_delivered_once_routed() -> None:
     led.delivered.feed(b"".join(_line("stereo_vo", s) for s in range(97)))
     vo = led.ledger({"vo": "ordered"}, {})["pools"]["vo"]
     assert (vo["processed"], vo["lost"]) == (97, 3)
+
+
+def test_produced_covers_what_one_pool_accounts_for() -> None:
+    """Regression (issue 16, item 4): a capture and a broker killed before reporting their
+    last pairs; the pool's written results show those pairs existed."""
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=50))
+    led.on_stats(_stats(55, received=55, processed=50, dropped=2, workers=1))
+    led.on_normalizer({"route:vo:stereo_vo": 1})
+    led.delivered.feed(b"".join(_line("stereo_vo", s) for s in range(58)))
+    ledger = led.ledger({"vo": "ordered"}, {})
+    assert ledger["produced"] == 60 and ledger["pools"]["vo"]["lost"] == 0

@@ -226,9 +226,13 @@ class RunLedger:
                 and all(p.pending == 0 and p.in_flight == 0 for p in s.pools.values()))
 
     def ledger(self, policies: dict[str, str], restarts: dict[str, int],
-               supervision: dict[str, Any] | None = None) -> dict[str, Any]:
+               supervision: dict[str, Any] | None = None, final: bool = True
+               ) -> dict[str, Any]:
         """Where every pair went: capture's count, then per pool exactly one state each;
-        restarts per pool and the supervision timeline (give-ups, retries)."""
+        restarts per pool and the supervision timeline (give-ups, retries).
+
+        While the run goes on (not final), pairs pending or in flight are in progress, not
+        lost; at its end they can no longer finish."""
         cap = self.capture()
         s = self.stats
         produced = self.produced()
@@ -247,13 +251,16 @@ class RunLedger:
             # routed); lost: whatever else is not in a state, as the brokers counted them.
             processed = delivered.get(name, p.processed)
             ended = processed + p.dropped + p.timed_out + p.errors
+            in_progress = 0 if final else p.pending + p.in_flight
             out["pools"][name] = {
                 "processed": processed, "dropped_by_policy": p.dropped,
                 "policy": policies.get(name, ""), "timed_out": p.timed_out,
                 "failed": p.errors, "failures": p.failures,
-                "lost": max(0, produced - ended),
+                "lost": max(0, produced - ended - in_progress),
                 "restarts": restarts.get(name, 0),
             }
+            if not final:
+                out["pools"][name]["in_progress"] = in_progress
         if supervision is not None:
             out["supervision"] = supervision
         return out
@@ -286,10 +293,11 @@ def totals_text(ledger: dict[str, Any]) -> str:
              f"{f', {failed} failed at capture ({kinds})' if failed else ''}"]
     for name, p in ledger["pools"].items():
         kinds = ", ".join(f"{k} {v}" for k, v in p["failures"].items())
+        going = f"in progress {p['in_progress']}, " if "in_progress" in p else ""
         lines.append(
             f"  {name}: processed {p['processed']}, dropped {p['dropped_by_policy']} "
             f"({p['policy']}), timed out {p['timed_out']}, failed {p['failed']}"
-            f"{f' ({kinds})' if kinds else ''}, lost {p['lost']}, "
+            f"{f' ({kinds})' if kinds else ''}, lost {p['lost']}, {going}"
             f"restarts {p['restarts']}")
     sup = ledger.get("supervision")
     if sup and (sup["gave_up"] or sup["retries"]):

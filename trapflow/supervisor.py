@@ -457,6 +457,7 @@ class Supervisor:
             "nodes": nodes,
             "stats": _full_stats(self.stats) if self.stats else None,
             "supervision": self.supervision(),
+            "ledger": self.ledger(final=False),  # ledger.json so far
             "rig": ({"calib": self.rig.id, "origin": self.rig_origin,
                      **msgspec.structs.asdict(self.rig)} if self.rig is not None else None),
             "ring": ({"segment": self.ring.name, "slots": self.ring.slots, **self.ring.counts()}
@@ -502,10 +503,10 @@ class Supervisor:
             self.out.write(line + "\n")
         self.out.flush()
 
-    def ledger(self) -> dict[str, Any]:
+    def ledger(self, final: bool = True) -> dict[str, Any]:
         """Where every pair went: capture's count, then per pool exactly one state each."""
         return self.ledger_model.ledger({n: p.policy for n, p in self.cfg.pools.items()},
-                                        self._pool_restarts(), self.supervision())
+                                        self._pool_restarts(), self.supervision(), final)
 
     def _print_totals(self) -> None:
         if self.out.isatty():

@@ -7,6 +7,7 @@ import json
 
 import pytest
 
+from trapflow.control import format_status
 from trapflow.messages import CaptureCounters, PoolStats, Stats
 from trapflow.run_ledger import Delivered, RunLedger, totals_text
 
@@ -132,3 +133,33 @@ def test_produced_covers_what_one_pool_accounts_for() -> None:
     led.delivered.feed(b"".join(_line("stereo_vo", s) for s in range(58)))
     ledger = led.ledger({"vo": "ordered"}, {})
     assert ledger["produced"] == 60 and ledger["pools"]["vo"]["lost"] == 0
+
+
+def test_status_shows_in_progress_pairs_as_not_lost_until_the_end() -> None:
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=20))
+    led.on_stats(_stats(20, received=20, processed=17, pending=1, in_flight=2, workers=1))
+    live = led.ledger({"vo": "ordered"}, {}, final=False)["pools"]["vo"]
+    assert (live["lost"], live["in_progress"]) == (0, 3)
+    assert "lost 0, in progress 3," in totals_text(led.ledger({"vo": "ordered"}, {},
+                                                              final=False))
+    end = led.ledger({"vo": "ordered"}, {})["pools"]["vo"]
+    assert end["lost"] == 3 and "in_progress" not in end
+
+
+def test_trapflow_status_renders_the_supervision_timeline_and_the_ledger() -> None:
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=20))
+    led.on_stats(_stats(20, received=20, processed=20, workers=1))
+    timeline = [{"t_s": 12.5, "node": "worker:vo:0", "kind": "gave_up",
+                 "reason": "gave up after 5 restarts in 60 s (last exit status -9)"},
+                {"t_s": 72.5, "node": "worker:vo:0", "kind": "retry",
+                 "reason": "retrying after a cool-down of 60 s (give-up 1)"}]
+    sup = {"gave_up": 1, "retries": 1, "capped": 0, "timeline": timeline}
+    reply = {"run_dir": "runs/x", "uptime_s": 80.0, "nodes": [], "stats": None,
+             "supervision": sup, "ledger": led.ledger({"vo": "ordered"}, {"vo": 6}, sup,
+                                                      final=False)}
+    text = format_status(reply)
+    assert "supervision: 1 give-ups, 1 retries, 0 capped restarts" in text
+    assert "worker:vo:0" in text and "retry" in text and "gave_up" in text
+    assert "vo: processed 20" in text and "restarts 6" in text

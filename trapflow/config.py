@@ -62,7 +62,7 @@ class PoolConfig(_Section):
     nice: Annotated[int, msgspec.Meta(ge=0, le=19)] = 0
     affinity: list[Annotated[int, msgspec.Meta(ge=0)]] = []
     credit: Annotated[int, msgspec.Meta(ge=1, le=64)] = 1
-    timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 10.0
+    timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 10.0  # per pair; kills a hung worker
     params: dict[str, Any] = {}
     remote: bool = False  # workers on another host: the broker sends them the bytes
     debug: bool = False

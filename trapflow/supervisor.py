@@ -2,6 +2,8 @@
 
 Owns a PULL of heartbeats from every node, a REP control socket (status, stop)
 and a SUB of the broker's stats for the status line. The whole graph is in boot().
+The decisions are trapflow.supervisor_state's and the counting trapflow.run_ledger's: this
+shell turns processes, sockets and time into their events, and their actions into effects.
 """
 
 from __future__ import annotations
@@ -37,7 +39,6 @@ from trapflow.supervisor_state import (
     GiveUp,
     Kill,
     NodePlan,
-    NodeState,
     Retry,
     Spawn,
     Stop,
@@ -159,7 +160,7 @@ class Supervisor:
 
     def _add(self, spec: NodeSpec, liveness_s: float) -> None:
         self.children.append(Child(spec))
-        self.core.nodes[spec.name] = NodeState(NodePlan(spec.name, spec.role, liveness_s))
+        self.core.add(NodePlan(spec.name, spec.role, liveness_s))
 
     def _spawn(self, child: Child, now: float) -> None:
         child.proc = self.mp.Process(
@@ -322,6 +323,9 @@ class Supervisor:
     def _child(self, role: str) -> Child:
         return next(c for c in self.children if c.spec.role == role)
 
+    def _named(self, name: str) -> Child:
+        return next(c for c in self.children if c.name == name)
+
     # --- watching ----------------------------------------------------------------------
 
     def _poll(self, timeout_s: float) -> None:
@@ -365,7 +369,7 @@ class Supervisor:
             return
         if not self.core.heartbeat(hb.node, hb.pid, hb.state, hb.reason, time.monotonic()):
             return
-        c = next(c for c in self.children if c.name == hb.node)
+        c = self._named(hb.node)
         c.counters = hb.counters
         if c.spec.role == "capture":
             self.ledger_model.on_capture(messages.CaptureCounters.from_counters(hb.counters))
@@ -396,16 +400,16 @@ class Supervisor:
     def _act(self, actions: list[Action], now: float) -> None:
         for a in actions:
             if isinstance(a, Spawn):
-                c = next(c for c in self.children if c.name == a.name)
+                c = self._named(a.name)
                 log.warning("restarting %s (restart %d)", c.name, a.restart)
                 self._respawn(c, now)
             elif isinstance(a, Kill):
                 log.error("%s %s; killing it", a.name, a.reason)
-                c = next(c for c in self.children if c.name == a.name)
+                c = self._named(a.name)
                 if c.alive():
                     c.proc.kill()
             elif isinstance(a, WorkerGone):
-                c = next(c for c in self.children if c.name == a.name)
+                c = self._named(a.name)
                 self._tell_broker_gone(c, a.reason)
             elif isinstance(a, GiveUp):
                 log.error("%s: %s", a.name, a.reason)

@@ -177,6 +177,10 @@ class SupervisorState:
         self._counts = {"gave_up": 0, "retry": 0, "capped": 0}
         self.stopping = False
 
+    def add(self, plan: NodePlan) -> None:
+        """One more node to supervise (not spawned yet)."""
+        self.nodes[plan.name] = NodeState(plan)
+
     def node(self, name: str) -> NodeState:
         return self.nodes[name]
 

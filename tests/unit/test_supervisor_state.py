@@ -217,3 +217,16 @@ def test_start_up_deadline_and_reasons(state: Lifecycle, reason: str, at: float,
     s.heartbeat("worker:vo:0", 1, state, reason, 0.5)
     assert s.start_problem(["worker:vo:0"], at) == problem
     assert s.started(["worker:vo:0"]) is (state == Lifecycle.ACTIVE)
+
+
+@pytest.mark.parametrize(("timeout_s", "heartbeat_s", "limit"), [
+    (3.0, 1.0, 3.0),  # the pool's timeout_s, not supervisor.liveness_s (5 s)
+    (10.0, 1.0, 10.0),
+    (0.5, 1.0, 2.0),  # never under two idle heartbeats: an idle worker is not hung
+])
+def test_a_workers_liveness_is_its_pools_timeout(timeout_s: float, heartbeat_s: float,
+                                                 limit: float) -> None:
+    """Regression (issue 16, item 9): a hung worker lived until supervisor.liveness_s."""
+    from trapflow.supervisor import worker_liveness
+
+    assert worker_liveness(timeout_s, heartbeat_s) == limit

@@ -62,7 +62,7 @@ class PoolConfig(_Section):
     nice: Annotated[int, msgspec.Meta(ge=0, le=19)] = 0
     affinity: list[Annotated[int, msgspec.Meta(ge=0)]] = []
     credit: Annotated[int, msgspec.Meta(ge=1, le=64)] = 1
-    timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 10.0
+    timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 10.0  # per pair; kills a hung worker
     params: dict[str, Any] = {}
     remote: bool = False  # workers on another host: the broker sends them the bytes
     debug: bool = False
@@ -97,6 +97,9 @@ class SupervisorConfig(_Section):
     restart_backoff_max_s: Annotated[float, msgspec.Meta(ge=0, le=600)] = 10.0
     max_restarts: Annotated[int, msgspec.Meta(ge=0)] = 5
     restart_window_s: Annotated[float, msgspec.Meta(gt=0)] = 60.0
+    retry_cooldown_s: Annotated[float, msgspec.Meta(ge=0, le=86400)] = 60.0
+    """A node given up (its restart budget spent) is retried this long after, with a fresh
+    budget; essential nodes (broker, capture, normalizer) are never given up."""
     stop_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=4)] = 2.0
 
 

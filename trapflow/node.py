@@ -16,24 +16,25 @@ import os
 import signal
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 import zmq
 
 from trapflow import messages
 from trapflow.camera import StereoRig
 from trapflow.config import Config
+from trapflow.supervisor_state import Lifecycle
 from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
 
 log = logging.getLogger(__name__)
 
-# ROS 2 lifecycle states.
-UNCONFIGURED = "unconfigured"
-INACTIVE = "inactive"
-ACTIVE = "active"
-FINALIZED = "finalized"
+# ROS 2 lifecycle states (the enum lives in the pure supervision core).
+UNCONFIGURED: Final = Lifecycle.UNCONFIGURED
+INACTIVE: Final = Lifecycle.INACTIVE
+ACTIVE: Final = Lifecycle.ACTIVE
+FINALIZED: Final = Lifecycle.FINALIZED
 
 # Exit code of a node that ended on purpose (finite source exhausted): not a crash.
 EXIT_FINISHED = 0
@@ -67,7 +68,11 @@ class NodeSpec:
     pool: str = ""
     index: int = 0
     rig: StereoRig | None = None  # the run's rig, decided once by trapflow.rig at preflight
-    extra: dict[str, Any] = field(default_factory=dict)
+    ring: str = ""  # the shared-memory frame ring's segment name ("" without one)
+    # A restarted broker frees the ring slots its predecessor held; a first one must not
+    # (capture's first pairs may already hold slots on their way to it).
+    restarted: bool = False
+    first_seq: int = 0  # capture numbers pairs from here (past a predecessor's numbers)
 
     def the_rig(self) -> StereoRig:
         """The run's rig; a node spawned without one (a test, a benchmark) gets the config's."""
@@ -86,7 +91,7 @@ class Node:
         self.cfg = spec.cfg
         self.name = spec.name
         self.endpoints = Endpoints.for_run(spec.cfg.network, spec.run_dir)
-        self.lifecycle = UNCONFIGURED
+        self.lifecycle: Lifecycle = UNCONFIGURED
         self.reason = ""
         self.stopping = False
         self.ctx = new_context()
@@ -96,7 +101,7 @@ class Node:
         self._hb_interval_ns = int(spec.cfg.supervisor.heartbeat_interval_s * 1e9)
         self._next_beat = 0
 
-    def set_state(self, state: str, reason: str = "") -> None:
+    def set_state(self, state: Lifecycle, reason: str = "") -> None:
         """Move to a lifecycle state and tell the supervisor at once."""
         if (state, reason) != (self.lifecycle, self.reason):
             if reason:
@@ -110,10 +115,10 @@ class Node:
         """Counters sent with every heartbeat; subclasses override."""
         return {}
 
-    def beat(self) -> None:
-        """Send a heartbeat if one is due (never blocks)."""
+    def beat(self, due: bool = False) -> None:
+        """Send a heartbeat if one is due, or at once with `due` (never blocks)."""
         now = time.monotonic_ns()
-        if now < self._next_beat:
+        if now < self._next_beat and not due:
             return
         self._next_beat = now + self._hb_interval_ns
         hb = messages.Heartbeat(

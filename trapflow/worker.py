@@ -80,7 +80,7 @@ class WorkerNode(Node):
         self.pcfg = self.cfg.pools[self.pool]
         self.ident = messages.worker_identity(self.pool, spec.index, os.getpid())
         # Local workers of the ring get descriptors over a local link; others, bytes over zmq.
-        self.local = bool(spec.extra.get("ring")) and not self.pcfg.remote
+        self.local = bool(spec.ring) and not self.pcfg.remote
         self.link = LinkClient(self.endpoints.workers_link)
         self.dealer: zmq.Socket[bytes] | None = None
         if not self.local:
@@ -109,7 +109,7 @@ class WorkerNode(Node):
     def _ring(self) -> RingReader:
         """The shared-memory ring, mapped once, on first use."""
         if self._reader is None:
-            name = self.spec.extra.get("ring")
+            name = self.spec.ring
             if not name:
                 raise ProtocolError("job: got a frame ref, but this worker has no ring")
             self._reader = RingReader(name)
@@ -150,6 +150,9 @@ class WorkerNode(Node):
         while not self.stopping:
             frames = self._recv(100)
             if frames is not None:
+                # Taking work: the supervisor times this pair from here (its pool's timeout_s
+                # bounds the process) and knows the worker active, even on its first pair.
+                self.beat(due=True)
                 self.free -= 1
                 self._handle(frames)
                 self.free += 1

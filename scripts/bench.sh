@@ -21,13 +21,15 @@ echo "[bench] algorithms" >&2
 "$PY" scripts/bench_algorithms.py --out "$OUT" > /dev/null
 echo "[bench] process (Dask LocalCluster vs one plain loop)" >&2
 "$PY" scripts/bench_process.py --out "$OUT" > /dev/null
+echo "[bench] live viewer (30 s against the default pipeline)" >&2
+"$PY" scripts/bench_viewer.py --out "$OUT" > /dev/null
 echo "[bench] modem link" >&2
 "$PY" scripts/bench_modem.py --out "$OUT/modem.json" > "$OUT/modem.txt"
 {
   echo "# trapflow benchmark, $(date -u '+%Y-%m-%d %H:%M UTC'), $(nproc) cores"
   echo
-  for md in "$OUT"/transport.md "$OUT"/remote.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/bench_algorithms.md \
-            "$OUT"/process.md; do
+  for md in "$OUT"/transport.md "$OUT"/remote.md "$OUT"/shm.md "$OUT"/synth.md \
+            "$OUT"/bench_algorithms.md "$OUT"/process.md "$OUT"/viewer.md; do
     [ -f "$md" ] && cat "$md" && echo
   done
   echo "## Modem link"

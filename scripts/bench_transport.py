@@ -199,12 +199,12 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
         "log_level": "WARNING",
     })
     ring = writer = None
-    extra: dict[str, Any] = {}
+    ring_name = ""
     if frames == "shm":
         ring = FrameRing.create(ring_slots(cfg.pools.values(), 0, cfg.frames.spare_slots),
                                 slot_capacity(1280, 720))
         writer = RingWriter(ring.name)
-        extra["ring"] = ring.name
+        ring_name = ring.name
     ep = Endpoints.for_run(cfg.network, run_dir)
     ctx = zmq.Context()
     push = ctx.socket(zmq.PUSH)
@@ -213,8 +213,9 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
     hb = ctx.socket(zmq.PULL)  # stand-in supervisor: heartbeats are received and ignored
     hb.bind(ep.heartbeat)
     q = mp.get_context("spawn").Queue()
-    specs = [NodeSpec("broker", "broker", cfg, run_dir, extra=extra)] + [
-        NodeSpec("worker", f"worker:p{p}:{i}", cfg, run_dir, pool=f"p{p}", index=i, extra=extra)
+    specs = [NodeSpec("broker", "broker", cfg, run_dir, ring=ring_name)] + [
+        NodeSpec("worker", f"worker:p{p}:{i}", cfg, run_dir, pool=f"p{p}", index=i,
+                 ring=ring_name)
         for p in range(pools) for i in range(workers)]
     procs = [mp.get_context("spawn").Process(target=node_main, args=(s, q, os.getpid()))
              for s in specs]

@@ -83,11 +83,11 @@ class BrokerNode(Node):
         self.state = BrokerState(pools, idle_liveness_s=self.cfg.supervisor.liveness_s)
         self.frames: dict[int, list[Any]] = {}
         # Shared-memory ring: the broker owns slot lifetime (frees a slot on Release).
-        ring_name = spec.extra.get("ring")
+        ring_name = spec.ring
         self.ring = FrameRing(ring_name) if ring_name else None
         self.refs: dict[int, messages.FrameRef] = {}
         self.remote = {n for n, p in self.cfg.pools.items() if p.remote}  # bytes, not refs
-        if self.ring is not None and spec.extra.get("restarted"):
+        if self.ring is not None and spec.restarted:
             self._reclaim_held()
         # Local links (ring only): listeners, then one Link per connected capture or worker.
         self.listeners: dict[Any, str] = {listen_link(ep.results_link): "results"}

@@ -23,7 +23,6 @@ from trapflow.frame_ring import RingError, RingWriter
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.ratelog import RateLimitedLog
 from trapflow.rig import mismatch
-from trapflow.run_totals import FAILED_PREFIX
 from trapflow.sources import Frames, SkipPair, Source, SourceError, open_source
 from trapflow.transport import LinkClient, LinkClosed, SocketSpec, open_socket
 
@@ -44,7 +43,7 @@ class CaptureNode(Node):
         self.rig = spec.the_rig()  # every pair sent must have its size
         self.source: Source = open_source(self.src_cfg, self.rig, self.cfg.rig.calibration)
         # A restarted capture continues past its predecessor's numbers (the supervisor knows).
-        self.seq = int(spec.extra.get("first_seq", 0))
+        self.seq = spec.first_seq
         self.produced = 0
         self.dropped = 0
         self.failed: dict[str, int] = {}  # pairs skipped at capture, by kind
@@ -52,23 +51,27 @@ class CaptureNode(Node):
         self.gave_up = 0  # 1 once a finite source failed for good (the reason is in the state)
         self.jpeg_params = [int(cv2.IMWRITE_JPEG_QUALITY), self.src_cfg.jpeg_quality]
         # With a shared-memory ring each pair is written once there; only a descriptor is sent.
-        ring_name = spec.extra.get("ring")
+        ring_name = spec.ring
         self.ring = RingWriter(ring_name) if ring_name else None
         # With the ring, descriptors go over a local link.
         self.link = LinkClient(self.endpoints.capture_link)
         self.ratelog = RateLimitedLog(log)
 
-    def counters(self) -> dict[str, int]:
-        out = {"produced": self.produced, "dropped": self.dropped,
-               "failed": sum(self.failed.values()), "source_errors": self.source_errors,
-               "source_gave_up": self.gave_up, "next_seq": self.seq}
-        out.update({f"{FAILED_PREFIX}{kind}": n for kind, n in self.failed.items()})
-        sync = getattr(self.source, "sync", None)  # live cameras paired by timestamp
-        if sync is not None:
-            for k, v in sync.stats.as_dict().items():
+    def capture_counters(self) -> messages.CaptureCounters:
+        """What the supervisor sums over capture's restarts."""
+        sync: dict[str, int] = {}
+        live = getattr(self.source, "sync", None)  # live cameras paired by timestamp
+        if live is not None:
+            for k, v in live.stats.as_dict().items():
                 key = f"sync_{k[:-3]}_us" if k.endswith("_ms") else f"sync_{k}"
-                out[key] = int(v * 1000) if k.endswith("_ms") else int(v)
-        return out
+                sync[key] = int(v * 1000) if k.endswith("_ms") else int(v)
+        return messages.CaptureCounters(
+            produced=self.produced, dropped=self.dropped, failures=dict(self.failed),
+            source_errors=self.source_errors, source_gave_up=self.gave_up,
+            next_seq=self.seq, sync=sync)
+
+    def counters(self) -> dict[str, int]:
+        return self.capture_counters().to_counters()
 
     def _open(self) -> bool:
         try:

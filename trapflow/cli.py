@@ -13,6 +13,7 @@ from trapflow import registry
 from trapflow.cli_exit import CommandFailed, failed
 from trapflow.cli_sources import SizeType, SourceSpecType, WorkersType
 from trapflow.errors import EXIT_USAGE, TrapflowError
+from trapflow.viewer.params import ViewAddressType
 
 
 def _fail(exc: TrapflowError) -> NoReturn:
@@ -56,10 +57,15 @@ def main() -> None:
               help="KIND:ARGS, e.g. video:l.mp4,r.mp4, images:DIR, v4l2:/dev/video0,/dev/video2, "
                    "replay:rec.mcap (default: the synthetic world).")
 @click.option("--loop", is_flag=True, default=None, help="Restart a finite source at its end.")
+@click.option("--view", type=ViewAddressType(), metavar="[HOST:]PORT",
+              help="Serve the live web viewer and /metrics here (host 127.0.0.1 by default).")
+@click.option("--metrics-file", type=click.Path(dir_okay=False),
+              help="Write Prometheus metrics to this node_exporter textfile (needs --view).")
 def start(config_path: str | None, workers: dict[str, int] | None, duration: float | None,
           run_dir: Path | None, rate: float | None, size: tuple[int, int] | None,
           encoding: str | None, seed: int | None, moving: bool | None,
-          source_spec: tuple[str, str] | None, loop: bool | None) -> None:
+          source_spec: tuple[str, str] | None, loop: bool | None,
+          view: tuple[str, int] | None, metrics_file: str | None) -> None:
     """Run the pipeline: capture, broker, worker pools and normalizer."""
     from trapflow.supervisor import run as run_pipeline
 
@@ -83,6 +89,9 @@ def start(config_path: str | None, workers: dict[str, int] | None, duration: flo
         cfg = configmod.with_source(cfg, **src)
         if workers is not None:
             cfg = configmod.with_workers(cfg, workers, registry.known_names())
+        if metrics_file is not None and view is None and not cfg.viewer.enabled:
+            raise click.UsageError("--metrics-file is written by the viewer: add --view PORT")
+        cfg = _with_viewer(cfg, view, metrics_file, enabled=view is not None or None)
     except TrapflowError as exc:
         raise CommandFailed(str(exc), EXIT_USAGE) from None
     try:
@@ -92,6 +101,54 @@ def start(config_path: str | None, workers: dict[str, int] | None, duration: flo
     if result.code != 0:
         raise CommandFailed(result.failure or f"the pipeline stopped with status {result.code}",
                             result.code)
+
+
+def _with_viewer(cfg: configmod.Config, view: tuple[str, int] | None, metrics_file: str | None,
+                 enabled: bool | None = None) -> configmod.Config:
+    """The config with the viewer flags applied."""
+    changes: dict[str, Any] = {}
+    if enabled is not None:
+        changes["enabled"] = enabled
+    if view is not None:
+        changes["host"], changes["port"] = view
+    if metrics_file is not None:
+        changes["metrics_file"] = metrics_file
+    return configmod.with_section(cfg, "viewer", **changes)
+
+
+@main.command()
+@click.option("--run-dir", type=click.Path(file_okay=False, path_type=Path),
+              default=Path("runs/latest"), show_default=True)
+@click.option("--config", "config_path", type=click.Path(dir_okay=False),
+              help="The pipeline's YAML config (its network section finds the sockets).")
+@click.option("--listen", type=ViewAddressType(), metavar="[HOST:]PORT",
+              help="Where the page and /metrics are served (default: the config's, "
+                   "127.0.0.1:8090).")
+@click.option("--metrics-file", type=click.Path(dir_okay=False),
+              help="Also write Prometheus metrics to this node_exporter textfile.")
+def view(run_dir: Path, config_path: str | None, listen: tuple[str, int] | None,
+         metrics_file: str | None) -> None:
+    """Attach the live web viewer to a running pipeline (Ctrl-C to leave it running)."""
+    import asyncio
+
+    from trapflow.viewer.server import serve
+
+    try:
+        cfg = _with_viewer(configmod.load(config_path), listen, metrics_file)
+    except TrapflowError as exc:
+        raise CommandFailed(str(exc), EXIT_USAGE) from None
+    if not run_dir.exists():
+        raise CommandFailed(f"no run directory {run_dir}: expected the --run-dir of a running "
+                            "pipeline (trapflow start prints it)", EXIT_USAGE)
+    v = cfg.viewer
+    try:
+        asyncio.run(serve(cfg, run_dir, v.host, v.port,
+                          ready=lambda url: click.echo(f"viewer: {url}", err=True)))
+    except KeyboardInterrupt:
+        pass
+    except OSError as exc:
+        raise CommandFailed(f"cannot serve on {v.host}:{v.port}: {exc.strerror or exc}; "
+                            "choose another with --listen [HOST:]PORT", EXIT_USAGE) from None
 
 
 @main.command()

@@ -62,7 +62,7 @@ class PoolConfig(_Section):
     nice: Annotated[int, msgspec.Meta(ge=0, le=19)] = 0
     affinity: list[Annotated[int, msgspec.Meta(ge=0)]] = []
     credit: Annotated[int, msgspec.Meta(ge=1, le=64)] = 1
-    timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 10.0
+    timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 10.0  # per pair; kills a hung worker
     params: dict[str, Any] = {}
     remote: bool = False  # workers on another host: the broker sends them the bytes
     debug: bool = False
@@ -85,6 +85,7 @@ class NormalizerConfig(_Section):
     flush_interval_s: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.5
     fsync_interval_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 5.0
     decimals: Annotated[int, msgspec.Meta(ge=0, le=9)] = 3
+    """Digits kept in the float fields of plugin-defined results (built-in fields keep theirs)."""
 
 
 class SupervisorConfig(_Section):
@@ -96,6 +97,9 @@ class SupervisorConfig(_Section):
     restart_backoff_max_s: Annotated[float, msgspec.Meta(ge=0, le=600)] = 10.0
     max_restarts: Annotated[int, msgspec.Meta(ge=0)] = 5
     restart_window_s: Annotated[float, msgspec.Meta(gt=0)] = 60.0
+    retry_cooldown_s: Annotated[float, msgspec.Meta(ge=0, le=86400)] = 60.0
+    """A node given up (its restart budget spent) is retried this long after, with a fresh
+    budget; essential nodes (broker, capture, normalizer) are never given up."""
     stop_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=4)] = 2.0
 
 
@@ -180,6 +184,23 @@ class FramesConfig(_Section):
     """Ring slots kept for an event pre-roll."""
 
 
+class ViewerConfig(_Section):
+    """The live web viewer and its metrics (`trapflow start --view`, `trapflow view`)."""
+
+    enabled: bool = False
+    """Run the viewer as a node of the pipeline."""
+    host: str = "127.0.0.1"
+    """Address the web page binds to; loopback unless you mean to show it to the network."""
+    port: Annotated[int, msgspec.Meta(ge=1, le=65535)] = 8090
+    """TCP port of the web page and of /metrics."""
+    frame_hz: Annotated[float, msgspec.Meta(gt=0, le=15)] = 2.0
+    """Pairs per second shown in the page (the rest of the tap's images are dropped)."""
+    metrics_file: str = ""
+    """node_exporter textfile written atomically every metrics_interval_s ("" = none)."""
+    metrics_interval_s: Annotated[float, msgspec.Meta(ge=1, le=600)] = 5.0
+    """Seconds between two writes of metrics_file."""
+
+
 def _default_pools() -> dict[str, PoolConfig]:
     return {
         # Visual odometry keeps its rate: the recognisers run at a lower CPU priority.
@@ -204,6 +225,7 @@ class Config(_Section):
     modem: ModemConfig = msgspec.field(default_factory=ModemConfig)
     health: HealthConfig = msgspec.field(default_factory=HealthConfig)
     events: EventsConfig = msgspec.field(default_factory=EventsConfig)
+    viewer: ViewerConfig = msgspec.field(default_factory=ViewerConfig)
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
     log_file: LogFileConfig = msgspec.field(default_factory=LogFileConfig)
 
@@ -338,4 +360,13 @@ def with_source(cfg: Config, **changes: Any) -> Config:
         return cfg
     return msgspec.structs.replace(
         cfg, source=msgspec.structs.replace(cfg.source, **changes)
+    ).validated()
+
+
+def with_section(cfg: Config, section: str, **changes: Any) -> Config:
+    """Override fields of one section (from command-line flags), re-validated."""
+    if not changes:
+        return cfg
+    return msgspec.structs.replace(
+        cfg, **{section: msgspec.structs.replace(getattr(cfg, section), **changes)}
     ).validated()

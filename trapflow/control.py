@@ -1,4 +1,7 @@
-"""Client side of the supervisor's control socket: `trapflow status` and `--stop`."""
+"""Client side of the supervisor's control socket: `trapflow status` and `--stop`.
+
+The human status renders the run ledger's own model (trapflow.run_ledger), as the status
+line and ledger.json do."""
 
 from __future__ import annotations
 
@@ -9,9 +12,12 @@ from typing import Any
 import zmq
 
 from trapflow import config as configmod
-from trapflow import messages
+from trapflow import messages, run_ledger
 from trapflow.errors import StartupError
 from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
+
+# Give-ups and retries `trapflow status` lists (the newest); the JSON has them all.
+TIMELINE_SHOWN = 5
 
 
 def request(run_dir: Path, what: str, timeout_s: float = 3.0,
@@ -66,4 +72,12 @@ def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
             lines.append(f"{r['worker']:<34} {r['host']:<16} {r['pool']:<10} {r['state']:<8} "
                          f"{r.get('processed', 0):>9} {r.get('rate', 0.0):>7}  "
                          f"{r.get('reason', '')}")
+    sup = reply.get("supervision")
+    if sup:
+        lines.append(f"supervision: {sup['gave_up']} give-ups, {sup['retries']} retries, "
+                     f"{sup['capped']} capped restarts of essential nodes")
+        for e in sup["timeline"][-TIMELINE_SHOWN:]:
+            lines.append(f"  {e['t_s']:>8} s  {e['node']:<20} {e['kind']:<8} {e['reason']}")
+    if reply.get("ledger"):
+        lines.append(run_ledger.totals_text(reply["ledger"]).rstrip("\n"))
     return "\n".join(lines)

@@ -172,6 +172,55 @@ class Heartbeat(Msg, frozen=True, tag="heartbeat"):
     counters: dict[str, int] = {}
 
 
+# Capture's heartbeat counters failed_<kind>: pairs skipped at capture, by kind.
+FAILED_PREFIX = "failed_"
+
+
+class CaptureCounters(msgspec.Struct, frozen=True, kw_only=True):
+    """What capture tells the supervisor with every heartbeat (as flat counters on the wire:
+    to_counters / from_counters), summed by the supervisor over capture's restarts."""
+
+    produced: int = 0  # pairs sent to the broker
+    dropped: int = 0  # the broker was not reading
+    failures: dict[str, int] = {}  # pairs read but skipped, by kind (unreadable, size...)
+    source_errors: int = 0  # a live source lost and reopened
+    source_gave_up: int = 0  # 1 once a finite source failed for good
+    next_seq: int = 0  # the seq the next pair gets
+    sync: dict[str, int] = {}  # live cameras paired by timestamp: sync_<stat>
+
+    @property
+    def failed(self) -> int:
+        return sum(self.failures.values())
+
+    def to_counters(self) -> dict[str, int]:
+        out = {"produced": self.produced, "dropped": self.dropped, "failed": self.failed,
+               "source_errors": self.source_errors, "source_gave_up": self.source_gave_up,
+               "next_seq": self.next_seq}
+        out.update({f"{FAILED_PREFIX}{k}": n for k, n in self.failures.items()})
+        out.update(self.sync)
+        return out
+
+    @classmethod
+    def from_counters(cls, c: dict[str, int]) -> CaptureCounters:
+        return cls(produced=c.get("produced", 0), dropped=c.get("dropped", 0),
+                   failures={k[len(FAILED_PREFIX):]: n for k, n in c.items()
+                             if k.startswith(FAILED_PREFIX)},
+                   source_errors=c.get("source_errors", 0),
+                   source_gave_up=c.get("source_gave_up", 0), next_seq=c.get("next_seq", 0),
+                   sync={k: n for k, n in c.items() if k.startswith("sync_")})
+
+    def __add__(self, other: CaptureCounters) -> CaptureCounters:
+        """Counters of two capture processes of one run (next_seq: the later one's)."""
+        fails = dict(self.failures)
+        for k, n in other.failures.items():
+            fails[k] = fails.get(k, 0) + n
+        return CaptureCounters(
+            produced=self.produced + other.produced, dropped=self.dropped + other.dropped,
+            failures=fails, source_errors=self.source_errors + other.source_errors,
+            source_gave_up=max(self.source_gave_up, other.source_gave_up),
+            next_seq=max(self.next_seq, other.next_seq), sync=other.sync or self.sync)
+
+
 class Alive(Msg, frozen=True, tag="alive"):
     """An idle worker's heartbeat to the broker, with how many jobs it could take now."""
 
@@ -341,7 +390,8 @@ def encode(msg: Msg) -> bytes:
     return _enc.encode(msg)
 
 
-def _decode(dec: msgspec.msgpack.Decoder[Any], data: Buffer, what: str, limit: int) -> Any:
+def _decode(dec: msgspec.msgpack.Decoder[Any] | msgspec.json.Decoder[Any], data: Buffer,
+            what: str, limit: int) -> Any:
     buf = memoryview(data.buffer if hasattr(data, "buffer") else data)
     if buf.nbytes > limit:
         raise ProtocolError(f"{what}: expected at most {limit} bytes, got {buf.nbytes}")
@@ -445,6 +495,19 @@ def decode_truth(data: Buffer) -> Truth:
     """Decode a Truth message from the tap."""
     truth: Truth = _decode(_truth_dec, data, "truth", MAX_RESULT_BYTES)
     return truth
+
+
+_line_dec = msgspec.json.Decoder(dict[str, dict[str, Any]])
+
+
+def decode_result_line(data: Buffer) -> tuple[str, dict[str, Any]]:
+    """Decode one JSON line of the normalizer's result tap: (algorithm, its fields)."""
+    obj: dict[str, dict[str, Any]] = _decode(_line_dec, data, "result line", MAX_RESULT_BYTES)
+    if len(obj) != 1:
+        raise ProtocolError(f"result line: expected one key (the algorithm), got {len(obj)}: "
+                            f"{sorted(obj)[:5]}")
+    ((kind, fields),) = obj.items()
+    return kind, fields
 
 
 def decode_control(data: Buffer) -> StatusRequest | StopRequest:

@@ -16,24 +16,25 @@ import os
 import signal
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 import zmq
 
 from trapflow import messages
 from trapflow.camera import StereoRig
 from trapflow.config import Config
+from trapflow.supervisor_state import Lifecycle
 from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
 
 log = logging.getLogger(__name__)
 
-# ROS 2 lifecycle states.
-UNCONFIGURED = "unconfigured"
-INACTIVE = "inactive"
-ACTIVE = "active"
-FINALIZED = "finalized"
+# ROS 2 lifecycle states (the enum lives in the pure supervision core).
+UNCONFIGURED: Final = Lifecycle.UNCONFIGURED
+INACTIVE: Final = Lifecycle.INACTIVE
+ACTIVE: Final = Lifecycle.ACTIVE
+FINALIZED: Final = Lifecycle.FINALIZED
 
 # Exit code of a node that ended on purpose (finite source exhausted): not a crash.
 EXIT_FINISHED = 0
@@ -49,11 +50,22 @@ ROLES = {
     "normalizer": "trapflow.normalizer:NormalizerNode",
     "modem": "trapflow.modem.node:ModemNode",
     "events": "trapflow.events_node:EventsNode",
+    "viewer": "trapflow.viewer.node:ViewerNode",
 }
 
 _PR_SET_PDEATHSIG = 1
 # Set to a folder to have every node write a cProfile of its loop there on exit.
 PROFILE_ENV = "TRAPFLOW_PROFILE_DIR"
+
+
+@dataclass(frozen=True)
+class JoinSpec:
+    """How a worker process on another host reaches the pipeline (`trapflow worker`)."""
+
+    endpoint: str  # tcp://HOST:PORT of the pipeline's network.remote.bind
+    keys: str  # folder with client.key_secret and server.key; empty: no CURVE (loopback)
+    host: str  # this host's name in identities and status
+    owner: str  # the identity of this host's `trapflow worker` supervisor
 
 
 @dataclass(frozen=True)
@@ -67,7 +79,12 @@ class NodeSpec:
     pool: str = ""
     index: int = 0
     rig: StereoRig | None = None  # the run's rig, decided once by trapflow.rig at preflight
-    extra: dict[str, Any] = field(default_factory=dict)
+    ring: str = ""  # the shared-memory frame ring's segment name ("" without one)
+    # A restarted broker frees the ring slots its predecessor held; a first one must not
+    # (capture's first pairs may already hold slots on their way to it).
+    restarted: bool = False
+    first_seq: int = 0  # capture numbers pairs from here (past a predecessor's numbers)
+    join: JoinSpec | None = None  # a remote worker's way to the pipeline
 
     def the_rig(self) -> StereoRig:
         """The run's rig; a node spawned without one (a test, a benchmark) gets the config's."""
@@ -86,7 +103,7 @@ class Node:
         self.cfg = spec.cfg
         self.name = spec.name
         self.endpoints = Endpoints.for_run(spec.cfg.network, spec.run_dir)
-        self.lifecycle = UNCONFIGURED
+        self.lifecycle: Lifecycle = UNCONFIGURED
         self.reason = ""
         self.stopping = False
         self.ctx = new_context()
@@ -96,7 +113,7 @@ class Node:
         self._hb_interval_ns = int(spec.cfg.supervisor.heartbeat_interval_s * 1e9)
         self._next_beat = 0
 
-    def set_state(self, state: str, reason: str = "") -> None:
+    def set_state(self, state: Lifecycle, reason: str = "") -> None:
         """Move to a lifecycle state and tell the supervisor at once."""
         if (state, reason) != (self.lifecycle, self.reason):
             if reason:
@@ -110,10 +127,10 @@ class Node:
         """Counters sent with every heartbeat; subclasses override."""
         return {}
 
-    def beat(self) -> None:
-        """Send a heartbeat if one is due (never blocks)."""
+    def beat(self, due: bool = False) -> None:
+        """Send a heartbeat if one is due, or at once with `due` (never blocks)."""
         now = time.monotonic_ns()
-        if now < self._next_beat:
+        if now < self._next_beat and not due:
             return
         self._next_beat = now + self._hb_interval_ns
         hb = messages.Heartbeat(

@@ -2,6 +2,8 @@
 
 Shape: {"mono_ir": {"timestamp": "2025-07-07 12:52:43.120", "seq": 17, "label": "crab",
 "confidence": 0.71, "box": [5.4, 7.8, 15.6, 18.1]}} -- numbers as numbers, UTC times.
+Each quantity keeps the precision it needs, whatever the modem's codec later quantises:
+confidences 1e-3, pixels 0.1, rotations and translations (VO's `Rt` and `pose`, tag poses) 1e-9.
 """
 
 from __future__ import annotations
@@ -14,6 +16,17 @@ import msgspec
 from trapflow import messages
 
 _json = msgspec.json.Encoder()
+
+CONFIDENCE_DIGITS = 3
+"""Scores: 1e-3 is finer than any threshold a user sets."""
+PIXEL_DIGITS = 1
+"""Boxes and corners: 0.1 px, as the modem carries them."""
+POSE_DIGITS = 9
+"""Rotation elements and translations in metres. Readers compose VO's `Rt` rows: at 5
+decimals the composed pose of a short run strayed 4e-5 from the worker's own and stopped being
+a rotation; at 1e-9 it stays within 1e-6 of it for a thousand steps and more."""
+ERROR_DIGITS = 3
+"""A tag's reprojection error in pixels."""
 
 
 def timestamp(t_wall_ns: int) -> str:
@@ -34,6 +47,8 @@ def normalize(res: messages.Result, decimals: int = 3) -> list[dict[str, Any]]:
     """One JSON-able object per reported item of a result (one per detection or tag).
 
     Stereo results also carry `calib`, the id of the rig they were computed with.
+    `decimals` (`normalizer.decimals`) rounds only the float fields of plugin-defined results
+    (Extra), whose quantities trapflow does not know; built-in fields keep their own precision.
     """
     objs = _items(res, decimals)
     calib = getattr(res.body, "calib", "")
@@ -48,24 +63,25 @@ def _items(res: messages.Result, decimals: int) -> list[dict[str, Any]]:
     base: dict[str, Any] = {"timestamp": timestamp(res.t_wall_ns), "seq": res.seq}
     b = res.body
     nd = decimals
+    cd, pd = CONFIDENCE_DIGITS, POSE_DIGITS
     if isinstance(b, messages.MonoIR):
         if not b.detections:
             return [{"mono_ir": {**base, "label": "none", "confidence": 0.0, "box": []}}]
         return [
-            {"mono_ir": {**base, "label": d.label, "confidence": _r(d.confidence, nd),
-                         "box": [_r(v, 1) for v in d.box]}}
+            {"mono_ir": {**base, "label": d.label, "confidence": _r(d.confidence, cd),
+                         "box": [_r(v, PIXEL_DIGITS) for v in d.box]}}
             for d in b.detections
         ]
     if isinstance(b, messages.StereoIR):
-        return [{"stereo_ir": {**base, "label": b.label, "confidence": _r(b.confidence, nd)}}]
+        return [{"stereo_ir": {**base, "label": b.label, "confidence": _r(b.confidence, cd)}}]
     if isinstance(b, messages.StereoVO):
         out: dict[str, Any] = {**base, "ok": b.ok, "inliers": b.inliers}
         if b.ok and len(b.rotation) == 9:
             r, t = b.rotation, b.translation
             rt = (*r[0:3], t[0], *r[3:6], t[1], *r[6:9], t[2])
-            out["Rt"] = _rows(rt, nd + 2)
+            out["Rt"] = _rows(rt, pd)
         if len(b.pose) == 12:
-            out["pose"] = _rows(b.pose, nd)
+            out["pose"] = _rows(b.pose, pd)
         if b.reinit:
             out["reinit"] = True
         return [{"stereo_vo": out}]
@@ -74,9 +90,9 @@ def _items(res: messages.Result, decimals: int) -> list[dict[str, Any]]:
             return [{"tags": {**base, "corners": []}}]
         return [
             {"tags": {**base, "id": t.id, "corners": [[_r(x, 1), _r(y, 1)] for x, y in t.corners],
-                      "rotation": [_r(v, nd) for v in t.rotation],
-                      "translation": [_r(v, nd) for v in t.translation],
-                      "error": _r(t.error, nd)}}
+                      "rotation": [_r(v, pd) for v in t.rotation],
+                      "translation": [_r(v, pd) for v in t.translation],
+                      "error": _r(t.error, ERROR_DIGITS)}}
             for t in b.tags
         ]
     if isinstance(b, messages.Extra):

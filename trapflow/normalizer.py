@@ -34,6 +34,10 @@ from trapflow.transport import (
 
 log = logging.getLogger(__name__)
 
+# Distinct (pool, kind) routes reported to the supervisor (the run ledger counts results.jsonl
+# by kind); a plugin inventing result names cannot grow the heartbeat without limit.
+MAX_ROUTES = 64
+
 
 class NormalizerNode(Node):
     """Turns Result messages into compact JSON lines."""
@@ -59,11 +63,14 @@ class NormalizerNode(Node):
         self.refused = 0
         self.lines = 0
         self.malformed = 0
+        self.routes: set[str] = set()  # route:<pool>:<kind>: a pool's results become these lines
         self.ratelog = RateLimitedLog(log)
 
     def counters(self) -> dict[str, int]:
-        return {"lines": self.lines, "malformed": self.malformed, "outbox_refused": self.refused,
-                "refused_subscriptions": self.gate.refused}
+        out = {"lines": self.lines, "malformed": self.malformed, "outbox_refused": self.refused,
+               "refused_subscriptions": self.gate.refused}
+        out.update(dict.fromkeys(self.routes, 1))
+        return out
 
     def run(self) -> int:
         ncfg = self.cfg.normalizer
@@ -141,6 +148,8 @@ class NormalizerNode(Node):
             except OutboxFull as exc:
                 self.refused += len(objs)
                 self.ratelog.warning("outbox", "outbox refused %d records: %s", len(objs), exc)
+        if objs and len(self.routes) < MAX_ROUTES:
+            self.routes.add(f"route:{res.pool}:{next(iter(objs[0]))}")
         for obj in objs:
             line = dumps(obj)
             lines.append(line + b"\n")

@@ -27,7 +27,7 @@ from trapflow import config as configmod
 from trapflow import messages, registry
 from trapflow.camera import StereoRig
 from trapflow.errors import ConfigError, ProtocolError, StartupError
-from trapflow.node import NodeSpec, node_main
+from trapflow.node import JoinSpec, NodeSpec, node_main
 from trapflow.transport import SocketSpec, client_keys, new_context, open_socket
 from trapflow.worker import WorkerNode
 
@@ -40,16 +40,6 @@ RESTART_BACKOFF_S = 0.5  # first restart delay, doubled per quick death, up to t
 RESTART_BACKOFF_MAX_S = 10.0
 STABLE_S = 10.0  # a process that lived this long resets the back-off
 STOP_TIMEOUT_S = 3.0  # stop ladder: SIGTERM, wait this long, SIGKILL
-
-
-@dataclass(frozen=True)
-class JoinSpec:
-    """How a process on this host reaches the pipeline (picklable, crosses spawn)."""
-
-    endpoint: str  # tcp://HOST:PORT of network.remote.bind
-    keys: str  # folder with client.key_secret and server.key; empty: no CURVE (loopback)
-    host: str  # this host's name in identities and status
-    owner: str  # the identity of this host's `trapflow worker` supervisor
 
 
 def dealer_spec(join: JoinSpec, identity: str) -> SocketSpec:
@@ -107,8 +97,8 @@ class RemoteWorkerNode(WorkerNode):
 
     @property
     def join(self) -> JoinSpec:
-        join = self.spec.extra["join"]
-        assert isinstance(join, JoinSpec)
+        join = self.spec.join
+        assert join is not None, "a remote worker is spawned with its JoinSpec"
         return join
 
     def _identity(self) -> str:
@@ -123,7 +113,7 @@ class RemoteWorkerNode(WorkerNode):
         ask(sock, self._hello(), self.join.endpoint)
         return sock
 
-    def beat(self) -> None:
+    def beat(self, due: bool = False) -> None:
         """No supervisor on this host reads node heartbeats: the broker hears Alive."""
 
     def _send(self, msgs: list[Any]) -> None:
@@ -220,7 +210,7 @@ class RemotePool:
     def _spawn(self, p: _Proc, cfg: configmod.Config, rig: StereoRig, queue: Any) -> None:
         spec = NodeSpec("remote_worker", f"worker:{self.pool}@{self.join.host}:{p.index}", cfg,
                         self.run_dir, pool=self.pool, index=p.index, rig=rig,
-                        extra={"join": self.join})
+                        join=self.join)
         p.proc = self.mp.Process(target=node_main, args=(spec, queue, os.getpid()),
                                  name=spec.name, daemon=False)
         p.proc.start()

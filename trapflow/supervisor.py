@@ -2,6 +2,8 @@
 
 Owns a PULL of heartbeats from every node, a REP control socket (status, stop)
 and a SUB of the broker's stats for the status line. The whole graph is in boot().
+The decisions are trapflow.supervisor_state's and the counting trapflow.run_ledger's: this
+shell turns processes, sockets and time into their events, and their actions into effects.
 """
 
 from __future__ import annotations
@@ -15,9 +17,8 @@ import os
 import signal
 import sys
 import time
-from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
 from typing import IO, Any
@@ -25,45 +26,46 @@ from typing import IO, Any
 import msgspec
 import zmq
 
-from trapflow import messages, registry, rig, run_totals
+from trapflow import messages, registry, rig, run_ledger
 from trapflow.camera import StereoRig
 from trapflow.config import Config
 from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError, TrapflowError
 from trapflow.frame_ring import FrameRing, cleanup_stale, ring_slots, slot_capacity
-from trapflow.node import ACTIVE, FINALIZED, INACTIVE, NodeSpec, node_main
+from trapflow.node import NodeSpec, node_main
 from trapflow.ratelog import RateLimitedLog, wire
+from trapflow.run_ledger import RunLedger
+from trapflow.supervisor_state import (
+    Action,
+    Budget,
+    GiveUp,
+    Kill,
+    NodePlan,
+    Retry,
+    Spawn,
+    Stop,
+    SupervisorState,
+    WorkerGone,
+)
 from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
 
 log = logging.getLogger(__name__)
 
-# How long every node has to report its first state before start-up is declared failed.
-STARTUP_TIMEOUT_S = 60.0
 # Stop ladder: capture first (no new pairs), then workers and broker, the normalizer last.
-STOP_ORDER = ("capture", "worker", "events", "broker", "normalizer", "modem")
-# Summed over capture restarts, with every failed_<kind> (pairs skipped at capture).
-CAPTURE_TOTALS = ("produced", "dropped", "failed", "source_errors")
-FAILED_PREFIX = run_totals.FAILED_PREFIX
+STOP_ORDER = ("viewer", "capture", "worker", "events", "broker", "normalizer", "modem")
 SEQ_RESTART_GAP = 100  # extra seqs skipped at a capture restart, beyond the heartbeat lag
 LOCK_FILE = "supervisor.lock"
+# results.jsonl is read incrementally for the ledger, at most this much per status tick.
+RESULTS_READ_BYTES = 4 << 20
+RESULTS_READS_AT_END = 10_000
 
 
 @dataclass
 class Child:
-    """One supervised process and what the supervisor knows about it."""
+    """One supervised process: its spec, its process, and its last counters."""
 
     spec: NodeSpec
-    liveness_s: float
     proc: Any = None  # multiprocessing.Process
-    state: str = "unconfigured"
-    reason: str = ""
-    last_beat: float = 0.0
-    started: float = 0.0
     counters: dict[str, int] = field(default_factory=dict)
-    restarts: deque[float] = field(default_factory=deque)
-    restart_total: int = 0
-    restart_at: float | None = None
-    gave_up: bool = False
-    finished: bool = False
 
     @property
     def name(self) -> str:
@@ -71,6 +73,19 @@ class Child:
 
     def alive(self) -> bool:
         return self.proc is not None and self.proc.is_alive()
+
+
+def _budget(cfg: Config) -> Budget:
+    sup = cfg.supervisor
+    return Budget(max_restarts=sup.max_restarts, window_s=sup.restart_window_s,
+                  backoff_s=sup.restart_backoff_s, backoff_max_s=sup.restart_backoff_max_s,
+                  cooldown_s=sup.retry_cooldown_s)
+
+
+def worker_liveness(timeout_s: float, heartbeat_interval_s: float) -> float:
+    """Silence allowed to a worker: its pool's timeout_s (a worker beats as it takes a pair,
+    so silence is time on one pair), but never under two idle heartbeats."""
+    return max(timeout_s, 2 * heartbeat_interval_s)
 
 
 def _full_stats(stats: messages.Stats) -> dict[str, Any]:
@@ -107,13 +122,11 @@ class Supervisor:
         self.out = out or sys.stdout
         self.mp = mp.get_context("spawn")
         self.children: list[Child] = []
+        self.core = SupervisorState((), _budget(cfg))  # the decisions (filled by boot())
+        self.ledger_model = RunLedger()  # the counters (status line, status, ledger.json)
         self.stop_requested = False
         self.exit_code = EXIT_OK
         self.failure: str | None = None  # one line: why the run failed (exit status 1)
-        self.stats: messages.Stats | None = None  # the run's totals, all brokers
-        self._broker_stats: messages.Stats | None = None  # the live broker's own
-        self._retired: messages.Stats | None = None  # what brokers that died had counted
-        self._capture_base: dict[str, int] = {}  # what captures that died had counted
         self.t0 = time.monotonic()
         self.rig: StereoRig | None = None  # decided at preflight (trapflow.rig)
         self.rig_origin = ""
@@ -127,39 +140,40 @@ class Supervisor:
         sup, cfg, run = self.cfg.supervisor, self.cfg, self.run_dir
         if self.rig is not None:
             log.info("rig from %s: %s", self.rig_origin, self.rig.describe())
-        self._add(NodeSpec("normalizer", "normalizer", cfg, run), sup.liveness_s)
+        ring = self.ring.name if self.ring is not None else ""
+        self._add(NodeSpec("normalizer", "normalizer", cfg, run, ring=ring), sup.liveness_s)
         if cfg.modem.enabled:
-            self._add(NodeSpec("modem", "modem", cfg, run), sup.liveness_s)
-        self._add(NodeSpec("broker", "broker", cfg, run, rig=self.rig), sup.liveness_s)
+            self._add(NodeSpec("modem", "modem", cfg, run, ring=ring), sup.liveness_s)
+        self._add(NodeSpec("broker", "broker", cfg, run, ring=ring, rig=self.rig),
+                  sup.liveness_s)
         if cfg.events.enabled:
-            self._add(NodeSpec("events", "events", cfg, run), sup.liveness_s)
+            self._add(NodeSpec("events", "events", cfg, run, ring=ring), sup.liveness_s)
         for pool, pcfg in cfg.pools.items():
             for i in range(pcfg.count):
                 spec = NodeSpec("worker", f"worker:{pool}:{i}", cfg, run, pool=pool, index=i,
-                                rig=self.rig)
-                self._add(spec, max(sup.liveness_s, pcfg.timeout_s))
-        self._add(NodeSpec("capture", "capture", cfg, run, rig=self.rig), sup.liveness_s)
+                                rig=self.rig, ring=ring)
+                self._add(spec, worker_liveness(pcfg.timeout_s, sup.heartbeat_interval_s))
+        self._add(NodeSpec("capture", "capture", cfg, run, rig=self.rig, ring=ring),
+                  sup.liveness_s)
+        now = time.monotonic()
+        if cfg.viewer.enabled:  # reads the taps and the control socket like `trapflow view`
+            self._add(NodeSpec("viewer", "viewer", cfg, run), sup.liveness_s)
         for child in self.children:
             if child.spec.role != "capture":
-                self._spawn(child)
+                self._spawn(child, now)
 
     def _add(self, spec: NodeSpec, liveness_s: float) -> None:
-        self.children.append(Child(spec, liveness_s))
+        self.children.append(Child(spec))
+        self.core.add(NodePlan(spec.name, spec.role, liveness_s))
 
-    def _spawn(self, child: Child) -> None:
-        if self.ring is not None:
-            child.spec.extra["ring"] = self.ring.name
-        # A restarted broker frees the ring slots its predecessor held; a first one must not
-        # (capture's first pairs may already hold slots on their way to it).
-        child.spec.extra["restarted"] = child.restart_total > 0
+    def _spawn(self, child: Child, now: float) -> None:
         child.proc = self.mp.Process(
             target=node_main, args=(child.spec, self.log_queue, os.getpid()),
             name=child.name, daemon=False,
         )
         child.proc.start()
-        now = time.monotonic()
-        child.started = child.last_beat = now
-        child.state, child.reason, child.restart_at = "unconfigured", "", None
+        child.counters = {}
+        self.core.spawned(child.name, child.proc.pid, now)
 
     # --- main loop ---------------------------------------------------------------------
 
@@ -167,6 +181,9 @@ class Supervisor:
         """Start, supervise until stopped, stop; return the exit status."""
         self.run_dir.mkdir(parents=True, exist_ok=True)
         lock = self._lock_run_dir()
+        results = self.run_dir / self.cfg.normalizer.results_file
+        if results.exists():  # a reused run directory: this run's results start at its end
+            self.ledger_model.delivered.offset = results.stat().st_size
         self._preflight()
         self.endpoints = Endpoints.for_run(self.cfg.network, self.run_dir)
         self.ring = self._create_ring()
@@ -185,7 +202,7 @@ class Supervisor:
             self._install_signals()
             self.boot()
             self._wait_started()  # every consumer is ready before the first pair exists
-            self._spawn(self._child("capture"))
+            self._spawn(self._child("capture"), time.monotonic())
             self._wait_started()
             self._supervise()
         finally:
@@ -267,26 +284,25 @@ class Supervisor:
 
     def _wait_started(self) -> None:
         """Every node must report active (or, for a finished source, finalized) in time."""
-        deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while not self.stop_requested:
             self._poll(0.05)
+            now = time.monotonic()
             started = [c for c in self.children if c.proc is not None]
             for c in started:
-                if c.state == INACTIVE and c.reason:
-                    raise StartupError(f"{c.name} cannot start: {c.reason}")
-                if not c.alive():
+                node = self.core.node(c.name)
+                if not c.alive() and node.running:
                     if c.spec.role == "capture" and c.proc.exitcode == 0:
-                        c.finished = True  # a tiny finite source may end during start-up
+                        self.core.finish(c.name)  # a tiny finite source may end during start-up
                         continue
                     self._poll(0.2)  # the dying node's last heartbeat carries its reason
-                    why = c.reason or f"exited with status {c.proc.exitcode}"
+                    why = node.reason or f"exited with status {c.proc.exitcode}"
                     raise StartupError(f"{c.name} cannot start: {why}")
-            if all(c.state in (ACTIVE, FINALIZED) for c in started):
+            problem = self.core.start_problem([c.name for c in started], now)
+            if problem is not None:
+                raise StartupError(problem)
+            if self.core.started(c.name for c in started):
                 log.info("%d nodes active", len(started))
                 return
-            if time.monotonic() > deadline:
-                slow = [c.name for c in started if c.state != ACTIVE]
-                raise StartupError(f"nodes not active after {STARTUP_TIMEOUT_S:g} s: {slow}")
 
     def _supervise(self) -> None:
         end = self.t0 + self.duration if self.duration else None
@@ -299,25 +315,21 @@ class Supervisor:
             if end is not None and now >= end:
                 log.info("duration of %g s reached", self.duration)
                 break
-            capture = self._child("capture")
-            if capture.finished and drain_until is None:
+            if self.core.node("capture").finished and drain_until is None:
                 log.info("source exhausted; draining the pools")
                 drain_until = now + max(p.timeout_s for p in self.cfg.pools.values()) + 2
-            if drain_until is not None and (self._drained() or now > drain_until):
+            if drain_until is not None and (self.ledger_model.drained() or now > drain_until):
                 break
             if now >= next_status:
                 next_status = now + 1.0
+                self._read_results()
                 self._status_line()
-
-    def _drained(self) -> bool:
-        """Every pair capture produced reached the broker and left every pool."""
-        s = self.stats
-        produced = self.capture_counts()["produced"] if self._child("capture").counters else -1
-        return (s is not None and s.pairs_in >= produced
-                and all(p.pending == 0 and p.in_flight == 0 for p in s.pools.values()))
 
     def _child(self, role: str) -> Child:
         return next(c for c in self.children if c.spec.role == role)
+
+    def _named(self, name: str) -> Child:
+        return next(c for c in self.children if c.name == name)
 
     # --- watching ----------------------------------------------------------------------
 
@@ -337,7 +349,7 @@ class Supervisor:
             while True:
                 try:
                     _topic, data = self.stats_sub.recv_multipart(zmq.NOBLOCK)
-                    self._on_stats(messages.decode_stats(data))
+                    self.ledger_model.on_stats(messages.decode_stats(data))
                 except zmq.Again:
                     break
                 except (ValueError, ProtocolError) as exc:
@@ -345,34 +357,14 @@ class Supervisor:
         if self.control in events:
             self._on_control(self.control.recv())
 
-    def _on_stats(self, stats: messages.Stats) -> None:
-        self._broker_stats = stats
-        self.stats = run_totals.combine(self._retired, stats)
-
-    def _retire_capture(self, c: Child) -> None:
-        """A restarted capture goes on counting, and numbering pairs past any its predecessor
-        may have sent after its last heartbeat: a pool sees a gap, never a repeated seq."""
-        for key, n in c.counters.items():
-            if key in CAPTURE_TOTALS or key.startswith(FAILED_PREFIX):
-                self._capture_base[key] = self._capture_base.get(key, 0) + n
-        rate = max(self.cfg.source.rate_hz, 1.0)
-        margin = int(rate * (self.cfg.supervisor.heartbeat_interval_s + 1.0)) + SEQ_RESTART_GAP
-        c.spec.extra["first_seq"] = c.counters.get("next_seq", 0) + margin
-        c.counters = {}
+    @property
+    def stats(self) -> messages.Stats | None:
+        """The run's totals over every broker so far."""
+        return self.ledger_model.stats
 
     def capture_counts(self) -> dict[str, int]:
         """Capture's counters over the whole run, across its restarts."""
-        cur = next((c.counters for c in self.children if c.spec.role == "capture"), {})
-        keys = {*CAPTURE_TOTALS, *(k for k in (*self._capture_base, *cur)
-                                   if k.startswith(FAILED_PREFIX))}
-        return {k: self._capture_base.get(k, 0) + cur.get(k, 0) for k in sorted(keys)}
-
-    def _retire_broker(self) -> None:
-        """A restarted broker counts from zero: the run's totals keep what its predecessor saw."""
-        if self._broker_stats is not None:
-            self._retired = run_totals.combine(self._retired,
-                                               run_totals.retire(self._broker_stats))
-            self._broker_stats = None
+        return self.ledger_model.capture_counts()
 
     def _on_heartbeat(self, data: bytes) -> None:
         try:
@@ -380,61 +372,72 @@ class Supervisor:
         except ProtocolError as exc:
             self.ratelog.warning("heartbeat", "dropped malformed heartbeat: %s", wire(str(exc)))
             return
-        for c in self.children:
-            if c.name == hb.node and c.proc is not None and c.proc.pid == hb.pid:
-                c.last_beat = time.monotonic()
-                c.state, c.reason, c.counters = hb.state, hb.reason, hb.counters
-                return
+        if not self.core.heartbeat(hb.node, hb.pid, hb.state, hb.reason, time.monotonic()):
+            return
+        c = self._named(hb.node)
+        c.counters = hb.counters
+        if c.spec.role == "capture":
+            self.ledger_model.on_capture(messages.CaptureCounters.from_counters(hb.counters))
+        elif c.spec.role == "normalizer":
+            self.ledger_model.on_normalizer(hb.counters)
+
+    def _read_results(self) -> None:
+        """Count what results.jsonl gained since the last call (the ledger's truth)."""
+        path = self.run_dir / self.cfg.normalizer.results_file
+        try:
+            with open(path, "rb") as f:
+                f.seek(self.ledger_model.delivered.offset)
+                self.ledger_model.delivered.feed(f.read(RESULTS_READ_BYTES))
+        except FileNotFoundError:
+            pass
 
     def _watch(self, now: float) -> None:
-        sup = self.cfg.supervisor
+        """Processes into events (exits, time), the core's actions into effects."""
         for c in self.children:
-            if c.gave_up or c.finished:
-                continue
-            if c.restart_at is not None:
-                if now >= c.restart_at:
-                    log.warning("restarting %s (restart %d)", c.name, c.restart_total)
-                    if c.spec.role == "broker":
-                        self._retire_broker()
-                    if c.spec.role == "capture":
-                        self._retire_capture(c)
-                    self._spawn(c)
-                continue
-            if c.alive():
-                # A node still configuring (loading a model, building a world) gets start-up time.
-                limit = c.liveness_s if c.state != "unconfigured" else STARTUP_TIMEOUT_S
-                if now - c.last_beat > limit:
-                    log.error("%s silent for %.1f s; killing it", c.name, now - c.last_beat)
+            if c.proc is not None and not c.alive() and self.core.node(c.name).running:
+                actions = self.core.exited(c.name, c.proc.exitcode, now)
+                node = self.core.node(c.name)
+                if node.restart_at is not None:
+                    log.warning("%s %s", c.name, node.reason)
+                self._act(actions, now)
+        self._act(self.core.tick(now), now)
+
+    def _act(self, actions: list[Action], now: float) -> None:
+        for a in actions:
+            if isinstance(a, Spawn):
+                c = self._named(a.name)
+                log.warning("restarting %s (restart %d)", c.name, a.restart)
+                self._respawn(c, now)
+            elif isinstance(a, Kill):
+                log.error("%s %s; killing it", a.name, a.reason)
+                c = self._named(a.name)
+                if c.alive():
                     c.proc.kill()
-                continue
-            code = c.proc.exitcode
-            if code == 0 and c.spec.role == "capture" and c.state == FINALIZED:
-                c.finished = True
-                continue
-            if c.spec.role == "worker":
-                self._tell_broker_gone(c, f"process exited with status {code}")
-            # A crash (or an unexpected exit): restart with back-off inside a budget.
-            while c.restarts and now - c.restarts[0] > sup.restart_window_s:
-                c.restarts.popleft()
-            if len(c.restarts) >= sup.max_restarts:
-                c.gave_up = True
-                c.state, c.reason = FINALIZED, (
-                    f"gave up after {len(c.restarts)} restarts in {sup.restart_window_s:g} s "
-                    f"(last exit status {code})")
-                log.error("%s: %s", c.name, c.reason)
-                if c.spec.role != "worker":
-                    log.error("%s is essential; stopping the pipeline", c.name)
-                    self.exit_code = EXIT_FAILURE
-                    self.failure = self.failure or f"{c.name} {c.reason}"
-                    self.stop_requested = True
-                continue
-            c.restarts.append(now)
-            c.restart_total += 1
-            delay = min(sup.restart_backoff_s * 2 ** (len(c.restarts) - 1),
-                        sup.restart_backoff_max_s)
-            c.state, c.reason = INACTIVE, f"exited with status {code}; restart in {delay:.1f} s"
-            log.warning("%s %s", c.name, c.reason)
-            c.restart_at = now + delay
+            elif isinstance(a, WorkerGone):
+                c = self._named(a.name)
+                self._tell_broker_gone(c, a.reason)
+            elif isinstance(a, GiveUp):
+                log.error("%s: %s", a.name, a.reason)
+            elif isinstance(a, Retry):
+                log.warning("%s: %s", a.name, a.reason)
+            elif isinstance(a, Stop):
+                log.info("stopping: %s", a.reason)
+                self.stop_requested = True
+
+    def _respawn(self, c: Child, now: float) -> None:
+        """A restart: what the dead process had counted is kept, then a new one starts."""
+        spec = c.spec
+        if spec.role == "broker":
+            self.ledger_model.retire_broker()
+        if spec.role == "capture":
+            # Numbering goes on past any pair the dead capture may have sent after its last
+            # heartbeat: a pool sees a gap, never a repeated seq.
+            rate = max(self.cfg.source.rate_hz, 1.0)
+            margin = int(rate * (self.cfg.supervisor.heartbeat_interval_s + 1.0)) \
+                + SEQ_RESTART_GAP
+            spec = replace(spec, first_seq=self.ledger_model.retire_capture(margin))
+        c.spec = replace(spec, restarted=True)
+        self._spawn(c, now)
 
     def _tell_broker_gone(self, c: Child, reason: str) -> None:
         ident = messages.worker_identity(c.spec.pool, c.spec.index, c.proc.pid)
@@ -449,21 +452,34 @@ class Supervisor:
     def status(self) -> dict[str, Any]:
         """Everything `trapflow status` shows, as JSON-able builtins."""
         now = time.monotonic()
+        nodes = []
+        for c in self.children:
+            n = self.core.node(c.name)
+            nodes.append({"name": c.name, "pid": c.proc.pid if c.proc else None,
+                          "state": str(n.state), "reason": n.reason,
+                          "restarts": n.restart_total, "gave_up": n.gave_up,
+                          "retries": n.retried, "last_beat_s": round(now - n.last_beat, 1),
+                          "counters": c.counters})
         return {
             "run_dir": str(self.run_dir),
             "uptime_s": round(now - self.t0, 1),
-            "nodes": [
-                {"name": c.name, "pid": c.proc.pid if c.proc else None, "state": c.state,
-                 "reason": c.reason, "restarts": c.restart_total,
-                 "last_beat_s": round(now - c.last_beat, 1), "counters": c.counters}
-                for c in self.children
-            ],
+            "nodes": nodes,
             "stats": _full_stats(self.stats) if self.stats else None,
+            "supervision": self.supervision(),
+            "ledger": self.ledger(final=False),  # ledger.json so far
             "rig": ({"calib": self.rig.id, "origin": self.rig_origin,
                      **msgspec.structs.asdict(self.rig)} if self.rig is not None else None),
             "ring": ({"segment": self.ring.name, "slots": self.ring.slots, **self.ring.counts()}
                      if self.ring is not None else None),
         }
+
+    def supervision(self) -> dict[str, Any]:
+        """Give-ups and retries over the run, and their timeline (seconds since start)."""
+        counts = self.core.counts()
+        return {"gave_up": counts["gave_up"], "retries": counts["retry"],
+                "capped": counts["capped"],
+                "timeline": [{"t_s": round(e.t - self.t0, 1), "node": e.node, "kind": e.kind,
+                              "reason": e.reason} for e in self.core.timeline]}
 
     def _on_control(self, data: bytes) -> None:
         # A request is read whole: REP answers only after its last frame (else EFSM, exit 1).
@@ -486,27 +502,16 @@ class Supervisor:
         else:
             self.control.send(msgspec.json.encode(self.status()))
 
-    def _pool_restarts(self, pool: str) -> int:
-        return sum(c.restart_total for c in self.children if c.spec.pool == pool)
+    def _pool_restarts(self) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for c in self.children:
+            if c.spec.pool:
+                out[c.spec.pool] = out.get(c.spec.pool, 0) + self.core.node(c.name).restart_total
+        return out
 
     def status_text(self) -> str:
         """One line: time, pairs/s in, per pool processed/s, dropped, restarts."""
-        up = time.monotonic() - self.t0
-        s = self.stats
-        if s is None:
-            return f"{up:6.1f}s | waiting for stats"
-        cap = self.capture_counts()
-        parts = [f"{up:6.1f}s | in {s.rate_in:5.1f}/s ({s.pairs_in})"]
-        if cap["dropped"]:
-            parts[0] += f" capture-drop {cap['dropped']}"
-        if cap["failed"]:
-            parts[0] += f" capture-fail {cap['failed']}"
-        for name, p in s.pools.items():
-            parts.append(
-                f"{name} {p.workers}w {p.rate:5.1f}/s drop {p.dropped} "
-                f"err {p.errors} lost {p.lost} rst {self._pool_restarts(name)}"
-            )
-        return " | ".join(parts)
+        return self.ledger_model.status_text(time.monotonic() - self.t0, self._pool_restarts())
 
     def _status_line(self) -> None:
         line = self.status_text()
@@ -516,48 +521,23 @@ class Supervisor:
             self.out.write(line + "\n")
         self.out.flush()
 
-    def ledger(self) -> dict[str, Any]:
+    def ledger(self, final: bool = True) -> dict[str, Any]:
         """Where every pair went: capture's count, then per pool exactly one state each."""
-        cap = self.capture_counts()
-        s = self.stats
-        produced = cap.get("produced", 0)
-        out: dict[str, Any] = {
-            "produced": produced,
-            "dropped_at_capture": cap.get("dropped", 0),  # the broker was not reading
-            # Read but never sent: unreadable, cut short, two sizes, too large for the ring.
-            "failed_at_capture": cap.get("failed", 0),
-            "capture_failures": run_totals.capture_failures(cap),
-            "reached_broker": s.pairs_in if s else 0,
-            "pools": {},
-        }
-        for name, p in (s.pools.items() if s else ()):
-            out["pools"][name] = {
-                "processed": p.processed, "dropped_by_policy": p.dropped,
-                "policy": self.cfg.pools[name].policy, "timed_out": p.timed_out,
-                "failed": p.errors, "failures": p.failures,
-                # Pairs the pool never saw (lost between capture and broker) count as lost.
-                "lost": p.lost + p.pending + p.in_flight + max(0, produced - p.received),
-            }
-        return out
+        return self.ledger_model.ledger({n: p.policy for n, p in self.cfg.pools.items()},
+                                        self._pool_restarts(), self.supervision(), final)
 
     def _print_totals(self) -> None:
         if self.out.isatty():
             self.out.write("\n")
+        for _ in range(RESULTS_READS_AT_END):
+            before = self.ledger_model.delivered.offset
+            self._read_results()
+            if self.ledger_model.delivered.offset == before:
+                break
         ledger = self.ledger()
         (self.run_dir / "ledger.json").write_text(json.dumps(ledger, indent=1) + "\n")
         if self.stats is not None:
-            failed = ledger["failed_at_capture"]
-            kinds = ", ".join(f"{k} {v}" for k, v in ledger["capture_failures"].items())
-            self.out.write(f"totals: {ledger['produced']} pairs captured, "
-                           f"{ledger['reached_broker']} reached the broker"
-                           f"{f', {failed} failed at capture ({kinds})' if failed else ''}\n")
-            for name, p in ledger["pools"].items():
-                kinds = ", ".join(f"{k} {v}" for k, v in p["failures"].items())
-                self.out.write(
-                    f"  {name}: processed {p['processed']}, dropped {p['dropped_by_policy']} "
-                    f"({p['policy']}), timed out {p['timed_out']}, failed {p['failed']}"
-                    f"{f' ({kinds})' if kinds else ''}, lost {p['lost']}, "
-                    f"restarts {self._pool_restarts(name)}\n")
+            self.out.write(run_ledger.totals_text(ledger))
         self.out.write(f"results: {self.run_dir / self.cfg.normalizer.results_file}\n")
         self.out.flush()
 
@@ -566,10 +546,10 @@ class Supervisor:
         every pair it was given (a run that produced nothing useful never exits 0)."""
         if not self.children:  # stopped before boot: the error raised says it all
             return
-        capture = self._child("capture")
-        problems = run_totals.verdict(
+        capture = self.core.node("capture")
+        problems = run_ledger.verdict(
             self.cfg.source.kind, self.capture_counts(),
-            capture.reason if capture.counters.get("source_gave_up") else None,
+            capture.reason if self.ledger_model.capture().source_gave_up else None,
             capture.finished, self.stats)
         if self.failure:
             problems.insert(0, self.failure)
@@ -582,6 +562,7 @@ class Supervisor:
 
     def _stop_all(self) -> None:
         """The stop ladder: ask (SIGTERM) by role in order, wait, kill what is left, join."""
+        self.core.stop("stop ladder")
         timeout = self.cfg.supervisor.stop_timeout_s
         for role in STOP_ORDER:
             group = [c for c in self.children if c.spec.role == role and c.alive()]
@@ -655,7 +636,7 @@ def run(cfg: Config, run_dir: Path | None = None, duration: float | None = None,
     sup = Supervisor(cfg, run_dir, duration, out)
     code = sup.run()
     return RunResult(code, sup.stats, sup.failure,
-                     run_totals.capture_failures(sup.capture_counts()))
+                     run_ledger.capture_failures(sup.capture_counts()))
 
 
 def start(cfg: Config, run_dir: Path | None = None, duration: float | None = None,

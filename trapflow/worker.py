@@ -80,7 +80,7 @@ class WorkerNode(Node):
         self.pcfg = self.cfg.pools[self.pool]
         self.ident = self._identity()
         # Local workers of the ring get descriptors over a local link; others, bytes over zmq.
-        self.local = bool(spec.extra.get("ring")) and not self.pcfg.remote
+        self.local = bool(spec.ring) and not self.pcfg.remote
         self.link = LinkClient(self.endpoints.workers_link)
         self.dealer: zmq.Socket[bytes] | None = None
         if not self.local:
@@ -91,6 +91,7 @@ class WorkerNode(Node):
         self._reader: RingReader | None = None
         self._next_save = 0.0
         self.processed = 0
+        self.proc_us = 0  # processing time of every processed pair, summed (for /metrics)
         self.failed = 0
         self.free = self.pcfg.credit
         self.ratelog = RateLimitedLog(log)
@@ -108,12 +109,13 @@ class WorkerNode(Node):
 
     def counters(self) -> dict[str, int]:
         stale = self._reader.rejected if self._reader is not None else 0
-        return {"processed": self.processed, "failed": self.failed, "stale_reads": stale}
+        return {"processed": self.processed, "failed": self.failed, "stale_reads": stale,
+                "proc_us": self.proc_us}
 
     def _ring(self) -> RingReader:
         """The shared-memory ring, mapped once, on first use."""
         if self._reader is None:
-            name = self.spec.extra.get("ring")
+            name = self.spec.ring
             if not name:
                 raise ProtocolError("job: got a frame ref, but this worker has no ring")
             self._reader = RingReader(name)
@@ -154,6 +156,9 @@ class WorkerNode(Node):
         while not self.stopping:
             frames = self._recv(100)
             if frames is not None:
+                # Taking work: the supervisor times this pair from here (its pool's timeout_s
+                # bounds the process) and knows the worker active, even on its first pair.
+                self.beat(due=True)
                 self.free -= 1
                 self._handle(frames)
                 self.free += 1
@@ -283,6 +288,7 @@ class WorkerNode(Node):
                                         reason=reason[:300], kind=type(exc).__name__)])
             return
         self.processed += 1
+        self.proc_us += proc_ns // 1000
         body = self._stamp(body)
         result = messages.Result(
             seq=header.seq, t_wall_ns=header.t_wall_ns, t_mono_ns=header.t_mono_ns,

@@ -1,10 +1,13 @@
-"""stereo_vo: keyframe stereo visual odometry with OpenCV (FAST, pyramidal LK, PnP + RANSAC).
+"""stereo_vo: stereo visual odometry with OpenCV (Shi-Tomasi, pyramidal LK, PnP + RANSAC).
 
 At a keyframe, corners of the left image are matched into the right image along the
-row (rectified pair) and triangulated. Later pairs track those corners from the
-keyframe straight into the current left image (no chained pixel drift), seeded by a
-constant-velocity prediction, and solve PnP with RANSAC. A new keyframe is taken when
-too few points survive. Output per pair: motion since the last ok pair, accumulated pose.
+row (rectified pair) and triangulated. The next pairs track those corners from the last
+image they were seen in (appearance changes least between neighbours), seeded by a
+constant-velocity prediction, and solve PnP with RANSAC and a final fit on the points
+within the noise. By default every ok pair becomes the next keyframe: the depth error of
+a stereo match (about 0.2 px of disparity) then moves the pose by one step's motion
+times that error, not by the whole distance since an older keyframe. Output per pair:
+motion since the last ok pair, accumulated pose.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from trapflow.plugin import Context, Pair, Worker
 log = logging.getLogger(__name__)
 
 Pos = Annotated[float, msgspec.Meta(gt=0)]
+REFIT_MEDIANS = 2.5  # final fit: residuals up to this many times the median (about 3 sigma)
 
 
 class VOParams(Params):
@@ -45,8 +49,10 @@ class VOParams(Params):
         Annotated[int, msgspec.Meta(ge=1, le=64)], Annotated[int, msgspec.Meta(ge=1, le=64)]
     ] = (8, 6)
     """Columns and rows of the grid the corners are spread over."""
-    fast_threshold: Annotated[int, msgspec.Meta(ge=1, le=255)] = 12
-    """FAST corner threshold (grey levels)."""
+    quality: Annotated[float, msgspec.Meta(gt=0, lt=1)] = 0.01
+    """Shi-Tomasi corners weaker than this fraction of the image's strongest are not used."""
+    min_distance_px: Pos = 8.0
+    """Smallest distance between two corners."""
     window: Annotated[int, msgspec.Meta(ge=5, le=63)] = 21
     """LK window side in pixels."""
     levels: Annotated[int, msgspec.Meta(ge=0, le=6)] = 3
@@ -61,8 +67,9 @@ class VOParams(Params):
     """RANSAC reprojection threshold."""
     min_inliers: Annotated[int, msgspec.Meta(ge=6)] = 30
     """Fewer PnP inliers make the pair not ok."""
-    keyframe_ratio: Annotated[float, msgspec.Meta(gt=0, lt=1)] = 0.6
-    """A new keyframe once inliers fall below this fraction of the keyframe's points."""
+    keyframe_ratio: Annotated[float, msgspec.Meta(gt=0, le=1)] = 1.0
+    """A new keyframe once inliers fall below this fraction of the keyframe's points; 1 takes
+    one at every ok pair, so a point's depth error is never multiplied by more than one step."""
     max_step_m: Pos = 1.0
     """A motion larger than this between two pairs is rejected as wild."""
     max_step_deg: Pos = 30.0
@@ -96,6 +103,17 @@ def _from_rt(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     return out
 
 
+def _image_disparity(left: np.ndarray, right: np.ndarray) -> float:
+    """The dominant disparity of a rectified pair (phase correlation), in pixels.
+
+    Needs no units: a guess from the rig (a point 2 m away) is fx * baseline / 2 only when the
+    calibration is in metres, and far off the image when it is in millimetres or squares."""
+    h, w = left.shape
+    window = cv2.createHanningWindow((w, h), cv2.CV_32F)  # the image borders do not vote
+    (dx, _), _ = cv2.phaseCorrelate(left.astype(np.float32), right.astype(np.float32), window)
+    return max(0.0, -float(dx))
+
+
 def _angle_deg(r: np.ndarray) -> float:
     return math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(r)) - 1.0) / 2.0))))
 
@@ -108,7 +126,6 @@ class StereoOdometry(Worker):
         self.p = p
         self.rig: StereoRig = resolve_rig(p.calibration, p.intrinsics, p.baseline_m, ctx.rig)
         self.K = self.rig.K
-        self.fast = cv2.FastFeatureDetector_create(p.fast_threshold, True)
         self.win = (p.window, p.window)
         self.lk_crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
         self.reset(np.eye(4))
@@ -128,7 +145,7 @@ class StereoOdometry(Worker):
         self.key_to_prev = np.eye(4)  # previous ok pair's camera in the keyframe's frame
         self.velocity = np.eye(4)  # last motion, for the prediction
         self.lost = 0
-        self.prior_disp = self.rig.fx * self.rig.baseline_m / 2.0  # a point 2 m away
+        self.prior_disp: float | None = None  # median disparity of the last keyframe
 
     def _lk(
         self, src: np.ndarray, dst: np.ndarray, pts: np.ndarray, guess: np.ndarray
@@ -146,18 +163,21 @@ class StereoOdometry(Worker):
         return out.reshape(-1, 2), status.ravel().astype(bool)
 
     def _corners(self, gray: np.ndarray) -> np.ndarray:
-        kps = self.fast.detect(gray)
-        if not kps:
-            return np.zeros((0, 2), np.float32)
-        pts = np.array([k.pt for k in kps], np.float32)
-        resp = np.array([k.response for k in kps], np.float32)
-        h, w = gray.shape
+        """Shi-Tomasi corners, strongest first, at most features / cells per grid cell."""
         m = self.p.window
-        inside = (pts[:, 0] >= m) & (pts[:, 0] < w - m) & (pts[:, 1] >= m) & (pts[:, 1] < h - m)
-        pts, resp = pts[inside], resp[inside]
+        mask = np.zeros_like(gray)
+        mask[m:-m, m:-m] = 255  # LK needs the whole window inside the image
+        found = cv2.goodFeaturesToTrack(
+            gray, 2 * self.p.features, self.p.quality, self.p.min_distance_px, mask=mask,
+            blockSize=7,
+        )
+        if found is None:
+            return np.zeros((0, 2), np.float32)
+        pts = found.reshape(-1, 2).astype(np.float32)
+        h, w = gray.shape
         cols, rows = self.p.grid
         cell = (pts[:, 1] * rows / h).astype(int) * cols + (pts[:, 0] * cols / w).astype(int)
-        order = np.lexsort((-resp, cell))
+        order = np.argsort(cell, kind="stable")  # within a cell, still strongest first
         pts, cell = pts[order], cell[order]
         first = np.searchsorted(cell, cell)  # index of each cell's first (strongest) corner
         rank = np.arange(len(cell)) - first
@@ -168,6 +188,8 @@ class StereoOdometry(Worker):
         pts = self._corners(left)
         if len(pts) < self.p.min_inliers:
             return None
+        if self.prior_disp is None:
+            self.prior_disp = _image_disparity(left, right)
         guess = pts - np.array([self.prior_disp, 0], np.float32)
         pr, ok = self._lk(left, right, pts, guess)
         back, ok_b = self._lk(right, left, pr, pts)
@@ -190,8 +212,11 @@ class StereoOdometry(Worker):
             image=left, pts2d=pts, pts3d=np.column_stack([x, y, z]), world=world, initial=len(pts)
         )
 
-    def _track(self, key: Keyframe, left: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """Pose of the current camera in the keyframe's frame and the inlier mask, or None."""
+    def _track(
+        self, key: Keyframe, left: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """Pose of the current camera in the keyframe's frame, where the keyframe's points are
+        in `left`, and the inlier mask; or None."""
         predicted = self.key_to_prev @ self.velocity
         extr = _inv(predicted)
         rvec = cv2.Rodrigues(extr[:3, :3])[0]
@@ -220,12 +245,19 @@ class StereoOdometry(Worker):
         if not found or inl is None or len(inl) < self.p.min_inliers:
             return None
         inl = idx[inl.ravel()]
-        rvec, tvec = cv2.solvePnPRefineLM(
-            key.pts3d[inl], cur[inl].astype(np.float64), self.K, None, rvec, tvec
-        )
+        obj, img = key.pts3d[inl], cur[inl].astype(np.float64)
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, self.K, None, rvec, tvec)
+        # The least-squares fit takes only points within the noise of the rest: a gate of
+        # ransac_px lets tracks that slid by a pixel (depth edges, occlusions) pull the pose.
+        proj = cv2.projectPoints(obj, rvec, tvec, self.K, None)[0].reshape(-1, 2)
+        err = np.linalg.norm(proj - img, axis=1)
+        tight = err <= min(self.p.ransac_px, REFIT_MEDIANS * float(np.median(err)))
+        if self.p.min_inliers <= tight.sum() < len(inl):
+            inl = inl[tight]
+            rvec, tvec = cv2.solvePnPRefineLM(obj[tight], img[tight], self.K, None, rvec, tvec)
         mask = np.zeros(len(key.pts2d), bool)
         mask[inl] = True
-        return _inv(_from_rt(rvec, tvec)), mask
+        return _inv(_from_rt(rvec, tvec)), cur, mask
 
     def process(self, pair: Pair) -> StereoVO:
         check_frame(pair, (self.rig.width, self.rig.height), "the calibration's image size")
@@ -244,7 +276,7 @@ class StereoOdometry(Worker):
         assert key is not None
         tracked = self._track(key, left)
         if tracked is not None:
-            key_to_cur, mask = tracked
+            key_to_cur, cur, mask = tracked
             step = _inv(self.key_to_prev) @ key_to_cur
             if (
                 np.linalg.norm(step[:3, 3]) > self.p.max_step_m
@@ -261,13 +293,13 @@ class StereoOdometry(Worker):
         self.velocity = step
         self.key_to_prev = key_to_cur
         self.world = key.world @ key_to_cur
-        if n < self.p.keyframe_ratio * key.initial:
+        # The next pair is tracked from this image, where the points look most alike.
+        key.image, key.pts2d, key.pts3d = left, cur[mask].astype(np.float32), key.pts3d[mask]
+        if self.p.keyframe_ratio >= 1.0 or n < self.p.keyframe_ratio * key.initial:
             right = cv2.cvtColor(pair.right, cv2.COLOR_BGR2GRAY)
             new = self._keyframe(left, right, self.world)
             if new is not None:
                 self.key, self.key_to_prev = new, np.eye(4)
-        else:
-            key.pts2d, key.pts3d = key.pts2d[mask], key.pts3d[mask]
         return self._result(True, step, n, False)
 
     def _result(self, ok: bool, step: np.ndarray, inliers: int, reinit: bool) -> StereoVO:

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import json
+import math
+
+import numpy as np
+import pytest
 
 from tests import builders
 from trapflow import messages
@@ -81,3 +85,37 @@ def test_stereo_results_carry_the_rig_id() -> None:
     mono = normalize(builders.result(messages.MonoIR()))
     assert "calib" not in mono[0]["mono_ir"]
     assert "calib" not in normalize(builders.result(messages.StereoVO(ok=False)))[0]["stereo_vo"]
+
+
+def _vo_body(angle: float, t: tuple[float, float, float]) -> messages.StereoVO:
+    c, s = math.cos(angle), math.sin(angle)
+    rot = (c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0)
+    pose = (c, -s, 0.0, t[0] * 7, s, c, 0.0, t[1] * 7, 0.0, 0.0, 1.0, t[2] * 7)
+    return messages.StereoVO(ok=True, rotation=rot, translation=t, pose=pose, inliers=50)
+
+
+@pytest.mark.parametrize("decimals", [0, 3, 9])
+def test_each_quantity_keeps_its_precision_whatever_decimals(decimals: int) -> None:
+    """Regression: `normalizer.decimals: 3` rounded VO's Rt to 5 decimals and its pose to 1 mm,
+    so integrating results.jsonl gave 8x VO's rotational drift. `decimals` now rounds only the
+    plugin-defined (Extra) fields; built-in quantities keep what they need."""
+    vo = _vo_body(1.234567891e-4, (0.012345678912, -0.00098765432101, 0.33333333333))
+    out = normalize(builders.result(vo), decimals)[0]["stereo_vo"]
+    rt = np.array(out["Rt"])
+    np.testing.assert_allclose(rt[:, :3].ravel(), vo.rotation, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(rt[:, 3], vo.translation, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.ravel(out["pose"]), vo.pose, rtol=0, atol=1e-9)
+    tag = messages.Tag(id=3, corners=[(10.04, 20.06)] * 4, rotation=vo.rotation,
+                       translation=vo.translation, error=0.123456)
+    t = normalize(builders.result(messages.Tags(tags=[tag])), decimals)[0]["tags"]
+    np.testing.assert_allclose(t["rotation"], vo.rotation, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(t["translation"], vo.translation, rtol=0, atol=1e-9)
+    assert t["corners"][0] == [10.0, 20.1] and t["error"] == 0.123
+    det = messages.Detection(label="crab", confidence=0.987654, box=(1.26, 2.34, 3.45, 4.44))
+    m = normalize(builders.result(messages.MonoIR(detections=[det])), decimals)[0]["mono_ir"]
+    assert m["confidence"] == 0.988 and m["box"] == [1.3, 2.3, 3.5, 4.4]
+    s = normalize(builders.result(messages.StereoIR(label="x", confidence=0.98765)), decimals)
+    assert s[0]["stereo_ir"]["confidence"] == 0.988
+    extra = messages.Extra(name="b", fields={"mean": 0.123456789123})
+    assert normalize(builders.result(extra), decimals)[0]["b"]["mean"] == round(0.123456789123,
+                                                                                decimals)

@@ -1,0 +1,95 @@
+"""The live viewer in a real browser (headless Chromium) against a running pipeline."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from tests.conftest import Pipeline, write_config
+from tests.integration.viewer_util import (
+    CHROMIUM_ARGS,
+    browser_skip_reason,
+    chromium,
+    free_port,
+    profile_dir,
+)
+
+pytestmark = pytest.mark.skipif(browser_skip_reason() is not None,
+                                reason=str(browser_skip_reason()))
+
+BOX_BGR = np.array([51, 221, 255])  # the page draws detections in #ffdd33
+
+
+@pytest.fixture
+def page(run_dir: Path) -> Iterator[Any]:
+    """A page of a headless Chromium with a fresh profile, closed after the test."""
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as pw:
+        ctx = pw.chromium.launch_persistent_context(
+            str(profile_dir(run_dir.parent)), executable_path=chromium(), headless=True,
+            args=CHROMIUM_ARGS, viewport={"width": 1400, "height": 1000})
+        try:
+            yield ctx.new_page()
+        finally:
+            ctx.close()
+
+
+def _start(spawn: Any, run_dir: Path, *args: str) -> tuple[Pipeline, str]:
+    port = free_port()
+    p: Pipeline = spawn(["--size", "640x360", "--view", f"127.0.0.1:{port}", *args], run_dir)
+    p.wait_active(90)
+    return p, f"http://127.0.0.1:{port}/"
+
+
+@pytest.mark.timeout(150)
+def test_page_draws_a_detected_box_and_moving_charts(spawn, run_dir: Path, page: Any) -> None:
+    cfg = write_config(run_dir.parent / "events.yaml", {"events": {
+        "enabled": True, "pre_s": 0.5, "post_s": 1.0,
+        "triggers": [{"algorithm": "mono_ir", "label": "crab"}]}})
+    p, url = _start(spawn, run_dir, "--config", str(cfg))
+    page.goto(url)
+    # A pair with at least one drawn detection box, from the synthetic crabs.
+    page.wait_for_function("window.trapflow.frames > 0 && window.trapflow.boxes > 0",
+                           timeout=60_000)
+    chart = "#pool-mono canvas.rate"
+    before = int(page.get_attribute(chart, "data-points"))
+    page.wait_for_function(
+        f"Number(document.querySelector('{chart}').dataset.points) > {before}",
+        timeout=10_000)
+    assert page.locator("#nodes td", has_text="viewer").count() == 1
+    assert "processed" in page.inner_text("#ledger")
+    # An event folder written by the events node, shown with its first image as thumbnail.
+    page.wait_for_function(
+        "[...document.querySelectorAll('#events img')].some(i => i.complete && i.naturalWidth)",
+        timeout=30_000)
+    png = page.locator("#left").screenshot()
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    assert img is not None and img.shape[1] >= 320
+    assert float(img.std()) > 10.0, "the left image is blank"
+    near_box = np.abs(img.astype(int) - BOX_BGR).max(axis=2) < 40
+    assert int(near_box.sum()) > 50, "no detection box drawn on the left image"
+    shot = run_dir.parent / "viewer.png"
+    page.screenshot(path=str(shot), full_page=True)
+    full = cv2.imread(str(shot))
+    assert full is not None and float(full.std()) > 10.0
+    assert p.proc.poll() is None
+
+
+@pytest.mark.timeout(150)
+def test_stop_button_stops_the_pipeline(spawn, run_dir: Path, page: Any) -> None:
+    p, url = _start(spawn, run_dir)
+    page.goto(url)
+    page.wait_for_function("window.trapflow.polls > 0", timeout=20_000)
+    page.click("#stop")
+    page.wait_for_function("document.getElementById('stop').textContent.includes('stopping')",
+                           timeout=10_000)
+    code, out, err = p.wait(30)
+    assert code == 0, err
+    assert "totals:" in out and (run_dir / "ledger.json").exists()
+    assert "stop requested from the viewer" in (run_dir / "trapflow.log").read_text()

@@ -1,0 +1,165 @@
+"""The run ledger without processes: capture counters across restarts, produced never below
+what reached the broker, one model for the status line, the ledger and the totals."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from trapflow.control import format_status
+from trapflow.messages import CaptureCounters, PoolStats, Stats
+from trapflow.run_ledger import Delivered, RunLedger, totals_text
+
+
+def _stats(pairs_in: int, **pool: int) -> Stats:
+    return Stats(t_wall_ns=0, uptime_s=1.0, pairs_in=pairs_in, rate_in=2.0, malformed=0,
+                 pools={"vo": PoolStats(**pool)})
+
+
+@pytest.mark.parametrize("counters", [
+    {},
+    {"produced": 5, "dropped": 1, "failed": 2, "failed_size": 2, "next_seq": 9},
+    {"produced": 1, "source_gave_up": 1, "sync_pairs": 3, "sync_skew_us": 1500},
+])
+def test_capture_counters_survive_the_wire_form(counters: dict[str, int]) -> None:
+    c = CaptureCounters.from_counters(counters)
+    again = CaptureCounters.from_counters(c.to_counters())
+    assert again == c
+    assert c.failed == counters.get("failed", 0)
+
+
+def test_a_restarted_capture_goes_on_counting_and_numbering() -> None:
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=40, dropped=2, failures={"size": 1}, next_seq=40))
+    assert led.retire_capture(margin=110) == 150  # past anything sent after its last beat
+    led.on_capture(CaptureCounters(produced=7, failures={"size": 2, "truncated": 1},
+                                   next_seq=157))
+    c = led.capture()
+    assert (c.produced, c.dropped, c.failures) == (47, 2, {"size": 3, "truncated": 1})
+    assert led.capture_counts() == {"dropped": 2, "failed": 4, "failed_size": 3,
+                                    "failed_truncated": 1, "produced": 47,
+                                    "source_errors": 0}
+
+
+def test_produced_is_never_below_what_reached_the_broker() -> None:
+    """Regression (issue 16, item 4): a killed capture had not reported its last pairs, so
+    "produced" undercounted what the pools received (2,191 produced, 2,212 results)."""
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=90))
+    led.on_stats(_stats(100, received=100, processed=100))
+    ledger = led.ledger({"vo": "ordered"}, {"vo": 0})
+    assert ledger["produced"] == 100
+    assert ledger["pools"]["vo"]["lost"] == 0
+
+
+def test_a_dead_broker_keeps_its_counts_in_status_and_ledger() -> None:
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=130))
+    led.on_stats(_stats(100, received=100, processed=95, pending=3, in_flight=2, workers=1))
+    led.retire_broker()
+    led.on_stats(_stats(30, received=30, processed=30, workers=1, rate=2))
+    ledger = led.ledger({"vo": "ordered"}, {"vo": 3},
+                        {"gave_up": 1, "retries": 1, "capped": 0, "timeline": []})
+    vo = ledger["pools"]["vo"]
+    assert (vo["processed"], vo["lost"], vo["restarts"]) == (125, 5, 3)
+    assert ledger["reached_broker"] == 130
+    line = led.status_text(12.0, {"vo": 3})
+    assert "in   2.0/s (130)" in line and "vo 1w" in line and "rst 3" in line
+    text = totals_text(ledger)
+    assert "130 pairs captured" in text and "processed 125" in text and "restarts 3" in text
+    assert "1 give-ups, 1 retries" in text
+
+
+def test_no_stats_yet() -> None:
+    assert RunLedger().status_text(1.0, {}) == "   1.0s | waiting for stats"
+    assert RunLedger().ledger({}, {})["pools"] == {}
+
+
+def _line(kind: str, seq: int, **extra: object) -> bytes:
+    return json.dumps({kind: {"timestamp": "t", "seq": seq, **extra}}).encode() + b"\n"
+
+
+@pytest.mark.parametrize(("lines", "counts", "unreadable"), [
+    ([_line("mono_ir", 1), _line("mono_ir", 2)], {"mono_ir": 2}, 0),
+    # one result, three detections: three lines, one pair
+    ([_line("mono_ir", 1, label="crab")] * 3, {"mono_ir": 1}, 0),
+    # resent to a restarted normalizer before it acknowledged: written twice, counted once
+    ([_line("stereo_vo", 5), _line("stereo_vo", 6), _line("stereo_vo", 5)], {"stereo_vo": 2}, 0),
+    ([_line("tags", 3), _line("stereo_vo", 3)], {"tags": 1, "stereo_vo": 1}, 0),
+    ([b'{"mono_ir":{"seq":4,"lab\n', _line("mono_ir", 5)], {"mono_ir": 1}, 1),  # torn write
+])
+def test_delivered_counts_distinct_results_per_kind(lines: list[bytes], counts: dict[str, int],
+                                                    unreadable: int) -> None:
+    whole = Delivered()
+    whole.feed(b"".join(lines))
+    assert (whole.counts, whole.unreadable) == (counts, unreadable)
+    # Fed in pieces that cut lines anywhere (the file read while the normalizer writes).
+    data = b"".join(lines)
+    pieces = Delivered()
+    for i in range(0, len(data), 7):
+        pieces.feed(data[i:i + 7])
+    assert (pieces.counts, pieces.unreadable, pieces.offset) == (counts, unreadable, len(data))
+
+
+def test_delivered_waits_for_the_end_of_a_line() -> None:
+    d = Delivered()
+    d.feed(_line("mono_ir", 1)[:-5])
+    assert d.counts == {} and d.offset == 0
+    d.feed(_line("mono_ir", 1)[-5:])
+    assert d.counts == {"mono_ir": 1}
+
+
+def test_processed_is_what_was_delivered_once_routed() -> None:
+    """Regression (issue 16, item 4): after a broker kill the ledger counted as lost pairs
+    whose results were written (its last stats were up to a second old)."""
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=100))
+    led.on_stats(_stats(100, received=100, processed=80, pending=5, in_flight=5, lost=10))
+    assert led.ledger({"vo": "ordered"}, {})["pools"]["vo"]["processed"] == 80  # not routed
+    led.on_normalizer({"lines": 97, "route:vo:stereo_vo": 1})
+    led.delivered.feed(b"".join(_line("stereo_vo", s) for s in range(97)))
+    vo = led.ledger({"vo": "ordered"}, {})["pools"]["vo"]
+    assert (vo["processed"], vo["lost"]) == (97, 3)
+
+
+def test_produced_covers_what_one_pool_accounts_for() -> None:
+    """Regression (issue 16, item 4): a capture and a broker killed before reporting their
+    last pairs; the pool's written results show those pairs existed."""
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=50))
+    led.on_stats(_stats(55, received=55, processed=50, dropped=2, workers=1))
+    led.on_normalizer({"route:vo:stereo_vo": 1})
+    led.delivered.feed(b"".join(_line("stereo_vo", s) for s in range(58)))
+    ledger = led.ledger({"vo": "ordered"}, {})
+    assert ledger["produced"] == 60 and ledger["pools"]["vo"]["lost"] == 0
+
+
+def test_status_shows_in_progress_pairs_as_not_lost_until_the_end() -> None:
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=20))
+    led.on_stats(_stats(20, received=20, processed=17, pending=1, in_flight=2, workers=1))
+    live = led.ledger({"vo": "ordered"}, {}, final=False)["pools"]["vo"]
+    assert (live["lost"], live["in_progress"]) == (0, 3)
+    assert "lost 0, in progress 3," in totals_text(led.ledger({"vo": "ordered"}, {},
+                                                              final=False))
+    end = led.ledger({"vo": "ordered"}, {})["pools"]["vo"]
+    assert end["lost"] == 3 and "in_progress" not in end
+
+
+def test_trapflow_status_renders_the_supervision_timeline_and_the_ledger() -> None:
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=20))
+    led.on_stats(_stats(20, received=20, processed=20, workers=1))
+    timeline = [{"t_s": 12.5, "node": "worker:vo:0", "kind": "gave_up",
+                 "reason": "gave up after 5 restarts in 60 s (last exit status -9)"},
+                {"t_s": 72.5, "node": "worker:vo:0", "kind": "retry",
+                 "reason": "retrying after a cool-down of 60 s (give-up 1)"}]
+    sup = {"gave_up": 1, "retries": 1, "capped": 0, "timeline": timeline}
+    reply = {"run_dir": "runs/x", "uptime_s": 80.0, "nodes": [], "stats": None,
+             "supervision": sup, "ledger": led.ledger({"vo": "ordered"}, {"vo": 6}, sup,
+                                                      final=False)}
+    text = format_status(reply)
+    assert "supervision: 1 give-ups, 1 retries, 0 capped restarts" in text
+    assert "worker:vo:0" in text and "retry" in text and "gave_up" in text
+    assert "vo: processed 20" in text and "restarts 6" in text

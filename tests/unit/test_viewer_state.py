@@ -1,0 +1,242 @@
+"""The viewer's pure core and its metrics, with no sockets: addresses, result lines, the
+pair it shows, chart points, and a /metrics exposition Prometheus's own parser reads."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+from prometheus_client.parser import text_string_to_metric_families
+
+from trapflow import messages
+from trapflow.errors import ProtocolError
+from trapflow.normalize import dumps, normalize
+from trapflow.viewer import metrics
+from trapflow.viewer.params import parse_view
+from trapflow.viewer.state import Histogram, ViewState, parse_timestamp
+
+
+@pytest.mark.parametrize(("text", "expected", "error"), [
+    ("8090", ("127.0.0.1", 8090), None),
+    ("0.0.0.0:80", ("0.0.0.0", 80), None),
+    ("[::1]:9000", ("::1", 9000), None),
+    ("localhost:65535", ("localhost", 65535), None),
+    ("", None, "PORT in 1..65535"),
+    ("0", None, "PORT in 1..65535"),
+    ("65536", None, "PORT in 1..65535"),
+    ("host:", None, "PORT in 1..65535"),
+    (":8090", None, "host before ':'"),
+    ("http://x:1", None, "host name or address"),
+    ("::1:80", None, "host name or address"),
+    ("8090x", None, "PORT in 1..65535"),
+])
+def test_view_address(text: str, expected: tuple[str, int] | None, error: str | None) -> None:
+    if error is None:
+        assert parse_view(text) == expected
+    else:
+        with pytest.raises(ValueError, match=error):
+            parse_view(text)
+
+
+@pytest.mark.parametrize(("data", "error"), [
+    (b"", "result line"),
+    (b"[1, 2]", "result line"),
+    (b'{"a": 1}', "result line"),
+    (b"{}", "expected one key"),
+    (b'{"a": {}, "b": {}}', "expected one key"),
+    (b"x" * (messages.MAX_RESULT_BYTES + 1), "expected at most"),
+])
+def test_result_line_rejected(data: bytes, error: str) -> None:
+    with pytest.raises(ProtocolError, match=error):
+        messages.decode_result_line(data)
+
+
+def _line(body: messages.Body, seq: int, t_wall_ns: int) -> list[tuple[str, dict]]:
+    res = messages.Result(seq=seq, t_wall_ns=t_wall_ns, t_mono_ns=0, pool="p", worker="w",
+                          proc_ns=1, body=body)
+    return [messages.decode_result_line(dumps(obj)) for obj in normalize(res)]
+
+
+def _pair(seq: int) -> messages.StereoPair:
+    return messages.StereoPair(seq=seq, t_wall_ns=0, t_mono_ns=0, t_left_ns=0, t_right_ns=0,
+                               skew_ns=0, encoding="jpeg", width=64, height=48)
+
+
+def test_shows_the_newest_pair_a_detector_answered_with_its_boxes_and_tags() -> None:
+    st = ViewState(frame_hz=2.0)
+    now_ns = time.time_ns()
+    for seq in range(10):
+        st.on_image(_pair(seq), b"L%d" % seq, b"R%d" % seq)
+    det = messages.MonoIR(detections=[messages.Detection(label="crab", confidence=0.9,
+                                                         box=(1, 2, 30, 40))])
+    tag = messages.Tags(tags=[messages.Tag(id=7, corners=[(1, 1), (9, 1), (9, 9), (1, 9)])])
+    for kind, fields in _line(det, 6, now_ns - 50_000_000) + _line(tag, 6, now_ns):
+        st.on_result(kind, fields, now_ns / 1e9)
+    assert st.tick(100.0)
+    assert st.shown is not None and st.shown.seq == 6 and st.shown.left == b"L6"
+    frame = st.snapshot(100.0)["frame"]
+    assert frame["detections"] == [{"label": "crab", "confidence": 0.9, "box": [1, 2, 30, 40]}]
+    assert frame["tags"][0]["id"] == 7 and len(frame["tags"][0]["corners"]) == 4
+    # frame_hz: no other pick before half a second has passed, even with newer answers.
+    for kind, fields in _line(det, 9, now_ns):
+        st.on_result(kind, fields, now_ns / 1e9)
+    assert not st.tick(100.4)
+    assert st.tick(100.5) and st.shown.seq == 9
+    assert st.latency["mono_ir"].n == 2 and 0.04 < st.latency["mono_ir"].total < 1.0
+
+
+def test_no_answer_yet_shows_the_newest_pair() -> None:
+    st = ViewState()
+    for seq in (3, 4, 5):
+        st.on_image(_pair(seq), b"l", b"r")
+    assert st.tick(1.0) and st.shown is not None and st.shown.seq == 5
+    assert st.snapshot(1.0)["frame"]["detections"] == []
+
+
+def test_vo_top_view_and_ok_rate() -> None:
+    st = ViewState()
+    t = time.time_ns()
+    for i, ok in enumerate((True, True, False, True)):
+        pose = (1, 0, 0, 0.1 * i, 0, 1, 0, 0, 0, 0, 1, 0.5 * i)
+        body = messages.StereoVO(ok=ok, rotation=(1, 0, 0, 0, 1, 0, 0, 0, 1), pose=pose)
+        for kind, fields in _line(body, i, t):
+            st.on_result(kind, fields, t / 1e9)
+    vo = st.snapshot(0)["vo"]
+    assert vo["ok_rate"] == 0.75 and vo["total"] == 4
+    assert vo["path"] == [[0.0, 0.0], [0.1, 0.5], [0.2, 1.0], [0.3, 1.5]]
+
+
+def test_chart_points_per_stats_message() -> None:
+    st = ViewState()
+    for i, dropped in enumerate((0, 4, 10)):
+        stats = messages.Stats(t_wall_ns=0, uptime_s=float(i), pairs_in=10 * i, rate_in=10.0,
+                               malformed=0, pools={"mono": messages.PoolStats(
+                                   workers=2, dropped=dropped, rate=5.0 + i)})
+        st.on_stats(stats, now=float(i))
+    p = st.snapshot(3.0)["pools"]["mono"]
+    assert p["rate"] == [5.0, 6.0, 7.0] and p["workers"] == [2, 2, 2]
+    assert p["drops"] == [0.0, 4.0, 6.0]  # per second between stats messages
+
+
+@pytest.mark.parametrize(("text", "ok"), [
+    ("2025-07-07 12:52:43.120", True), ("2025-07-07 12:52:43", True),
+    ("12:52:43", False), ("", False),
+])
+def test_timestamp(text: str, ok: bool) -> None:
+    if ok:
+        assert parse_timestamp(text) == pytest.approx(1751892763.12 if "." in text
+                                                      else 1751892763.0)
+    else:
+        with pytest.raises(ValueError, match="expected 'YYYY-MM-DD"):
+            parse_timestamp(text)
+
+
+def test_histogram_is_cumulative() -> None:
+    h = Histogram(bounds=(0.1, 1.0), counts=[0, 0, 0])
+    for v in (0.05, 0.5, 0.7, 3.0):
+        h.observe(v)
+    assert h.cumulative() == [("0.1", 1), ("1.0", 3), ("+Inf", 4)]
+
+
+def test_exposition_parses_and_follows_naming(tmp_path: Path) -> None:
+    st = ViewState()
+    st.on_stats(messages.Stats(t_wall_ns=0, uptime_s=3.0, pairs_in=30, rate_in=10.0,
+                               malformed=1, pools={"mono": messages.PoolStats(
+                                   workers=1, received=30, processed=25, dropped=4, lost=1)}),
+                now=1.0)
+    st.on_status({"nodes": [
+        {"name": "worker:mono:0", "state": "active", "restarts": 2, "reason": "",
+         "counters": {"processed": 25, "proc_us": 500_000}},
+        {"name": "modem", "state": "inactive", "restarts": 0, "reason": "no port",
+         "counters": {"backlog": 12}}],
+        "ring": {"slots": 12, "free": 9, "held": 3}})
+    t = time.time_ns()
+    for kind, fields in _line(messages.StereoIR(label="crab", confidence=0.5), 3, t):
+        st.on_result(kind, fields, t / 1e9 + 0.2)
+    snap = st.snapshot(1.0)
+    assert snap["modem"] == {"state": "inactive", "reason": "no port", "backlog": 12,
+                             "in_flight": 0, "bytes_last_hour": 0}
+    assert [n["name"] for n in snap["nodes"]] == ["worker:mono:0", "modem"]
+    reg = metrics.registry_for(st, tmp_path)
+    fams = {f.name: f for f in text_string_to_metric_families(
+        metrics.exposition(reg).decode())}
+
+    def value(name: str, **labels: str) -> float:
+        fam_name = name.removesuffix("_total").removesuffix("_count").removesuffix("_sum")
+        fam_name = fam_name.removesuffix("_bucket")
+        return next(s.value for s in fams[fam_name].samples
+                    if s.name == name and all(s.labels.get(k) == v for k, v in labels.items()))
+
+    assert value("trapflow_pool_processed_pairs_total", pool="mono") == 25
+    assert value("trapflow_pool_dropped_pairs_total", pool="mono") == 4
+    assert value("trapflow_pool_lost_pairs_total", pool="mono") == 1
+    assert value("trapflow_pairs_received_total") == 30
+    assert value("trapflow_node_restarts_total", node="worker:mono:0") == 2
+    assert value("trapflow_node_state", node="modem", state="inactive") == 1
+    assert value("trapflow_node_state", node="modem", state="active") == 0
+    assert value("trapflow_outbox_backlog_messages") == 12
+    assert value("trapflow_ring_slots", state="held") == 3
+    assert value("trapflow_pool_processing_seconds_sum", pool="mono") == pytest.approx(0.5)
+    assert value("trapflow_pool_processing_seconds_count", pool="mono") == 25
+    assert value("trapflow_result_latency_seconds_bucket", algorithm="stereo_ir",
+                 le="0.25") == 1
+    assert value("trapflow_result_latency_seconds_bucket", algorithm="stereo_ir",
+                 le="0.1") == 0
+    for fam in fams.values():
+        assert fam.name.startswith("trapflow_"), fam.name
+        if fam.type == "counter":
+            assert all(s.name.endswith(("_total", "_created")) for s in fam.samples), fam.name
+    out = tmp_path / "textfile" / "trapflow.prom"
+    metrics.write_textfile(reg, out)
+    again = {f.name for f in text_string_to_metric_families(out.read_text())}
+    assert again == set(fams)
+    assert not list(out.parent.glob("*.tmp*"))  # written to a temporary name, then renamed
+
+
+def test_raw_pair_is_served_as_jpeg() -> None:
+    """A raw-encoded pipeline's pair becomes a JPEG only when the page asks for it."""
+    import cv2
+    import numpy as np
+
+    from trapflow.viewer.server import _jpeg
+    from trapflow.viewer.state import Frame
+
+    img = np.zeros((48, 64, 3), np.uint8)
+    img[10:30, 20:40] = (0, 0, 255)
+    frame = Frame(seq=1, width=64, height=48, encoding="raw", left=img.tobytes(),
+                  right=b"\x00" * img.size, t_wall_ns=0)
+    out = cv2.imdecode(np.frombuffer(_jpeg(frame, "left"), np.uint8), cv2.IMREAD_COLOR)
+    assert out.shape == (48, 64, 3)
+    assert out[20, 30, 2] > 200 and out[5, 5].max() < 30
+
+
+@pytest.mark.parametrize(("rel", "served"), [
+    ("ev1/left/00000001.jpg", True),
+    ("ev1/left/../left/00000001.jpg", True),
+    ("ev1/event.json", False),
+    ("../secret.jpg", False),
+    ("ev1/../../secret.jpg", False),
+    ("/etc/secret.jpg", False),
+    ("ev1/left/missing.jpg", False),
+])
+def test_event_images_only_from_the_events_folder(tmp_path: Path, rel: str, served: bool) -> None:
+    from trapflow.config import Config
+    from trapflow.viewer.taps import PipelineTaps
+
+    run = tmp_path / "run"
+    (run / "events" / "ev1" / "left").mkdir(parents=True)
+    (run / "events" / "ev1" / "left" / "00000001.jpg").write_bytes(b"\xff\xd8")
+    (run / "events" / "ev1" / "event.json").write_text("{}")
+    (run / "secret.jpg").write_bytes(b"no")
+    taps = PipelineTaps(Config(), run, ViewState())
+    try:
+        path = taps.event_file(rel)
+        assert (path is not None) == served
+        if served:
+            assert path == (run / "events" / "ev1" / "left" / "00000001.jpg").resolve()
+        taps.scan_events()
+        assert taps.state.events == [{"name": "ev1", "pairs": None, "open": True,
+                                      "thumb": "ev1/left/00000001.jpg"}]
+    finally:
+        taps.close()

@@ -1,0 +1,1 @@
+"""The live web viewer and Prometheus metrics: `trapflow start --view`, `trapflow view`."""

@@ -1,0 +1,189 @@
+"""Prometheus metrics of a pipeline, read from the viewer's state at scrape time.
+
+One collector turns ViewState (broker stats, status reply, result latencies) into metric
+families; /metrics serves them and write_textfile() leaves them for node_exporter's
+textfile collector. Names follow Prometheus conventions: `trapflow_` prefix, base units
+in the name, `_total` on counters.
+"""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import psutil
+from prometheus_client import CollectorRegistry, generate_latest, write_to_textfile
+from prometheus_client.core import (
+    CounterMetricFamily,
+    GaugeMetricFamily,
+    HistogramMetricFamily,
+    Metric,
+    SummaryMetricFamily,
+)
+from prometheus_client.registry import Collector
+
+from trapflow.node import ACTIVE, FINALIZED, INACTIVE, UNCONFIGURED
+from trapflow.viewer.state import ViewState
+
+LIFECYCLE = (UNCONFIGURED, INACTIVE, ACTIVE, FINALIZED)
+# PoolStats field -> metric suffix of a per-pool counter.
+POOL_COUNTERS = {
+    "received": "received", "dispatched": "dispatched", "dropped": "dropped",
+    "processed": "processed", "errors": "failed", "timed_out": "timed_out", "lost": "lost",
+}
+POOL_GAUGES = {"workers": "workers", "pending": "pending_pairs", "in_flight": "in_flight_pairs"}
+
+
+def _temperature_c() -> float | None:
+    try:
+        sensors = psutil.sensors_temperatures()
+    except (AttributeError, OSError):
+        return None
+    for entries in sensors.values():
+        if entries:
+            return float(entries[0].current)
+    return None
+
+
+class PipelineCollector(Collector):
+    """Metric families of one pipeline, computed from a ViewState when scraped."""
+
+    def __init__(self, state: ViewState, run_dir: Path) -> None:
+        self.state = state
+        self.run_dir = run_dir
+
+    def collect(self) -> Iterator[Metric]:
+        yield from self._pools()
+        yield from self._latency()
+        yield from self._nodes()
+        yield from self._health()
+
+    def _pools(self) -> Iterator[Metric]:
+        s = self.state.stats
+        pairs = CounterMetricFamily("trapflow_pairs_received", "Pairs the broker received.")
+        rate_in = GaugeMetricFamily("trapflow_capture_rate_pairs_per_second",
+                                    "Pairs per second reaching the broker, last interval.")
+        malformed = CounterMetricFamily("trapflow_malformed_messages",
+                                        "Messages the broker could not decode.")
+        if s is not None:
+            pairs.add_metric([], s.pairs_in)
+            rate_in.add_metric([], s.rate_in)
+            malformed.add_metric([], s.malformed)
+        yield from (pairs, rate_in, malformed)
+        counters = {k: CounterMetricFamily(f"trapflow_pool_{v}_pairs",
+                                           f"Pairs {v.replace('_', ' ')} per pool.",
+                                           labels=["pool"])
+                    for k, v in POOL_COUNTERS.items()}
+        gauges = {k: GaugeMetricFamily(f"trapflow_pool_{v}", f"{v.replace('_', ' ')} per pool.",
+                                       labels=["pool"]) for k, v in POOL_GAUGES.items()}
+        rate = GaugeMetricFamily("trapflow_pool_rate_pairs_per_second",
+                                 "Pairs processed per second, last interval.", labels=["pool"])
+        for name, p in (s.pools.items() if s is not None else ()):
+            for k, fam in counters.items():
+                fam.add_metric([name], getattr(p, k))
+            for k, gfam in gauges.items():
+                gfam.add_metric([name], getattr(p, k))
+            rate.add_metric([name], p.rate)
+        yield from counters.values()
+        yield from gauges.values()
+        yield rate
+
+    def _latency(self) -> Iterator[Metric]:
+        lat = HistogramMetricFamily(
+            "trapflow_result_latency_seconds",
+            "Capture to result on the normalizer's tap (wall clock), per algorithm.",
+            labels=["algorithm"])
+        for kind, h in sorted(self.state.latency.items()):
+            lat.add_metric([kind], h.cumulative(), sum_value=h.total)
+        yield lat
+        results = CounterMetricFamily("trapflow_results", "Result lines seen on the tap.",
+                                      labels=["algorithm"])
+        for kind, count in sorted(self.state.results_in.items()):
+            results.add_metric([kind], count)
+        yield results
+        # Summed over the live workers of each pool (their heartbeat counters): a summary
+        # without quantiles; a worker restart resets its part, as Prometheus counters do.
+        proc = SummaryMetricFamily("trapflow_pool_processing_seconds",
+                                   "Time the plugin spent per processed pair.", labels=["pool"])
+        per_pool: dict[str, list[int]] = {}
+        for n in self._status_nodes():
+            parts = n["name"].split(":")
+            if parts[0] == "worker" and len(parts) == 3 and "proc_us" in n.get("counters", {}):
+                acc = per_pool.setdefault(parts[1], [0, 0])
+                acc[0] += n["counters"].get("processed", 0)
+                acc[1] += n["counters"]["proc_us"]
+        for pool, (count, us) in sorted(per_pool.items()):
+            proc.add_metric([pool], count_value=count, sum_value=us / 1e6)
+        yield proc
+
+    def _status_nodes(self) -> list[dict[str, Any]]:
+        return list((self.state.status or {}).get("nodes", []))
+
+    def _nodes(self) -> Iterator[Metric]:
+        st = self.state.status or {}
+        state = GaugeMetricFamily("trapflow_node_state",
+                                  "1 for the lifecycle state each node is in, else 0.",
+                                  labels=["node", "state"])
+        restarts = CounterMetricFamily("trapflow_node_restarts", "Restarts of each node.",
+                                       labels=["node"])
+        for n in st.get("nodes", []):
+            for s in LIFECYCLE:
+                state.add_metric([n["name"], s], 1.0 if n["state"] == s else 0.0)
+            restarts.add_metric([n["name"]], n["restarts"])
+        yield from (state, restarts)
+        ring = GaugeMetricFamily("trapflow_ring_slots", "Shared-memory ring slots by state.",
+                                 labels=["state"])
+        for k, v in (st.get("ring") or {}).items():
+            if isinstance(v, int) and k != "slots":
+                ring.add_metric([k], v)
+        yield ring
+        up = GaugeMetricFamily("trapflow_pipeline_up",
+                               "1 while the supervisor answers status requests.")
+        up.add_metric([], 0.0 if self.state.status_error or not st else 1.0)
+        yield up
+        uptime = GaugeMetricFamily("trapflow_uptime_seconds", "Seconds since the broker started.")
+        uptime.add_metric([], self.state.stats.uptime_s if self.state.stats else 0.0)
+        yield uptime
+
+    def _health(self) -> Iterator[Metric]:
+        cpu = GaugeMetricFamily("trapflow_host_cpu_usage_ratio",
+                                "Host CPU busy fraction since the last scrape (0..1).")
+        cpu.add_metric([], psutil.cpu_percent(interval=None) / 100.0)
+        yield cpu
+        temp = _temperature_c()
+        if temp is not None:
+            t = GaugeMetricFamily("trapflow_host_temperature_celsius", "First thermal sensor.")
+            t.add_metric([], temp)
+            yield t
+        disk = GaugeMetricFamily("trapflow_run_dir_free_bytes",
+                                 "Free bytes on the run directory's file system.")
+        if self.run_dir.exists():
+            disk.add_metric([], float(shutil.disk_usage(self.run_dir).free))
+        yield disk
+        modem = next((n for n in (self.state.status or {}).get("nodes", [])
+                      if n["name"] == "modem"), None)
+        backlog = GaugeMetricFamily("trapflow_outbox_backlog_messages",
+                                    "Records waiting in the modem outbox.")
+        if modem is not None:
+            backlog.add_metric([], modem["counters"].get("backlog", 0))
+        yield backlog
+
+
+def registry_for(state: ViewState, run_dir: Path) -> CollectorRegistry:
+    """A registry of its own (no process metrics of the viewer mixed in)."""
+    reg = CollectorRegistry(auto_describe=False)
+    reg.register(PipelineCollector(state, run_dir))
+    return reg
+
+
+def exposition(reg: CollectorRegistry) -> bytes:
+    """The text exposition format, as /metrics serves it."""
+    return generate_latest(reg)
+
+
+def write_textfile(reg: CollectorRegistry, path: Path) -> None:
+    """Write for node_exporter's textfile collector: a temporary file renamed in place."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_to_textfile(str(path), reg)

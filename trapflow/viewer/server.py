@@ -1,0 +1,177 @@
+"""The viewer's web server (aiohttp): the page, its JSON state, the shown pair, /metrics.
+
+One asyncio loop in one process: a pump task drains the taps every PUMP_S and asks the
+supervisor for status every STATUS_S; requests only read the state. The page polls
+/api/state and fetches a pair only when the shown one changed, so a slow browser simply
+sees fewer pairs (the server keeps the latest, never a queue).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable
+from importlib import resources
+from pathlib import Path
+
+import cv2
+import numpy as np
+from aiohttp import web
+
+from trapflow.config import Config
+from trapflow.viewer import metrics
+from trapflow.viewer.state import Frame, ViewState
+from trapflow.viewer.taps import PipelineTaps
+
+log = logging.getLogger(__name__)
+
+PUMP_S = 0.05  # tap drain period: 20 wake-ups a second
+STATUS_S = 1.0
+EVENTS_S = 2.0
+STATIC = ("index.html", "viewer.js", "viewer.css")
+_TYPES = {".html": "text/html", ".js": "text/javascript", ".css": "text/css"}
+# A POST that changes the pipeline must carry this header: a page of another site cannot
+# set it on a cross-site form post, so a link elsewhere cannot stop the trap.
+CONTROL_HEADER = "X-Trapflow-Control"
+# Served on loopback, a control request must also name a loopback host: a site that
+# rebinds its own name to 127.0.0.1 sends its own name in the Host header.
+LOOPBACK_NAMES = ("127.0.0.1", "localhost", "::1")
+
+
+def _jpeg(frame: Frame, side: str) -> bytes:
+    data = frame.left if side == "left" else frame.right
+    if frame.encoding == "jpeg":
+        return data
+    img = np.frombuffer(data, np.uint8).reshape(frame.height, frame.width, 3)
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 80])
+    return bytes(buf) if ok else b""
+
+
+class Viewer:
+    """The web application over one pipeline's taps."""
+
+    def __init__(self, cfg: Config, run_dir: Path) -> None:
+        self.cfg = cfg
+        self.run_dir = run_dir
+        self.state = ViewState(cfg.viewer.frame_hz)
+        self.taps = PipelineTaps(cfg, run_dir, self.state)
+        self.registry = metrics.registry_for(self.state, run_dir)
+        mf = cfg.viewer.metrics_file
+        self.metrics_file = Path(mf) if mf else None
+        self._jpeg_cache: dict[tuple[int, str], bytes] = {}
+        self.loopback_only = cfg.viewer.host in LOOPBACK_NAMES
+        self.app = web.Application()
+        self.app.add_routes([
+            web.get("/", self._static), web.get("/static/{name}", self._static),
+            web.get("/api/state", self._api_state),
+            web.get("/frame/{seq}/{side}.jpg", self._frame),
+            web.get("/events/{rel:.+}", self._event_image),
+            web.get("/metrics", self._metrics),
+            web.post("/api/stop", self._stop),
+        ])
+
+    # --- the loop -----------------------------------------------------------------------
+
+    async def pump(self, beat: Callable[[], None] | None = None,
+                   stopping: Callable[[], bool] = lambda: False) -> None:
+        """Drain taps, poll status, scan events, write the metrics file, until stopping."""
+        next_status = next_events = next_file = 0.0
+        while not stopping():
+            now = time.monotonic()
+            self.taps.drain(now)
+            if self.state.tick(now):
+                self._jpeg_cache.clear()
+            if now >= next_status:
+                self.taps.poll_status(now)
+                next_status = now + (0.05 if self.taps._req_sent else STATUS_S)
+            if now >= next_events:
+                self.taps.scan_events()
+                next_events = now + EVENTS_S
+            if self.metrics_file is not None and now >= next_file:
+                metrics.write_textfile(self.registry, self.metrics_file)
+                next_file = now + self.cfg.viewer.metrics_interval_s
+            if beat is not None:
+                beat()
+            await asyncio.sleep(PUMP_S)
+
+    async def start(self, host: str, port: int) -> web.AppRunner:
+        """Bind the HTTP server; OSError if the address is taken."""
+        runner = web.AppRunner(self.app, access_log=None, handle_signals=False)
+        await runner.setup()
+        await web.TCPSite(runner, host, port).start()
+        log.info("viewer on http://%s:%d/ for %s", host, port, self.run_dir)
+        return runner
+
+    def close(self) -> None:
+        self.taps.close()
+
+    # --- handlers -----------------------------------------------------------------------
+
+    async def _static(self, request: web.Request) -> web.Response:
+        name = request.match_info.get("name", "index.html")
+        if name not in STATIC:
+            raise web.HTTPNotFound(text=f"no such file {name!r}; expected one of {STATIC}")
+        body = resources.files("trapflow.viewer").joinpath("static").joinpath(name).read_bytes()
+        return web.Response(body=body, content_type=_TYPES[Path(name).suffix],
+                            headers={"Cache-Control": "no-cache"})
+
+    async def _api_state(self, _request: web.Request) -> web.Response:
+        snap = self.state.snapshot(time.monotonic())
+        snap["run_dir"] = str(self.run_dir)
+        return web.json_response(snap, headers={"Cache-Control": "no-store"})
+
+    async def _frame(self, request: web.Request) -> web.Response:
+        side = request.match_info["side"]
+        if side not in ("left", "right"):
+            raise web.HTTPNotFound(text=f"expected /frame/SEQ/left.jpg or right.jpg, got {side}")
+        shown = self.state.shown
+        if shown is None:
+            raise web.HTTPNotFound(text="no pair received from the tap yet")
+        key = (shown.seq, side)
+        if key not in self._jpeg_cache:
+            self._jpeg_cache[key] = _jpeg(shown, side)
+        # The shown pair, whichever seq was asked: the page reads the seq from the header.
+        return web.Response(body=self._jpeg_cache[key], content_type="image/jpeg",
+                            headers={"X-Seq": str(shown.seq), "Cache-Control": "no-store"})
+
+    async def _event_image(self, request: web.Request) -> web.FileResponse:
+        path = self.taps.event_file(request.match_info["rel"])
+        if path is None:
+            raise web.HTTPNotFound(text="expected an event image under the run's events folder")
+        return web.FileResponse(path)
+
+    async def _metrics(self, _request: web.Request) -> web.Response:
+        body = metrics.exposition(self.registry)
+        return web.Response(body=body, headers={
+            "Content-Type": "text/plain; version=0.0.4; charset=utf-8"})
+
+    async def _stop(self, request: web.Request) -> web.Response:
+        if request.headers.get(CONTROL_HEADER) != "stop":
+            raise web.HTTPForbidden(text=f"expected header {CONTROL_HEADER}: stop "
+                                         "(sent by the viewer's own page)")
+        host = (request.url.host or "").strip("[]")
+        if self.loopback_only and host not in LOOPBACK_NAMES:
+            raise web.HTTPForbidden(text=f"expected a request to 127.0.0.1 or localhost, "
+                                         f"got Host {request.host!r}")
+        self.taps.request_stop()
+        log.warning("stop requested from the viewer")
+        return web.json_response({"stopping": True})
+
+
+async def serve(cfg: Config, run_dir: Path, host: str, port: int,
+                ready: Callable[[str], None] | None = None,
+                beat: Callable[[], None] | None = None,
+                stopping: Callable[[], bool] = lambda: False) -> None:
+    """Run the viewer until stopping() is true (or the task is cancelled)."""
+    viewer = Viewer(cfg, run_dir)
+    runner = None
+    try:
+        runner = await viewer.start(host, port)
+        if ready is not None:
+            ready(f"http://{host}:{port}/")
+        await viewer.pump(beat, stopping)
+    finally:
+        if runner is not None:
+            await runner.cleanup()
+        viewer.close()

@@ -1,0 +1,163 @@
+"""The viewer's side of a pipeline: its taps, its control socket and its event folders.
+
+Owns a SUB on the broker's tap (images, stats), a SUB on the normalizer's (results; each
+tap takes only subscriptions to its own topics), and a REQ to the supervisor's control
+socket. Everything is non-blocking and polled by the server's loop: PUB sockets drop for
+a slow subscriber, so the pipeline never waits for the viewer; a small receive high-water
+mark drops old pairs here, not upstream.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import zmq
+
+from trapflow import messages
+from trapflow.config import Config
+from trapflow.errors import ProtocolError
+from trapflow.ratelog import RateLimitedLog
+from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
+from trapflow.viewer.state import ViewState
+
+log = logging.getLogger(__name__)
+
+# Tap messages taken per drain: a burst never keeps the web server from answering.
+MAX_DRAIN = 256
+# A pipeline's images at 15 Hz are a few per drain; older ones would be dropped anyway.
+TAP_RCVHWM = 16
+STATUS_TIMEOUT_S = 2.0
+EVENTS_SHOWN = 6
+
+
+class PipelineTaps:
+    """Reads taps and status into a ViewState; sends stop requests."""
+
+    def __init__(self, cfg: Config, run_dir: Path, state: ViewState) -> None:
+        self.run_dir = run_dir
+        self.state = state
+        self.endpoints = Endpoints.for_run(cfg.network, run_dir)
+        self.events_dir = run_dir / cfg.events.folder
+        self.ctx = new_context()
+        self.subs = [
+            open_socket(self.ctx, SocketSpec(zmq.SUB, self.endpoints.tap, rcvhwm=TAP_RCVHWM,
+                                             subscribe=(messages.TOPIC_IMAGE,
+                                                        messages.TOPIC_STATS))),
+            open_socket(self.ctx, SocketSpec(zmq.SUB, self.endpoints.results_tap,
+                                             subscribe=(messages.TOPIC_RESULT,))),
+        ]
+        self.req: zmq.Socket[bytes] | None = None
+        self._req_sent = 0.0
+        self._pending_stop = False
+        self.ratelog = RateLimitedLog(log)
+
+    # --- taps ------------------------------------------------------------------------
+
+    def drain(self, now: float) -> int:
+        """Take what the taps hold (at most MAX_DRAIN messages from each) into the state."""
+        n = 0
+        for sub in self.subs:
+            budget = n + MAX_DRAIN
+            while n < budget:
+                try:
+                    frames = sub.recv_multipart(zmq.NOBLOCK, copy=True)
+                except zmq.Again:
+                    break
+                n += 1
+                try:
+                    self._feed(frames, now)
+                except (ProtocolError, ValueError) as exc:
+                    self.state.malformed += 1
+                    self.ratelog.warning("tap", "malformed tap message dropped: %s", exc)
+        return n
+
+    def _feed(self, frames: list[bytes], now: float) -> None:
+        topic = frames[0]
+        if topic == messages.TOPIC_RESULT and len(frames) == 2:
+            kind, fields = messages.decode_result_line(frames[1])
+            self.state.on_result(kind, fields, time.time())
+        elif topic == messages.TOPIC_IMAGE and len(frames) == 4:
+            header = messages.decode_pair_header(frames[1])
+            self.state.on_image(header, frames[2], frames[3])
+        elif topic == messages.TOPIC_STATS and len(frames) == 2:
+            self.state.on_stats(messages.decode_stats(frames[1]), now)
+        else:
+            raise ProtocolError(f"tap: expected image (4 frames), stats or result (2 frames), "
+                                f"got topic {topic[:20]!r} with {len(frames)} frames")
+
+    # --- control ---------------------------------------------------------------------
+
+    def _open_req(self) -> zmq.Socket[bytes]:
+        if self.req is None:
+            self.req = open_socket(self.ctx, SocketSpec(zmq.REQ, self.endpoints.control))
+        return self.req
+
+    def poll_status(self, now: float) -> None:
+        """Ask for status when no request is out; take the reply when it came.
+
+        A REQ that got no answer in time is closed and opened afresh (a REQ cannot send
+        twice in a row), and the state says the supervisor does not answer.
+        """
+        req = self._open_req()
+        if self._req_sent:
+            if req.poll(0, zmq.POLLIN):
+                data = req.recv()
+                self._req_sent = 0.0
+                try:
+                    reply: dict[str, Any] = json.loads(data)
+                except ValueError as exc:
+                    self.state.on_status(None, f"status reply is not JSON: {exc}")
+                    return
+                self.state.on_status(reply)
+            elif now - self._req_sent > STATUS_TIMEOUT_S:
+                req.close(linger=0)
+                self.req, self._req_sent = None, 0.0
+                self.state.on_status(None, f"no answer from {self.endpoints.control} within "
+                                           f"{STATUS_TIMEOUT_S:g} s")
+            return
+        what = messages.StopRequest() if self._pending_stop else messages.StatusRequest()
+        self._pending_stop = False
+        req.send(messages.encode(what))
+        self._req_sent = now
+
+    def request_stop(self) -> None:
+        """The next control request is a stop (sent by poll_status, never blocking)."""
+        self._pending_stop = True
+
+    # --- event folders -----------------------------------------------------------------
+
+    def scan_events(self) -> None:
+        """The newest event folders with their first left image as thumbnail."""
+        if not self.events_dir.is_dir():
+            return
+        try:
+            folders = sorted((p for p in self.events_dir.iterdir() if p.is_dir()),
+                             key=lambda p: p.stat().st_mtime_ns, reverse=True)[:EVENTS_SHOWN]
+        except OSError:  # an event deleted by its quota while we looked
+            return
+        out = []
+        for f in folders:
+            thumbs = sorted((f / "left").glob("*.jpg"))[:1] if (f / "left").is_dir() else []
+            info: dict[str, Any] = {}
+            try:
+                info = json.loads((f / "event.json").read_text())
+            except (OSError, ValueError):
+                pass  # still open: no event.json yet
+            out.append({"name": f.name, "pairs": info.get("pairs"), "open": not info,
+                        "thumb": f"{f.name}/left/{thumbs[0].name}" if thumbs else None})
+        self.state.on_events(out)
+
+    def event_file(self, rel: str) -> Path | None:
+        """An event image by its relative name, only if it lies inside the events folder."""
+        path = (self.events_dir / rel).resolve()
+        root = self.events_dir.resolve()
+        if root not in path.parents or path.suffix != ".jpg" or not path.is_file():
+            return None
+        return path
+
+    def close(self) -> None:
+        self.ctx.destroy(linger=0)

@@ -170,6 +170,12 @@ class NetworkConfig(_Section):
                 "endpoints never leave this host; workers on other hosts connect to "
                 "network.remote.bind, guarded by CURVE keys"
             )
+        port = self.remote.bind.rpartition(":")[2]
+        if self.transport == "tcp" and port.isdigit() and (
+                self.base_port <= int(port) <= self.base_port + 6):
+            raise ValueError(
+                f"remote.bind {self.remote.bind!r} takes a port of the pipeline's own "
+                f"endpoints ({self.base_port}..{self.base_port + 6}); expected another port")
 
 
 class FramesConfig(_Section):

@@ -225,6 +225,9 @@ def load_key_file(path: Path, secret: bool) -> tuple[bytes, bytes | None]:
     import zmq.auth
 
     kind = "secret key file (NAME.key_secret)" if secret else "public key file (NAME.key)"
+    if not path.is_file():
+        raise StartupError(f"expected a CURVE {kind} at {path}, got no such file; make one "
+                           f"with `trapflow keys generate DIR`")
     try:
         public, sec = zmq.auth.load_certificate(str(path))
     except (OSError, ValueError) as exc:

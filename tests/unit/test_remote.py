@@ -18,7 +18,7 @@ from trapflow import messages
 from trapflow.broker import _local_msg
 from trapflow.broker_remote import MAX_EVICTED_SHOWN, RemoteWorkers
 from trapflow.cli import main
-from trapflow.errors import ConfigError, ProtocolError
+from trapflow.errors import ConfigError, ProtocolError, StartupError
 from trapflow.keys import generate
 from trapflow.remote_worker import config_from
 from trapflow.transport import CurveKeys, SocketSpec, client_keys, open_socket, server_keys
@@ -54,6 +54,14 @@ def test_remote_config_binds_beyond_loopback_only_with_keys(remote: dict[str, An
     assert "$.network.remote" in str(exc.value)
 
 
+def test_remote_port_must_not_be_one_of_the_pipelines_own() -> None:
+    with pytest.raises(ConfigError, match="takes a port of the pipeline's own"):
+        configmod.from_data({"network": {"transport": "tcp", "base_port": 5550,
+                                         "remote": {"bind": "tcp://127.0.0.1:5553"}}})
+    configmod.from_data({"network": {"transport": "tcp", "base_port": 5550,
+                                     "remote": {"bind": "tcp://127.0.0.1:5557"}}})
+
+
 def test_pipeline_endpoints_still_refuse_non_loopback_hosts() -> None:
     with pytest.raises(ConfigError, match="network.remote.bind"):
         configmod.from_data({"network": {"host": "0.0.0.0", "remote": {
@@ -82,8 +90,10 @@ def test_keys_generate_rejects_bad_names(tmp_path: Path, name: str, error: str) 
 
 def test_client_keys_name_the_missing_file(tmp_path: Path) -> None:
     generate(tmp_path, "client")
-    with pytest.raises(Exception, match="server.key"):
+    with pytest.raises(StartupError, match="server.key, got no such file"):
         client_keys(tmp_path)
+    with pytest.raises(StartupError, match="got a public key only"):
+        server_keys(tmp_path / "client.key")
 
 
 def test_curve_sockets_talk_only_with_the_servers_key(tmp_path: Path,

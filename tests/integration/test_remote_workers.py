@@ -179,6 +179,36 @@ def test_remote_workers_over_curve_give_the_same_results_as_local_ones(
 
 
 @pytest.mark.timeout(120)
+def test_raw_pairs_reach_a_remote_worker_pixel_for_pixel(
+        spawn: Callable[..., Pipeline], remote: Callable[..., RemoteWorker], run_dir: Path,
+        keys: dict[str, Path]) -> None:
+    """Raw pairs (no JPEG) travel to a remote worker as bytes: the pixel digests it computes
+    equal those of a local worker of the shared-memory ring, pair for pair."""
+    bind = f"tcp://127.0.0.1:{free_port()}"
+    cfg = remote_config(run_dir.parent / "raw.yaml", bind, keys, {
+        "near_px": {"plugin": "digest", "policy": "ordered:64"},
+        "far_px": {"plugin": "digest", "policy": "ordered:64", "count": 0, "remote": True},
+    }, {**SMALL, "rate_hz": 10.0, "encoding": "raw"})
+    p = spawn(["--config", str(cfg)], run_dir)
+    p.wait_active()
+    remote("--connect", bind, "--pool", "far_px", "--keys", str(keys["worker"]))
+    poll_for(lambda: [r for r in remote_rows(p, "far_px") if r.get("processed", 0) >= 30], 40,
+             interval=0.5, what="30 raw pairs processed remotely")
+    code, _, err = p.stop(signal.SIGINT, timeout=20)
+    assert code == 0, err
+    px: dict[str, dict[int, str]] = defaultdict(dict)
+    for row in p.results():
+        if "digest" in row:
+            d = row["digest"]
+            assert d["shape"] == [240, 320, 3]
+            px[d["pool"]][d["seq"]] = d["sha1"]
+    common = set(px["near_px"]) & set(px["far_px"])
+    assert len(common) >= 30
+    assert all(px["near_px"][s] == px["far_px"][s] for s in common)
+    assert len({px["far_px"][s] for s in common}) > len(common) // 2  # the pixels do change
+
+
+@pytest.mark.timeout(120)
 @pytest.mark.parametrize("who,refusal", [
     ("plain", "refused_remote_bad_handshake"),  # no CURVE at all
     ("stranger", "refused_remote_unauthorised_key"),  # a key not in authorized_keys

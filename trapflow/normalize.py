@@ -1,7 +1,10 @@
 """Results -> compact JSON objects, the wire contract of the modem and results.jsonl.
 
 Shape: {"mono_ir": {"timestamp": "2025-07-07 12:52:43.120", "seq": 17, "label": "crab",
-"confidence": 0.71, "box": [5.4, 7.8, 15.6, 18.1]}} -- numbers as numbers, UTC times.
+"confidence": 0.71, "box": [5.4, 7.8, 15.6, 18.1], "v": 1}} -- numbers as numbers, UTC times.
+Every line ends with `v`, the version of this shape (SCHEMA_VERSION: raised when a key
+changes meaning or goes; a new key does not raise it); lines of ONNX-based pools also carry
+`model`, the short hash of the model file that produced them.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import msgspec
 from trapflow import messages
 
 _json = msgspec.json.Encoder()
+SCHEMA_VERSION = 1
 
 
 def timestamp(t_wall_ns: int) -> str:
@@ -37,10 +41,14 @@ def normalize(res: messages.Result, decimals: int = 3) -> list[dict[str, Any]]:
     """
     objs = _items(res, decimals)
     calib = getattr(res.body, "calib", "")
-    if calib:
-        for obj in objs:
-            for item in obj.values():
+    model = getattr(res.body, "model", "")
+    for obj in objs:
+        for item in obj.values():
+            if calib:
                 item["calib"] = calib
+            if model:
+                item["model"] = model
+            item["v"] = SCHEMA_VERSION
     return objs
 
 

@@ -8,6 +8,7 @@ odometry and path, Foxglove annotations) must carry what the result lines say.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import signal
@@ -160,6 +161,11 @@ def test_recording_of_a_running_pipeline_decodes_and_matches_its_ledger(
 
     # Annotations: one message per pair the detector processed, boxes as closed outlines.
     mono = [json.loads(m.data)["mono_ir"] for m in msgs["/trapflow/results/mono_ir"]]
+    # Every line carries the schema version; the ONNX detector's, its model file's hash.
+    assert {r["v"] for r in mono + vo} == {1}
+    models = {hashlib.sha256(p.read_bytes()).hexdigest()[:8]
+              for p in (REPO / "workers" / "models").glob("*.onnx")}
+    assert len({r["model"] for r in mono}) == 1 and {r["model"] for r in mono} <= models
     by_seq: dict[int, list[list[float]]] = {}
     for r in mono:
         by_seq.setdefault(r["seq"], [])

@@ -69,6 +69,12 @@ TOPIC_PATH = "/trapflow/vo/path"
 ANNOTATIONS_PREFIX = "/trapflow/left/annotations/"
 ANNOTATED = ("mono_ir", "tags")  # results drawn on the left image in Foxglove
 VO_ALGO = "stereo_vo"
+# rosbag2's record of a reliable, transient-local (latched) publisher, as it writes /tf_static.
+_NEVER = "    sec: 2147483647\n    nsec: 4294967295\n"
+LATCHED_QOS = ("- history: 3\n  depth: 0\n  reliability: 1\n  durability: 1\n"
+               f"  deadline:\n{_NEVER}  lifespan:\n{_NEVER}  liveliness: 1\n"
+               f"  liveliness_lease_duration:\n{_NEVER}"
+               "  avoid_ros_namespace_conventions: false\n")
 
 
 class RecorderError(TrapflowError):
@@ -125,6 +131,13 @@ class Recorder:
             text = (msgs.foxglove_msgdef()[1] if typename == self._annotations_type
                     else msgs.ros_msgdef(typename))
             schema = self._schemas[typename] = self._writer.register_msgdef(typename, text)
+        if topic == TOPIC_TF_STATIC and topic not in self._writer._channel_ids:
+            # Latched, as a static transform publisher offers it: rosbag2 keeps the QoS in
+            # the channel's metadata, and `ros2 bag play` replays it so late subscribers
+            # still get the transform. mcap_ros2 registers channels without metadata.
+            self._writer._channel_ids[topic] = self._writer._writer.register_channel(
+                topic=topic, message_encoding="cdr", schema_id=schema.id,
+                metadata={"offered_qos_profiles": LATCHED_QOS})
         self._writer.write_message(topic, schema, msg, log_time=t, publish_time=t,
                                    sequence=seq if seq >= 0 else 0)
 

@@ -42,6 +42,10 @@ def quat_matrix(q: Any) -> np.ndarray:
 def read_rosbags(path: Path) -> tuple[dict[str, str], dict[str, list[Any]]]:
     with AnyReader([path]) as reader:
         types = {c.topic: c.msgtype for c in reader.connections}
+        (tf,) = [c for c in reader.connections if c.topic == "/tf_static"]
+        # Latched, as rosbag2 records a static transform publisher: replay keeps it.
+        (qos,) = tf.ext.offered_qos_profiles  # type: ignore[union-attr]
+        assert qos.durability.name == "TRANSIENT_LOCAL" and qos.reliability.name == "RELIABLE"
         msgs: dict[str, list[Any]] = {}
         for conn, _, raw in reader.messages():
             msgs.setdefault(conn.topic, []).append(reader.deserialize(raw, conn.msgtype))

@@ -195,11 +195,12 @@ def status(run_dir: Path, as_json: bool, stop: bool, timeout: float) -> None:
 def _add_commands() -> None:
     from trapflow import cli_dataset, cli_remote, cli_sources
     from trapflow.batch.cli import process
+    from trapflow.export import cli as cli_export
     from trapflow.modem import cli as cli_modem
 
     for cmd in (*cli_modem.COMMANDS, process, cli_sources.calibrate, cli_sources.record,
                 cli_sources.replay, cli_sources.recover, cli_dataset.dataset,
-                *cli_remote.COMMANDS):
+                *cli_export.COMMANDS, *cli_remote.COMMANDS):
         main.add_command(cmd)
 
 

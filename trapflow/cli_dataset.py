@@ -58,7 +58,8 @@ def dataset() -> None:
 def synth(out: Path, frames: int, seed: int, moving: bool, width: int, height: int,
           rate_hz: float, baseline: float, hfov: float, options: tuple[tuple[str, Any], ...],
           overwrite: bool) -> None:
-    """Render a KITTI-style stereo sequence with YOLO labels into OUT."""
+    """Render a KITTI-style stereo sequence with YOLO labels into OUT, with data.yaml and
+    images/ beside labels/ for Ultralytics and the same boxes in coco.json."""
     rig = StereoRig.from_fov(width, height, hfov, baseline)
     try:
         opts = parse_options(dict(options), prefix="--option")

@@ -136,32 +136,36 @@ def calibrate(left_glob: str, right_glob: str, pattern: tuple[int, int], square:
 @click.option("--run-dir", type=click.Path(file_okay=False, path_type=Path),
               default=Path("runs/latest"), show_default=True,
               help="Run directory of the pipeline to attach to.")
-@click.option("--endpoint", default=None, help="Tap endpoint (overrides --run-dir).")
+@click.option("--endpoint", "endpoints", multiple=True,
+              help="Tap endpoint, repeatable (overrides --run-dir): the broker's tap for "
+                   "pairs, the normalizer's results tap for results.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="MCAP file to write.")
-def record(run_dir: Path, endpoint: str | None, output: Path) -> None:
+def record(run_dir: Path, endpoints: tuple[str, ...], output: Path) -> None:
     """Record image pairs and results from a running pipeline to an MCAP rosbag2 file."""
     from trapflow.recorder import record as record_tap
 
     rig = None
-    if endpoint is None:
+    if not endpoints:  # pairs from the broker's tap, results from the normalizer's
         from trapflow.config import Config
         from trapflow.transport import Endpoints
 
-        endpoint = Endpoints.for_run(Config().network, run_dir).tap
+        ep = Endpoints.for_run(Config().network, run_dir)
+        endpoints = (ep.tap, ep.results_tap)
         rig = _running_rig(run_dir)
     from trapflow.recorder import RecorderError
 
     stop = stop_on_signals()
-    click.echo(f"recording {endpoint} to {output}; Ctrl-C to stop", err=True)
+    click.echo(f"recording {' + '.join(endpoints)} to {output}; Ctrl-C to stop", err=True)
     try:
-        counts = record_tap(endpoint, output, stop, rig=rig)
+        counts = record_tap(endpoints, output, stop, rig=rig)
     except RecorderError as exc:  # the output cannot be written: fix -o
         raise bad_input(exc) from None
     except (TrapflowError, OSError) as exc:
         raise failed(str(exc)) from None
     per_algo = ", ".join(f"{k} {v}" for k, v in sorted(counts.results.items())) or "none"
-    click.echo(f"{output}: {counts.pairs} pairs, results: {per_algo}, malformed {counts.malformed}")
+    click.echo(f"{output}: {counts.pairs} pairs, results: {per_algo}, odometry "
+               f"{counts.odometry}, malformed {counts.malformed}")
 
 
 def _running_rig(run_dir: Path) -> StereoRig | None:

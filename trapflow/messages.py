@@ -68,6 +68,7 @@ class MonoIR(Msg, frozen=True, tag="mono_ir"):
     """Mono image recognition: the detections in the left image."""
 
     detections: list[Detection] = []
+    model: str = ""  # short hash of the ONNX model that found them (onnx_session.model_hash)
 
 
 class StereoIR(Msg, frozen=True, tag="stereo_ir"):
@@ -76,6 +77,7 @@ class StereoIR(Msg, frozen=True, tag="stereo_ir"):
     label: str
     confidence: float
     calib: str = ""  # id of the stereo rig the pair was taken with (StereoRig.id)
+    model: str = ""  # short hash of the ONNX model that classified it
 
 
 class StereoVO(Msg, frozen=True, tag="stereo_vo"):

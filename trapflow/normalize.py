@@ -1,7 +1,10 @@
 """Results -> compact JSON objects, the wire contract of the modem and results.jsonl.
 
 Shape: {"mono_ir": {"timestamp": "2025-07-07 12:52:43.120", "seq": 17, "label": "crab",
-"confidence": 0.71, "box": [5.4, 7.8, 15.6, 18.1]}} -- numbers as numbers, UTC times.
+"confidence": 0.71, "box": [5.4, 7.8, 15.6, 18.1], "v": 1}} -- numbers as numbers, UTC times.
+Every line ends with `v`, the version of this shape (SCHEMA_VERSION: raised when a key
+changes meaning or goes; a new key does not raise it); lines of ONNX-based pools also carry
+`model`, the short hash of the model file that produced them.
 Each quantity keeps the precision it needs, whatever the modem's codec later quantises:
 confidences 1e-3, pixels 0.1, rotations and translations (VO's `Rt` and `pose`, tag poses) 1e-9.
 """
@@ -16,6 +19,7 @@ import msgspec
 from trapflow import messages
 
 _json = msgspec.json.Encoder()
+SCHEMA_VERSION = 1
 
 CONFIDENCE_DIGITS = 3
 """Scores: 1e-3 is finer than any threshold a user sets."""
@@ -52,10 +56,14 @@ def normalize(res: messages.Result, decimals: int = 3) -> list[dict[str, Any]]:
     """
     objs = _items(res, decimals)
     calib = getattr(res.body, "calib", "")
-    if calib:
-        for obj in objs:
-            for item in obj.values():
+    model = getattr(res.body, "model", "")
+    for obj in objs:
+        for item in obj.values():
+            if calib:
                 item["calib"] = calib
+            if model:
+                item["model"] = model
+            item["v"] = SCHEMA_VERSION
     return objs
 
 

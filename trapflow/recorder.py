@@ -1,14 +1,17 @@
-"""Recordings: MCAP files with the ros2 profile that ROS 2 tools read as a rosbag2.
+"""Recordings: MCAP files with the ros2 profile that ROS 2 tools and Foxglove read.
 
-Left and right images are sensor_msgs/msg/CompressedImage (with the run's rig as
-sensor_msgs/msg/CameraInfo beside them when known), pair headers and results are
-std_msgs/msg/String JSON (one results topic per algorithm), every message stamped with its
-pair's capture time. The file is written as OUT.part and renamed on close, so an
-interrupted recording never leaves a half-written OUT behind. Every second the chunk in
-progress is closed and the file synced, so a recorder killed by a crash or a power cut
-loses at most that second: recover() copies every complete message of the .part into a
-valid MCAP. record() owns one SUB socket.
-"""
+Left and right images are sensor_msgs/msg/CompressedImage with the run's rig beside them as
+sensor_msgs/msg/CameraInfo and the left-to-right transform on /tf_static (when the rig is
+known); pair headers and results are std_msgs/msg/String JSON (one results topic per
+algorithm); VO poses are nav_msgs/msg/Odometry, and the trajectory one nav_msgs/msg/Path at
+the end; detections and tags are foxglove_msgs/msg/ImageAnnotations on the left image, one
+message per pair (with foxglove-schemas-protobuf installed). vision_msgs is not in the
+rosbags typestore, so there is no Detection2DArray. Every message is stamped with its pair's
+capture time; definitions come from recording_msgs. The file is written as OUT.part and
+renamed on close, so an interrupted recording never leaves a half-written OUT behind. Every
+second the chunk in progress is closed and the file synced, so a recorder killed by a crash
+or a power cut loses at most that second: recover() copies every complete message of the
+.part into a valid MCAP. record() owns one SUB socket."""
 
 from __future__ import annotations
 
@@ -18,6 +21,7 @@ import os
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -30,6 +34,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import Writer as McapWriter
 from mcap_ros2.writer import Writer
 
+from trapflow import recording_msgs as msgs
 from trapflow.camera import StereoRig
 from trapflow.errors import ProtocolError, TrapflowError
 from trapflow.messages import (
@@ -56,35 +61,24 @@ _SEQ_MEMORY = 4096  # pairs whose capture time a late result can still find
 FLUSH_INTERVAL_S = 1.0
 PART_SUFFIX = ".part"
 
-# The standard ROS 2 definitions, flattened the way rosbag2 stores them in MCAP schemas.
-_TIME_DEF = "int32 sec\nuint32 nanosec\n"
-_HEADER_DEF = "builtin_interfaces/Time stamp\nstring frame_id\n"
-_SEP = "=" * 80 + "\n"
-COMPRESSED_IMAGE_DEF = (
-    "std_msgs/Header header\nstring format\nuint8[] data\n"
-    + _SEP + "MSG: std_msgs/Header\n" + _HEADER_DEF
-    + _SEP + "MSG: builtin_interfaces/Time\n" + _TIME_DEF
-)
-STRING_DEF = "string data\n"
 TOPIC_LEFT_INFO = "/trapflow/left/camera_info"
 TOPIC_RIGHT_INFO = "/trapflow/right/camera_info"
-CAMERA_INFO_DEF = (
-    "std_msgs/Header header\nuint32 height\nuint32 width\nstring distortion_model\n"
-    "float64[] d\nfloat64[9] k\nfloat64[9] r\nfloat64[12] p\nuint32 binning_x\n"
-    "uint32 binning_y\nsensor_msgs/RegionOfInterest roi\n"
-    + _SEP + "MSG: std_msgs/Header\n" + _HEADER_DEF
-    + _SEP + "MSG: builtin_interfaces/Time\n" + _TIME_DEF
-    + _SEP + "MSG: sensor_msgs/RegionOfInterest\n"
-    + "uint32 x_offset\nuint32 y_offset\nuint32 height\nuint32 width\nbool do_rectify\n"
-)
+TOPIC_TF_STATIC = "/tf_static"
+TOPIC_ODOMETRY = "/trapflow/vo/odometry"
+TOPIC_PATH = "/trapflow/vo/path"
+ANNOTATIONS_PREFIX = "/trapflow/left/annotations/"
+ANNOTATED = ("mono_ir", "tags")  # results drawn on the left image in Foxglove
+VO_ALGO = "stereo_vo"
+# rosbag2's record of a reliable, transient-local (latched) publisher, as it writes /tf_static.
+_NEVER = "    sec: 2147483647\n    nsec: 4294967295\n"
+LATCHED_QOS = ("- history: 3\n  depth: 0\n  reliability: 1\n  durability: 1\n"
+               f"  deadline:\n{_NEVER}  lifespan:\n{_NEVER}  liveliness: 1\n"
+               f"  liveliness_lease_duration:\n{_NEVER}"
+               "  avoid_ros_namespace_conventions: false\n")
 
 
 class RecorderError(TrapflowError):
     """A recording cannot be written (bad path, disk full) or an input is unusable."""
-
-
-def _stamp(t_ns: int) -> dict[str, int]:
-    return {"sec": t_ns // 1_000_000_000, "nanosec": t_ns % 1_000_000_000}
 
 
 @dataclass
@@ -94,6 +88,8 @@ class RecordCounts:
     pairs: int = 0
     results: dict[str, int] = field(default_factory=dict)
     malformed: int = 0
+    odometry: int = 0  # nav_msgs/Odometry messages: VO results with a pose
+    annotations: dict[str, int] = field(default_factory=dict)  # per algorithm: one per pair
 
     @property
     def total_results(self) -> int:
@@ -113,16 +109,37 @@ class Recorder:
         except OSError as exc:
             raise RecorderError(f"cannot write recording {self.out}: {exc.strerror}") from None
         self._writer = Writer(self._file)
-        self._image_schema = self._writer.register_msgdef(
-            "sensor_msgs/msg/CompressedImage", COMPRESSED_IMAGE_DEF
-        )
-        self._string_schema = self._writer.register_msgdef("std_msgs/msg/String", STRING_DEF)
-        self._info_schema = self._writer.register_msgdef(
-            "sensor_msgs/msg/CameraInfo", CAMERA_INFO_DEF) if rig is not None else None
+        self._schemas: dict[str, Any] = {}
+        try:  # Foxglove's ImageAnnotations: only with foxglove-schemas-protobuf installed
+            self._annotations_type: str | None = msgs.foxglove_msgdef()[0]
+        except ImportError:
+            log.info("record: foxglove-schemas-protobuf is not installed; no ImageAnnotations"
+                     " (pip install 'trapflow[foxglove]')")
+            self._annotations_type = None
         self._seq_time: OrderedDict[int, int] = OrderedDict()
+        self._pending: dict[str, tuple[int, list[dict[str, Any]]]] = {}  # algo -> seq, items
+        self._poses: list[tuple[int, list[list[float]]]] = []  # the VO trajectory so far
+        self._tf_written = False
         self.counts = RecordCounts()
         self.closed = False
         self._flushed = time.monotonic()
+
+    def _write(self, topic: str, typename: str, msg: dict[str, Any], t: int, seq: int) -> None:
+        """Write one message of a ROS 2 type (its definition registered on first use)."""
+        schema = self._schemas.get(typename)
+        if schema is None:
+            text = (msgs.foxglove_msgdef()[1] if typename == self._annotations_type
+                    else msgs.ros_msgdef(typename))
+            schema = self._schemas[typename] = self._writer.register_msgdef(typename, text)
+        if topic == TOPIC_TF_STATIC and topic not in self._writer._channel_ids:
+            # Latched, as a static transform publisher offers it: rosbag2 keeps the QoS in
+            # the channel's metadata, and `ros2 bag play` replays it so late subscribers
+            # still get the transform. mcap_ros2 registers channels without metadata.
+            self._writer._channel_ids[topic] = self._writer._writer.register_channel(
+                topic=topic, message_encoding="cdr", schema_id=schema.id,
+                metadata={"offered_qos_profiles": LATCHED_QOS})
+        self._writer.write_message(topic, schema, msg, log_time=t, publish_time=t,
+                                   sequence=seq if seq >= 0 else 0)
 
     def add_pair(
         self, header: StereoPair, left: bytes | memoryview, right: bytes | memoryview
@@ -136,15 +153,18 @@ class Recorder:
         for topic, frame_id, t, data in (
             (TOPIC_LEFT, FRAME_LEFT, t_left, left), (TOPIC_RIGHT, FRAME_RIGHT, t_right, right)
         ):
-            msg = {"header": {"stamp": _stamp(t), "frame_id": frame_id},
+            msg = {"header": {"stamp": msgs.stamp(t), "frame_id": frame_id},
                    "format": "jpeg", "data": bytes(data)}
-            self._writer.write_message(topic, self._image_schema, msg, log_time=t,
-                                       publish_time=t, sequence=header.seq)
+            self._write(topic, "sensor_msgs/msg/CompressedImage", msg, t, header.seq)
         if self.rig is not None and self.rig.size == (header.width, header.height):
+            if not self._tf_written:  # once, as a static transform publisher latches it
+                self._tf_written = True
+                self._write(TOPIC_TF_STATIC, "tf2_msgs/msg/TFMessage",
+                            msgs.tf_static(self.rig, t_left, FRAME_LEFT, FRAME_RIGHT),
+                            t_left, header.seq)
             self._camera_info(header.seq, t_left, t_right)
         meta = json.dumps(to_builtins(header), separators=(",", ":"))
-        self._writer.write_message(TOPIC_PAIRS, self._string_schema, {"data": meta},
-                                   log_time=t_left, publish_time=t_left, sequence=header.seq)
+        self._write(TOPIC_PAIRS, "std_msgs/msg/String", {"data": meta}, t_left, header.seq)
         self._seq_time[header.seq] = t_left
         if len(self._seq_time) > _SEQ_MEMORY:
             self._seq_time.popitem(last=False)
@@ -165,18 +185,17 @@ class Recorder:
     def _camera_info(self, seq: int, t_left: int, t_right: int) -> None:
         """The rectified rig as a left/right CameraInfo pair, as camera_calibration writes it
         (the right P carries -fx * baseline): what replay reads the rig back from."""
-        assert self.rig is not None and self._info_schema is not None
+        assert self.rig is not None
         r = self.rig
         for topic, frame_id, t, right in ((TOPIC_LEFT_INFO, FRAME_LEFT, t_left, False),
                                           (TOPIC_RIGHT_INFO, FRAME_RIGHT, t_right, True)):
-            msg = {"header": {"stamp": _stamp(t), "frame_id": frame_id}, "height": r.height,
+            msg = {"header": {"stamp": msgs.stamp(t), "frame_id": frame_id}, "height": r.height,
                    "width": r.width, "distortion_model": "plumb_bob", "d": [0.0] * 5,
                    "k": [float(v) for v in r.K.ravel()], "r": [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0],
                    "p": [float(v) for v in r.projection(right).ravel()], "binning_x": 0,
                    "binning_y": 0, "roi": {"x_offset": 0, "y_offset": 0, "height": 0,
                                            "width": 0, "do_rectify": False}}
-            self._writer.write_message(topic, self._info_schema, msg, log_time=t,
-                                       publish_time=t, sequence=seq)
+            self._write(topic, "sensor_msgs/msg/CameraInfo", msg, t, seq)
 
     @staticmethod
     def _jpeg(header: StereoPair, data: bytes | memoryview) -> bytes:
@@ -203,12 +222,36 @@ class Recorder:
         if not isinstance(algo, str) or not algo.isidentifier():
             raise RecorderError(f"result: expected an algorithm name as key, got {algo!r}")
         seq = body.get("seq") if isinstance(body, dict) else None
-        t = self._seq_time.get(seq, time.time_ns()) if isinstance(seq, int) else time.time_ns()
-        self._writer.write_message(RESULTS_PREFIX + algo, self._string_schema,
-                                   {"data": text.strip()}, log_time=t, publish_time=t,
-                                   sequence=seq if isinstance(seq, int) and seq >= 0 else 0)
+        seq = seq if isinstance(seq, int) and seq >= 0 else -1
+        t = self._seq_time.get(seq, time.time_ns())
+        self._write(RESULTS_PREFIX + algo, "std_msgs/msg/String", {"data": text.strip()},
+                    t, seq)
         self.counts.results[algo] = self.counts.results.get(algo, 0) + 1
+        if isinstance(body, dict):
+            self._derived(algo, body, seq, t)
         self.maybe_flush()
+
+    def _derived(self, algo: str, body: dict[str, Any], seq: int, t: int) -> None:
+        """The typed messages a result line adds: VO odometry, and image annotations (one
+        message per pair: the lines of one pair's result come one after the other)."""
+        if algo == VO_ALGO and body.get("ok") and _is_pose(body.get("pose")):
+            self._poses.append((t, body["pose"]))
+            self._write(TOPIC_ODOMETRY, "nav_msgs/msg/Odometry",
+                        msgs.odometry(body["pose"], t, FRAME_LEFT), t, seq)
+            self.counts.odometry += 1
+        if algo in ANNOTATED and self._annotations_type is not None:
+            pending = self._pending.get(algo)
+            if pending is not None and pending[0] != seq:
+                self._annotate(algo)
+            self._pending.setdefault(algo, (seq, []))[1].append(body)
+
+    def _annotate(self, algo: str) -> None:
+        seq, items = self._pending.pop(algo)
+        assert self._annotations_type is not None
+        t = self._seq_time.get(seq, time.time_ns())
+        self._write(ANNOTATIONS_PREFIX + algo, self._annotations_type,
+                    msgs.image_annotations(algo, items, t), t, seq)
+        self.counts.annotations[algo] = self.counts.annotations.get(algo, 0) + 1
 
     def close(self) -> None:
         """Write the MCAP summary and footer, then move OUT.part to OUT. Idempotent."""
@@ -216,6 +259,11 @@ class Recorder:
             return
         self.closed = True
         try:
+            for algo in list(self._pending):
+                self._annotate(algo)
+            if self._poses:  # the whole trajectory once, stamped with its last pose
+                t_last = self._poses[-1][0]
+                self._write(TOPIC_PATH, "nav_msgs/msg/Path", msgs.path(self._poses), t_last, 0)
             self._writer.finish()  # type: ignore[no-untyped-call]
         finally:
             self._file.close()
@@ -228,10 +276,18 @@ class Recorder:
         self.close()
 
 
-def record(endpoint: str, out: str | Path, stop: threading.Event,
+def _is_pose(value: object) -> bool:
+    return (isinstance(value, list) and len(value) == 3
+            and all(isinstance(r, list) and len(r) == 4 for r in value))
+
+
+def record(endpoint: str | Sequence[str], out: str | Path, stop: threading.Event,
            counts: RecordCounts | None = None, poll_ms: int = 100,
            rig: StereoRig | None = None) -> RecordCounts:
-    """Attach to the tap at endpoint and record image pairs and results until stop is set.
+    """Attach to the tap(s) at endpoint and record image pairs and results until stop is set.
+
+    A pipeline publishes pairs on the broker's tap and results on the normalizer's: pass
+    both (Endpoints.tap and Endpoints.results_tap) to record both.
 
     counts (optional) is updated live so a caller can watch progress; it is also returned.
     rig (the pipeline's, from its status) is written as CameraInfo beside the images.
@@ -248,7 +304,8 @@ def record(endpoint: str, out: str | Path, stop: threading.Event,
     try:
         sub.setsockopt(zmq.SUBSCRIBE, TOPIC_IMAGE)
         sub.setsockopt(zmq.SUBSCRIBE, TOPIC_RESULT)
-        sub.connect(endpoint)
+        for ep in ([endpoint] if isinstance(endpoint, str) else endpoint):
+            sub.connect(ep)
         while not stop.is_set():
             if not sub.poll(poll_ms):
                 rec.maybe_flush()  # a quiet pipeline: what came last is on disk all the same

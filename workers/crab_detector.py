@@ -270,7 +270,7 @@ class CrabDetector(Worker):
             )
             for k, b in zip(keep, mapped, strict=True)
         ]
-        return MonoIR(detections=dets)
+        return MonoIR(detections=dets, model=self.session.model_hash)
 
     def _label(self, cls: int) -> str:
         return self.labels[cls] if self.labels else f"class{cls}"

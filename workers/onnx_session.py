@@ -6,6 +6,7 @@ several sessions spinning on all cores would fight each other.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -57,6 +58,7 @@ class Session:
     path: Path
     provider: str  # the provider that runs the model
     metadata: dict[str, str]  # custom metadata map (Ultralytics: names, imgsz, stride...)
+    model_hash: str = ""  # first 8 hex digits of the file's SHA-256: which model made a result
 
     @property
     def inputs(self) -> list[ort.NodeArg]:
@@ -112,8 +114,18 @@ def open_session(
         log.info("model %s runs on %s", path.name, used)
     meta = session.get_modelmeta()
     return Session(
-        session=session, path=path, provider=used, metadata=dict(meta.custom_metadata_map or {})
+        session=session, path=path, provider=used, metadata=dict(meta.custom_metadata_map or {}),
+        model_hash=model_hash(path),
     )
+
+
+def model_hash(path: Path) -> str:
+    """Short id of a model file: the first 8 hex digits of its SHA-256 (as `git` shortens)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()[:8]
 
 
 class ModelParams(Params):

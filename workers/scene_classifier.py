@@ -146,6 +146,6 @@ class SceneClassifier(Worker):
         top = int(scores.argmax())
         conf = float(scores[top])
         if conf < self.p.threshold:
-            return StereoIR(label="none", confidence=conf)
+            return StereoIR(label="none", confidence=conf, model=self.session.model_hash)
         label = self.labels[top] if self.labels else f"class{top}"
-        return StereoIR(label=label, confidence=conf)
+        return StereoIR(label=label, confidence=conf, model=self.session.model_hash)

@@ -121,10 +121,12 @@ def test_record_from_tap_reads_back_as_rosbag2(
         TOPIC_PAIRS: "std_msgs/msg/String",
         "/trapflow/results/mono_ir": "std_msgs/msg/String",
         "/trapflow/results/stereo_ir": "std_msgs/msg/String",
+        "/trapflow/left/annotations/mono_ir": "foxglove_msgs/msg/ImageAnnotations",
     }
     assert {k: len(v) for k, v in got.items()} == {
         TOPIC_LEFT: n, TOPIC_RIGHT: n, TOPIC_PAIRS: n,
         "/trapflow/results/mono_ir": n, "/trapflow/results/stereo_ir": 4,
+        "/trapflow/left/annotations/mono_ir": n,  # one per pair; these have no box to draw
     }
     sides = zip(got[TOPIC_LEFT], got[TOPIC_RIGHT], strict=True)
     for i, ((tl, left), (tr, right)) in enumerate(sides):

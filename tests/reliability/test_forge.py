@@ -18,7 +18,7 @@ import pytest
 import zmq
 
 from tests import builders
-from tests.conftest import Pipeline, poll_for, recv, write_config
+from tests.conftest import Pipeline, only_pools, poll_for, recv, write_config
 from trapflow import messages
 from trapflow.transport import LinkClosed, connect_link
 
@@ -30,7 +30,7 @@ def _config(path: Path, **extra: Any) -> Path:
     """One ordered no-op pool: every processed pair is exactly one result line."""
     return write_config(path, {
         "source": SMALL,
-        "pools": {"fast": {"plugin": "noop", "policy": "ordered:64"}},
+        "pools": only_pools({"fast": {"plugin": "noop", "policy": "ordered:64"}}),
         **extra,
     })
 
@@ -227,7 +227,7 @@ def test_trapflow_log_rotates_at_its_configured_size(spawn, run_dir: Path) -> No
     45 s). Four pools logging every pair (`time: true`) fill 64 KiB within seconds."""
     pools = {f"p{i}": {"plugin": "noop", "policy": "fifo:8", "time": True} for i in range(4)}
     cfg = write_config(run_dir.parent / "rot.yaml", {
-        "source": {**SMALL, "rate_hz": 30.0}, "pools": pools,
+        "source": {**SMALL, "rate_hz": 30.0}, "pools": only_pools(pools),
         "log_file": {"max_bytes": 65536, "backups": 2},
     })
     p: Pipeline = spawn(["--config", str(cfg)], run_dir)

@@ -14,7 +14,7 @@ import psutil
 import pytest
 import zmq
 
-from tests.conftest import Pipeline, poll_for, write_config
+from tests.conftest import Pipeline, only_pools, poll_for, write_config
 from trapflow import messages
 
 # Measured without the caps (issue 16): 20 subscriptions of 64 KB added 63 MB to the broker
@@ -44,7 +44,7 @@ def test_huge_and_many_subscriptions_leave_broker_and_normalizer_memory_flat(
     bound, and kept it after the subscribers disconnected."""
     cfg = write_config(run_dir.parent / "subs.yaml", {
         "source": {"width": 320, "height": 240, "rate_hz": 15.0},
-        "pools": {"fast": {"plugin": "noop", "policy": "ordered:64"}},
+        "pools": only_pools({"fast": {"plugin": "noop", "policy": "ordered:64"}}),
     })
     p: Pipeline = spawn(["--config", str(cfg)], run_dir)
     st = p.wait_active()

@@ -21,7 +21,7 @@ import pytest
 import zmq
 
 from tests import builders
-from tests.conftest import Pipeline, poll_for, write_config
+from tests.conftest import Pipeline, only_pools, poll_for, write_config
 from trapflow import messages
 from trapflow.transport import Link, LinkClosed, connect_link
 
@@ -171,7 +171,7 @@ def test_fuzz_every_socket_and_link_of_a_running_pipeline(spawn, run_dir: Path, 
     """Issue 16: a reliability suite that keeps items 2, 5, 7 and 8 true under random input."""
     cfg = write_config(run_dir.parent / "fuzz.yaml", {
         "source": {"width": 320, "height": 240, "rate_hz": 15.0},
-        "pools": {"fast": {"plugin": "noop", "policy": "ordered:64"}},
+        "pools": only_pools({"fast": {"plugin": "noop", "policy": "ordered:64"}}),
     })
     p: Pipeline = spawn(["--config", str(cfg)], run_dir)
     st = p.wait_active()

@@ -10,7 +10,7 @@ import pytest
 
 from tests import builders
 from trapflow import messages
-from trapflow.normalize import dumps, normalize, timestamp
+from trapflow.normalize import SCHEMA_VERSION, dumps, normalize, timestamp
 
 T = 1751892763120000000  # 2025-07-07 12:52:43.120 UTC
 
@@ -18,22 +18,22 @@ GOLDEN = [
     (messages.MonoIR(detections=[messages.Detection(label="crab", confidence=0.71234,
                                                     box=(5.43, 7.81, 15.6, 18.14))]),
      '{"mono_ir":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"label":"crab",'
-     '"confidence":0.712,"box":[5.4,7.8,15.6,18.1]}}'),
+     '"confidence":0.712,"box":[5.4,7.8,15.6,18.1],"v":1}}'),
     (messages.MonoIR(),
      '{"mono_ir":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"label":"none",'
-     '"confidence":0.0,"box":[]}}'),
+     '"confidence":0.0,"box":[],"v":1}}'),
     (messages.StereoIR(label="scallop", confidence=0.9),
      '{"stereo_ir":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"label":"scallop",'
-     '"confidence":0.9}}'),
+     '"confidence":0.9,"v":1}}'),
     (messages.StereoVO(ok=True, rotation=(1, 0, 0, 0, 1, 0, 0, 0, 1), translation=(0.1, 0, 0.25),
                        inliers=120),
      '{"stereo_vo":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"ok":true,"inliers":120,'
-     '"Rt":[[1.0,0.0,0.0,0.1],[0.0,1.0,0.0,0.0],[0.0,0.0,1.0,0.25]]}}'),
+     '"Rt":[[1.0,0.0,0.0,0.1],[0.0,1.0,0.0,0.0],[0.0,0.0,1.0,0.25]],"v":1}}'),
     (messages.StereoVO(ok=False, reinit=True),
      '{"stereo_vo":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"ok":false,"inliers":0,'
-     '"reinit":true}}'),
+     '"reinit":true,"v":1}}'),
     (messages.Extra(name="brightness", fields={"mean": 0.123456, "n": 3}),
-     '{"brightness":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"mean":0.123,"n":3}}'),
+     '{"brightness":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"mean":0.123,"n":3,"v":1}}'),
 ]
 
 
@@ -53,11 +53,34 @@ def test_one_object_per_detection_and_tag() -> None:
 
 
 def test_size_budget() -> None:
-    """A detection line stays small enough for an acoustic modem's store-and-forward."""
+    """A detection line stays small enough for an acoustic modem's store-and-forward: as JSON
+    on disk, and far smaller in the link codec, where the schema version and the model hash
+    (4 bytes) cost 6 bytes together."""
+    from trapflow.modem.codec import LinkCodec
+
     body = messages.MonoIR(detections=[messages.Detection(
-        label="crab", confidence=0.712345678, box=(1234.5678, 718.123, 1279.99, 719.99))])
-    line = dumps(normalize(builders.result(body, seq=10**9))[0])
-    assert len(line) <= 140, line
+        label="crab", confidence=0.712345678, box=(1234.5678, 718.123, 1279.99, 719.99))],
+        model="0a1b2c3d")
+    obj = normalize(builders.result(body, seq=10**9))[0]
+    line = dumps(obj)
+    assert len(line) <= 165, line
+    codec = LinkCodec()
+    bare = {"mono_ir": {k: v for k, v in obj["mono_ir"].items() if k not in ("v", "model")}}
+    assert len(codec.encode(obj)) <= len(codec.encode(bare)) + 6
+    back = codec.decode(codec.encode(obj))["mono_ir"]
+    assert (back["v"], back["model"]) == (SCHEMA_VERSION, "0a1b2c3d")
+
+
+def test_every_line_carries_the_schema_version_and_onnx_lines_the_model_hash() -> None:
+    bodies = [messages.MonoIR(model="0a1b2c3d"), messages.StereoIR(label="x", confidence=1,
+                                                                  model="0a1b2c3d"),
+              messages.StereoVO(ok=False), messages.Tags(),
+              messages.Extra(name="brightness", fields={"mean": 1.0})]
+    for body in bodies:
+        (obj,) = normalize(builders.result(body))
+        (item,) = obj.values()
+        assert item["v"] == SCHEMA_VERSION
+        assert item.get("model") == getattr(body, "model", None)
 
 
 def test_timestamp_is_utc_with_millis() -> None:
@@ -68,7 +91,7 @@ def test_a_pair_without_tags_writes_one_line() -> None:
     """Regression (issue 12): a pair the tags pool processed and found no tag in wrote no line,
     so "processed, nothing found" could not be told from "not processed"."""
     out = [dumps(o).decode() for o in normalize(builders.result(messages.Tags(), t_wall_ns=T))]
-    assert out == ['{"tags":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"corners":[]}}']
+    assert out == ['{"tags":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"corners":[],"v":1}}']
 
 
 def test_stereo_results_carry_the_rig_id() -> None:

@@ -1,19 +1,26 @@
-"""Writes a synthetic dataset: a KITTI-odometry stereo sequence plus YOLO labels.
+"""Writes a synthetic dataset: a KITTI-odometry stereo sequence plus detector labels.
 
 OUT/image_0, image_1 (PNG), calib.txt (P0, P1), poses.txt (3x4 left-camera-to-world,
 row major, world = first left camera), times.txt (s); labels/NNNNNN.txt (YOLO:
 class cx cy w h normalised), classes.txt, truth.jsonl (the full truth per pair).
+For training a detector: images/NNNNNN.png (the left images again, hard links where the
+file system has them) beside labels/ and data.yaml, the layout Ultralytics reads (it finds
+a label by putting labels/ for images/ in the image's path); and coco.json, the same boxes
+as COCO instances (bbox x, y, width, height in pixels; image file names relative to OUT).
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import os
 import shutil
 from pathlib import Path
+from typing import Any
 
 import cv2
 import msgspec
+import yaml
 
 from trapflow.camera import StereoRig
 from trapflow.errors import ConfigError
@@ -26,8 +33,8 @@ log = logging.getLogger(__name__)
 CLASSES = ("crab", "scallop", "tag")
 LABEL_MAX_OCCLUDED = 0.7  # objects hidden more than this get no YOLO label
 LABEL_MIN_SIDE_PX = 4.0
-_OURS = ("image_0", "image_1", "labels", "calib.txt", "poses.txt", "times.txt", "classes.txt",
-         "truth.jsonl")
+_OURS = ("image_0", "image_1", "images", "labels", "calib.txt", "poses.txt", "times.txt",
+         "classes.txt", "truth.jsonl", "data.yaml", "coco.json")
 
 
 def labelled(truth: Truth) -> list[TruthObject]:
@@ -61,8 +68,34 @@ def prepare_dir(out: Path, overwrite: bool) -> None:
                 shutil.rmtree(p)
             elif p.exists():
                 p.unlink()
-    for sub in ("image_0", "image_1", "labels"):
+    for sub in ("image_0", "image_1", "images", "labels"):
         (out / sub).mkdir(parents=True, exist_ok=True)
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:  # no hard links here (FAT, another device): a copy
+        shutil.copyfile(src, dst)
+
+
+def data_yaml() -> str:
+    """Ultralytics' dataset file: images/ for both splits (split it as the data needs), the
+    class names by index. No `path`: Ultralytics then takes the folder data.yaml is in."""
+    return yaml.safe_dump({"train": "images", "val": "images",
+                           "names": dict(enumerate(CLASSES))}, sort_keys=False)
+
+
+def coco_annotations(truth: Truth, image_id: int, first_id: int) -> list[dict[str, Any]]:
+    """COCO instances of one left image's labelled objects (ids from first_id on)."""
+    out = []
+    for k, o in enumerate(labelled(truth)):
+        x1, y1, x2, y2 = o.box
+        out.append({"id": first_id + k, "image_id": image_id,
+                    "category_id": CLASSES.index(o.label) + 1,
+                    "bbox": [round(x1, 3), round(y1, 3), round(x2 - x1, 3), round(y2 - y1, 3)],
+                    "area": round((x2 - x1) * (y2 - y1), 3), "iscrowd": 0})
+    return out
 
 
 def _row(values: list[float]) -> str:
@@ -81,12 +114,22 @@ def write_synth(out: Path, *, frames: int, seed: int, moving: bool, rig: StereoR
         f"P1: {_row(list(rig.projection(right=True).reshape(-1)))}\n")
     (out / "classes.txt").write_text("".join(c + "\n" for c in CLASSES))
     counts: dict[str, int] = {}
+    coco: dict[str, Any] = {
+        "info": {"description": f"trapflow synthetic world, seed {seed}", "version": "1"},
+        "images": [], "annotations": [],
+        "categories": [{"id": i + 1, "name": c, "supercategory": "object"}
+                       for i, c in enumerate(CLASSES)]}
     with open(out / "poses.txt", "w") as poses, open(out / "times.txt", "w") as times, \
             open(out / "truth.jsonl", "w") as truths:
         for i in range(frames):
             left, right, truth = world.render(i)
             name = f"{i:06d}"
             cv2.imwrite(str(out / "image_0" / f"{name}.png"), left)
+            _link_or_copy(out / "image_0" / f"{name}.png", out / "images" / f"{name}.png")
+            coco["images"].append({"id": i + 1, "file_name": f"image_0/{name}.png",
+                                   "width": rig.width, "height": rig.height})
+            coco["annotations"] += coco_annotations(truth, i + 1,
+                                                    len(coco["annotations"]) + 1)
             cv2.imwrite(str(out / "image_1" / f"{name}.png"), right)
             lines = yolo_lines(truth, rig.width, rig.height)
             (out / "labels" / f"{name}.txt").write_text("".join(s + "\n" for s in lines))
@@ -97,5 +140,7 @@ def write_synth(out: Path, *, frames: int, seed: int, moving: bool, rig: StereoR
             counts["scene:" + truth.scene_label] = counts.get("scene:" + truth.scene_label, 0) + 1
             for o in labelled(truth):
                 counts[o.label] = counts.get(o.label, 0) + 1
+    (out / "data.yaml").write_text(data_yaml())
+    (out / "coco.json").write_text(json.dumps(coco) + "\n")
     log.info("wrote %d pairs to %s", frames, out)
     return counts

@@ -1,0 +1,97 @@
+"""`trapflow report RUN_DIR` on the directory of a real run: the page is one self-contained
+HTML file whose tables and charts say what the run's own files say."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from collections import Counter
+from html.parser import HTMLParser
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import REPO, Pipeline
+
+
+class Page(HTMLParser):
+    """Tables as lists of rows, polylines with their attributes, and every URL referenced."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.tables: list[list[list[str]]] = []
+        self.polylines: list[dict[str, str]] = []
+        self.urls: list[str] = []
+        self._cell: list[str] | None = None
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        a = {k: v or "" for k, v in attrs}
+        self.urls += [v for k, v in a.items() if k in ("src", "href")]
+        if tag == "table":
+            self.tables.append([])
+        elif tag == "tr":
+            self.tables[-1].append([])
+        elif tag in ("td", "th"):
+            self._cell = []
+        elif tag == "polyline":
+            self.polylines.append(a)
+
+    def handle_endtag(self, tag: str) -> None:
+        if tag in ("td", "th") and self._cell is not None:
+            self.tables[-1][-1].append("".join(self._cell))
+            self._cell = None
+
+    def handle_data(self, data: str) -> None:
+        if self._cell is not None:
+            self._cell.append(data)
+
+
+@pytest.mark.timeout(150)
+def test_report_of_a_real_run(spawn, run_dir: Path) -> None:
+    p: Pipeline = spawn(["--workers", "mono=1,vo=1", "--size", "320x240", "--rate", "5",
+                         "--moving", "--duration", "12"], run_dir)
+    code, _, err = p.wait(120)
+    assert code == 0, err
+    out = run_dir.parent / "page.html"
+    res = subprocess.run([sys.executable, "-m", "trapflow", "report", str(run_dir), "-o",
+                          str(out)], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    page = Page()
+    page.feed(out.read_text())
+    assert page.urls == []  # self-contained: nothing to fetch
+
+    lines = [json.loads(x) for x in (run_dir / "results.jsonl").read_text().splitlines()]
+    # Detections per class per hour, counted here from the lines themselves.
+    want = Counter((x["mono_ir"]["timestamp"][:13] + ":00", x["mono_ir"]["label"])
+                   for x in lines if "mono_ir" in x and x["mono_ir"]["label"] != "none")
+    head, *rows = page.tables[0]
+    assert head[0] == "hour (UTC)" and head[-1] == "all"
+    got = Counter({(r[0], c): int(v) for r in rows for c, v in zip(head[1:-1], r[1:-1],
+                                                                    strict=True) if int(v)})
+    assert got == want and sum(want.values()) > 0
+
+    # Drops and losses: the ledger's numbers, pool by pool.
+    ledger = json.loads((run_dir / "ledger.json").read_text())
+    pools = {r[0]: [int(v) for v in r[1:]] for r in page.tables[2][1:]}
+    assert pools == {name: [q["processed"], q["dropped_by_policy"], q["timed_out"],
+                            q["failed"], q["lost"]] for name, q in ledger["pools"].items()}
+
+    # Charts: a rate series per pool, the VO path with one point per ok pose.
+    series = {pl["data-name"]: int(pl["data-points"]) for pl in page.polylines}
+    ok = sum(1 for x in lines if "stereo_vo" in x and x["stereo_vo"]["ok"])
+    assert series["left camera"] == ok > 0
+    assert {"mono_ir", "stereo_vo"} <= set(series)
+
+
+@pytest.mark.parametrize(("make", "message"), [
+    (lambda d: None, "expected"),  # no run directory at all
+    (lambda d: d.mkdir(), "results.jsonl"),  # a directory without results
+])
+def test_report_refuses_what_is_no_run(tmp_path: Path, make: object, message: str) -> None:
+    run = tmp_path / "run"
+    make(run)  # type: ignore[operator]
+    res = subprocess.run([sys.executable, "-m", "trapflow", "report", str(run)], cwd=REPO,
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2
+    assert message in res.stderr and "--run-dir" in res.stderr

@@ -1,0 +1,232 @@
+"""`trapflow report RUN_DIR`: one self-contained HTML page of a run, charts as inline SVG.
+
+Reads what a run leaves in its directory (results.jsonl, ledger.json, trapflow.log, the
+event folders' event.json) into a RunSummary (summarize, pure but for reading those files),
+then renders it (render_html, pure): detections per class per hour, the VO path seen from
+above, result rates per pool over time, drops and losses from the ledger, restarts and
+events. No JavaScript, no external file, no network: the page opens on a laptop at the dock.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import html
+import json
+import logging
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from trapflow.errors import TrapflowError
+
+log = logging.getLogger(__name__)
+
+TIME_FORMAT = "%Y-%m-%d %H:%M:%S.%f"
+RATE_BIN_S = 10  # seconds per point of the result-rate chart
+_RESTART = re.compile(r"^(\S+ \S+) .*restarting (\S+) \(restart (\d+)\)")
+
+
+class ReportError(TrapflowError):
+    """A run directory cannot be reported on (missing, no results)."""
+
+
+@dataclass
+class RunSummary:
+    """What a run did, ready to draw."""
+
+    run: str
+    first: str = ""  # UTC timestamps of the first and last result
+    last: str = ""
+    lines: int = 0
+    per_class_hour: dict[str, dict[str, int]] = field(default_factory=dict)  # hour -> label -> n
+    vo_path: list[tuple[float, float]] = field(default_factory=list)  # (x, z) of each ok pose
+    vo_ok: int = 0
+    vo_total: int = 0
+    rates: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # pool -> (s, /s)
+    ledger: dict[str, Any] = field(default_factory=dict)
+    restarts: list[tuple[str, str, int]] = field(default_factory=list)  # (time, node, count)
+    events: list[dict[str, Any]] = field(default_factory=list)  # event.json + name
+
+
+def _time(label: str) -> dt.datetime:
+    return dt.datetime.strptime(label, TIME_FORMAT)
+
+
+def summarize(run_dir: Path, events_folder: str = "events") -> RunSummary:
+    """Read a run directory; ReportError when it has no results.jsonl."""
+    results = run_dir / "results.jsonl"
+    if not results.is_file():
+        raise ReportError(f"report: expected {results} (a run directory with results), found "
+                          "none; name the directory a pipeline ran in (its --run-dir)")
+    s = RunSummary(run=run_dir.name)
+    seqs: dict[str, set[int]] = {}
+    t0: dt.datetime | None = None
+    times: dict[str, list[float]] = {}
+    with results.open(encoding="utf-8") as fh:
+        for n, raw in enumerate(fh, 1):
+            try:
+                (algo, body), = json.loads(raw).items()
+                t = _time(body["timestamp"])
+            except (ValueError, KeyError, TypeError, AttributeError):
+                log.warning("report: %s line %d is no result line; skipped", results, n)
+                continue
+            s.lines += 1
+            s.first = s.first or body["timestamp"]
+            s.last = body["timestamp"]
+            t0 = t0 or t
+            label = body.get("label")
+            if algo == "mono_ir" and label and label != "none":
+                hour = t.strftime("%Y-%m-%d %H:00")
+                per = s.per_class_hour.setdefault(hour, {})
+                per[label] = per.get(label, 0) + 1
+            if algo == "stereo_vo":
+                s.vo_total += 1
+                pose = body.get("pose")
+                if body.get("ok") and isinstance(pose, list) and len(pose) == 3:
+                    s.vo_ok += 1
+                    s.vo_path.append((float(pose[0][3]), float(pose[2][3])))
+            seq = body.get("seq")
+            if isinstance(seq, int) and seq not in seqs.setdefault(algo, set()):
+                seqs[algo].add(seq)  # a pair processed: one per pair, not one per detection
+                times.setdefault(algo, []).append((t - t0).total_seconds())
+    for algo, ts in times.items():
+        bins: dict[int, int] = {}
+        for x in ts:
+            bins[int(x // RATE_BIN_S)] = bins.get(int(x // RATE_BIN_S), 0) + 1
+        last = max(bins)
+        s.rates[algo] = [(b * RATE_BIN_S, bins.get(b, 0) / RATE_BIN_S) for b in range(last + 1)]
+    ledger = run_dir / "ledger.json"
+    if ledger.is_file():
+        s.ledger = json.loads(ledger.read_text(encoding="utf-8"))
+    logfile = run_dir / "trapflow.log"
+    if logfile.is_file():
+        for line in logfile.read_text(encoding="utf-8", errors="replace").splitlines():
+            m = _RESTART.match(line)
+            if m:
+                s.restarts.append((m.group(1), m.group(2), int(m.group(3))))
+    for info in sorted((run_dir / events_folder).glob("*/event.json")):
+        try:
+            s.events.append({"name": info.parent.name, **json.loads(info.read_text())})
+        except ValueError:
+            log.warning("report: %s is not JSON; skipped", info)
+    return s
+
+
+# --- rendering ---------------------------------------------------------------------------
+
+W, H, PAD = 640, 240, 40
+COLOURS = ("#d95f02", "#1b9e77", "#7570b3", "#e7298a", "#66a61e", "#e6ab02")
+
+
+def _scale(lo: float, hi: float, a: float, b: float) -> Any:
+    span = (hi - lo) or 1.0
+    return lambda v: a + (v - lo) / span * (b - a)
+
+
+def _axes(title: str, xlabel: str, ylabel: str) -> list[str]:
+    e = html.escape
+    return [f'<svg xmlns="http://www.w3.org/2000/svg" width="{W}" height="{H}" '
+            f'viewBox="0 0 {W} {H}" role="img" aria-label="{e(title)}">',
+            f'<rect x="{PAD}" y="{PAD // 2}" width="{W - 2 * PAD}" height="{H - 2 * PAD}" '
+            'fill="none" stroke="#999"/>',
+            f'<text x="{W // 2}" y="{H - 6}" text-anchor="middle" font-size="12">'
+            f'{e(xlabel)}</text>',
+            f'<text x="12" y="{H // 2}" font-size="12" transform="rotate(-90 12 {H // 2})" '
+            f'text-anchor="middle">{e(ylabel)}</text>']
+
+
+def svg_lines(title: str, series: dict[str, list[tuple[float, float]]], xlabel: str,
+              ylabel: str, equal: bool = False) -> str:
+    """A line chart of named (x, y) series, with its value range written on the axes."""
+    pts = [p for s in series.values() for p in s]
+    if not pts:
+        return f"<p>{html.escape(title)}: no data.</p>"
+    xs, ys = [p[0] for p in pts], [p[1] for p in pts]
+    x0, x1, y0, y1 = min(xs), max(xs), min(ys), max(ys)
+    if equal:  # a path seen from above: one metre is as long both ways
+        half = max(x1 - x0, y1 - y0, 1e-6) / 2
+        cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+        x0, x1, y0, y1 = cx - half, cx + half, cy - half, cy + half
+    sx = _scale(x0, x1, PAD, W - PAD)
+    sy = _scale(y0, y1, H - PAD, PAD // 2)
+    out = _axes(title, xlabel, ylabel)
+    out.append(f'<text x="{PAD}" y="{H - PAD + 14}" font-size="10">{x0:.3g}</text>'
+               f'<text x="{W - PAD}" y="{H - PAD + 14}" font-size="10" text-anchor="end">'
+               f'{x1:.3g}</text><text x="{PAD - 4}" y="{H - PAD}" font-size="10" '
+               f'text-anchor="end">{y0:.3g}</text><text x="{PAD - 4}" y="{PAD // 2 + 10}" '
+               f'font-size="10" text-anchor="end">{y1:.3g}</text>')
+    for i, (name, s) in enumerate(sorted(series.items())):
+        colour = COLOURS[i % len(COLOURS)]
+        d = " ".join(f"{sx(x):.1f},{sy(y):.1f}" for x, y in s)
+        out.append(f'<polyline class="series" data-name="{html.escape(name)}" '
+                   f'data-points="{len(s)}" fill="none" stroke="{colour}" '
+                   f'stroke-width="1.5" points="{d}"/>')
+        out.append(f'<text x="{W - PAD - 4}" y="{PAD // 2 + 14 + 14 * i}" font-size="11" '
+                   f'text-anchor="end" fill="{colour}">{html.escape(name)}</text>')
+    out.append("</svg>")
+    return "".join(out)
+
+
+def _table(head: list[str], rows: list[list[Any]]) -> str:
+    e = html.escape
+    if not rows:
+        return "<p>none</p>"
+    return ("<table><tr>" + "".join(f"<th>{e(h)}</th>" for h in head) + "</tr>"
+            + "".join("<tr>" + "".join(f"<td>{e(str(c))}</td>" for c in r) + "</tr>"
+                      for r in rows) + "</table>")
+
+
+def render_html(s: RunSummary) -> str:
+    """The page: one HTML string with its styles and SVG charts inline."""
+    e = html.escape
+    classes = sorted({c for per in s.per_class_hour.values() for c in per})
+    per_hour = [[hour, *(per.get(c, 0) for c in classes), sum(per.values())]
+                for hour, per in sorted(s.per_class_hour.items())]
+    pools = s.ledger.get("pools", {})
+    ledger_rows = [[name, p.get("processed", 0), p.get("dropped_by_policy", 0),
+                    p.get("timed_out", 0), p.get("failed", 0), p.get("lost", 0)]
+                   for name, p in sorted(pools.items())]
+    capture = [[k, s.ledger[k]] for k in ("produced", "reached_broker", "dropped_at_capture",
+                                          "failed_at_capture") if k in s.ledger]
+    vo = (f"{s.vo_ok} of {s.vo_total} pairs ok ({100 * s.vo_ok / s.vo_total:.0f} %)"
+          if s.vo_total else "no VO results")
+    parts = [
+        "<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
+        f"<title>trapflow run {e(s.run)}</title>",
+        "<style>body{font-family:sans-serif;margin:2em;max-width:60em}"
+        "table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;"
+        "padding:2px 8px;text-align:right}th{background:#eee}</style></head><body>",
+        f"<h1>trapflow run {e(s.run)}</h1>",
+        f"<p>Results from {e(s.first or '-')} to {e(s.last or '-')} UTC: {s.lines} lines.</p>",
+        "<h2>Detections per class per hour</h2>",
+        _table(["hour (UTC)", *classes, "all"], per_hour),
+        "<h2>Result rates per pool</h2>",
+        svg_lines("pairs processed per second", s.rates, f"seconds since the first result "
+                  f"({RATE_BIN_S} s bins)", "pairs/s"),
+        "<h2>Visual odometry</h2>", f"<p>{e(vo)}.</p>",
+        svg_lines("VO path from above", {"left camera": s.vo_path} if s.vo_path else {},
+                  "x (m)", "z (m)", equal=True),
+        "<h2>Drops and losses</h2>", _table(["capture", "pairs"], capture),
+        _table(["pool", "processed", "dropped by policy", "timed out", "failed", "lost"],
+               ledger_rows) if s.ledger else "<p>no ledger.json (the run did not end cleanly)</p>",
+        "<h2>Restarts</h2>", _table(["time", "node", "restart"], [list(r) for r in s.restarts]),
+        "<h2>Events</h2>",
+        _table(["event", "pairs", "first seq", "last seq", "results"],
+               [[ev["name"], ev.get("pairs", ""), ev.get("first_seq", ""),
+                 ev.get("last_seq", ""), ev.get("results", "")] for ev in s.events]),
+        "</body></html>",
+    ]
+    return "\n".join(parts) + "\n"
+
+
+def write_report(run_dir: Path, out: Path | None = None) -> Path:
+    """Summarize run_dir and write the page (default RUN_DIR/report.html); returns its path."""
+    page = render_html(summarize(run_dir))
+    target = out or run_dir / "report.html"
+    try:
+        target.write_text(page, encoding="utf-8")
+    except OSError as exc:
+        raise ReportError(f"report: cannot write {target}: {exc.strerror}; pass -o with a "
+                          "writable path") from None
+    return target

@@ -304,14 +304,14 @@ class RunLedger:
         line = " | ".join([head, *pools])
         if len(line) <= width:
             return line
-        line, left = head, 0
         room = width - len(f" | +{len(pools)} pools")  # kept for counting those left out
+        line, left = head[:room], 0
         for part in pools:
             if len(line) + 3 + len(part) <= room:
                 line += " | " + part
             else:
                 left += 1
-        return f"{line} | +{left} pools"[:width]
+        return f"{line} | +{left} pools"
 
 
 def totals_text(ledger: dict[str, Any]) -> str:

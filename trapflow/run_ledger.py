@@ -168,6 +168,9 @@ class RunLedger:
     seen_capture: bool = False
     delivered: Delivered = field(default_factory=Delivered)  # results.jsonl, as written
     routes: dict[str, str] = field(default_factory=dict)  # result kind -> pool
+    # Pairs the brokers had counted lost, per pool, when a planned stop began: what they
+    # count lost after it (workers told to leave, a queue never served) is the stop's doing.
+    lost_at_stop: dict[str, int] | None = None
 
     # --- events ---------------------------------------------------------------------
 
@@ -181,6 +184,13 @@ class RunLedger:
 
     def on_normalizer(self, counters: dict[str, int]) -> None:
         self.routes.update(routes_of(counters))
+
+    def stopping(self) -> None:
+        """A planned stop begins (before any process is told): keep what was lost so far.
+        The brokers' stats are at most a stats interval old: a pair lost to a crash in that
+        last interval is reported unfinished at stop."""
+        self.lost_at_stop = {n: p.lost for n, p in (self.stats.pools.items()
+                                                     if self.stats else ())}
 
     def retire_broker(self) -> None:
         """A restarted broker counts from zero: the run's totals keep what it saw."""
@@ -261,8 +271,9 @@ class RunLedger:
             rest = max(0, produced - ended)
             if not final:
                 in_progress = min(rest, p.pending + p.in_flight)
-            elif planned_stop:
-                in_progress = rest - min(rest, p.lost)  # what no broker counted as lost
+            elif planned_stop:  # what no broker had counted lost when the stop began
+                lost = p.lost if self.lost_at_stop is None else self.lost_at_stop.get(name, 0)
+                in_progress = rest - min(rest, lost)
             else:
                 in_progress = 0
             out["pools"][name] = {

@@ -576,6 +576,8 @@ class Supervisor:
     def _stop_all(self) -> None:
         """The stop ladder: ask (SIGTERM) by role in order, wait, kill what is left, join."""
         self.core.stop("stop ladder")
+        if self.planned_stop:
+            self.ledger_model.stopping()  # pairs on their way from here are not lost
         timeout = self.cfg.supervisor.stop_timeout_s
         for role in STOP_ORDER:
             group = [c for c in self.children if c.spec.role == role and c.alive()]

@@ -52,6 +52,18 @@ def test_a_planned_stop_reports_pairs_on_their_way_as_unfinished_not_lost() -> N
     assert failed["lost"] == 10 and UNFINISHED not in failed
 
 
+def test_what_brokers_count_lost_after_a_planned_stop_began_is_unfinished() -> None:
+    """Regression (issue 15): workers stop before the broker, which then counted their pairs
+    and its queue as lost ("vo: lost 15" after a plain `--duration 4`)."""
+    led = _ledger({"vo": PoolStats(received=44, processed=17, lost=1, pending=20,
+                                   in_flight=1)}, 44, 44)
+    led.stopping()  # one pair was lost before the stop (a worker crashed)
+    led.on_stats(Stats(t_wall_ns=0, uptime_s=2.0, pairs_in=44, rate_in=0.0, malformed=0,
+                       pools={"vo": PoolStats(received=44, processed=18, lost=26)}))
+    vo = led.ledger({"vo": "ordered"}, {}, planned_stop=True)["pools"]["vo"]
+    assert (vo["processed"], vo["lost"], vo[UNFINISHED]) == (18, 1, 25)
+
+
 def test_a_planned_stop_keeps_what_a_dead_broker_lost_as_lost() -> None:
     led = _ledger({"vo": PoolStats(received=60, processed=50, pending=4, in_flight=1)}, 60, 60)
     led.retire_broker()  # it held 5: they can never finish, whatever stop comes later

@@ -107,7 +107,7 @@ def open_session(
         # Said once on the console however many models and workers (ONCE, trapflow.log
         # keeps every one); which model runs where is an info line.
         log.warning(
-            "ONNX models run on %s (requested %s; not available here: %s)",
+            "ONNX runs on %s (requested %s; not available here: %s)",
             used,
             ", ".join(wanted),
             ", ".join(skipped) or "none",

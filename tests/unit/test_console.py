@@ -171,13 +171,13 @@ def test_a_warning_every_worker_gives_reaches_the_console_once() -> None:
     log.propagate = False
     try:
         for _ in range(4):  # four workers
-            log.warning("ONNX models run on %s", "CPU", extra={CONSOLE_ONCE: True})
-        log.warning("ONNX models run on %s", "GPU", extra={CONSOLE_ONCE: True})
+            log.warning("ONNX runs on %s", "CPU", extra={CONSOLE_ONCE: True})
+        log.warning("ONNX runs on %s", "GPU", extra={CONSOLE_ONCE: True})
         log.warning("restarting %s", "vo")
         log.warning("restarting %s", "vo")  # not marked: every one is news
     finally:
         log.removeHandler(handler)
-    assert got == ["ONNX models run on CPU", "ONNX models run on GPU", "restarting vo",
+    assert got == ["ONNX runs on CPU", "ONNX runs on GPU", "restarting vo",
                    "restarting vo"]
 
 

@@ -1,30 +1,29 @@
 """What a run leaves behind, said at its exit: where the results are, the outbox backlog
 still waiting for the modem, the event folders written, and what the source read (a
-recording's chosen image topics). Reads the run directory only; never writes."""
+recording's chosen image topics), read from the run directory once every process stopped."""
 
 from __future__ import annotations
 
 import sqlite3
 from pathlib import Path
 
-# Records stored and not yet resolved (acknowledged, expired, aggregated): the same count
-# as trapflow.modem.outbox.Outbox.counts(), read without opening the outbox for writing.
-_BACKLOG = ("SELECT (SELECT COUNT(*) FROM records) - "
-            "(SELECT COUNT(*) FROM resolved JOIN records USING(seq))")
+from trapflow.errors import TrapflowError
+from trapflow.modem.outbox import OutboxConfig, OutboxQueue
 
 
-def outbox_backlog(path: Path) -> int | None:
-    """Records in the outbox still waiting for the modem; None without an outbox."""
+def outbox_backlog(path: Path, cfg: OutboxConfig) -> int | None:
+    """Records in the outbox still waiting for the modem (the outbox's own count, read once
+    every process that wrote it has stopped); None without an outbox."""
     if not path.is_file():
         return None
     try:
-        db = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True, timeout=2.0)
-        try:
-            return int(db.execute(_BACKLOG).fetchone()[0])
-        finally:
-            db.close()
-    except sqlite3.Error:
+        queue = OutboxQueue(path, cfg)
+    except (sqlite3.Error, TrapflowError):
         return None
+    try:
+        return queue.counts()[2]
+    finally:
+        queue.close()
 
 
 def event_folders(folder: Path) -> int:
@@ -36,10 +35,11 @@ def event_folders(folder: Path) -> int:
 
 
 def summary_lines(results: Path, delivered: int, outbox: Path, events: Path | None,
-                  source_kind: str, source_where: str) -> list[str]:
+                  source_kind: str, source_where: str,
+                  outbox_cfg: OutboxConfig | None = None) -> list[str]:
     """The exit summary, one line per thing left: results, outbox, events, source."""
     lines = [f"results: {results} ({delivered} results)"]
-    backlog = outbox_backlog(outbox)
+    backlog = outbox_backlog(outbox, outbox_cfg or OutboxConfig())
     if backlog is not None:
         lines.append(f"outbox: {outbox}, {backlog} records still waiting for the modem")
     if events is not None:

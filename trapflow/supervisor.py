@@ -551,7 +551,7 @@ class Supervisor:
             self.run_dir / c.normalizer.results_file,
             sum(self.ledger_model.delivered.counts.values()), self.run_dir / c.outbox.path,
             self.run_dir / c.events.folder if c.events.enabled else None, c.source.kind,
-            self.source_where)))
+            self.source_where, c.outbox)))
         self.out.flush()
 
     def _judge(self) -> None:

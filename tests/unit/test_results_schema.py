@@ -9,6 +9,7 @@ and not); the keys it writes must be exactly the table's, and a key the table sa
 
 from __future__ import annotations
 
+import json
 import re
 import typing
 from pathlib import Path
@@ -114,6 +115,18 @@ def test_normalize_writes_exactly_the_keys_the_readme_documents(body_type: type)
     for key in conditional:  # a condition the shapes exercise: some line lacks the key
         assert any(key not in item for body in SHAPES[body_type]
                    for obj in _lines(body) for item in obj.values()), (kind, key)
+
+
+def test_the_readme_examples_of_lines_use_the_documented_keys() -> None:
+    table = _readme_table()
+    text = README.read_text(encoding="utf-8")
+    examples = [json.loads(block) for block in re.findall(r"```json\n(.*?)\n```", text, re.S)]
+    lines = [ex for ex in examples if isinstance(ex, dict) and set(ex) <= set(table)]
+    assert lines, "the README shows no results.jsonl line"
+    for ex in lines:
+        (kind, item), = ex.items()
+        always = {k for k, present in table[kind].items() if present == "always"}
+        assert always <= set(item) <= set(table[kind]), (kind, sorted(item))
 
 
 def test_plugins_doc_points_to_the_results_schema_and_names_rt() -> None:

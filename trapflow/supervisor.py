@@ -37,6 +37,7 @@ from trapflow.run_ledger import RunLedger
 from trapflow.supervisor_state import (
     Action,
     Budget,
+    DurationClock,
     GiveUp,
     Kill,
     NodePlan,
@@ -306,18 +307,15 @@ class Supervisor:
                 return
 
     def _supervise(self) -> None:
-        # --duration counts from the first pair capture sent (it beats at once then),
-        # not from boot: a short run gets its duration's worth of pairs.
-        end: float | None = None
+        # --duration counts from the first pair (capture beats at once when it sends it).
+        clock = DurationClock(self.duration or None, time.monotonic())
         next_status = time.monotonic() + 1.0
         drain_until: float | None = None
         while not self.stop_requested:
             self._poll(0.1)
             now = time.monotonic()
             self._watch(now)
-            if end is None and self.duration and self.ledger_model.capture().produced > 0:
-                end = now + self.duration
-            if end is not None and now >= end:
+            if clock.due(now, self.ledger_model.capture().produced):
                 log.info("duration of %g s reached", self.duration)
                 self.planned_stop = True
                 break
@@ -504,7 +502,8 @@ class Supervisor:
             self.control.send(msgspec.json.encode({"error": str(exc)}))
             return
         if isinstance(req, messages.StopRequest):
-            self.stop_requested = self.planned_stop = True
+            self.planned_stop = self.planned_stop or not self.stop_requested
+            self.stop_requested = True
             self.control.send(msgspec.json.encode({"stopping": True}))
         else:
             self.control.send(msgspec.json.encode(self.status()))

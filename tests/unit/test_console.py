@@ -26,6 +26,7 @@ from trapflow.modem.port import STOPPED, LinkPort
 from trapflow.node import FINALIZED, Node
 from trapflow.ratelog import CONSOLE_ONCE, ConsoleOnce
 from trapflow.run_ledger import STATUS_WIDTH, UNFINISHED, RunLedger, totals_text
+from trapflow.supervisor_state import DurationClock
 
 
 def _ledger(pools: dict[str, PoolStats], produced: int, pairs_in: int) -> RunLedger:
@@ -264,3 +265,25 @@ def test_bench_sh_help_prints_its_usage_and_run_time(args: list[str], code: int,
     assert res.returncode == code, res
     assert text in getattr(res, stream), res
     assert "mkdir" not in res.stdout + res.stderr
+
+
+# --- --duration ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize(("events", "stops_at"), [
+    # (now, pairs produced) as the supervisor sees them; boot took 6 s before the first pair
+    ([(0.0, 0), (6.0, 0), (6.1, 1), (25.0, 280), (26.0, 295), (26.1, 297)], 26.1),
+    ([(0.0, 0), (0.5, 3), (20.4, 300), (20.5, 301)], 20.5),
+    # a source that never sends a pair still ends, a duration after capture became active
+    ([(0.0, 0), (10.0, 0), (19.9, 0), (20.0, 0)], 20.0),
+])
+def test_duration_counts_from_the_first_pair(events: list[tuple[float, int]],
+                                              stops_at: float) -> None:
+    """Regression (issue 15): `--duration 20` at 15 Hz gave 205 pairs; boot counted."""
+    clock = DurationClock(20.0, active_at=0.0)
+    due = [now for now, produced in events if clock.due(now, produced)]
+    assert due[:1] == [stops_at]
+
+
+def test_no_duration_never_ends_a_run() -> None:
+    clock = DurationClock(None, active_at=0.0)
+    assert not any(clock.due(t, 10) for t in (0.0, 1e6))

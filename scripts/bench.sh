@@ -3,6 +3,21 @@
 # bench.md with everything). Speed is measured here, never asserted in tests.
 # Usage: scripts/bench.sh [OUT_DIR]   (set PYTHON to choose the interpreter)
 set -euo pipefail
+usage() {
+  cat <<'USAGE'
+Usage: scripts/bench.sh [OUT_DIR]
+Runs trapflow's benchmarks on this machine (transport, shared memory, synthetic source,
+algorithms, batch processing, live viewer, modem link) and writes OUT_DIR/*.json and
+OUT_DIR/bench.md (OUT_DIR: bench-results). Set PYTHON to choose the interpreter.
+Run time: several minutes, and it loads every core: the live viewer part alone runs 30 s
+against a running pipeline and the transport part repeats each path 5 times. Run it on an
+otherwise idle machine; speed is measured here, never asserted in tests.
+USAGE
+}
+case "${1:-}" in
+  -h|--help) usage; exit 0 ;;
+  -*) echo "scripts/bench.sh: unknown option $1 (expected OUT_DIR or --help)" >&2; usage >&2; exit 2 ;;
+esac
 cd "$(dirname "$0")/.."
 OUT=${1:-bench-results}
 PY=${PYTHON:-python}

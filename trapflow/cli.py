@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -168,10 +167,18 @@ def tap(what: str, count: int | None, save_frames: Path | None, run_dir: Path,
     from trapflow.tap import run_tap
 
     try:
-        n = run_tap(what, run_dir, list(endpoint), count, save_frames, timeout)
+        n = run_tap(what, run_dir, list(endpoint), count, save_frames, timeout,
+                    notice=lambda line: click.echo(f"tap: {line}", err=True))
     except TrapflowError as exc:
         _fail(exc)
-    sys.exit(0 if count is None or n >= count else 1)
+    where = ", ".join(endpoint) or str(run_dir)
+    if timeout is not None and n == 0:
+        raise CommandFailed(f"tap received no message from {where} within {timeout:g} s; "
+                            "expected a running pipeline there: start one (trapflow start) "
+                            "or name its --run-dir")
+    if count is not None and n < count:
+        raise CommandFailed(f"tap received {n} of the {count} messages asked for (--count) "
+                            f"from {where}; the pipeline stopped or --timeout ended first")
 
 
 @main.command()

@@ -16,6 +16,11 @@ from trapflow import messages, run_ledger
 from trapflow.errors import StartupError
 from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
 
+# The pool table's columns and their units: counts are pairs since the run started (over
+# broker restarts), workers are processes, rate is results per second lately.
+POOL_UNITS = {"workers": "procs", "received": "pairs", "processed": "pairs",
+              "dropped": "pairs", "in_flight": "pairs", "pending": "pairs", "errors": "pairs",
+              "timed_out": "pairs", "lost": "pairs", "rate": "pairs/s"}
 # Give-ups and retries `trapflow status` lists (the newest); the JSON has them all.
 TIMELINE_SHOWN = 5
 
@@ -52,18 +57,18 @@ def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
                      f"fy {r['fy']:.1f} cx {r['cx']:.1f} cy {r['cy']:.1f}, baseline "
                      f"{r['baseline_m']:.3f} m, from {r['origin']}")
     lines.append(f"{'node':<22} {'pid':>7} {'state':<12} {'restarts':>8}  reason")
+    lines.append(f"{'':<22} {'':>7} {'(lifecycle)':<12} {'(count)':>8}")
     for n in reply["nodes"]:
         lines.append(f"{n['name']:<22} {n['pid'] or '-':>7} {n['state']:<12} "
                      f"{n['restarts']:>8}  {n['reason']}")
     stats = reply.get("stats")
     if stats:
-        lines.append(f"pairs in {stats['pairs_in']} ({stats['rate_in']}/s), "
-                     f"malformed {stats['malformed']}")
-        keys = ("workers", "received", "processed", "dropped", "in_flight", "pending",
-                "errors", "timed_out", "lost", "rate")
-        lines.append(f"{'pool':<10}" + "".join(f"{k:>11}" for k in keys))
+        lines.append(f"pairs in {stats['pairs_in']} ({stats['rate_in']} pairs/s), "
+                     f"malformed {stats['malformed']} messages")
+        lines.append(f"{'pool':<10}" + "".join(f"{k:>11}" for k in POOL_UNITS))
+        lines.append(f"{'':<10}" + "".join(f"{'(' + u + ')':>11}" for u in POOL_UNITS.values()))
         for name, p in stats["pools"].items():
-            lines.append(f"{name:<10}" + "".join(f"{p.get(k, 0):>11}" for k in keys))
+            lines.append(f"{name:<10}" + "".join(f"{p.get(k, 0):>11}" for k in POOL_UNITS))
         remote = stats.get("remote") or []
         if remote:
             lines.append(f"{'remote worker':<34} {'host':<16} {'pool':<10} {'state':<8} "

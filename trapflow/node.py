@@ -113,13 +113,14 @@ class Node:
         self._hb_interval_ns = int(spec.cfg.supervisor.heartbeat_interval_s * 1e9)
         self._next_beat = 0
 
-    def set_state(self, state: Lifecycle, reason: str = "") -> None:
-        """Move to a lifecycle state and tell the supervisor at once."""
+    def set_state(self, state: Lifecycle, reason: str = "", normal: bool = False) -> None:
+        """Move to a lifecycle state and tell the supervisor at once. A reason is a
+        warning unless the change is `normal` (a planned end: a source exhausted)."""
         if (state, reason) != (self.lifecycle, self.reason):
-            if reason:
+            if reason and not normal:
                 log.warning("%s: %s (%s)", self.name, state, reason)
             else:
-                log.info("%s: %s", self.name, state)
+                log.info("%s: %s%s", self.name, state, f" ({reason})" if reason else "")
         self.lifecycle, self.reason = state, reason
         self._next_beat = 0
 

@@ -26,17 +26,18 @@ from typing import IO, Any
 import msgspec
 import zmq
 
-from trapflow import messages, registry, rig, run_ledger
+from trapflow import messages, registry, rig, run_ledger, run_summary
 from trapflow.camera import StereoRig
 from trapflow.config import Config
 from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError, TrapflowError
 from trapflow.frame_ring import FrameRing, cleanup_stale, ring_slots, slot_capacity
 from trapflow.node import NodeSpec, node_main
-from trapflow.ratelog import RateLimitedLog, wire
+from trapflow.ratelog import ConsoleOnce, RateLimitedLog, wire
 from trapflow.run_ledger import RunLedger
 from trapflow.supervisor_state import (
     Action,
     Budget,
+    DurationClock,
     GiveUp,
     Kill,
     NodePlan,
@@ -125,11 +126,13 @@ class Supervisor:
         self.core = SupervisorState((), _budget(cfg))  # the decisions (filled by boot())
         self.ledger_model = RunLedger()  # the counters (status line, status, ledger.json)
         self.stop_requested = False
+        self.planned_stop = False  # a duration, stop request, signal or drained source
         self.exit_code = EXIT_OK
         self.failure: str | None = None  # one line: why the run failed (exit status 1)
         self.t0 = time.monotonic()
         self.rig: StereoRig | None = None  # decided at preflight (trapflow.rig)
         self.rig_origin = ""
+        self.source_where = ""  # what the source reads (a recording's image topics)
         self.ring: FrameRing | None = None
 
     # --- the process graph --------------------------------------------------------------
@@ -246,7 +249,7 @@ class Supervisor:
             why = str(exc)  # source errors mostly name their kind already
             prefix = "" if why.startswith(f"{c.source.kind}:") else f"{c.source.kind}: "
             raise StartupError(f"source {prefix}{why}") from None
-        self.rig, self.rig_origin = found.rig, found.origin
+        self.rig, self.rig_origin, self.source_where = found.rig, found.origin, found.where
         for pool, pcfg in self.cfg.pools.items():
             if pcfg.count > 0:
                 try:
@@ -277,6 +280,7 @@ class Supervisor:
         def _stop(signo: int, _frame: Any) -> None:
             if not self.stop_requested:
                 log.info("received %s, stopping", signal.Signals(signo).name)
+                self.planned_stop = True
             self.stop_requested = True
 
         signal.signal(signal.SIGINT, _stop)
@@ -305,20 +309,23 @@ class Supervisor:
                 return
 
     def _supervise(self) -> None:
-        end = self.t0 + self.duration if self.duration else None
+        # --duration counts from the first pair (capture beats at once when it sends it).
+        clock = DurationClock(self.duration or None, time.monotonic())
         next_status = time.monotonic() + 1.0
         drain_until: float | None = None
         while not self.stop_requested:
             self._poll(0.1)
             now = time.monotonic()
             self._watch(now)
-            if end is not None and now >= end:
+            if clock.due(now, self.ledger_model.capture().produced):
                 log.info("duration of %g s reached", self.duration)
+                self.planned_stop = True
                 break
             if self.core.node("capture").finished and drain_until is None:
                 log.info("source exhausted; draining the pools")
                 drain_until = now + max(p.timeout_s for p in self.cfg.pools.values()) + 2
             if drain_until is not None and (self.ledger_model.drained() or now > drain_until):
+                self.planned_stop = True
                 break
             if now >= next_status:
                 next_status = now + 1.0
@@ -497,6 +504,7 @@ class Supervisor:
             self.control.send(msgspec.json.encode({"error": str(exc)}))
             return
         if isinstance(req, messages.StopRequest):
+            self.planned_stop = self.planned_stop or not self.stop_requested
             self.stop_requested = True
             self.control.send(msgspec.json.encode({"stopping": True}))
         else:
@@ -524,7 +532,8 @@ class Supervisor:
     def ledger(self, final: bool = True) -> dict[str, Any]:
         """Where every pair went: capture's count, then per pool exactly one state each."""
         return self.ledger_model.ledger({n: p.policy for n, p in self.cfg.pools.items()},
-                                        self._pool_restarts(), self.supervision(), final)
+                                        self._pool_restarts(), self.supervision(), final,
+                                        planned_stop=self.planned_stop)
 
     def _print_totals(self) -> None:
         if self.out.isatty():
@@ -538,7 +547,12 @@ class Supervisor:
         (self.run_dir / "ledger.json").write_text(json.dumps(ledger, indent=1) + "\n")
         if self.stats is not None:
             self.out.write(run_ledger.totals_text(ledger))
-        self.out.write(f"results: {self.run_dir / self.cfg.normalizer.results_file}\n")
+        c = self.cfg
+        self.out.write("".join(f"{line}\n" for line in run_summary.summary_lines(
+            self.run_dir / c.normalizer.results_file,
+            sum(self.ledger_model.delivered.counts.values()), self.run_dir / c.outbox.path,
+            self.run_dir / c.events.folder if c.events.enabled else None, c.source.kind,
+            self.source_where, c.outbox)))
         self.out.flush()
 
     def _judge(self) -> None:
@@ -563,6 +577,8 @@ class Supervisor:
     def _stop_all(self) -> None:
         """The stop ladder: ask (SIGTERM) by role in order, wait, kill what is left, join."""
         self.core.stop("stop ladder")
+        if self.planned_stop:
+            self.ledger_model.stopping()  # pairs on their way from here are not lost
         timeout = self.cfg.supervisor.stop_timeout_s
         for role in STOP_ORDER:
             group = [c for c in self.children if c.spec.role == role and c.alive()]
@@ -594,6 +610,7 @@ class Supervisor:
         fileh.setFormatter(fmt)
         errh = logging.StreamHandler(sys.stderr)
         errh.setLevel(logging.WARNING)
+        errh.addFilter(ConsoleOnce())  # a warning every worker gives, said once
         errh.setFormatter(logging.Formatter("%(levelname)s %(message)s"))
         self.listener = logging.handlers.QueueListener(
             self.log_queue, fileh, errh, respect_handler_level=True)

@@ -312,3 +312,25 @@ class SupervisorState:
     def counts(self) -> dict[str, int]:
         """Give-ups, retries and capped restarts over the run (the timeline keeps the last)."""
         return dict(self._counts)
+
+
+@dataclass
+class DurationClock:
+    """When `--duration` ends a run: that long after the first pair capture sent (boot and
+    model loading are not counted), or, when no pair comes at all, that long after capture
+    became active (a source that never delivers still ends)."""
+
+    duration: float | None
+    active_at: float  # capture active (monotonic seconds)
+    end: float | None = None
+
+    def due(self, now: float, produced: int) -> bool:
+        """Whether the run should stop now, given the pairs capture has sent so far."""
+        if self.duration is None:
+            return False
+        if self.end is None:
+            if produced > 0:
+                self.end = now + self.duration
+            elif now >= self.active_at + self.duration:
+                self.end = now
+        return self.end is not None and now >= self.end

@@ -19,6 +19,7 @@ import onnxruntime as ort
 from trapflow_workers.common import Params
 
 from trapflow.errors import WorkerError
+from trapflow.ratelog import CONSOLE_ONCE
 
 log = logging.getLogger(__name__)
 
@@ -103,15 +104,16 @@ def open_session(
         raise WorkerError(f"cannot load ONNX model {path}: {str(exc).strip()[:300]}") from None
     used = session.get_providers()[0]
     if used != (wanted[0] if wanted else CPU):
+        # Said once on the console however many models and workers (ONCE, trapflow.log
+        # keeps every one); which model runs where is an info line.
         log.warning(
-            "model %s runs on %s (requested %s; not available here: %s)",
-            path.name,
+            "ONNX runs on %s (requested %s; not available here: %s)",
             used,
             ", ".join(wanted),
             ", ".join(skipped) or "none",
+            extra={CONSOLE_ONCE: True},
         )
-    else:
-        log.info("model %s runs on %s", path.name, used)
+    log.info("model %s runs on %s", path.name, used)
     meta = session.get_modelmeta()
     return Session(
         session=session, path=path, provider=used, metadata=dict(meta.custom_metadata_map or {}),

@@ -26,7 +26,7 @@ from typing import IO, Any
 import msgspec
 import zmq
 
-from trapflow import messages, registry, rig, run_ledger
+from trapflow import messages, registry, rig, run_ledger, sdnotify
 from trapflow.camera import StereoRig
 from trapflow.config import Config
 from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError, TrapflowError
@@ -131,6 +131,7 @@ class Supervisor:
         self.rig: StereoRig | None = None  # decided at preflight (trapflow.rig)
         self.rig_origin = ""
         self.ring: FrameRing | None = None
+        self.notifier = sdnotify.Notifier()  # READY/WATCHDOG/STATUS under systemd, else no-op
 
     # --- the process graph --------------------------------------------------------------
 
@@ -203,8 +204,10 @@ class Supervisor:
             self._wait_started()  # every consumer is ready before the first pair exists
             self._spawn(self._child("capture"), time.monotonic())
             self._wait_started()
+            self.notifier.ready(f"running in {self.run_dir}")
             self._supervise()
         finally:
+            self.notifier.stopping()
             self._stop_all()
             self._judge()
             self._print_totals()
@@ -322,6 +325,13 @@ class Supervisor:
                 next_status = now + 1.0
                 self._read_results()
                 self._status_line()
+                self._notify_systemd()
+
+    def _notify_systemd(self) -> None:
+        """Once a second under systemd: the watchdog's keep-alive and the status line."""
+        if self.notifier.enabled:
+            self.notifier.notify(**({"WATCHDOG": 1} if self.notifier.watchdog_s else {}),
+                                 STATUS=self.status_text())
 
     def _child(self, role: str) -> Child:
         return next(c for c in self.children if c.spec.role == role)

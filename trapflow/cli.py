@@ -32,10 +32,19 @@ class TrapflowGroup(click.Group):
             raise failed(exc) from None
 
 
-@click.group(cls=TrapflowGroup)
+# Every option can come from the environment as TRAPFLOW_<COMMAND>_<OPTION> (a systemd
+# unit's Environment=, a container's env), e.g. TRAPFLOW_START_RUN_DIR; a flag given on the
+# command line wins. See README "Deploy".
+ENVVAR_PREFIX = "TRAPFLOW"
+
+
+@click.group(cls=TrapflowGroup, context_settings={"auto_envvar_prefix": ENVVAR_PREFIX})
 @click.version_option(package_name="trapflow")
 def main() -> None:
-    """trapflow: stereo capture, worker pools over ZeroMQ, compact results."""
+    """trapflow: stereo capture, worker pools over ZeroMQ, compact results.
+
+    Any option may be set in the environment as TRAPFLOW_<COMMAND>_<OPTION>, e.g.
+    TRAPFLOW_START_RUN_DIR=/var/lib/trapflow/run."""
 
 
 @main.command()
@@ -204,7 +213,23 @@ def _add_commands() -> None:
         main.add_command(cmd)
 
 
+def flag_envvars(group: click.Group, prefix: str = ENVVAR_PREFIX) -> None:
+    """Name every option's variable after its flag (TRAPFLOW_START_CONFIG for --config),
+    as click's auto_envvar_prefix does for all options whose parameter has the flag's name;
+    the others (--config stored as config_path) would otherwise read TRAPFLOW_START_CONFIG_PATH."""
+    for name, cmd in group.commands.items():
+        sub = f"{prefix}_{name.upper().replace('-', '_')}"
+        if isinstance(cmd, click.Group):
+            flag_envvars(cmd, sub)
+            continue
+        for p in cmd.params:
+            longs = [o for o in p.opts if o.startswith("--")]
+            if isinstance(p, click.Option) and longs and not p.envvar:
+                p.envvar = f"{sub}_{longs[0][2:].upper().replace('-', '_')}"
+
+
 _add_commands()
+flag_envvars(main)
 
 if __name__ == "__main__":
     main()

@@ -238,6 +238,10 @@ class BrokerNode(Node):
                 msg = messages.decode_worker_msg(frames[0])
                 ident = self.link_ident.get(link)
                 if ident is None:  # a worker names itself in its first message
+                    if isinstance(msg, messages.PoolSwitch):
+                        raise ProtocolError("worker link: expected a worker message first, "
+                                            "got a pool switch (only the supervisor sends "
+                                            "those, on the workers socket)")
                     ident = msg.worker.encode()
                     if ident in self.worker_links:  # that name is another live link's
                         self._refuse("duplicate_worker",
@@ -316,12 +320,30 @@ class BrokerNode(Node):
                              wire(msg.worker), wire(ident))
                 return
             self._apply(self.state.worker_gone(gone, msg.reason, now))
+        elif isinstance(msg, messages.PoolSwitch):
+            self._on_pool_switch(ident, msg, now)
         elif isinstance(msg, messages.Failed):
             actions = self.state.job_done(ident, msg.pool, msg.seq, False, now, msg.kind)
             if not any(isinstance(a, Rejected) for a in actions):
                 self.ratelog.warning("failed:" + msg.pool, "%s failed pair %d: %s",
                                      wire(msg.worker), msg.seq, wire(msg.reason))
             self._apply(actions)
+
+    def _on_pool_switch(self, ident: bytes, msg: messages.PoolSwitch, now: float) -> None:
+        """Runtime control of a pool: only the supervisor may send it."""
+        if ident != SUPERVISOR_IDENT:
+            self._refuse("forged_switch", "refused a pool switch for '%s' from '%s': only "
+                         "the supervisor may send it", wire(msg.pool), wire(ident))
+            return
+        try:
+            if msg.active is not None:
+                self._apply(self.state.set_active(msg.pool, msg.active, now))
+                log.info("pool %s %s", msg.pool, "active" if msg.active else "inactive")
+            if msg.policy is not None:
+                self._apply(self.state.set_policy(msg.pool, msg.policy, now))
+                log.info("pool %s policy %s", msg.pool, msg.policy)
+        except ValueError as exc:
+            self.ratelog.warning("switch", "refused a pool switch: %s", wire(str(exc)))
 
     # --- actions --------------------------------------------------------------------
 

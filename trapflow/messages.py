@@ -265,7 +265,22 @@ class Failed(Msg, frozen=True, tag="failed"):
     kind: str = "error"  # short class of the failure (exception name), for the ledger
 
 
-WorkerMsg = Union[Ready, Alive, Done, Failed, Gone]
+# A pool's or a parameter's name on the control path: short, plain, safe to log.
+ControlName = Annotated[str, msgspec.Meta(min_length=1, max_length=64,
+                                          pattern=r"^[A-Za-z_][A-Za-z0-9_.\-]*$")]
+PolicyText = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+
+
+class PoolSwitch(Msg, frozen=True, tag="pool_switch"):
+    """Supervisor -> broker: a pool becomes (in)active, or takes a new policy (None: as is).
+    An inactive pool counts every pair it would have queued as dropped-while-inactive."""
+
+    pool: ControlName
+    active: bool | None = None
+    policy: PolicyText | None = None
+
+
+WorkerMsg = Union[Ready, Alive, Done, Failed, Gone, PoolSwitch]
 
 
 # --- stats and control ----------------------------------------------------------
@@ -284,8 +299,10 @@ class PoolStats(Msg, frozen=True):
     errors: int = 0  # failed pairs (bad input, plugin error); by kind in `failures`
     timed_out: int = 0  # a worker held the pair longer than the pool's timeout_s
     lost: int = 0  # the worker holding it died, or the run stopped before it finished
+    inactive: int = 0  # dropped because the pool was deactivated (trapflow pool --deactivate)
     failures: dict[str, int] = {}
     rate: float = 0.0  # processed per second over the last interval
+    active: bool = True
 
 
 class Stats(Msg, frozen=True, tag="stats"):
@@ -307,7 +324,28 @@ class StopRequest(Msg, frozen=True, tag="stop"):
     """Ask the supervisor to stop the pipeline."""
 
 
-ControlRequest = Union[StatusRequest, StopRequest]
+class PoolRequest(Msg, frozen=True, tag="pool"):
+    """Change one pool at run time: exactly one of count, policy, active."""
+
+    pool: ControlName
+    count: Annotated[int, msgspec.Meta(ge=1, le=64)] | None = None
+    policy: PolicyText | None = None
+    active: bool | None = None
+
+
+ParamValue = Union[Annotated[str, msgspec.Meta(max_length=256)], int, float, bool, None]
+
+
+class ParamRequest(Msg, frozen=True, tag="param"):
+    """Set one plugin parameter of a pool at run time (its workers are reconfigured)."""
+
+    pool: ControlName
+    key: ControlName
+    value: ParamValue
+
+
+ControlRequest = Union[StatusRequest, StopRequest, PoolRequest, ParamRequest]
+AnyControl = StatusRequest | StopRequest | PoolRequest | ParamRequest
 
 
 # --- codecs ---------------------------------------------------------------------
@@ -392,9 +430,9 @@ def decode_job(data: Buffer) -> Job:
     return job
 
 
-def decode_worker_msg(data: Buffer) -> Ready | Alive | Done | Failed | Gone:
+def decode_worker_msg(data: Buffer) -> Ready | Alive | Done | Failed | Gone | PoolSwitch:
     """Decode frame 0 of a message a worker (or the supervisor) sent to the broker."""
-    msg: Ready | Alive | Done | Failed | Gone = _decode(
+    msg: Ready | Alive | Done | Failed | Gone | PoolSwitch = _decode(
         _worker_dec, data, "worker message", MAX_HEADER_BYTES
     )
     return msg
@@ -448,11 +486,15 @@ def decode_result_line(data: Buffer) -> tuple[str, dict[str, Any]]:
     return kind, fields
 
 
-def decode_control(data: Buffer) -> StatusRequest | StopRequest:
-    """Decode a control request."""
-    req: StatusRequest | StopRequest = _decode(
-        _control_dec, data, "control request", MAX_HEADER_BYTES
-    )
+def decode_control(data: Buffer) -> AnyControl:
+    """Decode a control request (a pool change names exactly one change)."""
+    req: AnyControl = _decode(_control_dec, data, "control request", MAX_HEADER_BYTES)
+    if isinstance(req, PoolRequest):
+        given = [k for k in ("count", "policy", "active") if getattr(req, k) is not None]
+        if len(given) != 1:
+            raise ProtocolError(f"control request: a pool change names exactly one of "
+                                f"count, policy, active; got {given or 'none'} for pool "
+                                f"{req.pool!r}: send one change per request")
     return req
 
 

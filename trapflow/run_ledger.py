@@ -94,7 +94,8 @@ def routes_of(counters: dict[str, int]) -> dict[str, str]:
             pool, _, kind = key[len(ROUTE_PREFIX):].partition(":")
             out[kind] = pool
     return out
-_SUMMED = ("received", "dispatched", "dropped", "processed", "errors", "timed_out", "lost")
+_SUMMED = ("received", "dispatched", "dropped", "processed", "errors", "timed_out", "lost",
+           "inactive")
 
 
 def retire(last: Stats) -> Stats:
@@ -215,7 +216,7 @@ class RunLedger:
             return self.capture().produced
         delivered = self.delivered.by_pool(self.routes)
         accounted = [delivered.get(n, p.processed) + p.dropped + p.timed_out + p.errors
-                     for n, p in s.pools.items()]
+                     + p.inactive for n, p in s.pools.items()]
         return max(self.capture().produced, s.pairs_in, *accounted)
 
     def drained(self) -> bool:
@@ -250,11 +251,12 @@ class RunLedger:
             # Processed: the results written for this pool (known once its results are
             # routed); lost: whatever else is not in a state, as the brokers counted them.
             processed = delivered.get(name, p.processed)
-            ended = processed + p.dropped + p.timed_out + p.errors
+            ended = processed + p.dropped + p.timed_out + p.errors + p.inactive
             in_progress = 0 if final else p.pending + p.in_flight
             out["pools"][name] = {
                 "processed": processed, "dropped_by_policy": p.dropped,
-                "policy": policies.get(name, ""), "timed_out": p.timed_out,
+                "policy": policies.get(name, ""), "dropped_inactive": p.inactive,
+                "timed_out": p.timed_out,
                 "failed": p.errors, "failures": p.failures,
                 "lost": max(0, produced - ended - in_progress),
                 "restarts": restarts.get(name, 0),
@@ -278,7 +280,8 @@ class RunLedger:
             parts[0] += f" capture-fail {cap.failed}"
         for name, p in s.pools.items():
             parts.append(
-                f"{name} {p.workers}w {p.rate:5.1f}/s drop {p.dropped} "
+                f"{name}{'' if p.active else ' (inactive)'} {p.workers}w {p.rate:5.1f}/s "
+                f"drop {p.dropped + p.inactive} "
                 f"err {p.errors} lost {p.lost} rst {restarts.get(name, 0)}"
             )
         return " | ".join(parts)
@@ -294,9 +297,10 @@ def totals_text(ledger: dict[str, Any]) -> str:
     for name, p in ledger["pools"].items():
         kinds = ", ".join(f"{k} {v}" for k, v in p["failures"].items())
         going = f"in progress {p['in_progress']}, " if "in_progress" in p else ""
+        inactive = f", inactive {p['dropped_inactive']}" if p.get("dropped_inactive") else ""
         lines.append(
             f"  {name}: processed {p['processed']}, dropped {p['dropped_by_policy']} "
-            f"({p['policy']}), timed out {p['timed_out']}, failed {p['failed']}"
+            f"({p['policy']}){inactive}, timed out {p['timed_out']}, failed {p['failed']}"
             f"{f' ({kinds})' if kinds else ''}, lost {p['lost']}, {going}"
             f"restarts {p['restarts']}")
     sup = ledger.get("supervision")

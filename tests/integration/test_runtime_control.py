@@ -74,8 +74,10 @@ def test_pool_count_lifecycle_and_param_at_run_time(spawn, run_dir: Path) -> Non
              interval=0.3, what="processing resumed")
 
     # A parameter: results with detections before; confidence 1.0 keeps none after.
-    poll_for(lambda: any(r["mono_ir"]["detections"] for r in p.results() if "mono_ir" in r),
-             60, interval=0.5, what="a result with detections (crabs walk in after 3 s)")
+    # (a result line per detection; one with label "none" for a pair with none)
+    poll_for(lambda: any(r["mono_ir"]["label"] != "none" for r in p.results()
+                         if "mono_ir" in r),
+             60, interval=0.5, what="a detection (crabs walk in after 3 s)")
     restarts = node(p, "worker:mono:0")["restarts"]
     res = tf("param", "mono", "confidence=1.0", *rd)
     assert res.returncode == 0, res.stderr
@@ -86,15 +88,20 @@ def test_pool_count_lifecycle_and_param_at_run_time(spawn, run_dir: Path) -> Non
     mark = len(p.results())
     poll_for(lambda: len(p.results()) >= mark + 6, 60, interval=0.5, what="6 more results")
     after = [r["mono_ir"] for r in p.results()[mark:] if "mono_ir" in r]
-    assert after and all(not r["detections"] for r in after)
+    assert after and all(r["label"] == "none" for r in after)
+    # and back: the crabs are still there, so detections return (the change did it)
+    assert tf("param", "mono", "confidence=0.25", *rd).returncode == 0
+    mark = len(p.results())
+    poll_for(lambda: any(r["mono_ir"]["label"] != "none" for r in p.results()[mark:]
+                         if "mono_ir" in r), 60, interval=0.5, what="detections again")
 
     # Status shows the pool's control state and the timeline; the ledger keeps it.
     st = p.status()
     assert st is not None
     sup = st["supervision"]
-    assert sup["control"] == 5
+    assert sup["control"] == 6
     assert sup["pools"]["mono"] == {"state": "active", "count": 1, "policy": "latest",
-                                    "params": {"confidence": 1.0}, "changes": 5}
+                                    "params": {"confidence": 0.25}, "changes": 6}
     text = tf("status", *rd).stdout
     assert "pool mono" in text and "runtime changes" in text
     assert tf("status", "--stop", *rd).returncode == 0
@@ -102,7 +109,7 @@ def test_pool_count_lifecycle_and_param_at_run_time(spawn, run_dir: Path) -> Non
     assert code == 0, err
     ledger = json.loads((run_dir / "ledger.json").read_text())
     kinds = [e["kind"] for e in ledger["supervision"]["timeline"]]
-    assert kinds.count("control") == 5
+    assert kinds.count("control") == 6
     mono = ledger["pools"]["mono"]
     assert mono["dropped_inactive"] >= 8
     assert mono["lost"] == 0

@@ -458,6 +458,9 @@ class Supervisor:
         spec = c.spec
         if spec.role == "broker":
             self.ledger_model.retire_broker()
+            # Pools as runtime control left them (policies); activity is reconciled by
+            # _reconcile_pools once its first stats arrive.
+            spec = replace(spec, cfg=self.cfg)
         if spec.role == "capture":
             # Numbering goes on past any pair the dead capture may have sent after its last
             # heartbeat: a pool sees a gap, never a repeated seq.

@@ -229,20 +229,21 @@ _JSON = click.option("--json", "as_json", is_flag=True, help="Print the raw JSON
 @click.argument("name")
 @click.option("--count", type=click.IntRange(1, 64), help="Run this many workers.")
 @click.option("--policy", help="New queueing policy, e.g. latest, fifo:8, ordered:4.")
-@click.option("--deactivate", "active", flag_value=False, default=None,
+@click.option("--deactivate", is_flag=True,
               help="Stop giving the pool pairs (counted as dropped while inactive); its "
                    "workers keep their models loaded.")
-@click.option("--activate", "active", flag_value=True, help="Give it pairs again.")
+@click.option("--activate", is_flag=True, help="Give it pairs again.")
 @_RUN_DIR
 @_TIMEOUT
 @_JSON
-def pool(name: str, count: int | None, policy: str | None, active: bool | None,
+def pool(name: str, count: int | None, policy: str | None, deactivate: bool, activate: bool,
          run_dir: Path, timeout: float, as_json: bool) -> None:
     """Change a running pool: its worker count, policy, or lifecycle (one change)."""
     from trapflow import messages
 
-    given = [f for f, v in (("--count", count), ("--policy", policy),
-                            ("--activate/--deactivate", active)) if v is not None]
+    given = [f for f, v in (("--count", count is not None), ("--policy", policy is not None),
+                            ("--activate", activate), ("--deactivate", deactivate)) if v]
+    active = True if activate else False if deactivate else None
     if len(given) != 1:
         raise click.UsageError(f"expected exactly one of --count, --policy, --activate, "
                                f"--deactivate; got {', '.join(given) or 'none'}")

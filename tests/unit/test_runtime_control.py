@@ -303,3 +303,27 @@ def test_worker_gone_still_reaches_the_broker_for_a_retired_worker() -> None:
     s.set_count("mono", 1, 1.0)
     acts = s.exited("worker:mono:1", 0, 2.0)
     assert isinstance(acts[0], WorkerGone)
+
+
+# --- the commands: usage refused before anything is sent --------------------------------------
+
+
+@pytest.mark.parametrize(("args", "code", "match"), [
+    (["pool", "mono"], 2, "expected exactly one of"),
+    (["pool", "mono", "--count", "2", "--deactivate"], 2, "--count, --deactivate"),
+    (["pool", "mono", "--activate", "--deactivate"], 2, "--activate, --deactivate"),
+    (["pool", "mono", "--count", "0"], 2, "0 is not in the range 1<=x<=64"),
+    (["param", "mono", "conf"], 2, "expected KEY=VALUE"),
+    (["param", "mono", "ids=[1, 2]"], 2, "a single value"),
+    (["pool", "mono", "--count", "2"], 2, "no run directory"),  # nothing runs there
+    (["param", "mono", "conf=0.5"], 2, "no run directory"),
+])
+def test_control_commands_refuse_bad_usage(tmp_path: Any, args: list[str], code: int,
+                                           match: str) -> None:
+    from click.testing import CliRunner
+
+    from trapflow import cli
+
+    res = CliRunner().invoke(cli.main, [*args, "--run-dir", str(tmp_path / "none")])
+    assert res.exit_code == code, res.output
+    assert match in res.output

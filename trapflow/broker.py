@@ -342,8 +342,24 @@ class BrokerNode(Node):
             if msg.policy is not None:
                 self._apply(self.state.set_policy(msg.pool, msg.policy, now))
                 log.info("pool %s policy %s", msg.pool, msg.policy)
+            if msg.params is not None:
+                self._configure_workers(msg.pool, msg.params)
         except ValueError as exc:
             self.ratelog.warning("switch", "refused a pool switch: %s", wire(str(exc)))
+
+    def _configure_workers(self, pool: str, params: dict[str, Any]) -> None:
+        """New parameters, applied in place by every worker of the pool between pairs."""
+        frame = messages.encode(messages.Configure(pool=pool, params=params))
+        for ident in self.state.pool_workers(pool):
+            link = self.worker_links.get(ident)
+            try:
+                if link is not None:
+                    link.send([frame])
+                else:
+                    self.router.send_multipart([ident, frame])
+            except (zmq.ZMQError, LinkClosed) as exc:  # it is gone: its successor starts
+                self.ratelog.warning("configure", "cannot reach worker %r: %s", ident, exc)
+        log.info("pool %s: new parameters sent to its workers", pool)
 
     # --- actions --------------------------------------------------------------------
 

@@ -265,6 +265,10 @@ class BrokerState:
 
     # --- queries ------------------------------------------------------------------
 
+    def pool_workers(self, pool_name: str) -> list[bytes]:
+        """The workers this pool knows now (ValueError for an unknown pool)."""
+        return list(self._known(pool_name).workers)
+
     def held(self) -> int:
         """Pairs still referenced by some pool (pending or in flight)."""
         return len(self._holders)

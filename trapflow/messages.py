@@ -271,13 +271,29 @@ ControlName = Annotated[str, msgspec.Meta(min_length=1, max_length=64,
 PolicyText = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
 
 
+ParamValue = Union[Annotated[str, msgspec.Meta(max_length=256)], int, float, bool, None]
+# A pool's whole params mapping (config values may be lists or maps), bounded in keys here
+# and in bytes by the header limit.
+Params = Annotated[dict[ControlName, Any], msgspec.Meta(max_length=64)]
+
+
 class PoolSwitch(Msg, frozen=True, tag="pool_switch"):
-    """Supervisor -> broker: a pool becomes (in)active, or takes a new policy (None: as is).
-    An inactive pool counts every pair it would have queued as dropped-while-inactive."""
+    """Supervisor -> broker: a pool becomes (in)active, takes a new policy, or new plugin
+    parameters that its workers apply in place (None: as is). An inactive pool counts every
+    pair it would have queued as dropped-while-inactive."""
 
     pool: ControlName
     active: bool | None = None
     policy: PolicyText | None = None
+    params: Params | None = None
+
+
+class Configure(Msg, frozen=True, tag="configure"):
+    """Broker -> each worker of a pool (one frame): configure the plugin again with these
+    parameters, between pairs."""
+
+    pool: ControlName
+    params: Params
 
 
 WorkerMsg = Union[Ready, Alive, Done, Failed, Gone, PoolSwitch]
@@ -333,9 +349,6 @@ class PoolRequest(Msg, frozen=True, tag="pool"):
     active: bool | None = None
 
 
-ParamValue = Union[Annotated[str, msgspec.Meta(max_length=256)], int, float, bool, None]
-
-
 class ParamRequest(Msg, frozen=True, tag="param"):
     """Set one plugin parameter of a pool at run time (its workers are reconfigured)."""
 
@@ -369,6 +382,7 @@ _ack_dec = msgspec.msgpack.Decoder(ResultsAck)
 _stats_dec = msgspec.msgpack.Decoder(Stats)
 _control_dec = msgspec.msgpack.Decoder(ControlRequest)
 _heartbeat_dec = msgspec.msgpack.Decoder(Heartbeat)
+_configure_dec = msgspec.msgpack.Decoder(Configure)
 
 
 def encode(msg: Msg) -> bytes:
@@ -428,6 +442,12 @@ def decode_job(data: Buffer) -> Job:
     """Decode the job frame a worker receives before a pair."""
     job: Job = _decode(_job_dec, data, "job", MAX_HEADER_BYTES)
     return job
+
+
+def decode_configure(data: Buffer) -> Configure:
+    """Decode the broker's one-frame Configure message to a worker."""
+    msg: Configure = _decode(_configure_dec, data, "configure", MAX_HEADER_BYTES)
+    return msg
 
 
 def decode_worker_msg(data: Buffer) -> Ready | Alive | Done | Failed | Gone | PoolSwitch:

@@ -17,7 +17,7 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
@@ -449,7 +449,7 @@ class Supervisor:
                 if c.alive():
                     c.proc.terminate()  # finishes its pair, says goodbye to the broker
             elif isinstance(a, SwitchPool):
-                self._switch_pool(a.pool, a.active, a.policy)
+                self._switch_pool(a.pool, a.active, a.policy, a.params)
             elif isinstance(a, Reconfigure):
                 self._reconfigure(a)
 
@@ -490,12 +490,14 @@ class Supervisor:
                 return
         self.children.append(Child(spec))
 
-    def _switch_pool(self, pool: str, active: bool | None, policy: str | None) -> None:
+    def _switch_pool(self, pool: str, active: bool | None, policy: str | None,
+                     params: Mapping[str, Any] | None = None) -> None:
         if policy is not None:
             self._pool_cfg(pool, policy=policy)
         try:
             self.to_broker.send(messages.encode(messages.PoolSwitch(
-                pool=pool, active=active, policy=policy)), zmq.NOBLOCK)
+                pool=pool, active=active, policy=policy,
+                params=dict(params) if params is not None else None)), zmq.NOBLOCK)
         except zmq.Again:
             log.warning("could not tell the broker about pool %s now; status reconciles it",
                         pool)
@@ -514,8 +516,17 @@ class Supervisor:
         self._pool_cfg(a.pool, params=dict(a.params))
         c = self._named(a.name)
         c.spec = replace(c.spec, cfg=self.cfg)
-        if c.alive() and self.core.node(a.name).reconfiguring:
+        if a.restart and c.alive() and self.core.node(a.name).reconfiguring:
             c.proc.terminate()
+
+    def _reconfigurable(self, pool: str) -> bool:
+        """Whether the pool's plugin takes new parameters in place (its class says so)."""
+        try:
+            return bool(registry.resolve(self.cfg.plugin_of(pool)).reconfigurable)
+        except Exception as exc:  # the workers report a plugin that cannot load
+            log.warning("pool %s: cannot tell whether its plugin reconfigures in place (%s); "
+                        "restarting its workers instead", pool, exc)
+            return False
 
     def _tell_broker_gone(self, c: Child, reason: str) -> None:
         ident = messages.worker_identity(c.spec.pool, c.spec.index, c.proc.pid)
@@ -588,7 +599,8 @@ class Supervisor:
         now = time.monotonic()
         try:
             if isinstance(req, messages.ParamRequest):
-                actions = self.core.set_param(req.pool, req.key, req.value, now)
+                in_place = req.pool in self.core.pools and self._reconfigurable(req.pool)
+                actions = self.core.set_param(req.pool, req.key, req.value, now, in_place)
             elif req.count is not None:
                 actions = self.core.set_count(req.pool, req.count, now)
             elif req.policy is not None:

@@ -154,20 +154,25 @@ class Retire:
 
 @dataclass(frozen=True)
 class SwitchPool:
-    """Tell the broker: the pool is (in)active, or takes a new policy (None: unchanged)."""
+    """Tell the broker: the pool is (in)active, takes a new policy, or new parameters for
+    its workers to apply in place (None: unchanged)."""
 
     pool: str
     active: bool | None = None
     policy: str | None = None
+    params: Mapping[str, Any] | None = None
 
 
 @dataclass(frozen=True)
 class Reconfigure:
-    """Restart this worker with the pool's new parameters (outside its restart budget)."""
+    """This worker's pool has new parameters: every later start uses them, and with
+    `restart` the running process is stopped now and started again (outside its restart
+    budget); without, it applies them in place (a SwitchPool with the params follows)."""
 
     name: str
     pool: str
     params: Mapping[str, Any]
+    restart: bool = True
 
 
 Action = Spawn | Kill | WorkerGone | GiveUp | Retry | Stop | AddWorker | Retire | SwitchPool \
@@ -449,20 +454,26 @@ class SupervisorState:
         p.policy = policy
         return [SwitchPool(name, policy=policy)]
 
-    def set_param(self, name: str, key: str, value: Any, now: float) -> list[Action]:
-        """One plugin parameter changed: every worker of the pool restarts with it."""
+    def set_param(self, name: str, key: str, value: Any, now: float,
+                  in_place: bool = False) -> list[Action]:
+        """One plugin parameter changed. A plugin that can be configured again
+        (`in_place`) gets the pool's new parameters between pairs; otherwise every worker
+        of the pool restarts with them."""
         p = self._pool(name)
         if key in p.params and p.params[key] == value:
             raise Refused(f"pool {name!r}: {key} is already {value!r}")
         before = p.params.get(key, "(default)")
         p.params[key] = value
-        self._control(now, p, f"param {key}: {before!r} -> {value!r}; restarting workers")
+        how = "reconfigured in place" if in_place else "restarting workers"
+        self._control(now, p, f"param {key}: {before!r} -> {value!r}; {how}")
         actions: list[Action] = []
         for i in range(p.count):
             n = self.nodes[worker_name(name, i)]
-            actions.append(Reconfigure(n.name, name, dict(p.params)))
-            if n.running:
+            actions.append(Reconfigure(n.name, name, dict(p.params), restart=not in_place))
+            if n.running and not in_place:
                 n.reconfiguring = True
+        if in_place:
+            actions.append(SwitchPool(name, params=dict(p.params)))
         return actions
 
     def pool_view(self) -> dict[str, dict[str, Any]]:

@@ -127,6 +127,20 @@ def test_param_restarts_each_worker_outside_the_budget() -> None:
     assert s.node("worker:mono:0").gave_up == 0
 
 
+def test_param_in_place_reaches_the_workers_through_the_broker_without_a_restart() -> None:
+    s = core(count=2)
+    acts = s.set_param("mono", "conf", 0.9, 1.0, in_place=True)
+    assert acts == [
+        *(Reconfigure(worker_name("mono", i), "mono", {"conf": 0.9}, restart=False)
+          for i in (0, 1)),
+        SwitchPool("mono", params={"conf": 0.9}),
+    ]
+    assert not any(s.node(worker_name("mono", i)).reconfiguring for i in (0, 1))
+    assert s.timeline[-1].reason == "param conf: 0.25 -> 0.9; reconfigured in place"
+    # a worker that exits afterwards (its plugin refused the values) is an ordinary crash
+    assert kinds(s.exited("worker:mono:0", 0, 2.0)) == ["WorkerGone"]
+
+
 def test_an_unplanned_exit_after_a_param_change_is_a_crash_again() -> None:
     s = core(count=1)
     s.set_param("mono", "conf", 0.9, 1.0)
@@ -270,9 +284,35 @@ def test_control_requests_round_trip(req: messages.Msg) -> None:
     assert messages.decode_control(messages.encode(req)) == req
 
 
-def test_a_pool_switch_is_a_worker_socket_message() -> None:
-    msg = messages.PoolSwitch(pool="mono", active=False)
+@pytest.mark.parametrize("msg", [
+    messages.PoolSwitch(pool="mono", active=False),
+    messages.PoolSwitch(pool="mono", policy="fifo:2"),
+    messages.PoolSwitch(pool="mono", params={"confidence": 0.5, "input_size": [320, 320]}),
+])
+def test_a_pool_switch_is_a_worker_socket_message(msg: messages.PoolSwitch) -> None:
     assert messages.decode_worker_msg(messages.encode(msg)) == msg
+
+
+@pytest.mark.parametrize(("data", "match"), [
+    (raw({"type": "configure", "pool": "mono", "params": {f"k{i}": i for i in range(65)}}),
+     "length <= 64"),
+    (raw({"type": "configure", "pool": "mono", "params": {"bad key": 1}}), "matching regex"),
+    (raw({"type": "configure", "pool": "mono"}), "missing required field `params`"),
+    (raw({"type": "configure", "pool": "mono", "params": {"k": "x" * 5000}}), "at most"),
+])
+def test_configure_is_decoded_with_bounds(data: bytes, match: str) -> None:
+    with pytest.raises(ProtocolError, match=match):
+        messages.decode_configure(data)
+
+
+def test_broker_names_a_pools_workers_for_new_parameters() -> None:
+    b = broker()
+    b.worker_ready(b"w1", "mono", 1, 0.0)
+    b.worker_ready(b"w2", "mono", 1, 0.0)
+    b.worker_ready(b"v1", "vo", 1, 0.0)
+    assert sorted(b.pool_workers("mono")) == [b"w1", b"w2"]
+    with pytest.raises(ValueError, match="no pool 'tags'"):
+        b.pool_workers("tags")
 
 
 @pytest.mark.parametrize(("text", "expected"), [

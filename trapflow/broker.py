@@ -251,6 +251,10 @@ class BrokerNode(Node):
                 msg = _local_msg(messages.decode_worker_msg(frames[0]))
                 ident = self.link_ident.get(link)
                 if ident is None:  # a worker names itself in its first message
+                    if isinstance(msg, messages.PoolSwitch):
+                        raise ProtocolError("worker link: expected a worker message first, "
+                                            "got a pool switch (only the supervisor sends "
+                                            "those, on the workers socket)")
                     ident = msg.worker.encode()
                     if ident in self.worker_links:  # that name is another live link's
                         self._refuse("duplicate_worker",
@@ -330,6 +334,8 @@ class BrokerNode(Node):
                              wire(msg.worker), wire(ident))
                 return
             self._apply(self.state.worker_gone(gone, msg.reason, now))
+        elif isinstance(msg, messages.PoolSwitch):
+            self._on_pool_switch(ident, msg, now)
         elif isinstance(msg, messages.Failed):
             actions = self.state.job_done(ident, msg.pool, msg.seq, False, now, msg.kind)
             if not any(isinstance(a, Rejected) for a in actions):
@@ -378,7 +384,7 @@ class BrokerNode(Node):
                          reason)
 
     def _drain_remote(self) -> None:
-        """Remote workers: PoolRequest and Hello first, then the local workers' messages."""
+        """Remote workers: JoinRequest and Hello first, then the local workers' messages."""
         sock = self.remote_router
         assert sock is not None
         self.poller.touch(sock)
@@ -392,7 +398,7 @@ class BrokerNode(Node):
                     raise ProtocolError(
                         f"remote worker message: expected 2 or 3 frames, got {len(frames)}")
                 msg = messages.decode_worker_msg(frames[1])
-                if isinstance(msg, (messages.PoolRequest, messages.Hello)):
+                if isinstance(msg, (messages.JoinRequest, messages.Hello)):
                     welcome, why = self._welcome(ident, msg)
                     if why:
                         self._refuse(why, "refused remote %s '%s': %s", type(msg).__name__,
@@ -425,7 +431,7 @@ class BrokerNode(Node):
                 self.unroutable += 1
                 self.ratelog.warning("route", "cannot answer remote %r: %s", ident, exc)
 
-    def _welcome(self, ident: bytes, msg: messages.PoolRequest | messages.Hello
+    def _welcome(self, ident: bytes, msg: messages.JoinRequest | messages.Hello
                  ) -> tuple[messages.Welcome, str]:
         """The pool's configuration for a remote worker, or the reason it may not join."""
         pcfg = self.cfg.pools.get(msg.pool)
@@ -452,6 +458,38 @@ class BrokerNode(Node):
         if self.auth is not None:
             self.auth.stop()
         super().close()
+
+    def _on_pool_switch(self, ident: bytes, msg: messages.PoolSwitch, now: float) -> None:
+        """Runtime control of a pool: only the supervisor may send it."""
+        if ident != SUPERVISOR_IDENT:
+            self._refuse("forged_switch", "refused a pool switch for '%s' from '%s': only "
+                         "the supervisor may send it", wire(msg.pool), wire(ident))
+            return
+        try:
+            if msg.active is not None:
+                self._apply(self.state.set_active(msg.pool, msg.active, now))
+                log.info("pool %s %s", msg.pool, "active" if msg.active else "inactive")
+            if msg.policy is not None:
+                self._apply(self.state.set_policy(msg.pool, msg.policy, now))
+                log.info("pool %s policy %s", msg.pool, msg.policy)
+            if msg.params is not None:
+                self._configure_workers(msg.pool, msg.params)
+        except ValueError as exc:
+            self.ratelog.warning("switch", "refused a pool switch: %s", wire(str(exc)))
+
+    def _configure_workers(self, pool: str, params: dict[str, Any]) -> None:
+        """New parameters, applied in place by every worker of the pool between pairs."""
+        frame = messages.encode(messages.Configure(pool=pool, params=params))
+        for ident in self.state.pool_workers(pool):
+            link = self.worker_links.get(ident)
+            try:
+                if link is not None:
+                    link.send([frame])
+                else:
+                    self.router.send_multipart([ident, frame])
+            except (zmq.ZMQError, LinkClosed) as exc:  # it is gone: its successor starts
+                self.ratelog.warning("configure", "cannot reach worker %r: %s", ident, exc)
+        log.info("pool %s: new parameters sent to its workers", pool)
 
     # --- actions --------------------------------------------------------------------
 
@@ -607,10 +645,10 @@ class BrokerNode(Node):
 
 
 def _local_msg(msg: messages.AnyWorkerMsg) -> messages.Ready | messages.Alive | messages.Done \
-        | messages.Failed | messages.Gone:
-    """Hello, PoolRequest and HostAlive belong to the remote socket; on a local path they
+        | messages.Failed | messages.Gone | messages.PoolSwitch:
+    """Hello, JoinRequest and HostAlive belong to the remote socket; on a local path they
     are refused."""
-    if isinstance(msg, (messages.Hello, messages.PoolRequest, messages.HostAlive)):
+    if isinstance(msg, (messages.Hello, messages.JoinRequest, messages.HostAlive)):
         raise ProtocolError(f"worker message: expected ready, alive, done, failed or gone on "
                             f"a local path, got {type(msg).__name__} (remote workers connect "
                             f"to network.remote.bind)")

@@ -51,6 +51,10 @@ class Worker:
 
     #: whether process() needs decoded images; False skips JPEG decoding entirely
     needs_images: bool = True
+    #: whether configure() may be called again, between pairs, with new params: a pool's
+    #: parameter change (`trapflow param`) then applies in place (deactivate, configure,
+    #: activate) instead of restarting the pool's workers
+    reconfigurable: bool = False
     #: the rig a geometric plugin computes with when it is not the run's (its own
     #: `calibration` param); the worker stamps this rig's id on stereo results as `calib`
     rig: StereoRig | None = None

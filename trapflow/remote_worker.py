@@ -170,7 +170,7 @@ class RemotePool:
         listener.start()
         try:
             self.sock = open_socket(ctx, dealer_spec(self.join, self.join.owner))
-            welcome = ask(self.sock, messages.PoolRequest(pool=self.pool, host=self.join.host),
+            welcome = ask(self.sock, messages.JoinRequest(pool=self.pool, host=self.join.host),
                           self.join.endpoint, self.join_timeout_s)
             cfg, rig = config_from(welcome, self.pool)
             registry.resolve(cfg.plugin_of(self.pool))  # fail here, not in every process

@@ -98,7 +98,8 @@ def routes_of(counters: dict[str, int]) -> dict[str, str]:
             pool, _, kind = key[len(ROUTE_PREFIX):].partition(":")
             out[kind] = pool
     return out
-_SUMMED = ("received", "dispatched", "dropped", "processed", "errors", "timed_out", "lost")
+_SUMMED = ("received", "dispatched", "dropped", "processed", "errors", "timed_out", "lost",
+           "inactive")
 
 
 def retire(last: Stats) -> Stats:
@@ -229,7 +230,7 @@ class RunLedger:
             return self.capture().produced
         delivered = self.delivered.by_pool(self.routes)
         accounted = [delivered.get(n, p.processed) + p.dropped + p.timed_out + p.errors
-                     for n, p in s.pools.items()]
+                     + p.inactive for n, p in s.pools.items()]
         return max(self.capture().produced, s.pairs_in, *accounted)
 
     def drained(self) -> bool:
@@ -267,7 +268,7 @@ class RunLedger:
             # Processed: the results written for this pool (known once its results are
             # routed); lost: whatever else is not in a state, as the brokers counted them.
             processed = delivered.get(name, p.processed)
-            ended = processed + p.dropped + p.timed_out + p.errors
+            ended = processed + p.dropped + p.timed_out + p.errors + p.inactive
             rest = max(0, produced - ended)
             if not final:
                 in_progress = min(rest, p.pending + p.in_flight)
@@ -278,7 +279,8 @@ class RunLedger:
                 in_progress = 0
             out["pools"][name] = {
                 "processed": processed, "dropped_by_policy": p.dropped,
-                "policy": policies.get(name, ""), "timed_out": p.timed_out,
+                "policy": policies.get(name, ""), "dropped_inactive": p.inactive,
+                "timed_out": p.timed_out,
                 "failed": p.errors, "failures": p.failures,
                 "lost": rest - in_progress,
                 "restarts": restarts.get(name, 0),
@@ -309,9 +311,10 @@ class RunLedger:
         pools = []
         for name, p in sorted(s.pools.items(), key=lambda kv: (-kv[1].workers, kv[0])):
             flags = "".join(f" {k} {n}" for k, n in (
-                ("drop", p.dropped), ("err", p.errors), ("lost", p.lost),
+                ("drop", p.dropped + p.inactive), ("err", p.errors), ("lost", p.lost),
                 ("rst", restarts.get(name, 0))) if n)
-            pools.append(f"{name} {p.workers}w {p.rate:.1f}/s{flags}")
+            state = "" if p.active else " (inactive)"
+            pools.append(f"{name}{state} {p.workers}w {p.rate:.1f}/s{flags}")
         line = " | ".join([head, *pools])
         if len(line) <= width:
             return line
@@ -337,9 +340,10 @@ def totals_text(ledger: dict[str, Any]) -> str:
         going = f"in progress {p['in_progress']}, " if "in_progress" in p else ""
         if UNFINISHED in p:
             going = f"unfinished at stop {p[UNFINISHED]}, "
+        inactive = f", inactive {p['dropped_inactive']}" if p.get("dropped_inactive") else ""
         lines.append(
             f"  {name}: processed {p['processed']}, dropped {p['dropped_by_policy']} "
-            f"({p['policy']}), timed out {p['timed_out']}, failed {p['failed']}"
+            f"({p['policy']}){inactive}, timed out {p['timed_out']}, failed {p['failed']}"
             f"{f' ({kinds})' if kinds else ''}, lost {p['lost']}, {going}"
             f"restarts {p['restarts']}")
     sup = ledger.get("supervision")

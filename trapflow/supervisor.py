@@ -17,7 +17,7 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
@@ -26,7 +26,7 @@ from typing import IO, Any
 import msgspec
 import zmq
 
-from trapflow import messages, registry, rig, run_ledger, run_summary
+from trapflow import messages, registry, rig, run_ledger, run_summary, sdnotify
 from trapflow.camera import StereoRig
 from trapflow.config import Config
 from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError, TrapflowError
@@ -36,15 +36,21 @@ from trapflow.ratelog import ConsoleOnce, RateLimitedLog, wire
 from trapflow.run_ledger import RunLedger
 from trapflow.supervisor_state import (
     Action,
+    AddWorker,
     Budget,
     DurationClock,
     GiveUp,
     Kill,
+    Lifecycle,
     NodePlan,
+    Reconfigure,
+    Refused,
+    Retire,
     Retry,
     Spawn,
     Stop,
     SupervisorState,
+    SwitchPool,
     WorkerGone,
 )
 from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
@@ -134,6 +140,7 @@ class Supervisor:
         self.rig_origin = ""
         self.source_where = ""  # what the source reads (a recording's image topics)
         self.ring: FrameRing | None = None
+        self.notifier = sdnotify.Notifier()  # READY/WATCHDOG/STATUS under systemd, else no-op
 
     # --- the process graph --------------------------------------------------------------
 
@@ -152,6 +159,9 @@ class Supervisor:
         if cfg.events.enabled:
             self._add(NodeSpec("events", "events", cfg, run, ring=ring), sup.liveness_s)
         for pool, pcfg in cfg.pools.items():
+            if pcfg.count:  # runtime control (trapflow pool / param) knows the pools run
+                self.core.add_pool(pool, pcfg.count, pcfg.policy, pcfg.params,
+                                   worker_liveness(pcfg.timeout_s, sup.heartbeat_interval_s))
             for i in range(pcfg.count):
                 spec = NodeSpec("worker", f"worker:{pool}:{i}", cfg, run, pool=pool, index=i,
                                 rig=self.rig, ring=ring)
@@ -167,7 +177,7 @@ class Supervisor:
 
     def _add(self, spec: NodeSpec, liveness_s: float) -> None:
         self.children.append(Child(spec))
-        self.core.add(NodePlan(spec.name, spec.role, liveness_s))
+        self.core.add(NodePlan(spec.name, spec.role, liveness_s, pool=spec.pool))
 
     def _spawn(self, child: Child, now: float) -> None:
         child.proc = self.mp.Process(
@@ -207,8 +217,10 @@ class Supervisor:
             self._wait_started()  # every consumer is ready before the first pair exists
             self._spawn(self._child("capture"), time.monotonic())
             self._wait_started()
+            self.notifier.ready(f"running in {self.run_dir}")
             self._supervise()
         finally:
+            self.notifier.stopping()
             self._stop_all()
             self._judge()
             self._print_totals()
@@ -331,6 +343,14 @@ class Supervisor:
                 next_status = now + 1.0
                 self._read_results()
                 self._status_line()
+                self._notify_systemd()
+                self._reconcile_pools()
+
+    def _notify_systemd(self) -> None:
+        """Once a second under systemd: the watchdog's keep-alive and the status line."""
+        if self.notifier.enabled:
+            self.notifier.notify(**({"WATCHDOG": 1} if self.notifier.watchdog_s else {}),
+                                 STATUS=self.status_text())
 
     def _child(self, role: str) -> Child:
         return next(c for c in self.children if c.spec.role == role)
@@ -430,12 +450,26 @@ class Supervisor:
             elif isinstance(a, Stop):
                 log.info("stopping: %s", a.reason)
                 self.stop_requested = True
+            elif isinstance(a, AddWorker):
+                self._add_worker(a)
+            elif isinstance(a, Retire):
+                log.info("retiring %s: %s", a.name, a.reason)
+                c = self._named(a.name)
+                if c.alive():
+                    c.proc.terminate()  # finishes its pair, says goodbye to the broker
+            elif isinstance(a, SwitchPool):
+                self._switch_pool(a.pool, a.active, a.policy, a.params)
+            elif isinstance(a, Reconfigure):
+                self._reconfigure(a)
 
     def _respawn(self, c: Child, now: float) -> None:
         """A restart: what the dead process had counted is kept, then a new one starts."""
         spec = c.spec
         if spec.role == "broker":
             self.ledger_model.retire_broker()
+            # Pools as runtime control left them (policies); activity is reconciled by
+            # _reconcile_pools once its first stats arrive.
+            spec = replace(spec, cfg=self.cfg)
         if spec.role == "capture":
             # Numbering goes on past any pair the dead capture may have sent after its last
             # heartbeat: a pool sees a gap, never a repeated seq.
@@ -445,6 +479,63 @@ class Supervisor:
             spec = replace(spec, first_seq=self.ledger_model.retire_capture(margin))
         c.spec = replace(spec, restarted=True)
         self._spawn(c, now)
+
+    def _pool_cfg(self, pool: str, **changes: Any) -> Config:
+        """The run's config with one pool's fields changed (new workers start with it)."""
+        pools = dict(self.cfg.pools)
+        pools[pool] = msgspec.structs.replace(pools[pool], **changes)
+        self.cfg = msgspec.structs.replace(self.cfg, pools=pools)
+        return self.cfg
+
+    def _add_worker(self, a: AddWorker) -> None:
+        """A pool grew: a new child (or a retired one's slot again), spawned by the Spawn
+        that follows."""
+        self.cfg = self._pool_cfg(a.pool, count=max(self.cfg.pools[a.pool].count, a.index + 1))
+        spec = NodeSpec("worker", a.name, self.cfg, self.run_dir, pool=a.pool, index=a.index,
+                        rig=self.rig, ring=self.ring.name if self.ring is not None else "")
+        for c in self.children:
+            if c.name == a.name:
+                c.spec = spec
+                return
+        self.children.append(Child(spec))
+
+    def _switch_pool(self, pool: str, active: bool | None, policy: str | None,
+                     params: Mapping[str, Any] | None = None) -> None:
+        if policy is not None:
+            self._pool_cfg(pool, policy=policy)
+        try:
+            self.to_broker.send(messages.encode(messages.PoolSwitch(
+                pool=pool, active=active, policy=policy,
+                params=dict(params) if params is not None else None)), zmq.NOBLOCK)
+        except zmq.Again:
+            log.warning("could not tell the broker about pool %s now; status reconciles it",
+                        pool)
+
+    def _reconcile_pools(self) -> None:
+        """A restarted broker starts every pool active: tell it again which are not."""
+        stats = self.stats
+        for name, p in self.core.pools.items():
+            seen = stats.pools.get(name) if stats is not None else None
+            want = p.state == Lifecycle.ACTIVE
+            if seen is not None and seen.active != want:
+                self._switch_pool(name, want, None)
+
+    def _reconfigure(self, a: Reconfigure) -> None:
+        """New parameters: the worker restarts with them (its exit is respawned at once)."""
+        self._pool_cfg(a.pool, params=dict(a.params))
+        c = self._named(a.name)
+        c.spec = replace(c.spec, cfg=self.cfg)
+        if a.restart and c.alive() and self.core.node(a.name).reconfiguring:
+            c.proc.terminate()
+
+    def _reconfigurable(self, pool: str) -> bool:
+        """Whether the pool's plugin takes new parameters in place (its class says so)."""
+        try:
+            return bool(registry.resolve(self.cfg.plugin_of(pool)).reconfigurable)
+        except Exception as exc:  # the workers report a plugin that cannot load
+            log.warning("pool %s: cannot tell whether its plugin reconfigures in place (%s); "
+                        "restarting its workers instead", pool, exc)
+            return False
 
     def _tell_broker_gone(self, c: Child, reason: str) -> None:
         ident = messages.worker_identity(c.spec.pool, c.spec.index, c.proc.pid)
@@ -484,7 +575,8 @@ class Supervisor:
         """Give-ups and retries over the run, and their timeline (seconds since start)."""
         counts = self.core.counts()
         return {"gave_up": counts["gave_up"], "retries": counts["retry"],
-                "capped": counts["capped"],
+                "capped": counts["capped"], "control": counts["control"],
+                "pools": self.core.pool_view(),
                 "timeline": [{"t_s": round(e.t - self.t0, 1), "node": e.node, "kind": e.kind,
                               "reason": e.reason} for e in self.core.timeline]}
 
@@ -507,8 +599,32 @@ class Supervisor:
             self.planned_stop = self.planned_stop or not self.stop_requested
             self.stop_requested = True
             self.control.send(msgspec.json.encode({"stopping": True}))
+        elif isinstance(req, (messages.PoolRequest, messages.ParamRequest)):
+            self.control.send(msgspec.json.encode(self._change(req)))
         else:
             self.control.send(msgspec.json.encode(self.status()))
+
+    def _change(self, req: messages.PoolRequest | messages.ParamRequest) -> dict[str, Any]:
+        """A runtime change: the core decides, this applies; the reply says what changed."""
+        now = time.monotonic()
+        try:
+            if isinstance(req, messages.ParamRequest):
+                in_place = req.pool in self.core.pools and self._reconfigurable(req.pool)
+                actions = self.core.set_param(req.pool, req.key, req.value, now, in_place)
+            elif req.count is not None:
+                actions = self.core.set_count(req.pool, req.count, now)
+            elif req.policy is not None:
+                actions = self.core.set_policy(req.pool, req.policy, now)
+            else:
+                actions = self.core.set_active(req.pool, bool(req.active), now)
+        except Refused as exc:
+            log.warning("refused a control change: %s", exc)
+            return {"error": str(exc)}
+        change = self.core.timeline[-1]
+        log.info("control: %s %s", change.node, change.reason)
+        self._act(actions, now)
+        return {"changed": change.node, "change": change.reason,
+                "pool": self.core.pool_view()[req.pool]}
 
     def _pool_restarts(self) -> dict[str, int]:
         out: dict[str, int] = {}

@@ -155,6 +155,9 @@ class WorkerNode(Node):
         next_alive = 0.0
         while not self.stopping:
             frames = self._recv(100)
+            if frames is not None and len(frames) == 1:  # not a job: new parameters
+                self._reconfigure(frames[0])
+                frames = None
             if frames is not None:
                 # Taking work: the supervisor times this pair from here (its pool's timeout_s
                 # bounds the process) and knows the worker active, even on its first pair.
@@ -177,6 +180,38 @@ class WorkerNode(Node):
         self.plugin.shutdown()
         self.set_state(FINALIZED)
         return 0
+
+    def _reconfigure(self, frame: Any) -> None:
+        """The pool's parameters changed (`trapflow param`): configure the plugin again,
+        between pairs. A plugin that fails with them ends this process, and the supervisor
+        starts a new one with the same parameters (it reports why, like any start)."""
+        try:
+            msg = messages.decode_configure(frame)
+        except ProtocolError as exc:
+            self.ratelog.warning("configure", "%s: dropped malformed configure: %s",
+                                 self.ident, exc)
+            return
+        assert self.plugin is not None
+        if msg.pool != self.pool or not self.plugin.reconfigurable:
+            log.warning("%s: ignored new parameters for pool %s (plugin reconfigurable: %s)",
+                        self.ident, msg.pool, self.plugin.reconfigurable)
+            return
+        self.pcfg = msgspec.structs.replace(self.pcfg, params=dict(msg.params))
+        ctx = Context(pool=self.pool, worker=self.ident, run_dir=self.spec.run_dir,
+                      rig=self.rig, debug=self.pcfg.debug, save=self.pcfg.save,
+                      time=self.pcfg.time)
+        try:
+            self.plugin.deactivate()
+            self.set_state(INACTIVE)
+            self.plugin.configure(self.pcfg.params, ctx)
+            self.plugin.activate()
+        except Exception as exc:  # the new parameters do not work: a fresh process reports it
+            why = str(exc) if isinstance(exc, WorkerError) else f"{type(exc).__name__}: {exc}"
+            log.error("%s: cannot apply new parameters: %s; restarting", self.ident, why)
+            self.stopping = True
+            return
+        self.set_state(ACTIVE)
+        log.info("%s: reconfigured in place with %s", self.ident, sorted(msg.params))
 
     def _stamp(self, body: messages.Body) -> messages.Body:
         """A stereo result carries the id of the rig it was computed with (`calib`)."""

@@ -165,6 +165,8 @@ def input_spec(
 class CrabDetector(Worker):
     """Letterbox -> ONNX model -> decoder -> NMS -> boxes in image pixels, as the toolchain does."""
 
+    reconfigurable = True  # configure() opens a new session; nothing else is kept
+
     def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
         p = parse_params(params, DetectorParams, ctx.pool)
         self.p = p

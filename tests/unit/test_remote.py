@@ -165,7 +165,7 @@ def test_workers_of_a_silent_host_are_named(heard: float | None, now: float,
 
 @pytest.mark.parametrize("msg,error", [
     (messages.Hello(worker="far@j:0:1", pool="far", host="j", owner="o"), "local path"),
-    (messages.PoolRequest(pool="far", host="j"), "local path"),
+    (messages.JoinRequest(pool="far", host="j"), "local path"),
     (messages.HostAlive(host="j"), "local path"),
 ])
 def test_join_messages_are_refused_on_local_paths(msg: messages.Msg, error: str) -> None:

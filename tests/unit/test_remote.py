@@ -177,7 +177,7 @@ def test_join_messages_are_refused_on_local_paths(msg: messages.Msg, error: str)
     ({"type": "hello", "worker": "w", "pool": "p", "host": "", "owner": "o"}, "length >= 1"),
     ({"type": "hello", "worker": "w" * 129, "pool": "p", "host": "h", "owner": "o"},
      "length <= 128"),
-    ({"type": "pool_request", "pool": "p"}, "missing required field `host`"),
+    ({"type": "join_request", "pool": "p"}, "missing required field `host`"),
 ])
 def test_join_message_decoding_is_bounded(data: dict[str, Any], error: str) -> None:
     with pytest.raises(ProtocolError, match=error):

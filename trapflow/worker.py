@@ -18,7 +18,7 @@ import numpy as np
 import psutil
 import zmq
 
-from trapflow import messages, registry
+from trapflow import jpeg, messages, registry
 from trapflow.errors import ProtocolError, WorkerError
 from trapflow.frame_ring import RingError, RingReader
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec, freeze_heap
@@ -40,7 +40,7 @@ def decode_image(frame: Any, pair: messages.StereoPair, side: str) -> np.ndarray
     buf = _as_bytes(frame)
     if pair.encoding == "raw":
         return buf.reshape(pair.height, pair.width, 3)
-    img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+    img = jpeg.decode(buf)  # libjpeg-turbo (simplejpeg), OpenCV as the fallback
     if img is None:
         raise ProtocolError(f"pair {pair.seq}: {side} image is not a decodable JPEG "
                             f"({buf.size} bytes)")

@@ -53,7 +53,9 @@ class Digest(Worker):
         h = hashlib.sha1(pair.left.tobytes())
         h.update(pair.right.tobytes())
         return Extra(name="digest", fields={"sha1": h.hexdigest()[:16], "pool": self.pool,
-                                            "shape": list(pair.left.shape)})
+                                            "shape": list(pair.left.shape),
+                                            "encoding": pair.header.encoding,
+                                            "mean": round(float(pair.left.mean()), 3)})
 
 
 class Flaky(Worker):

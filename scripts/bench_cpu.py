@@ -51,7 +51,8 @@ def _cpu(pid: int) -> float:
 
 
 def _snapshot(sup: int, run: Path) -> tuple[dict[str, float], dict[str, int], int, int]:
-    """CPU seconds per role, process() microseconds per role, pairs captured, VO processed."""
+    """CPU seconds per role, CPU microseconds inside process() per role, pairs captured,
+    pairs VO processed."""
     s = _status(run)
     if s is None:
         raise SystemExit("status did not answer during the window")
@@ -63,7 +64,7 @@ def _snapshot(sup: int, run: Path) -> tuple[dict[str, float], dict[str, int], in
         role = role if role in ROLES else OTHER
         cpu[role] = cpu.get(role, 0.0) + (_cpu(n["pid"]) if n["pid"] else 0.0)
         c = n.get("counters") or {}
-        proc[role] = proc.get(role, 0) + int(c.get("proc_us", 0))
+        proc[role] = proc.get(role, 0) + int(c.get("proc_cpu_us", 0))
         if n["name"] == "capture":
             produced = int(c.get("produced", 0))
     vo = int(((s.get("stats") or {}).get("pools") or {}).get("vo", {}).get("processed", 0))

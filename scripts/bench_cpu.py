@@ -50,25 +50,26 @@ def _cpu(pid: int) -> float:
     return float(t.user + t.system)
 
 
-def _snapshot(sup: int, run: Path) -> tuple[dict[str, float], dict[str, int], int, int]:
-    """CPU seconds per role, CPU microseconds inside process() per role, pairs captured,
-    pairs VO processed."""
+def _snapshot(sup: int, run: Path) -> tuple[dict[int, tuple[str, float, int]], int,
+                                             dict[str, Any]]:
+    """Per process: (role, CPU seconds, CPU microseconds inside process()); pairs captured;
+    the VO pool's broker counters."""
     s = _status(run)
     if s is None:
         raise SystemExit("status did not answer during the window")
-    cpu: dict[str, float] = {OTHER: _cpu(sup)}
-    proc: dict[str, int] = {}
+    procs: dict[int, tuple[str, float, int]] = {sup: (OTHER, _cpu(sup), 0)}
     produced = 0
     for n in s["nodes"]:
+        if not n["pid"]:
+            continue
         role = n["name"].rsplit(":", 1)[0] if n["name"].startswith("worker:") else n["name"]
-        role = role if role in ROLES else OTHER
-        cpu[role] = cpu.get(role, 0.0) + (_cpu(n["pid"]) if n["pid"] else 0.0)
         c = n.get("counters") or {}
-        proc[role] = proc.get(role, 0) + int(c.get("proc_cpu_us", 0))
+        procs[n["pid"]] = (role if role in ROLES else OTHER, _cpu(n["pid"]),
+                           int(c.get("proc_cpu_us", 0)))
         if n["name"] == "capture":
             produced = int(c.get("produced", 0))
-    vo = int(((s.get("stats") or {}).get("pools") or {}).get("vo", {}).get("processed", 0))
-    return cpu, proc, produced, vo
+    vo = ((s.get("stats") or {}).get("pools") or {}).get("vo", {})
+    return procs, produced, vo
 
 
 def run_window(args: list[str], warmup: float, window: float,
@@ -93,10 +94,10 @@ def run_window(args: list[str], warmup: float, window: float,
                 raise SystemExit(f"trapflow start {' '.join(args)} did not become active")
             time.sleep(0.5)
         time.sleep(warmup)
-        c0, p0, n0, v0 = _snapshot(p.pid, run)
+        s0, n0, v0 = _snapshot(p.pid, run)
         t0 = time.monotonic()
         time.sleep(window)
-        c1, p1, n1, v1 = _snapshot(p.pid, run)
+        s1, n1, v1 = _snapshot(p.pid, run)
         dt = time.monotonic() - t0
     finally:
         p.send_signal(signal.SIGINT)
@@ -105,13 +106,22 @@ def run_window(args: list[str], warmup: float, window: float,
         except subprocess.TimeoutExpired:
             p.kill()
     pairs = max(n1 - n0, 1)
-    roles = {r: {"cpu_ms": round(1000 * (c1.get(r, 0) - c0.get(r, 0)) / pairs, 2),
-                 "process_ms": round((p1.get(r, 0) - p0.get(r, 0)) / 1000 / pairs, 2)}
-             for r in (*ROLES, OTHER)}
+    cpu = dict.fromkeys((*ROLES, OTHER), 0.0)
+    inside = dict.fromkeys((*ROLES, OTHER), 0.0)
+    restarted = 0
+    for pid, (role, c, us) in s1.items():
+        if pid not in s0:  # started inside the window (a restart): not comparable
+            restarted += 1
+            continue
+        cpu[role] += c - s0[pid][1]
+        inside[role] += (us - s0[pid][2]) / 1e6
+    roles = {r: {"cpu_ms": round(1000 * cpu[r] / pairs, 2),
+                 "process_ms": round(1000 * inside[r] / pairs, 2)} for r in cpu}
     total = round(sum(v["cpu_ms"] for v in roles.values()), 2)
+    vo = {k: v1.get(k, 0) - v0.get(k, 0) for k in ("received", "processed", "dropped")}
     return {"args": args, "window_s": round(dt, 1), "pairs": pairs,
-            "capture_hz": round(pairs / dt, 2), "vo_hz": round((v1 - v0) / dt, 2),
-            "roles": roles, "total_cpu_ms": total}
+            "capture_hz": round(pairs / dt, 2), "vo_hz": round(vo["processed"] / dt, 2),
+            "vo": vo, "restarted_in_window": restarted, "roles": roles, "total_cpu_ms": total}
 
 
 def part_cpu(rates: list[float], warmup: float, window: float) -> dict[str, Any]:
@@ -134,7 +144,7 @@ def part_floor(rate: float, warmup: float, window: float) -> dict[str, Any]:
 
 def markdown(r: dict[str, Any]) -> str:
     lines = [f"## CPU per captured pair by process role ({r['cores']} cores, synthetic "
-             "1280x720, mono + stereo + vo)", ""]
+             f"1280x720, mono + stereo + vo; load average {r['load']})", ""]
     for rate in r["rates"]:
         runs = {k.split("@")[0]: v for k, v in r["cpu"].items() if k.endswith(f"@{rate:g}")}
         lines += [f"At {rate:g} pairs/s requested (reached: " + ", ".join(
@@ -152,15 +162,18 @@ def markdown(r: dict[str, Any]) -> str:
                                                  for v in runs.values()) + " |")
         d, raw = runs["default"]["total_cpu_ms"], runs["raw"]["total_cpu_ms"]
         inside = sum(x["process_ms"] for x in runs["default"]["roles"].values())
+        source = runs["default"]["roles"]["capture"]["cpu_ms"]
         lines += ["", f"default / raw: **{d / raw:.2f}x**; jpeg / raw: "
-                  f"{runs['jpeg']['total_cpu_ms'] / raw:.2f}x; default outside process() "
-                  f"(capture included): {100 * (d - inside) / d:.0f} %.", ""]
+                  f"{runs['jpeg']['total_cpu_ms'] / raw:.2f}x; default outside process() and "
+                  f"the source (capture): {100 * (d - inside - source) / d:.0f} % of the total.",
+                  ""]
     if "floor" in r:
         f = r["floor"]
         lines += ["## VO floor under saturating recognisers", "",
                   f"stereo burns 2 s CPU per pair, two mono workers 100 ms each: capture "
                   f"{f['capture_hz']} pairs/s, VO {f['vo_hz']} pairs/s "
-                  f"(window {f['window_s']} s).", ""]
+                  f"(window {f['window_s']} s; VO pool received {f['vo']['received']}, "
+                  f"dropped {f['vo']['dropped']}).", ""]
     return "\n".join(lines)
 
 
@@ -180,10 +193,14 @@ def main() -> None:
         r["cpu"] = part_cpu(rates, warmup, window)
     if "floor" in parts:
         r["floor"] = part_floor(15.0, warmup, window)
+    r["load"] = " ".join(f"{x:.1f}" for x in psutil.getloadavg())
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "cpu.json").write_text(json.dumps(r, indent=1) + "\n")
     if "cpu" in r:
+        (out / "cpu.md").write_text(markdown(r))
+    elif "floor" in r:
+        r["cpu"], r["rates"] = {}, []
         (out / "cpu.md").write_text(markdown(r))
     print(json.dumps(r))
 

@@ -16,6 +16,8 @@ Parts, in order, with their run time on a 2-core machine (full / --quick):
               the part inside process() and the rest              ~5 min  / ~2.5 min
   floor       VO pairs/s against capture with recognisers burning
               2 s (stereo) and 100 ms (two mono workers) per pair ~1 min  / ~0.5 min
+  decode      JPEG encode/decode of one image, OpenCV vs simplejpeg,
+              colour, grey, 1/2 scale, 1280x720 and 1920x1080    ~1 min  / ~0.5 min
   algorithms  decode and process time per algorithm               ~2 min  / skipped
   process     Dask LocalCluster vs one plain loop                 ~2 min  / skipped
   viewer      live viewer against the default pipeline            ~1 min  / skipped
@@ -23,7 +25,7 @@ Parts, in order, with their run time on a 2-core machine (full / --quick):
 
 Numbers go to OUT_DIR: one JSON (and Markdown) per part, and OUT_DIR/bench.md with all
 of them; the CPU table is what docs/benchmarks.md quotes. Nothing is asserted.
---quick runs the cpu and floor parts only, with short windows.
+--quick runs the cpu, floor and decode parts only, with short windows.
 TXT
 }
 QUICK=0
@@ -37,8 +39,10 @@ mkdir -p "$OUT"
 if [ "$QUICK" = 1 ]; then
   echo "[bench] cpu per pair by role and the VO floor (quick)" >&2
   "$PY" scripts/bench_cpu.py --quick --out "$OUT" > /dev/null
+  echo "[bench] JPEG decode (quick)" >&2
+  "$PY" scripts/bench_decode.py --repeats 10 --out "$OUT" > /dev/null
   { echo "# trapflow benchmark (quick), $(date -u '+%Y-%m-%d %H:%M UTC'), $(nproc) cores"
-    echo; cat "$OUT/cpu.md"; } > "$OUT/bench.md"
+    echo; cat "$OUT/cpu.md"; echo; cat "$OUT/decode.md"; } > "$OUT/bench.md"
   echo "[bench] wrote $OUT/bench.md" >&2
   exit 0
 fi
@@ -52,6 +56,8 @@ for part in bench_shm bench_synth; do
 done
 echo "[bench] cpu per pair by role and the VO floor" >&2
 "$PY" scripts/bench_cpu.py --out "$OUT" > /dev/null
+echo "[bench] JPEG decode" >&2
+"$PY" scripts/bench_decode.py --out "$OUT" > /dev/null
 echo "[bench] algorithms" >&2
 "$PY" scripts/bench_algorithms.py --out "$OUT" > /dev/null
 echo "[bench] process (Dask LocalCluster vs one plain loop)" >&2
@@ -63,7 +69,7 @@ echo "[bench] modem link" >&2
 {
   echo "# trapflow benchmark, $(date -u '+%Y-%m-%d %H:%M UTC'), $(nproc) cores"
   echo
-  for md in "$OUT"/transport.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/cpu.md "$OUT"/bench_algorithms.md \
+  for md in "$OUT"/transport.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/cpu.md "$OUT"/decode.md "$OUT"/bench_algorithms.md \
             "$OUT"/process.md "$OUT"/viewer.md; do
     [ -f "$md" ] && cat "$md" && echo
   done

@@ -9,11 +9,12 @@ usage() {
 Usage: scripts/bench.sh [--quick] [--help] [OUT_DIR]   (default OUT_DIR: bench-results)
 
 Parts, in order, with their run time on a 2-core machine (full / --quick):
-  transport   broker path vs raw pyzmq, JPEG and raw pairs        ~3 min  / ~3 min
-  shm, synth  shared-memory ring; synthetic world rendering       ~1 min  / ~1 min
+  transport   broker path vs raw pyzmq, JPEG and raw pairs        ~3 min  / skipped
+  shm, synth  shared-memory ring; synthetic world rendering       ~1 min  / skipped
   cpu         CPU per captured pair by process role at 10 and 15
               pairs/s: default, --encoding raw, --encoding jpeg;
               the part inside process() and the rest              ~5 min  / ~2.5 min
+              (6 pipeline runs; about twice as long on a loaded machine)
   floor       VO pairs/s against capture with recognisers burning
               2 s (stereo) and 100 ms (two mono workers) per pair ~1 min  / ~0.5 min
   decode      JPEG encode/decode of one image, OpenCV vs simplejpeg,

@@ -69,3 +69,19 @@ def test_vo_on_grey_decoded_jpeg_matches_vo_on_bgr_decoded_jpeg() -> None:
 def test_check_frame_rejects(img: Any, grey_ok: bool, match: str) -> None:
     with pytest.raises(WorkerError, match=match):
         check_frame(make_pair(img, header_size=(64, 48)), grey_ok=grey_ok)
+
+
+def test_burn_spends_cpu_not_wall_time() -> None:
+    """The VO floor bench's recogniser: it must cost CPU (a sleep would leave VO the cores)."""
+    import time
+
+    from trapflow_workers.testing import Burn
+    from trapflow_workers.testkit import make_context
+
+    from trapflow.camera import StereoRig
+
+    burn = Burn()
+    burn.configure({"cpu_s": 0.05}, make_context(StereoRig.from_fov(64, 48, 70.0, 0.12)))
+    c = time.process_time()
+    body = burn.process(make_pair(np.zeros((48, 64, 3), np.uint8)))
+    assert time.process_time() - c >= 0.05 and body.fields["spins"] > 0

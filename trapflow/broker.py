@@ -21,7 +21,7 @@ from typing import Any
 import msgspec
 import zmq
 
-from trapflow import messages
+from trapflow import jpeg, messages
 from trapflow.broker_remote import RemoteWorkers
 from trapflow.broker_state import BrokerState, Dispatch, Evicted, PoolSpec, Rejected, Release
 from trapflow.errors import ProtocolError
@@ -86,7 +86,9 @@ class BrokerNode(Node):
         ring_name = spec.ring
         self.ring = FrameRing(ring_name) if ring_name else None
         self.refs: dict[int, messages.FrameRef] = {}
-        self.remote = {n for n, p in self.cfg.pools.items() if p.remote}  # bytes, not refs
+        self.remote = {n for n, p in self.cfg.pools.items() if p.remote}
+        # Remote pools get JPEG: a raw pair is encoded once, on demand, and kept until freed.
+        self._jpeg: dict[int, list[Any]] = {}
         if self.ring is not None and spec.restarted:
             self._reclaim_held()
         # Local links (ring only): listeners, then one Link per connected capture or worker.
@@ -508,7 +510,7 @@ class BrokerNode(Node):
                         assert self.remote_router is not None
                         self.poller.touch(self.remote_router)
                         self.remote_router.send_multipart(
-                            [action.worker, job, *self._payload(action.seq, copy=True)],
+                            [action.worker, job, *self._remote_payload(action.seq)],
                             copy=False)
                     elif link is not None:
                         if not link.send([job, *self.frames[action.seq]]):
@@ -516,9 +518,9 @@ class BrokerNode(Node):
                     else:
                         remote = action.pool in self.remote
                         self.poller.touch(self.router)
-                        self.router.send_multipart(
-                            [action.worker, job, *self._payload(action.seq, copy=remote)],
-                            copy=False)
+                        payload = (self._remote_payload(action.seq) if remote
+                                   else self._payload(action.seq, copy=False))
+                        self.router.send_multipart([action.worker, job, *payload], copy=False)
                 except (zmq.ZMQError, LinkClosed) as exc:  # EHOSTUNREACH: the worker vanished
                     self.unroutable += 1
                     self.ratelog.warning("route", "cannot reach worker %r: %s", action.worker, exc)
@@ -529,6 +531,7 @@ class BrokerNode(Node):
                                                            time.monotonic()))
             elif isinstance(action, Release):
                 self.frames.pop(action.seq, None)
+                self._jpeg.pop(action.seq, None)
                 ref = self.refs.pop(action.seq, None)
                 if ref is not None and self.ring is not None:
                     self.ring.free_ref(ref)
@@ -602,6 +605,22 @@ class BrokerNode(Node):
         assert self.ring is not None
         row = self.ring.payload(ref)
         return [frames[0], bytes(row[0]), bytes(row[1])]
+
+    def _remote_payload(self, seq: int) -> list[Any]:
+        """[header, left, right] as JPEG for a remote pool: a raw pair (the default on one
+        host) is encoded once, whichever remote pools take it; a JPEG pair goes as it came."""
+        cached = self._jpeg.get(seq)
+        if cached is not None:
+            return cached
+        frames = self._payload(seq, copy=True)
+        header = messages.decode_pair_header(_bytes(frames[0]))
+        if header.encoding != "raw":
+            return frames
+        header, left, right = jpeg.to_jpeg_pair(header, _bytes(frames[1]), _bytes(frames[2]),
+                                                self.cfg.source.jpeg_quality)
+        out = [messages.encode(header), left, right]
+        self._jpeg[seq] = out
+        return out
 
     def _reclaim_held(self) -> None:
         """A new broker knows of no pair: slots a previous broker held are free again."""

@@ -13,12 +13,13 @@ from pathlib import Path
 import zmq
 
 from trapflow import config as configmod
-from trapflow import messages
+from trapflow import jpeg, messages
 from trapflow.errors import ProtocolError, StartupError
 from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
 
 # Nothing for this long: say once that the tap is waiting (no pipeline may be running yet).
 WAITING_NOTICE_S = 1.0
+JPEG_QUALITY = 90  # of frames saved from a raw pipeline
 
 TOPICS = {
     "results": (messages.TOPIC_RESULT,),
@@ -95,10 +96,11 @@ def run_tap(what: str, run_dir: Path, endpoints: list[str], count: int | None = 
             except ProtocolError as exc:
                 line = f"malformed tap message: {exc}"
             if save_frames is not None and frames[0] == messages.TOPIC_IMAGE and len(frames) == 4:
-                p = messages.decode_pair_header(frames[1])
-                ext = "jpg" if p.encoding == "jpeg" else "bgr"
-                (save_frames / f"{p.seq:08d}_left.{ext}").write_bytes(frames[2])
-                (save_frames / f"{p.seq:08d}_right.{ext}").write_bytes(frames[3])
+                # Photos on disk: a raw pair (the default ring) is encoded here, once.
+                p, left, right = jpeg.to_jpeg_pair(messages.decode_pair_header(frames[1]),
+                                                   frames[2], frames[3], JPEG_QUALITY)
+                (save_frames / f"{p.seq:08d}_left.jpg").write_bytes(left)
+                (save_frames / f"{p.seq:08d}_right.jpg").write_bytes(right)
             print(line, flush=True)
             n += 1
     except KeyboardInterrupt:

@@ -18,7 +18,7 @@ import numpy as np
 import psutil
 import zmq
 
-from trapflow import messages, registry
+from trapflow import jpeg, messages, registry
 from trapflow.errors import ProtocolError, WorkerError
 from trapflow.frame_ring import RingError, RingReader
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec, freeze_heap
@@ -35,12 +35,14 @@ SEND_WAIT_MS = 1000  # how long a Done may wait for room in a busy broker's queu
 STAMPED = (messages.StereoIR, messages.StereoVO, messages.Tags)
 
 
-def decode_image(frame: Any, pair: messages.StereoPair, side: str) -> np.ndarray:
-    """A BGR uint8 image from a JPEG or raw frame (or ring view); ProtocolError if not one."""
+def decode_image(frame: Any, pair: messages.StereoPair, side: str,
+                 grey: bool = False) -> np.ndarray:
+    """A BGR uint8 image from a JPEG or raw frame (or ring view), grey (HxW) from a JPEG when
+    the plugin asks for grey; ProtocolError if not one."""
     buf = _as_bytes(frame)
     if pair.encoding == "raw":
         return buf.reshape(pair.height, pair.width, 3)
-    img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+    img = jpeg.decode(buf, grey=grey)  # libjpeg-turbo (simplejpeg), OpenCV as the fallback
     if img is None:
         raise ProtocolError(f"pair {pair.seq}: {side} image is not a decodable JPEG "
                             f"({buf.size} bytes)")
@@ -92,6 +94,7 @@ class WorkerNode(Node):
         self._next_save = 0.0
         self.processed = 0
         self.proc_us = 0  # processing time of every processed pair, summed (for /metrics)
+        self.proc_cpu_us = 0  # CPU time (all threads) inside process(), summed (for the bench)
         self.failed = 0
         self.free = self.pcfg.credit
         self.ratelog = RateLimitedLog(log)
@@ -110,7 +113,7 @@ class WorkerNode(Node):
     def counters(self) -> dict[str, int]:
         stale = self._reader.rejected if self._reader is not None else 0
         return {"processed": self.processed, "failed": self.failed, "stale_reads": stale,
-                "proc_us": self.proc_us}
+                "proc_us": self.proc_us, "proc_cpu_us": self.proc_cpu_us}
 
     def _ring(self) -> RingReader:
         """The shared-memory ring, mapped once, on first use."""
@@ -304,13 +307,15 @@ class WorkerNode(Node):
                 raw_left, raw_right = frames[2], frames[3]
             seq = header.seq
             if self.plugin.needs_images:
-                left = decode_image(raw_left, header, "left")
-                right = decode_image(raw_right, header, "right")
+                grey = self.plugin.colour == "grey"
+                left = decode_image(raw_left, header, "left", grey)
+                right = decode_image(raw_right, header, "right", grey)
             else:  # the encoded bytes, zero-copy: plugins that never look at pixels
                 left, right = _as_bytes(raw_left), _as_bytes(raw_right)
-            t0 = time.monotonic_ns()
+            t0, c0 = time.monotonic_ns(), time.process_time_ns()
             body = self.plugin.process(Pair(header=header, left=left, right=right, gap=job.gap))
             proc_ns = time.monotonic_ns() - t0
+            self.proc_cpu_us += (time.process_time_ns() - c0) // 1000
             if ref is not None:
                 # The slot must still hold this pair, or the result came from other bytes.
                 self._ring().check(ref)

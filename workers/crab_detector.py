@@ -171,7 +171,7 @@ class CrabDetector(Worker):
         p = parse_params(params, DetectorParams, ctx.pool)
         self.p = p
         path = model_path(p.model, "crab_detector.onnx")
-        self.session: Session = open_session(path, p.providers, p.threads)
+        self.session: Session = open_session(path, p.providers, p.threads, settings=p)
         meta = self.session.metadata
         inp = self.session.inputs[0]
         shape = list(inp.shape)

@@ -179,11 +179,12 @@ def test_remote_workers_over_curve_give_the_same_results_as_local_ones(
 
 
 @pytest.mark.timeout(120)
-def test_raw_pairs_reach_a_remote_worker_pixel_for_pixel(
+def test_raw_pairs_reach_a_remote_worker_as_jpeg_of_the_same_pixels(
         spawn: Callable[..., Pipeline], remote: Callable[..., RemoteWorker], run_dir: Path,
         keys: dict[str, Path]) -> None:
-    """Raw pairs (no JPEG) travel to a remote worker as bytes: the pixel digests it computes
-    equal those of a local worker of the shared-memory ring, pair for pair."""
+    """Raw pairs in the ring reach a remote worker as JPEG, encoded once by the broker (a
+    raw 1280x720 pair is 5.5 MB, too much for the link to a compute box): the same pictures
+    as a local worker of the shared-memory ring sees, pair for pair, within JPEG's loss."""
     bind = f"tcp://127.0.0.1:{free_port()}"
     cfg = remote_config(run_dir.parent / "raw.yaml", bind, keys, {
         "near_px": {"plugin": "digest", "policy": "ordered:64"},
@@ -196,16 +197,19 @@ def test_raw_pairs_reach_a_remote_worker_pixel_for_pixel(
              interval=0.5, what="30 raw pairs processed remotely")
     code, _, err = p.stop(signal.SIGINT, timeout=20)
     assert code == 0, err
-    px: dict[str, dict[int, str]] = defaultdict(dict)
+    px: dict[str, dict[int, dict[str, Any]]] = defaultdict(dict)
     for row in p.results():
         if "digest" in row:
             d = row["digest"]
             assert d["shape"] == [240, 320, 3]
-            px[d["pool"]][d["seq"]] = d["sha1"]
+            px[d["pool"]][d["seq"]] = d
     common = set(px["near_px"]) & set(px["far_px"])
     assert len(common) >= 30
-    assert all(px["near_px"][s] == px["far_px"][s] for s in common)
-    assert len({px["far_px"][s] for s in common}) > len(common) // 2  # the pixels do change
+    for s in common:
+        near, far = px["near_px"][s], px["far_px"][s]
+        assert (near["encoding"], far["encoding"]) == ("raw", "jpeg"), (near, far)
+        assert abs(near["mean"] - far["mean"]) < 2.0, (s, near, far)
+    assert len({px["far_px"][s]["sha1"] for s in common}) > len(common) // 2  # pixels change
 
 
 @pytest.mark.timeout(120)

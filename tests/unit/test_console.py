@@ -253,9 +253,9 @@ def test_tap_with_messages_exits_0_at_its_timeout(tmp_path: Path) -> None:
 # --- scripts/bench.sh --help ------------------------------------------------------------------
 
 @pytest.mark.parametrize(("args", "code", "stream", "text"), [
-    (["--help"], 0, "stdout", "Run time:"),
-    (["-h"], 0, "stdout", "Usage: scripts/bench.sh [OUT_DIR]"),
-    (["--fast"], 2, "stderr", "unknown option --fast (expected OUT_DIR or --help)"),
+    (["--help"], 0, "stdout", "with their run time"),
+    (["-h"], 0, "stdout", "Usage: scripts/bench.sh [--quick] [--help] [OUT_DIR]"),
+    (["--fast"], 2, "stderr", "unknown option --fast (expected --quick, --help or OUT_DIR)"),
 ])
 def test_bench_sh_help_prints_its_usage_and_run_time(args: list[str], code: int, stream: str,
                                                      text: str) -> None:

@@ -11,12 +11,13 @@ import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from tests.builders import drain, drain_skipping
 from trapflow.camera import StereoRig
 from trapflow.config import SourceConfig
 from trapflow.messages import StereoPair
 from trapflow.recorder import Recorder
 from trapflow.sources import SkipPair, SourceError, open_source
-from trapflow.sources.base import Frames, Source
+from trapflow.sources.base import Source
 from trapflow.sources.replay import ReplaySource
 
 W, H = 64, 48
@@ -38,17 +39,6 @@ def make(path: Path, **options: Any) -> Source:
     loop = options.pop("loop", False)
     return open_source(SourceConfig(kind="replay", uri=str(path), loop=loop,
                                     options={"rate": 0, **options}), RIG)
-
-
-def drain(src: Source, limit: int = 100) -> list[Frames]:
-    src.open()
-    try:
-        out = []
-        while len(out) < limit and (f := src.read()) is not None:
-            out.append(f)
-        return out
-    finally:
-        src.close()
 
 
 def write_trapflow(path: Path, n: int) -> None:
@@ -214,19 +204,8 @@ def test_bag_messages_that_do_not_decode_are_skipped_and_the_bag_goes_on(tmp_pat
     """Regression (issue 12, item 2): a bag message that did not decode was retried forever."""
     faults = write_faulty_bag(tmp_path / "bag", 8)
     src = make(tmp_path / "bag")
-    src.open()
-    got, skipped = [], []
-    for _ in range(20):
-        try:
-            f = src.read()
-        except SkipPair as exc:
-            skipped.append(exc)
-            continue
-        if f is None:
-            break
-        got.append(level(f.left, 0))
-    src.close()
-    assert got == [i for i in range(8) if i not in faults]
+    got, skipped = drain_skipping(src, 20)
+    assert [level(f.left, 0) for f in got] == [i for i in range(8) if i not in faults]
     assert [e.kind for e in skipped] == list(faults.values())
     # Each names the message: index i*2 is pair i's left, i*2+1 its right (time order).
     assert "message 2 on /left/image/compressed" in str(skipped[0])

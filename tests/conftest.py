@@ -49,6 +49,51 @@ def modem_cli(*args: str) -> subprocess.Popen[bytes]:
     return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
 
+# The box's sender in the modem tests: fast link, one record per frame, nothing expires.
+MODEM_SEND_ARGS = ["--bit-rate", "19200", "--ack-timeout", "0.4", "--no-aggregate", "--no-ttl"]
+
+
+def modem_link(tmp: Path, procs: list[subprocess.Popen[bytes]], seed: int,
+               bit_rate: str = "19200", loss: str = "0.1") -> None:
+    """The link simulator (latency 0.05 s) between the pseudo-terminals tmp/a (the box's
+    end) and tmp/b (the surface's), added to procs, once both ends exist."""
+    procs.append(modem_cli(
+        "modem-sim", "--bit-rate", bit_rate, "--latency", "0.05", "--loss", loss,
+        "--seed", str(seed), "--link-a", str(tmp / "a"), "--link-b", str(tmp / "b")))
+    poll_for(lambda: (tmp / "a").exists() and (tmp / "b").exists(), 20,
+             what="the simulator's ends")  # fmt: skip
+
+
+def send_until_drained(outbox: Path, port: Path, procs: list[subprocess.Popen[bytes]],
+                       what: str) -> None:
+    """Run the box's sender (`modem-send`, 19200 bit/s, no aggregation, no TTL) until every
+    record of outbox is acknowledged, then cut its power (SIGKILL)."""
+    from trapflow.modem.outbox import OutboxConfig, OutboxQueue
+
+    sender = modem_cli("modem-send", str(outbox), str(port), *MODEM_SEND_ARGS)
+    procs.append(sender)
+    queue = OutboxQueue(outbox, OutboxConfig())
+    try:
+        poll_for(lambda: queue.counts()[2] == 0, 40, what=f"{what} to drain")
+    finally:
+        queue.close()
+    sender.send_signal(signal.SIGKILL)  # the box goes down without a word
+    sender.wait(timeout=10)
+
+
+def stop_surface(surface: subprocess.Popen[bytes]) -> dict[str, Any]:
+    """Stop `trapflow surface` (SIGTERM): the statistics of its last stderr line."""
+    surface.send_signal(signal.SIGTERM)
+    _, err = surface.communicate(timeout=10)
+    stats: dict[str, Any] = json.loads(err.decode().strip().splitlines()[-1])
+    return stats
+
+
+def surface_idents(out: Path) -> list[int]:
+    """The ident (seq) of every record the surface wrote to out, in order."""
+    return [next(iter(json.loads(line).values()))["seq"] for line in out.read_text().splitlines()]
+
+
 @pytest.fixture
 def started_procs() -> Iterator[list[subprocess.Popen[bytes]]]:
     """Processes a test starts: killed if still running at the end, reaped, pipes closed."""

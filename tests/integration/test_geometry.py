@@ -319,24 +319,12 @@ def test_a_plugins_own_calibration_wins_and_its_id_is_reported(
 
 def test_a_custom_stereo_message_tells_its_frame_size(tmp_path: Path) -> None:
     """A bag of one user-defined stereo message: the rig takes the size of its first images."""
-    from rosbags.typesys import get_types_from_msg
+    from tests.integration.test_sources_replay import H, W, write_stereo_msg_bag
 
-    from tests.integration.test_sources_replay import PERIOD, T0, H, W, img, raw_image
-
-    msgdef = "sensor_msgs/Image left\nsensor_msgs/Image right\n"
-    (tmp_path / "StereoImage.msg").write_text(msgdef)
-    store = get_typestore(Stores.ROS2_HUMBLE)
-    store.register(get_types_from_msg(msgdef, "trap_msgs/msg/StereoImage"))
-    stereo = store.types["trap_msgs/msg/StereoImage"]
-    with Writer(tmp_path / "bag", version=8) as w:
-        c = w.add_connection("/stereo", "trap_msgs/msg/StereoImage", typestore=store)
-        for i in range(2):
-            m = stereo(left=raw_image(T0 + i * PERIOD, img(i, 0)),
-                       right=raw_image(T0 + i * PERIOD, img(i, 1)))
-            w.write(c, T0 + i * PERIOD, store.serialize_cdr(m, "trap_msgs/msg/StereoImage"))
+    msg_def = write_stereo_msg_bag(tmp_path, 2)
     found = describe(from_data({"source": {"kind": "replay", "uri": str(tmp_path / "bag"),
                                            "options": {
                                                "msg_type": "trap_msgs/msg/StereoImage",
-                                               "msg_def": str(tmp_path / "StereoImage.msg")}}}))
+                                               "msg_def": str(msg_def)}}}))
     assert found.rig == StereoRig.from_fov(W, H, 70.0, 0.12)
     assert "trap_msgs/msg/StereoImage" in found.origin

@@ -119,20 +119,29 @@ def test_replay_loops(tmp_path: Path) -> None:
     assert [level(f.left, 0) for f in got] == [0, 1, 2, 0, 1, 2, 0]
 
 
-def test_custom_stereo_message_with_user_definition(tmp_path: Path) -> None:
+def write_stereo_msg_bag(folder: Path, n: int, right_after_ns: int = 0) -> Path:
+    """A bag (folder/bag) of n pairs, each one user-defined message on /stereo:
+    trap_msgs/msg/StereoImage (two sensor_msgs/Image), defined in folder/StereoImage.msg
+    (returned); each right image is stamped right_after_ns after its left."""
     msgdef = "sensor_msgs/Image left\nsensor_msgs/Image right\n"
-    (tmp_path / "StereoImage.msg").write_text(msgdef)
+    (folder / "StereoImage.msg").write_text(msgdef)
     store = get_typestore(Stores.ROS2_HUMBLE)
     store.register(get_types_from_msg(msgdef, "trap_msgs/msg/StereoImage"))
     Stereo = store.types["trap_msgs/msg/StereoImage"]
-    with Writer(tmp_path / "bag", version=8) as w:
+    with Writer(folder / "bag", version=8) as w:
         c = w.add_connection("/stereo", "trap_msgs/msg/StereoImage", typestore=store)
-        for i in range(4):
+        for i in range(n):
             t = T0 + i * PERIOD
-            m = Stereo(left=raw_image(t, img(i, 0)), right=raw_image(t + 1000, img(i, 1)))
+            m = Stereo(left=raw_image(t, img(i, 0)),
+                       right=raw_image(t + right_after_ns, img(i, 1)))
             w.write(c, t, store.serialize_cdr(m, "trap_msgs/msg/StereoImage"))
+    return folder / "StereoImage.msg"
+
+
+def test_custom_stereo_message_with_user_definition(tmp_path: Path) -> None:
+    msg_def = write_stereo_msg_bag(tmp_path, 4, right_after_ns=1000)
     got = drain(make(tmp_path / "bag", msg_type="trap_msgs/msg/StereoImage",
-                     msg_def=str(tmp_path / "StereoImage.msg")))
+                     msg_def=str(msg_def)))
     assert [level(f.right, 1) for f in got] == [0, 1, 2, 3]
     assert all(f.t_right_ns - f.t_left_ns == 1000 for f in got)
 

@@ -132,13 +132,14 @@ def write_config(path: Path, data: dict[str, Any]) -> Path:
     return path
 
 
-class Pipeline:
-    """A `trapflow start` subprocess in its own session, with its descendants tracked."""
+class TrapflowProcess:
+    """A `trapflow` command as a subprocess in its own session, with its descendants
+    tracked (`prefix`: a command it runs under, such as `ip netns exec NAME`)."""
 
-    def __init__(self, args: list[str], run_dir: Path, env: dict[str, str] | None = None):
-        self.run_dir = run_dir
+    def __init__(self, args: list[str], env: dict[str, str] | None = None,
+                 prefix: list[str] | None = None):
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "trapflow", "start", "--run-dir", str(run_dir), *args],
+            [*(prefix or []), sys.executable, "-m", "trapflow", *args],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
             start_new_session=True, env={**os.environ, **(env or {})}, cwd=REPO,
         )
@@ -153,6 +154,39 @@ class Pipeline:
         for k in kids:
             self.seen.setdefault(k.pid, k)
         return kids
+
+    def wait(self, timeout: float) -> tuple[int, str, str]:
+        out, err = self.proc.communicate(timeout=timeout)
+        return self.proc.returncode, out, err
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> tuple[int, str, str]:
+        self.track()
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+        return self.wait(timeout)
+
+    def leftovers(self, grace: float = 3.0) -> list[int]:
+        """Descendants still running after a short grace (helpers exit right after us)."""
+        _gone, alive = psutil.wait_procs(list(self.seen.values()), timeout=grace)
+        return [p.pid for p in alive if p.status() != psutil.STATUS_ZOMBIE]
+
+    def kill_all(self) -> None:
+        for p in [*self.seen.values()]:
+            try:
+                p.kill()
+            except psutil.NoSuchProcess:
+                pass
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(5)
+
+
+class Pipeline(TrapflowProcess):
+    """A `trapflow start` subprocess in its own session, with its descendants tracked."""
+
+    def __init__(self, args: list[str], run_dir: Path, env: dict[str, str] | None = None):
+        self.run_dir = run_dir
+        super().__init__(["start", "--run-dir", str(run_dir), *args], env)
 
     def results(self) -> list[dict[str, Any]]:
         path = self.run_dir / "results.jsonl"
@@ -182,31 +216,6 @@ class Pipeline:
 
         result: dict[str, Any] = poll_for(ready, timeout, interval=0.2, what="every node active")
         return result
-
-    def wait(self, timeout: float) -> tuple[int, str, str]:
-        out, err = self.proc.communicate(timeout=timeout)
-        return self.proc.returncode, out, err
-
-    def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> tuple[int, str, str]:
-        self.track()
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-        return self.wait(timeout)
-
-    def leftovers(self, grace: float = 3.0) -> list[int]:
-        """Descendants still running after a short grace (helpers exit right after us)."""
-        _gone, alive = psutil.wait_procs(list(self.seen.values()), timeout=grace)
-        return [p.pid for p in alive if p.status() != psutil.STATUS_ZOMBIE]
-
-    def kill_all(self) -> None:
-        for p in [*self.seen.values()]:
-            try:
-                p.kill()
-            except psutil.NoSuchProcess:
-                pass
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(5)
 
 
 @pytest.fixture

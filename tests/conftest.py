@@ -218,6 +218,21 @@ class Pipeline(TrapflowProcess):
         return result
 
 
+def record_until(run_dir: Path, out: Path, done: Callable[[], Any],
+                 timeout: float) -> tuple[int, str]:
+    """`trapflow record` of the pipeline running in run_dir into out, stopped (SIGINT) once
+    done() holds: its exit status and stderr."""
+    recorder = subprocess.Popen(
+        [sys.executable, "-m", "trapflow", "record", "--run-dir", str(run_dir), "-o", str(out)],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        poll_for(done, timeout, what="pairs flowing while recording")
+    finally:
+        recorder.send_signal(signal.SIGINT)
+        _out, err = recorder.communicate(timeout=20)
+    return recorder.returncode, err
+
+
 @pytest.fixture
 def spawn() -> Iterator[Callable[..., Pipeline]]:
     """Start pipelines; at teardown kill what is left and assert nothing leaked."""

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import signal
 import subprocess
 import sys
 from collections.abc import Callable
@@ -24,7 +23,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from tests.builders import floor_scene, kitti_calib, rectified_calibration
-from tests.conftest import REPO, Pipeline, poll_for, write_config
+from tests.conftest import REPO, Pipeline, record_until, write_config
 from trapflow.calibration import save_calibration
 from trapflow.camera import StereoRig
 from trapflow.config import from_data
@@ -252,15 +251,8 @@ def test_a_recording_keeps_the_rig_for_its_replay(
                "--rate", "10"], run_dir)
     p.wait_active(90)
     out = tmp_path / "field.mcap"
-    recorder = subprocess.Popen(
-        [sys.executable, "-m", "trapflow", "record", "--run-dir", str(run_dir), "-o", str(out)],
-        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        poll_for(lambda: len(p.results()) > 20, 40, what="pairs flowing while recording")
-    finally:
-        recorder.send_signal(signal.SIGINT)
-        _rout, rerr = recorder.communicate(timeout=20)
-    assert recorder.returncode == 0, rerr
+    rcode, rerr = record_until(run_dir, out, lambda: len(p.results()) > 20, 40)
+    assert rcode == 0, rerr
     code, _out, err = p.stop()
     assert code == 0, err
     with AnyReader([out]) as reader:

@@ -9,6 +9,7 @@ Usage: python scripts/bench_viewer.py [--seconds 30 --warmup 15 --out bench-resu
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import signal
 import socket
@@ -17,6 +18,7 @@ import sys
 import tempfile
 import time
 import urllib.request
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -48,23 +50,21 @@ def _node(pipeline: subprocess.Popen[bytes], title: str) -> psutil.Process | Non
     return None
 
 
-def baseline(seconds: float, warmup: float) -> float:
-    """The broker's CPU share in the same pipeline without a viewer (no image tap)."""
+@contextlib.contextmanager
+def _pipeline(titles: tuple[str, ...], *args: str) -> Iterator[list[psutil.Process]]:
+    """A default pipeline started with `args` (stopped with SIGINT on leaving), once its
+    nodes named by `titles` are up: those nodes' processes."""
     run = Path(tempfile.mkdtemp(prefix="tf-bench-")) / "run"
     pipeline = subprocess.Popen(
-        [sys.executable, "-m", "trapflow", "start", "--run-dir", str(run)],
+        [sys.executable, "-m", "trapflow", "start", "--run-dir", str(run), *args],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         deadline = time.monotonic() + 120
-        while (broker := _node(pipeline, "trapflow:broker")) is None:
+        while None in (nodes := [_node(pipeline, t) for t in titles]):
             if time.monotonic() > deadline or pipeline.poll() is not None:
-                raise SystemExit("the pipeline did not start its broker within 120 s")
+                raise SystemExit(f"the pipeline did not start {', '.join(titles)} within 120 s")
             time.sleep(0.5)
-        time.sleep(warmup)
-        t0, b0 = time.monotonic(), broker.cpu_times()
-        time.sleep(seconds)
-        b1 = broker.cpu_times()
-        return ((b1.user + b1.system) - (b0.user + b0.system)) / (time.monotonic() - t0)
+        yield [n for n in nodes if n is not None]
     finally:
         pipeline.send_signal(signal.SIGINT)
         try:
@@ -73,21 +73,22 @@ def baseline(seconds: float, warmup: float) -> float:
             pipeline.kill()
 
 
+def baseline(seconds: float, warmup: float) -> float:
+    """The broker's CPU share in the same pipeline without a viewer (no image tap)."""
+    with _pipeline(("trapflow:broker",)) as (broker,):
+        time.sleep(warmup)
+        t0, b0 = time.monotonic(), broker.cpu_times()
+        time.sleep(seconds)
+        b1 = broker.cpu_times()
+        share: float = ((b1.user + b1.system) - (b0.user + b0.system)) / (time.monotonic() - t0)
+        return share
+
+
 def bench(seconds: float, warmup: float) -> dict[str, Any]:
     port = _free_port()
-    run = Path(tempfile.mkdtemp(prefix="tf-bench-")) / "run"
-    pipeline = subprocess.Popen(
-        [sys.executable, "-m", "trapflow", "start", "--run-dir", str(run), "--view", str(port)],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     base = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 120
-        viewer = broker = None
-        while viewer is None or broker is None:
-            if time.monotonic() > deadline or pipeline.poll() is not None:
-                raise SystemExit("the pipeline did not start its viewer within 120 s")
-            time.sleep(0.5)
-            viewer, broker = _node(pipeline, "trapflow:viewer"), _node(pipeline, "trapflow:broker")
+    with _pipeline(("trapflow:viewer", "trapflow:broker"), "--view", str(port)) as nodes:
+        viewer, broker = nodes
         time.sleep(warmup)
         in0 = json.loads(_get(f"{base}/api/state"))["pairs_in"]
         t0, c0, b0 = time.monotonic(), viewer.cpu_times(), broker.cpu_times()
@@ -105,12 +106,6 @@ def bench(seconds: float, warmup: float) -> dict[str, Any]:
         dt = time.monotonic() - t0
         c1, b1 = viewer.cpu_times(), broker.cpu_times()
         final = json.loads(_get(f"{base}/api/state"))
-    finally:
-        pipeline.send_signal(signal.SIGINT)
-        try:
-            pipeline.wait(30)
-        except subprocess.TimeoutExpired:
-            pipeline.kill()
     cpu = (c1.user + c1.system) - (c0.user + c0.system)
     bcpu = (b1.user + b1.system) - (b0.user + b0.system)
     return {"window_s": round(dt, 1), "viewer_cpu_s": round(cpu, 3),

@@ -1,4 +1,5 @@
-"""Builders for test data in one place: pair headers, encoded pairs, results."""
+"""Builders for test data in one place: pair headers, encoded pairs, results, and the
+pairs a source gives."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import numpy as np
 from trapflow import messages
 from trapflow.calibration import StereoCalibration
 from trapflow.camera import StereoRig
+from trapflow.sources.base import Frames, SkipPair, Source
 
 
 def pair_header(seq: int = 0, width: int = 64, height: int = 48,
@@ -91,3 +93,36 @@ def rectified_calibration(rig: StereoRig) -> StereoCalibration:
         R=np.eye(3).tolist(), T=[-rig.baseline_m, 0.0, 0.0], R1=np.eye(3).tolist(),
         R2=np.eye(3).tolist(), P1=rig.projection().tolist(), P2=rig.projection(True).tolist(),
         Q=q, baseline_m=rig.baseline_m)
+
+
+def drain(src: Source, limit: int = 100) -> list[Frames]:
+    """Open `src`, read up to `limit` pairs until it ends, close it."""
+    src.open()
+    try:
+        out = []
+        while len(out) < limit and (f := src.read()) is not None:
+            out.append(f)
+        return out
+    finally:
+        src.close()
+
+
+def drain_skipping(src: Source, reads: int) -> tuple[list[Frames], list[SkipPair]]:
+    """Open `src`, read until it ends, at most `reads` times (a bounded loop: a source that
+    retried a bad pair would never end), close it: the pairs read and the pairs skipped."""
+    src.open()
+    got: list[Frames] = []
+    skipped: list[SkipPair] = []
+    try:
+        for _ in range(reads):
+            try:
+                f = src.read()
+            except SkipPair as exc:
+                skipped.append(exc)
+                continue
+            if f is None:
+                break
+            got.append(f)
+        return got, skipped
+    finally:
+        src.close()

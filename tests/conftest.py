@@ -49,6 +49,51 @@ def modem_cli(*args: str) -> subprocess.Popen[bytes]:
     return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
 
+# The box's sender in the modem tests: fast link, one record per frame, nothing expires.
+MODEM_SEND_ARGS = ["--bit-rate", "19200", "--ack-timeout", "0.4", "--no-aggregate", "--no-ttl"]
+
+
+def modem_link(tmp: Path, procs: list[subprocess.Popen[bytes]], seed: int,
+               bit_rate: str = "19200", loss: str = "0.1") -> None:
+    """The link simulator (latency 0.05 s) between the pseudo-terminals tmp/a (the box's
+    end) and tmp/b (the surface's), added to procs, once both ends exist."""
+    procs.append(modem_cli(
+        "modem-sim", "--bit-rate", bit_rate, "--latency", "0.05", "--loss", loss,
+        "--seed", str(seed), "--link-a", str(tmp / "a"), "--link-b", str(tmp / "b")))
+    poll_for(lambda: (tmp / "a").exists() and (tmp / "b").exists(), 20,
+             what="the simulator's ends")  # fmt: skip
+
+
+def send_until_drained(outbox: Path, port: Path, procs: list[subprocess.Popen[bytes]],
+                       what: str) -> None:
+    """Run the box's sender (`modem-send`, 19200 bit/s, no aggregation, no TTL) until every
+    record of outbox is acknowledged, then cut its power (SIGKILL)."""
+    from trapflow.modem.outbox import OutboxConfig, OutboxQueue
+
+    sender = modem_cli("modem-send", str(outbox), str(port), *MODEM_SEND_ARGS)
+    procs.append(sender)
+    queue = OutboxQueue(outbox, OutboxConfig())
+    try:
+        poll_for(lambda: queue.counts()[2] == 0, 40, what=f"{what} to drain")
+    finally:
+        queue.close()
+    sender.send_signal(signal.SIGKILL)  # the box goes down without a word
+    sender.wait(timeout=10)
+
+
+def stop_surface(surface: subprocess.Popen[bytes]) -> dict[str, Any]:
+    """Stop `trapflow surface` (SIGTERM): the statistics of its last stderr line."""
+    surface.send_signal(signal.SIGTERM)
+    _, err = surface.communicate(timeout=10)
+    stats: dict[str, Any] = json.loads(err.decode().strip().splitlines()[-1])
+    return stats
+
+
+def surface_idents(out: Path) -> list[int]:
+    """The ident (seq) of every record the surface wrote to out, in order."""
+    return [next(iter(json.loads(line).values()))["seq"] for line in out.read_text().splitlines()]
+
+
 @pytest.fixture
 def started_procs() -> Iterator[list[subprocess.Popen[bytes]]]:
     """Processes a test starts: killed if still running at the end, reaped, pipes closed."""
@@ -87,13 +132,14 @@ def write_config(path: Path, data: dict[str, Any]) -> Path:
     return path
 
 
-class Pipeline:
-    """A `trapflow start` subprocess in its own session, with its descendants tracked."""
+class TrapflowProcess:
+    """A `trapflow` command as a subprocess in its own session, with its descendants
+    tracked (`prefix`: a command it runs under, such as `ip netns exec NAME`)."""
 
-    def __init__(self, args: list[str], run_dir: Path, env: dict[str, str] | None = None):
-        self.run_dir = run_dir
+    def __init__(self, args: list[str], env: dict[str, str] | None = None,
+                 prefix: list[str] | None = None):
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "trapflow", "start", "--run-dir", str(run_dir), *args],
+            [*(prefix or []), sys.executable, "-m", "trapflow", *args],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
             start_new_session=True, env={**os.environ, **(env or {})}, cwd=REPO,
         )
@@ -108,6 +154,39 @@ class Pipeline:
         for k in kids:
             self.seen.setdefault(k.pid, k)
         return kids
+
+    def wait(self, timeout: float) -> tuple[int, str, str]:
+        out, err = self.proc.communicate(timeout=timeout)
+        return self.proc.returncode, out, err
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> tuple[int, str, str]:
+        self.track()
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+        return self.wait(timeout)
+
+    def leftovers(self, grace: float = 3.0) -> list[int]:
+        """Descendants still running after a short grace (helpers exit right after us)."""
+        _gone, alive = psutil.wait_procs(list(self.seen.values()), timeout=grace)
+        return [p.pid for p in alive if p.status() != psutil.STATUS_ZOMBIE]
+
+    def kill_all(self) -> None:
+        for p in [*self.seen.values()]:
+            try:
+                p.kill()
+            except psutil.NoSuchProcess:
+                pass
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(5)
+
+
+class Pipeline(TrapflowProcess):
+    """A `trapflow start` subprocess in its own session, with its descendants tracked."""
+
+    def __init__(self, args: list[str], run_dir: Path, env: dict[str, str] | None = None):
+        self.run_dir = run_dir
+        super().__init__(["start", "--run-dir", str(run_dir), *args], env)
 
     def results(self) -> list[dict[str, Any]]:
         path = self.run_dir / "results.jsonl"
@@ -138,30 +217,20 @@ class Pipeline:
         result: dict[str, Any] = poll_for(ready, timeout, interval=0.2, what="every node active")
         return result
 
-    def wait(self, timeout: float) -> tuple[int, str, str]:
-        out, err = self.proc.communicate(timeout=timeout)
-        return self.proc.returncode, out, err
 
-    def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> tuple[int, str, str]:
-        self.track()
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-        return self.wait(timeout)
-
-    def leftovers(self, grace: float = 3.0) -> list[int]:
-        """Descendants still running after a short grace (helpers exit right after us)."""
-        _gone, alive = psutil.wait_procs(list(self.seen.values()), timeout=grace)
-        return [p.pid for p in alive if p.status() != psutil.STATUS_ZOMBIE]
-
-    def kill_all(self) -> None:
-        for p in [*self.seen.values()]:
-            try:
-                p.kill()
-            except psutil.NoSuchProcess:
-                pass
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(5)
+def record_until(run_dir: Path, out: Path, done: Callable[[], Any],
+                 timeout: float) -> tuple[int, str]:
+    """`trapflow record` of the pipeline running in run_dir into out, stopped (SIGINT) once
+    done() holds: its exit status and stderr."""
+    recorder = subprocess.Popen(
+        [sys.executable, "-m", "trapflow", "record", "--run-dir", str(run_dir), "-o", str(out)],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        poll_for(done, timeout, what="pairs flowing while recording")
+    finally:
+        recorder.send_signal(signal.SIGINT)
+        _out, err = recorder.communicate(timeout=20)
+    return recorder.returncode, err
 
 
 @pytest.fixture

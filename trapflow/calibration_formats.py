@@ -243,6 +243,19 @@ def classify(doc: dict[str, Any]) -> str:
     return "unknown"
 
 
+# What a lone file of these kinds holds, and what a stereo calibration needs besides.
+_HALF_A_PAIR = {
+    "kalibr-mono": "a Kalibr camchain with one camera (cam0 only); a stereo pair is needed: "
+                   "a camchain with cam0 and cam1 (T_cn_cnm1)",
+    "opencv-intrinsics": "OpenCV intrinsics (M1 D1 M2 D2) without R and T; give "
+                         "intrinsics.yml,extrinsics.yml or put extrinsics.yml beside it",
+    "opencv-extrinsics": "OpenCV extrinsics (R T) without K1/M1, D1, K2/M2, D2; give "
+                         "intrinsics.yml,extrinsics.yml or put intrinsics.yml beside it",
+    "mono": "a single camera's calibration; a stereo pair is needed "
+            "(missing K1/M1, K2/M2, R, T)",
+}
+
+
 def _partner(path: Path, kind: str) -> Path | None:
     """The other file of a two-file calibration next to `path`, when one is found."""
     name = path.name
@@ -299,18 +312,8 @@ def _from_docs(docs: list[tuple[Path, dict[str, Any]]], where: str,
         if kind == "ost":
             raise fail(p, f"an oST file with {len(d['__ost__'])} camera(s); a stereo pair "
                           "(two camera sections) is needed")
-        if kind == "kalibr-mono":
-            raise fail(p, "a Kalibr camchain with one camera (cam0 only); a stereo pair is "
-                          "needed: a camchain with cam0 and cam1 (T_cn_cnm1)")
-        if kind == "opencv-intrinsics":
-            raise fail(p, "OpenCV intrinsics (M1 D1 M2 D2) without R and T; give "
-                          "intrinsics.yml,extrinsics.yml or put extrinsics.yml beside it")
-        if kind == "opencv-extrinsics":
-            raise fail(p, "OpenCV extrinsics (R T) without K1/M1, D1, K2/M2, D2; give "
-                          "intrinsics.yml,extrinsics.yml or put intrinsics.yml beside it")
-        if kind == "mono":
-            raise fail(p, "a single camera's calibration; a stereo pair is needed "
-                          "(missing K1/M1, K2/M2, R, T)")
+        if kind in _HALF_A_PAIR:
+            raise fail(p, _HALF_A_PAIR[kind])
         raise fail(p, f"format not recognised (fields: {', '.join(sorted(map(str, d))[:12])})")
     found = ", ".join(f"{p.name} ({kinds[p]})" for p, _ in docs)
     raise fail(where, f"expected one stereo file or one pair of files, found {found}")

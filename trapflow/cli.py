@@ -79,21 +79,12 @@ def start(config_path: str | None, workers: dict[str, int] | None, duration: flo
 
     try:
         cfg = configmod.load(config_path)
-        src: dict[str, Any] = {}
-        if rate is not None:
-            src["rate_hz"] = rate
+        src = _given(rate_hz=rate, encoding=encoding, seed=seed, moving=moving,
+                     loop=loop or None)
         if size is not None:
             src["width"], src["height"] = size
-        if encoding is not None:
-            src["encoding"] = encoding
-        if seed is not None:
-            src["seed"] = seed
-        if moving is not None:
-            src["moving"] = moving
         if source_spec is not None:
             src["kind"], src["uri"] = source_spec
-        if loop:
-            src["loop"] = True
         cfg = configmod.with_source(cfg, **src)
         if workers is not None:
             cfg = configmod.with_workers(cfg, workers, registry.known_names())
@@ -111,16 +102,17 @@ def start(config_path: str | None, workers: dict[str, int] | None, duration: flo
                             result.code)
 
 
+def _given(**values: Any) -> dict[str, Any]:
+    """The options that were given on the command line (those not None)."""
+    return {k: v for k, v in values.items() if v is not None}
+
+
 def _with_viewer(cfg: configmod.Config, view: tuple[str, int] | None, metrics_file: str | None,
                  enabled: bool | None = None) -> configmod.Config:
     """The config with the viewer flags applied."""
-    changes: dict[str, Any] = {}
-    if enabled is not None:
-        changes["enabled"] = enabled
+    changes = _given(enabled=enabled, metrics_file=metrics_file)
     if view is not None:
         changes["host"], changes["port"] = view
-    if metrics_file is not None:
-        changes["metrics_file"] = metrics_file
     return configmod.with_section(cfg, "viewer", **changes)
 
 

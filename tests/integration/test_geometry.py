@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import signal
 import subprocess
 import sys
 from collections.abc import Callable
@@ -24,7 +23,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from tests.builders import floor_scene, kitti_calib, rectified_calibration
-from tests.conftest import REPO, Pipeline, poll_for, write_config
+from tests.conftest import REPO, Pipeline, record_until, write_config
 from trapflow.calibration import save_calibration
 from trapflow.camera import StereoRig
 from trapflow.config import from_data
@@ -252,15 +251,8 @@ def test_a_recording_keeps_the_rig_for_its_replay(
                "--rate", "10"], run_dir)
     p.wait_active(90)
     out = tmp_path / "field.mcap"
-    recorder = subprocess.Popen(
-        [sys.executable, "-m", "trapflow", "record", "--run-dir", str(run_dir), "-o", str(out)],
-        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        poll_for(lambda: len(p.results()) > 20, 40, what="pairs flowing while recording")
-    finally:
-        recorder.send_signal(signal.SIGINT)
-        _rout, rerr = recorder.communicate(timeout=20)
-    assert recorder.returncode == 0, rerr
+    rcode, rerr = record_until(run_dir, out, lambda: len(p.results()) > 20, 40)
+    assert rcode == 0, rerr
     code, _out, err = p.stop()
     assert code == 0, err
     with AnyReader([out]) as reader:
@@ -319,24 +311,12 @@ def test_a_plugins_own_calibration_wins_and_its_id_is_reported(
 
 def test_a_custom_stereo_message_tells_its_frame_size(tmp_path: Path) -> None:
     """A bag of one user-defined stereo message: the rig takes the size of its first images."""
-    from rosbags.typesys import get_types_from_msg
+    from tests.integration.test_sources_replay import H, W, write_stereo_msg_bag
 
-    from tests.integration.test_sources_replay import PERIOD, T0, H, W, img, raw_image
-
-    msgdef = "sensor_msgs/Image left\nsensor_msgs/Image right\n"
-    (tmp_path / "StereoImage.msg").write_text(msgdef)
-    store = get_typestore(Stores.ROS2_HUMBLE)
-    store.register(get_types_from_msg(msgdef, "trap_msgs/msg/StereoImage"))
-    stereo = store.types["trap_msgs/msg/StereoImage"]
-    with Writer(tmp_path / "bag", version=8) as w:
-        c = w.add_connection("/stereo", "trap_msgs/msg/StereoImage", typestore=store)
-        for i in range(2):
-            m = stereo(left=raw_image(T0 + i * PERIOD, img(i, 0)),
-                       right=raw_image(T0 + i * PERIOD, img(i, 1)))
-            w.write(c, T0 + i * PERIOD, store.serialize_cdr(m, "trap_msgs/msg/StereoImage"))
+    msg_def = write_stereo_msg_bag(tmp_path, 2)
     found = describe(from_data({"source": {"kind": "replay", "uri": str(tmp_path / "bag"),
                                            "options": {
                                                "msg_type": "trap_msgs/msg/StereoImage",
-                                               "msg_def": str(tmp_path / "StereoImage.msg")}}}))
+                                               "msg_def": str(msg_def)}}}))
     assert found.rig == StereoRig.from_fov(W, H, 70.0, 0.12)
     assert "trap_msgs/msg/StereoImage" in found.origin

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import modem_cli, poll_for
+from tests.conftest import modem_cli, modem_link, poll_for
 from trapflow.modem.config import ModemConfig
 from trapflow.modem.outbox import Outbox, OutboxConfig
 from trapflow.modem.sender import ModemSender
@@ -38,11 +38,7 @@ def test_surface_killed_and_restarted_writes_each_record_once(
 ) -> None:
     print(f"surface-restart seed {SEED}")
     rng = random.Random(SEED)
-    started_procs.append(modem_cli(
-        "modem-sim", "--bit-rate", "2400", "--latency", "0.05", "--loss", "0.15",
-        "--seed", str(SEED), "--link-a", str(tmp_path / "a"), "--link-b", str(tmp_path / "b")))
-    poll_for(lambda: (tmp_path / "a").exists() and (tmp_path / "b").exists(), 20,
-             what="the simulator's ends")  # fmt: skip
+    modem_link(tmp_path, started_procs, SEED, bit_rate="2400", loss="0.15")
     out = tmp_path / "surface.jsonl"
     box = Outbox(tmp_path / "outbox.sqlite", OutboxConfig())
     for i in range(RECORDS):

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from tests.conftest import REPO, Pipeline, only_pools, poll_for, write_config
+from tests.conftest import REPO, Pipeline, only_pools, poll_for, record_until, write_config
 
 
 @pytest.mark.timeout(150)
@@ -23,15 +23,8 @@ def test_record_then_replay_lossless(spawn, run_dir: Path) -> None:
     p: Pipeline = spawn(["--workers", "vo=1", "--size", "320x240", "--rate", "10"], run_dir)
     p.wait_active()
     rec = work / "field.mcap"
-    recorder = subprocess.Popen(
-        [sys.executable, "-m", "trapflow", "record", "--run-dir", str(run_dir), "-o", str(rec)],
-        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        poll_for(lambda: len(p.results()) > 40, 30, what="pairs flowing while recording")
-    finally:
-        recorder.send_signal(signal.SIGINT)
-        out, err = recorder.communicate(timeout=20)
-    assert recorder.returncode == 0, err
+    code, err = record_until(run_dir, rec, lambda: len(p.results()) > 40, 30)
+    assert code == 0, err
     p.stop(signal.SIGINT)
     with AnyReader([rec]) as reader:  # readable by ROS 2 tooling's library
         topics = {c.topic: c.msgtype for c in reader.connections}

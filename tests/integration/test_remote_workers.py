@@ -19,7 +19,7 @@ from typing import Any
 import psutil
 import pytest
 
-from tests.conftest import REPO, Pipeline, only_pools, poll_for, write_config
+from tests.conftest import Pipeline, TrapflowProcess, only_pools, poll_for, write_config
 from trapflow.keys import generate
 
 SMALL = {"width": 320, "height": 240, "seed": 3}
@@ -59,35 +59,14 @@ def remote_config(path: Path, bind: str, keys: dict[str, Path], pools: dict[str,
     })
 
 
-class RemoteWorker:
+class RemoteWorker(TrapflowProcess):
     """A `trapflow worker` process (a small supervisor and its worker processes)."""
 
     def __init__(self, args: list[str], prefix: list[str] | None = None) -> None:
-        self.proc = subprocess.Popen(
-            [*(prefix or []), sys.executable, "-m", "trapflow", "worker", *args],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-            start_new_session=True, cwd=REPO)
-        self.seen: dict[int, psutil.Process] = {}
+        super().__init__(["worker", *args], prefix=prefix)
 
-    def children(self) -> list[psutil.Process]:
-        try:
-            kids = psutil.Process(self.proc.pid).children(recursive=True)
-        except psutil.NoSuchProcess:
-            return []
-        for k in kids:
-            self.seen.setdefault(k.pid, k)
-        return kids
-
-    def wait(self, timeout: float) -> tuple[int, str, str]:
-        out, err = self.proc.communicate(timeout=timeout)
-        return self.proc.returncode, out, err
-
-    def stop(self, timeout: float = 15.0) -> tuple[int, str, str]:
-        self.children()
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-        out, err = self.proc.communicate(timeout=timeout)
-        return self.proc.returncode, out, err
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 15.0) -> tuple[int, str, str]:
+        return super().stop(sig, timeout)
 
 
 @pytest.fixture
@@ -107,12 +86,9 @@ def remote() -> Iterator[Callable[..., RemoteWorker]]:
             try:
                 w.stop()
             except subprocess.TimeoutExpired:
-                w.proc.kill()
-                w.proc.communicate(timeout=5)
-        _gone, alive = psutil.wait_procs(list(w.seen.values()), timeout=3)
-        left += [p.pid for p in alive if p.status() != psutil.STATUS_ZOMBIE]
-        for p in alive:
-            p.kill()
+                pass  # kill_all kills it
+        left += w.leftovers()
+        w.kill_all()
     assert not left, f"remote worker processes left behind: {left}"
 
 
@@ -266,7 +242,7 @@ def test_kill_9_of_a_remote_worker_loses_only_its_pairs_and_the_pool_goes_on(
                               and r.get("processed", 0) >= 1], 40, interval=0.3,
                      what="the remote worker processing")[0]
     victim = int(first["worker"].rsplit(":", 1)[1])
-    assert victim in [k.pid for k in w.children()]
+    assert victim in [k.pid for k in w.track()]
     poll_for(lambda: (s := p.status()) and s["stats"]["pools"]["far"]["in_flight"] == 2, 10,
              interval=0.05, what="both workers (local, remote) holding a pair")
     os.kill(victim, signal.SIGKILL)
@@ -338,7 +314,7 @@ def test_a_silent_host_loses_its_workers_pairs_and_they_rejoin_when_it_wakes(
                      40, interval=0.3, what="the remote worker processing")[0]
     poll_for(lambda: (s := p.status()) and s["stats"]["pools"]["far"]["in_flight"] == 1, 10,
              interval=0.05, what="the remote worker holding a pair")
-    tree = [psutil.Process(w.proc.pid), *w.children()]
+    tree = [psutil.Process(w.proc.pid), *w.track()]
     for proc in tree:
         proc.suspend()
     try:
@@ -418,7 +394,7 @@ def test_a_worker_in_another_network_namespace_joins_over_a_real_link(
     row = poll_for(lambda: [r for r in remote_rows(p, "far") if r.get("processed", 0) >= 5],
                    40, interval=0.5, what="the namespaced worker processing")[0]
     assert row["host"] == "namespace" and row["state"] == "active"
-    inside = subprocess.run(["ip", "netns", "identify", str(w.children()[0].pid)],
+    inside = subprocess.run(["ip", "netns", "identify", str(w.track()[0].pid)],
                             capture_output=True, text=True, check=False)
     assert inside.stdout.strip() == netns
     code, _, err = w.stop()

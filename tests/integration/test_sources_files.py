@@ -10,10 +10,11 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.builders import drain, drain_skipping
 from trapflow.camera import StereoRig
 from trapflow.config import SourceConfig
 from trapflow.sources import SourceError, open_source
-from trapflow.sources.base import Frames, SkipPair, Source
+from trapflow.sources.base import SkipPair, Source
 
 RIG = StereoRig.from_fov(64, 48, 70.0, 0.12)
 W, H = 64, 48
@@ -36,17 +37,6 @@ def write_video(path: Path, frames: list[np.ndarray], fps: float = 10.0) -> None
     for f in frames:
         out.write(f)
     out.release()
-
-
-def drain(src: Source, limit: int = 100) -> list[Frames]:
-    src.open()
-    try:
-        out = []
-        while len(out) < limit and (f := src.read()) is not None:
-            out.append(f)
-        return out
-    finally:
-        src.close()
 
 
 def make(kind: str, uri: str, loop: bool = False) -> Source:
@@ -184,20 +174,8 @@ def test_each_bad_pair_is_skipped_once_with_its_reason(
     write_pngs(tmp_path / "left", 0, 5)
     write_pngs(tmp_path / "right", 1, 5)
     _bad_left(damage)(tmp_path)
-    src = make("images", str(tmp_path))
-    src.open()
-    got, skipped = [], []
-    for _ in range(10):  # a bounded loop: a source that retried would never reach None
-        try:
-            f = src.read()
-        except SkipPair as exc:
-            skipped.append(exc)
-            continue
-        if f is None:
-            break
-        got.append(index_of(f.left, 0))
-    src.close()
-    assert got == [0, 1, 3, 4]
+    got, skipped = drain_skipping(make("images", str(tmp_path)), 10)
+    assert [index_of(f.left, 0) for f in got] == [0, 1, 3, 4]
     assert len(skipped) == 1 and skipped[0].kind == kind
     assert re.search(error, str(skipped[0])), str(skipped[0])
 

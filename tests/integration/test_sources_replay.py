@@ -11,12 +11,13 @@ import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from tests.builders import drain, drain_skipping
 from trapflow.camera import StereoRig
 from trapflow.config import SourceConfig
 from trapflow.messages import StereoPair
 from trapflow.recorder import Recorder
 from trapflow.sources import SkipPair, SourceError, open_source
-from trapflow.sources.base import Frames, Source
+from trapflow.sources.base import Source
 from trapflow.sources.replay import ReplaySource
 
 W, H = 64, 48
@@ -38,17 +39,6 @@ def make(path: Path, **options: Any) -> Source:
     loop = options.pop("loop", False)
     return open_source(SourceConfig(kind="replay", uri=str(path), loop=loop,
                                     options={"rate": 0, **options}), RIG)
-
-
-def drain(src: Source, limit: int = 100) -> list[Frames]:
-    src.open()
-    try:
-        out = []
-        while len(out) < limit and (f := src.read()) is not None:
-            out.append(f)
-        return out
-    finally:
-        src.close()
 
 
 def write_trapflow(path: Path, n: int) -> None:
@@ -129,20 +119,29 @@ def test_replay_loops(tmp_path: Path) -> None:
     assert [level(f.left, 0) for f in got] == [0, 1, 2, 0, 1, 2, 0]
 
 
-def test_custom_stereo_message_with_user_definition(tmp_path: Path) -> None:
+def write_stereo_msg_bag(folder: Path, n: int, right_after_ns: int = 0) -> Path:
+    """A bag (folder/bag) of n pairs, each one user-defined message on /stereo:
+    trap_msgs/msg/StereoImage (two sensor_msgs/Image), defined in folder/StereoImage.msg
+    (returned); each right image is stamped right_after_ns after its left."""
     msgdef = "sensor_msgs/Image left\nsensor_msgs/Image right\n"
-    (tmp_path / "StereoImage.msg").write_text(msgdef)
+    (folder / "StereoImage.msg").write_text(msgdef)
     store = get_typestore(Stores.ROS2_HUMBLE)
     store.register(get_types_from_msg(msgdef, "trap_msgs/msg/StereoImage"))
     Stereo = store.types["trap_msgs/msg/StereoImage"]
-    with Writer(tmp_path / "bag", version=8) as w:
+    with Writer(folder / "bag", version=8) as w:
         c = w.add_connection("/stereo", "trap_msgs/msg/StereoImage", typestore=store)
-        for i in range(4):
+        for i in range(n):
             t = T0 + i * PERIOD
-            m = Stereo(left=raw_image(t, img(i, 0)), right=raw_image(t + 1000, img(i, 1)))
+            m = Stereo(left=raw_image(t, img(i, 0)),
+                       right=raw_image(t + right_after_ns, img(i, 1)))
             w.write(c, t, store.serialize_cdr(m, "trap_msgs/msg/StereoImage"))
+    return folder / "StereoImage.msg"
+
+
+def test_custom_stereo_message_with_user_definition(tmp_path: Path) -> None:
+    msg_def = write_stereo_msg_bag(tmp_path, 4, right_after_ns=1000)
     got = drain(make(tmp_path / "bag", msg_type="trap_msgs/msg/StereoImage",
-                     msg_def=str(tmp_path / "StereoImage.msg")))
+                     msg_def=str(msg_def)))
     assert [level(f.right, 1) for f in got] == [0, 1, 2, 3]
     assert all(f.t_right_ns - f.t_left_ns == 1000 for f in got)
 
@@ -214,19 +213,8 @@ def test_bag_messages_that_do_not_decode_are_skipped_and_the_bag_goes_on(tmp_pat
     """Regression (issue 12, item 2): a bag message that did not decode was retried forever."""
     faults = write_faulty_bag(tmp_path / "bag", 8)
     src = make(tmp_path / "bag")
-    src.open()
-    got, skipped = [], []
-    for _ in range(20):
-        try:
-            f = src.read()
-        except SkipPair as exc:
-            skipped.append(exc)
-            continue
-        if f is None:
-            break
-        got.append(level(f.left, 0))
-    src.close()
-    assert got == [i for i in range(8) if i not in faults]
+    got, skipped = drain_skipping(src, 20)
+    assert [level(f.left, 0) for f in got] == [i for i in range(8) if i not in faults]
     assert [e.kind for e in skipped] == list(faults.values())
     # Each names the message: index i*2 is pair i's left, i*2+1 its right (time order).
     assert "message 2 on /left/image/compressed" in str(skipped[0])

@@ -9,7 +9,6 @@ acknowledged; the surface holds every record of every outbox exactly once.
 
 from __future__ import annotations
 
-import json
 import os
 import random
 import signal
@@ -20,7 +19,15 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import modem_cli, poll_for
+from tests.conftest import (
+    MODEM_SEND_ARGS,
+    modem_cli,
+    modem_link,
+    poll_for,
+    send_until_drained,
+    stop_surface,
+    surface_idents,
+)
 from tests.integration.modem_writer import record
 from trapflow.modem.outbox import OutboxConfig, OutboxQueue
 
@@ -29,7 +36,6 @@ WRITER = Path(__file__).parent.parent / "integration" / "modem_writer.py"
 # The outbox each power-up runs on: Y and Z are fresh when first used (the surface has
 # heard X by then), X and Y come back after another outbox ran.
 SCHEDULE = ["X", "X", "Y", "X", "Z", "Y", "X", "Z"]
-SEND_ARGS = ["--bit-rate", "19200", "--ack-timeout", "0.4", "--no-aggregate", "--no-ttl"]
 
 
 def start_box(outbox_dir: Path, port: Path, run: int) -> subprocess.Popen[bytes]:
@@ -40,7 +46,7 @@ def start_box(outbox_dir: Path, port: Path, run: int) -> subprocess.Popen[bytes]
         f"w = subprocess.Popen([sys.executable, {str(WRITER)!r}, {str(outbox)!r}, "
         f"{str(outbox_dir / 'acks.log')!r}, '{run}'])\n"
         "s = subprocess.Popen([sys.executable, '-m', 'trapflow.modem.cli', 'modem-send', "
-        f"{str(outbox)!r}, {str(port)!r}, *{SEND_ARGS!r}], stderr=subprocess.DEVNULL)\n"
+        f"{str(outbox)!r}, {str(port)!r}, *{MODEM_SEND_ARGS!r}], stderr=subprocess.DEVNULL)\n"
         "w.wait(); s.wait()\n"
     )
     return subprocess.Popen([sys.executable, "-c", script], start_new_session=True)
@@ -68,11 +74,7 @@ def test_power_cuts_with_fresh_outboxes_lose_nothing(
     for retransmissions of the previous outbox, acknowledged and dropped by the surface."""
     print(f"power-cut sessions seed {SEED}")
     rng = random.Random(SEED)
-    started_procs.append(modem_cli(
-        "modem-sim", "--bit-rate", "19200", "--latency", "0.05", "--loss", "0.1",
-        "--seed", str(SEED), "--link-a", str(tmp_path / "a"), "--link-b", str(tmp_path / "b")))
-    poll_for(lambda: (tmp_path / "a").exists() and (tmp_path / "b").exists(), 20,
-             what="the simulator's ends")  # fmt: skip
+    modem_link(tmp_path, started_procs, SEED)
     out = tmp_path / "surface.jsonl"
     surface = modem_cli("surface", str(tmp_path / "b"), "-o", str(out))
     started_procs.append(surface)
@@ -90,22 +92,11 @@ def test_power_cuts_with_fresh_outboxes_lose_nothing(
 
     # Power back for good: each outbox in turn is drained by its sender alone.
     for name, outbox_dir in dirs.items():
-        sender = modem_cli("modem-send", str(outbox_dir / "outbox.sqlite"), str(tmp_path / "a"),
-                           *SEND_ARGS)  # fmt: skip
-        started_procs.append(sender)
-        queue = OutboxQueue(outbox_dir / "outbox.sqlite", OutboxConfig())
-        try:
-            poll_for(lambda: queue.counts()[2] == 0, 40, what=f"outbox {name} to drain")  # noqa: B023
-        finally:
-            queue.close()
-        sender.send_signal(signal.SIGKILL)
-        sender.wait(timeout=10)
+        send_until_drained(outbox_dir / "outbox.sqlite", tmp_path / "a", started_procs,
+                           f"outbox {name}")
 
-    surface.send_signal(signal.SIGTERM)
-    _, err = surface.communicate(timeout=10)
-    stats = json.loads(err.decode().strip().splitlines()[-1])
-    at_surface = [next(iter(json.loads(line).values()))["seq"]
-                  for line in out.read_text().splitlines()]  # fmt: skip
+    stats = stop_surface(surface)
+    at_surface = surface_idents(out)
     print(f"surface: {stats}")
 
     expected: list[int] = []

@@ -310,6 +310,17 @@ class StopRequest(Msg, frozen=True, tag="stop"):
 ControlRequest = Union[StatusRequest, StopRequest]
 
 
+class LogEntry(Msg, frozen=True, tag="log"):
+    """One log record a node sends to the supervisor's log listener (never pickled)."""
+
+    name: str  # the logger's name
+    levelno: int
+    process: str  # the node's name, e.g. "worker:mono:1"
+    pid: int
+    created: float  # wall clock, a label only
+    message: str  # the formatted message, with any traceback appended
+
+
 # --- codecs ---------------------------------------------------------------------
 
 
@@ -454,6 +465,17 @@ def decode_control(data: Buffer) -> StatusRequest | StopRequest:
         _control_dec, data, "control request", MAX_HEADER_BYTES
     )
     return req
+
+
+_log_dec = msgspec.msgpack.Decoder(LogEntry)
+# A log record with a traceback can be long; past this a node cuts the message.
+MAX_LOG_BYTES = 64 << 10
+
+
+def decode_log(data: Buffer) -> LogEntry:
+    """Decode a LogEntry a node sent to the supervisor's log listener."""
+    entry: LogEntry = _decode(_log_dec, data, "log record", MAX_LOG_BYTES)
+    return entry
 
 
 def worker_identity(pool: str, index: int, pid: int) -> str:

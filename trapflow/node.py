@@ -11,7 +11,6 @@ import faulthandler
 import gc
 import importlib
 import logging
-import logging.handlers
 import os
 import signal
 import sys
@@ -25,6 +24,7 @@ import zmq
 from trapflow import messages
 from trapflow.camera import StereoRig
 from trapflow.config import Config
+from trapflow.logchannel import LogSender
 from trapflow.supervisor_state import Lifecycle
 from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
 
@@ -188,7 +188,7 @@ def freeze_heap() -> None:
     gc.freeze()
 
 
-def node_main(spec: NodeSpec, log_queue: Any, parent_pid: int) -> None:
+def node_main(spec: NodeSpec, parent_pid: int) -> None:
     """Entry point of every spawned node process."""
     _die_with_parent()
     if os.getppid() != parent_pid:  # the supervisor died before prctl took effect
@@ -196,7 +196,8 @@ def node_main(spec: NodeSpec, log_queue: Any, parent_pid: int) -> None:
     _set_title(f"trapflow:{spec.name}")
     faulthandler.enable()
     root = logging.getLogger()
-    root.handlers[:] = [logging.handlers.QueueHandler(log_queue)]
+    root.handlers[:] = [LogSender(Endpoints.for_run(spec.cfg.network, spec.run_dir).log,
+                                  spec.name)]
     root.setLevel(spec.cfg.log_level)
     # Ctrl-C reaches the whole process group; only the supervisor acts on it, in order.
     signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -71,10 +71,11 @@ def check_ports_free(net: NetworkConfig) -> None:
             try:
                 s.bind((net.host, port))
             except OSError as exc:
+                why = (exc.strerror or str(exc)).lower()
                 raise StartupError(
-                    f"cannot use tcp://{net.host}:{port} ({name}): {exc.strerror}; another "
-                    f"pipeline or program holds it: stop it, or set network.base_port to a "
-                    f"free range") from None
+                    f"cannot start: cannot bind tcp://{net.host}:{port} ({name}): {why}; "
+                    f"another pipeline or program holds it: stop it, or set "
+                    f"network.base_port to a free range") from None
 
 
 def _ipc_url(run_dir: Path, fname: str) -> str:

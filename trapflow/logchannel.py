@@ -8,7 +8,9 @@ no named semaphore in /dev/shm, so a kill -9 of the whole process group leaves n
 
 from __future__ import annotations
 
+import io
 import logging
+import logging.handlers
 import os
 import threading
 
@@ -17,7 +19,7 @@ import zmq
 from trapflow import messages
 from trapflow.errors import ProtocolError
 from trapflow.ratelog import RateLimitedLog, wire
-from trapflow.transport import SocketSpec, new_context, open_socket
+from trapflow.transport import SocketSpec, new_context, open_socket, set_file_mode
 
 log = logging.getLogger(__name__)
 
@@ -25,6 +27,15 @@ log = logging.getLogger(__name__)
 # than blocking the node's loop (a flood of warnings must not stall the pipeline).
 SEND_HWM = 10_000
 _POLL_MS = 100  # how often the listener thread checks whether it should stop
+
+
+class PrivateRotatingFile(logging.handlers.RotatingFileHandler):
+    """The run's log file, 0640 whatever the umask: each new file after a rotation too."""
+
+    def _open(self) -> io.TextIOWrapper:
+        stream = super()._open()
+        set_file_mode(self.baseFilename)
+        return stream
 
 
 class LogSender(logging.Handler):

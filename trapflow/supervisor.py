@@ -31,7 +31,7 @@ from trapflow.camera import StereoRig
 from trapflow.config import Config
 from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError, TrapflowError
 from trapflow.frame_ring import FrameRing, cleanup_stale, ring_slots, slot_capacity
-from trapflow.logchannel import LogListener
+from trapflow.logchannel import LogListener, PrivateRotatingFile
 from trapflow.node import NodeSpec, node_main
 from trapflow.ratelog import RateLimitedLog, wire
 from trapflow.run_ledger import RunLedger
@@ -54,7 +54,6 @@ from trapflow.transport import (
     make_private,
     new_context,
     open_socket,
-    set_file_mode,
 )
 
 log = logging.getLogger(__name__)
@@ -599,9 +598,8 @@ class Supervisor:
         self.ratelog = RateLimitedLog(log)  # warnings about messages from sockets
         lcfg = self.cfg.log_file
         logfile = self.run_dir / "trapflow.log"
-        fileh = logging.handlers.RotatingFileHandler(
-            logfile, maxBytes=lcfg.max_bytes, backupCount=lcfg.backups)
-        set_file_mode(logfile)  # rotation renames it, so the mode follows to the backups
+        fileh = PrivateRotatingFile(logfile, maxBytes=lcfg.max_bytes,
+                                    backupCount=lcfg.backups)
         fileh.setFormatter(fmt)
         errh = logging.StreamHandler(sys.stderr)
         errh.setLevel(logging.WARNING)

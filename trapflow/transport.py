@@ -94,7 +94,7 @@ def make_private(run_dir: Path) -> None:
     os.chmod(run_dir, RUN_DIR_MODE)
 
 
-def set_file_mode(path: Path) -> None:
+def set_file_mode(path: Path | str) -> None:
     """Results and logs: the owner writes, the group reads, nobody else (whatever the umask)."""
     with contextlib.suppress(FileNotFoundError):
         os.chmod(path, FILE_MODE)

@@ -1,7 +1,8 @@
 """The process base class: title, signals, faulthandler, logging, heartbeats, lifecycle.
 
 Every pipeline process is a Node started by the supervisor with the spawn method;
-subclasses write only run(). Owns one socket: a PUSH of heartbeats to the supervisor.
+subclasses write only run(). Owns one socket: a PUSH of heartbeats to the supervisor (and
+through its log handler, trapflow.logchannel, a PUSH of log records).
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """The supervisor (`trapflow start`): boots the process graph, watches it, restarts, stops.
 
-Owns a PULL of heartbeats from every node, a REP control socket (status, stop)
-and a SUB of the broker's stats for the status line. The whole graph is in boot().
+Owns a PULL of heartbeats from every node, a REP control socket (status, stop), the PULL
+of every node's log records (trapflow.logchannel, in its own thread) and a SUB of the
+broker's stats for the status line. The whole graph is in boot().
 The decisions are trapflow.supervisor_state's and the counting trapflow.run_ledger's: this
 shell turns processes, sockets and time into their events, and their actions into effects.
 """

@@ -13,6 +13,7 @@ import errno
 import os
 import select
 import socket
+import stat
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -91,6 +92,13 @@ def _ipc_url(run_dir: Path, fname: str) -> str:
 def make_private(run_dir: Path) -> None:
     """Make run_dir (created if missing) its owner's alone, whatever the umask."""
     run_dir.mkdir(parents=True, exist_ok=True)
+    st = run_dir.stat()
+    if st.st_mode & stat.S_ISVTX or st.st_uid != os.geteuid():
+        # /tmp and the like: closing them to everybody else would break other programs.
+        raise StartupError(
+            f"run directory {run_dir}: expected a directory of this user's own, got a shared "
+            f"one (owner uid {st.st_uid}{', sticky bit' if st.st_mode & stat.S_ISVTX else ''})"
+            f"; give --run-dir a new folder, e.g. {run_dir / 'run'}")
     os.chmod(run_dir, RUN_DIR_MODE)
 
 

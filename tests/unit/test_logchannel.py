@@ -150,3 +150,17 @@ def test_scaled_default_and_value(monkeypatch: pytest.MonkeyPatch) -> None:
     assert scaled("TRAPFLOW_CHAOS_TEST", 25.0) == 25.0
     monkeypatch.setenv("TRAPFLOW_CHAOS_TEST", "270")
     assert scaled("TRAPFLOW_CHAOS_TEST", 25.0) == 270.0
+
+
+def test_a_shared_directory_is_refused_as_run_directory(tmp_path: Path) -> None:
+    """make_private would otherwise close /tmp (or any sticky shared folder) to everybody."""
+    from trapflow.transport import make_private
+
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    os.chmod(shared, 0o1777)
+    with pytest.raises(StartupError, match="expected a directory of this user's own"):
+        make_private(shared)
+    assert stat.S_IMODE(shared.stat().st_mode) == 0o1777
+    make_private(shared / "run")
+    assert stat.S_IMODE((shared / "run").stat().st_mode) == 0o700

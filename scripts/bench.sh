@@ -1,20 +1,69 @@
 #!/usr/bin/env bash
 # Benchmarks of trapflow on this machine; numbers go to bench-results/ (JSON per part and
 # bench.md with everything). Speed is measured here, never asserted in tests.
-# Usage: scripts/bench.sh [OUT_DIR]   (set PYTHON to choose the interpreter)
+# Usage: scripts/bench.sh [--quick] [OUT_DIR]   (set PYTHON to choose the interpreter)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+usage() {
+  cat <<'TXT'
+Usage: scripts/bench.sh [--quick] [--help] [OUT_DIR]   (default OUT_DIR: bench-results)
+
+Parts, in order, with their run time on a 2-core machine (full / --quick):
+  transport   broker path vs raw pyzmq, JPEG and raw pairs        ~3 min  / skipped
+  remote      remote pools over tcp, with CURVE, vs raw pyzmq     ~1 min  / skipped
+  shm, synth  shared-memory ring; synthetic world rendering       ~1 min  / skipped
+  cpu         CPU per captured pair by process role at 10 and 15
+              pairs/s: default, --encoding raw, --encoding jpeg;
+              the part inside process() and the rest              ~5 min  / ~2.5 min
+              (6 pipeline runs; about twice as long on a loaded machine)
+  floor       VO pairs/s against capture with recognisers burning
+              2 s (stereo) and 100 ms (two mono workers) per pair ~1 min  / ~0.5 min
+  decode      JPEG encode/decode of one image, OpenCV vs simplejpeg,
+              colour, grey, 1/2 scale, 1280x720 and 1920x1080    ~1 min  / ~0.5 min
+  algorithms  decode and process time per algorithm               ~2 min  / skipped
+  process     Dask LocalCluster vs one plain loop                 ~2 min  / skipped
+  viewer      live viewer against the default pipeline            ~1 min  / skipped
+  modem       modem link                                          ~1 min  / skipped
+
+Numbers go to OUT_DIR: one JSON (and Markdown) per part, and OUT_DIR/bench.md with all
+of them; the CPU table is what docs/benchmarks.md quotes. Nothing is asserted.
+--quick runs the cpu, floor and decode parts only, with short windows.
+TXT
+}
+QUICK=0
+case "${1:-}" in
+  -h|--help) usage; exit 0 ;;
+  --quick) QUICK=1; shift ;;
+  -*) echo "scripts/bench.sh: unknown option $1 (expected --quick, --help or OUT_DIR)" >&2
+      usage >&2; exit 2 ;;
+esac
 OUT=${1:-bench-results}
 PY=${PYTHON:-python}
 mkdir -p "$OUT"
+if [ "$QUICK" = 1 ]; then
+  echo "[bench] cpu per pair by role and the VO floor (quick)" >&2
+  "$PY" scripts/bench_cpu.py --quick --out "$OUT" > /dev/null
+  echo "[bench] JPEG decode (quick)" >&2
+  "$PY" scripts/bench_decode.py --repeats 10 --out "$OUT" > /dev/null
+  { echo "# trapflow benchmark (quick), $(date -u '+%Y-%m-%d %H:%M UTC'), $(nproc) cores"
+    echo; cat "$OUT/cpu.md"; echo; cat "$OUT/decode.md"; } > "$OUT/bench.md"
+  echo "[bench] wrote $OUT/bench.md" >&2
+  exit 0
+fi
 echo "[bench] transport (broker path vs raw pyzmq)" >&2
 "$PY" scripts/bench_transport.py --out "$OUT" > /dev/null
+echo "[bench] remote pools (tcp with CURVE vs raw pyzmq over tcp)" >&2
+"$PY" scripts/bench_remote.py --out "$OUT" > /dev/null
 for part in bench_shm bench_synth; do
   if [ -f "scripts/$part.py" ]; then
     echo "[bench] $part" >&2
     "$PY" "scripts/$part.py" --out "$OUT" > /dev/null
   fi
 done
+echo "[bench] cpu per pair by role and the VO floor" >&2
+"$PY" scripts/bench_cpu.py --out "$OUT" > /dev/null
+echo "[bench] JPEG decode" >&2
+"$PY" scripts/bench_decode.py --out "$OUT" > /dev/null
 echo "[bench] algorithms" >&2
 "$PY" scripts/bench_algorithms.py --out "$OUT" > /dev/null
 echo "[bench] process (Dask LocalCluster vs one plain loop)" >&2
@@ -26,8 +75,8 @@ echo "[bench] modem link" >&2
 {
   echo "# trapflow benchmark, $(date -u '+%Y-%m-%d %H:%M UTC'), $(nproc) cores"
   echo
-  for md in "$OUT"/transport.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/bench_algorithms.md \
-            "$OUT"/process.md "$OUT"/viewer.md; do
+  for md in "$OUT"/transport.md "$OUT"/remote.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/cpu.md \
+            "$OUT"/decode.md "$OUT"/bench_algorithms.md "$OUT"/process.md "$OUT"/viewer.md; do
     [ -f "$md" ] && cat "$md" && echo
   done
   echo "## Modem link"

@@ -1,7 +1,8 @@
 """The broker process: translates sockets to BrokerState events and actions to sends.
 
 Owns: PULL from capture, ROUTER to workers, a local link of results to the
-normalizer (in batches), PUB tap (frame metadata, images, stats once a second).
+normalizer (in batches), PUB tap (frame metadata, images, stats once a second), and
+with network.remote.bind a second ROUTER for workers on other hosts (CURVE, ZAP).
 Image frames are forwarded as received (zero-copy); only the small header is
 decoded. With the shared-memory ring, capture and local workers talk to it over
 local links instead (descriptors only).
@@ -14,12 +15,14 @@ import contextlib
 import logging
 import os
 import time
+from pathlib import Path
 from typing import Any
 
 import msgspec
 import zmq
 
-from trapflow import messages
+from trapflow import jpeg, messages
+from trapflow.broker_remote import RemoteWorkers
 from trapflow.broker_state import BrokerState, Dispatch, Evicted, PoolSpec, Rejected, Release
 from trapflow.errors import ProtocolError
 from trapflow.frame_ring import HELD, FrameRing
@@ -35,7 +38,11 @@ from trapflow.transport import (
     TapGate,
     accept_link,
     listen_link,
+    open_monitor,
     open_socket,
+    read_monitor,
+    server_keys,
+    start_authenticator,
     zmq_readable,
 )
 
@@ -68,10 +75,10 @@ class BrokerNode(Node):
         self.gate = TapGate(self.tap, messages.TAP_TOPICS)
         self.wanted: dict[bytes, bool] = {}
         self._jobs: dict[tuple[str, int], bytes] = {}
-        pools = {
+        pools = {  # a remote pool exists with no local worker: remote workers add to count
             name: PoolSpec(p.parsed_policy, p.timeout_s)
             for name, p in self.cfg.pools.items()
-            if p.count > 0
+            if p.count > 0 or p.remote
         }
         self.state = BrokerState(pools, idle_liveness_s=self.cfg.supervisor.liveness_s)
         self.frames: dict[int, list[Any]] = {}
@@ -80,6 +87,8 @@ class BrokerNode(Node):
         self.ring = FrameRing(ring_name) if ring_name else None
         self.refs: dict[int, messages.FrameRef] = {}
         self.remote = {n for n, p in self.cfg.pools.items() if p.remote}
+        # Remote pools get JPEG: a raw pair is encoded once, on demand, and kept until freed.
+        self._jpeg: dict[int, list[Any]] = {}
         if self.ring is not None and spec.restarted:
             self._reclaim_held()
         # Local links (ring only): listeners, then one Link per connected capture or worker.
@@ -91,6 +100,7 @@ class BrokerNode(Node):
         self.poller = Poller()
         for sock in (self.pull, self.router, self.tap):
             self.poller.register(sock)
+        self._open_remote()
         for listener in self.listeners:
             self.poller.register(listener)
             self.fds[listener.fileno()] = listener
@@ -129,6 +139,10 @@ class BrokerNode(Node):
             socks, fds = poller.poll(int(TICK_INTERVAL_S * 1000))
             if self.router in socks:
                 self._drain_workers()
+            if self.remote_router is not None and self.remote_router in socks:
+                self._drain_remote()
+            if self.monitor is not None and self.monitor in socks:
+                self._on_handshakes()
             for ready in [self.fds[fd] for fd in fds if fd in self.fds]:
                 if ready in self.listeners:
                     self._accept(ready)
@@ -143,6 +157,7 @@ class BrokerNode(Node):
             if now >= next_tick:
                 next_tick = now + TICK_INTERVAL_S
                 self._apply(self.state.tick(now))
+                self._evict_silent_hosts(now)
                 if now - self._last_stats >= STATS_INTERVAL_S:
                     self._publish_stats(now)
                 self.beat()
@@ -235,9 +250,13 @@ class BrokerNode(Node):
                 if role == "results":
                     self._on_ack(messages.decode_results_ack(frames[0]))
                     continue
-                msg = messages.decode_worker_msg(frames[0])
+                msg = _local_msg(messages.decode_worker_msg(frames[0]))
                 ident = self.link_ident.get(link)
                 if ident is None:  # a worker names itself in its first message
+                    if isinstance(msg, messages.PoolSwitch):
+                        raise ProtocolError("worker link: expected a worker message first, "
+                                            "got a pool switch (only the supervisor sends "
+                                            "those, on the workers socket)")
                     ident = msg.worker.encode()
                     if ident in self.worker_links:  # that name is another live link's
                         self._refuse("duplicate_worker",
@@ -287,7 +306,7 @@ class BrokerNode(Node):
                 if len(frames) < 2:
                     raise ProtocolError(
                         f"worker message: expected 2 or 3 frames, got {len(frames)}")
-                msg = messages.decode_worker_msg(frames[1])
+                msg = _local_msg(messages.decode_worker_msg(frames[1]))
                 self._on_worker_msg(ident, msg, frames)
             except ProtocolError as exc:
                 self.malformed += 1
@@ -306,6 +325,7 @@ class BrokerNode(Node):
             actions = self.state.job_done(ident, msg.pool, msg.seq, True, now)
             if not any(isinstance(a, Rejected) for a in actions):
                 self._out.append(frames[2])  # only an answer to a job this worker was given
+                self.remotes.processed(ident)
             self._apply(actions)
         elif isinstance(msg, messages.Gone):
             # Only the supervisor tells of another worker's death; a worker, of its own.
@@ -316,12 +336,162 @@ class BrokerNode(Node):
                              wire(msg.worker), wire(ident))
                 return
             self._apply(self.state.worker_gone(gone, msg.reason, now))
+        elif isinstance(msg, messages.PoolSwitch):
+            self._on_pool_switch(ident, msg, now)
         elif isinstance(msg, messages.Failed):
             actions = self.state.job_done(ident, msg.pool, msg.seq, False, now, msg.kind)
             if not any(isinstance(a, Rejected) for a in actions):
                 self.ratelog.warning("failed:" + msg.pool, "%s failed pair %d: %s",
                                      wire(msg.worker), msg.seq, wire(msg.reason))
             self._apply(actions)
+
+    # --- remote workers (another host) ----------------------------------------------
+
+    def _open_remote(self) -> None:
+        """The ROUTER remote workers reach (network.remote.bind), with CURVE and ZAP when
+        keys are configured, and a monitor that counts the handshakes it refused."""
+        rc = self.cfg.network.remote
+        self.remotes = RemoteWorkers()
+        self.remote_router: zmq.Socket[bytes] | None = None
+        self.monitor: zmq.Socket[bytes] | None = None
+        self.auth: Any = None
+        if not rc.bind:
+            return
+        curve = None
+        if rc.curve:
+            curve = server_keys(Path(rc.server_key))
+            self.auth = start_authenticator(self.ctx, Path(rc.authorized_keys))
+        self.remote_router = open_socket(self.ctx, SocketSpec(
+            zmq.ROUTER, rc.bind, bind=True, router_mandatory=True, curve=curve))
+        self.monitor = open_monitor(self.remote_router)
+        self.poller.register(self.remote_router)
+        self.poller.register(self.monitor)
+        log.info("remote workers: %s (%s)", rc.bind,
+                 "CURVE, authorised keys in " + rc.authorized_keys if rc.curve else "loopback, "
+                 "no keys")
+
+    def _evict_silent_hosts(self, now: float) -> None:
+        """Workers whose host's supervisor went silent are gone with it: their pairs lost."""
+        liveness = self.cfg.supervisor.liveness_s
+        for ident in self.remotes.silent(now, liveness, self.state.worker_pools()):
+            self._apply(self.state.worker_gone(
+                ident, f"its host's supervisor silent for more than {liveness:g} s", now))
+
+    def _on_handshakes(self) -> None:
+        assert self.monitor is not None
+        self.poller.touch(self.monitor)
+        for reason in read_monitor(self.monitor):
+            self._refuse(reason, "refused a remote worker's connection (%s): only clients "
+                         "whose public key is in network.remote.authorized_keys may connect",
+                         reason)
+
+    def _drain_remote(self) -> None:
+        """Remote workers: JoinRequest and Hello first, then the local workers' messages."""
+        sock = self.remote_router
+        assert sock is not None
+        self.poller.touch(sock)
+        for _ in range(256):
+            if not zmq_readable(sock):
+                return
+            frames = sock.recv_multipart(copy=False)
+            ident = frames[0].bytes
+            try:
+                if len(frames) < 2:
+                    raise ProtocolError(
+                        f"remote worker message: expected 2 or 3 frames, got {len(frames)}")
+                msg = messages.decode_worker_msg(frames[1])
+                if isinstance(msg, (messages.JoinRequest, messages.Hello)):
+                    welcome, why = self._welcome(ident, msg)
+                    if why:
+                        self._refuse(why, "refused remote %s '%s': %s", type(msg).__name__,
+                                     wire(ident.decode("utf-8", "replace")), welcome.error)
+                    elif isinstance(msg, messages.Hello) and not self.remotes.joined(
+                            ident, msg.host, msg.pool, msg.owner.encode(), time.monotonic()):
+                        continue  # the hello of every heartbeat: known, nothing to answer
+                    sock.send_multipart([ident, messages.encode(welcome)])
+                elif isinstance(msg, messages.HostAlive):
+                    self.remotes.owner_seen(ident, time.monotonic())
+                elif isinstance(msg, messages.Gone):
+                    target = msg.worker.encode()
+                    if not self.remotes.may_report(ident, target):
+                        self._refuse("forged_gone", "refused a gone message for worker '%s' "
+                                     "from remote '%s': only that worker or its own "
+                                     "supervisor may send it", wire(msg.worker),
+                                     wire(ident.decode("utf-8", "replace")))
+                        continue
+                    self._apply(self.state.worker_gone(target, msg.reason, time.monotonic()))
+                elif self.remotes.pool_of(ident) != msg.pool:
+                    self._refuse("remote_not_joined", "refused a message from remote '%s' "
+                                 "for pool '%s': expected a hello for that pool first",
+                                 wire(ident.decode("utf-8", "replace")), wire(msg.pool))
+                else:
+                    self._on_worker_msg(ident, msg, frames)
+            except ProtocolError as exc:
+                self.malformed += 1
+                self.ratelog.warning("remote", "dropped malformed remote message: %s", exc)
+            except zmq.ZMQError as exc:  # EHOSTUNREACH: it left before its answer
+                self.unroutable += 1
+                self.ratelog.warning("route", "cannot answer remote %r: %s", ident, exc)
+
+    def _welcome(self, ident: bytes, msg: messages.JoinRequest | messages.Hello
+                 ) -> tuple[messages.Welcome, str]:
+        """The pool's configuration for a remote worker, or the reason it may not join."""
+        pcfg = self.cfg.pools.get(msg.pool)
+        remote = sorted(n for n, p in self.cfg.pools.items() if p.remote)
+        error, why = "", ""
+        if pcfg is None or not pcfg.remote:
+            why = "remote_unknown_pool"
+            error = (f"pool {msg.pool!r} takes no remote workers: expected one of "
+                     f"{remote or 'none'} (pools with remote: true in the pipeline's config)")
+        elif isinstance(msg, messages.Hello) and (
+                msg.worker.encode() != ident or "@" not in msg.worker):
+            why = "remote_bad_identity"
+            error = (f"expected a worker identity POOL@HOST:INDEX:PID equal to the socket's, "
+                     f"got {msg.worker!r} on a socket named {ident!r}")
+        if error or pcfg is None:
+            return messages.Welcome(pool=msg.pool, error=error), why
+        rig = self.spec.the_rig()
+        return messages.Welcome(
+            pool=msg.pool, plugin=self.cfg.plugin_of(msg.pool),
+            pool_config=msgspec.to_builtins(pcfg), rig=msgspec.to_builtins(rig),
+            heartbeat_interval_s=self.cfg.supervisor.heartbeat_interval_s), ""
+
+    def close(self) -> None:
+        if self.auth is not None:
+            self.auth.stop()
+        super().close()
+
+    def _on_pool_switch(self, ident: bytes, msg: messages.PoolSwitch, now: float) -> None:
+        """Runtime control of a pool: only the supervisor may send it."""
+        if ident != SUPERVISOR_IDENT:
+            self._refuse("forged_switch", "refused a pool switch for '%s' from '%s': only "
+                         "the supervisor may send it", wire(msg.pool), wire(ident))
+            return
+        try:
+            if msg.active is not None:
+                self._apply(self.state.set_active(msg.pool, msg.active, now))
+                log.info("pool %s %s", msg.pool, "active" if msg.active else "inactive")
+            if msg.policy is not None:
+                self._apply(self.state.set_policy(msg.pool, msg.policy, now))
+                log.info("pool %s policy %s", msg.pool, msg.policy)
+            if msg.params is not None:
+                self._configure_workers(msg.pool, msg.params)
+        except ValueError as exc:
+            self.ratelog.warning("switch", "refused a pool switch: %s", wire(str(exc)))
+
+    def _configure_workers(self, pool: str, params: dict[str, Any]) -> None:
+        """New parameters, applied in place by every worker of the pool between pairs."""
+        frame = messages.encode(messages.Configure(pool=pool, params=params))
+        for ident in self.state.pool_workers(pool):
+            link = self.worker_links.get(ident)
+            try:
+                if link is not None:
+                    link.send([frame])
+                else:
+                    self.router.send_multipart([ident, frame])
+            except (zmq.ZMQError, LinkClosed) as exc:  # it is gone: its successor starts
+                self.ratelog.warning("configure", "cannot reach worker %r: %s", ident, exc)
+        log.info("pool %s: new parameters sent to its workers", pool)
 
     # --- actions --------------------------------------------------------------------
 
@@ -336,15 +506,21 @@ class BrokerNode(Node):
                         self._jobs[key] = job
                 link = self.worker_links.get(action.worker)
                 try:
-                    if link is not None:
+                    if action.worker in self.remotes.known:
+                        assert self.remote_router is not None
+                        self.poller.touch(self.remote_router)
+                        self.remote_router.send_multipart(
+                            [action.worker, job, *self._remote_payload(action.seq)],
+                            copy=False)
+                    elif link is not None:
                         if not link.send([job, *self.frames[action.seq]]):
                             raise LinkClosed("its queue is full")
                     else:
                         remote = action.pool in self.remote
                         self.poller.touch(self.router)
-                        self.router.send_multipart(
-                            [action.worker, job, *self._payload(action.seq, copy=remote)],
-                            copy=False)
+                        payload = (self._remote_payload(action.seq) if remote
+                                   else self._payload(action.seq, copy=False))
+                        self.router.send_multipart([action.worker, job, *payload], copy=False)
                 except (zmq.ZMQError, LinkClosed) as exc:  # EHOSTUNREACH: the worker vanished
                     self.unroutable += 1
                     self.ratelog.warning("route", "cannot reach worker %r: %s", action.worker, exc)
@@ -355,6 +531,7 @@ class BrokerNode(Node):
                                                            time.monotonic()))
             elif isinstance(action, Release):
                 self.frames.pop(action.seq, None)
+                self._jpeg.pop(action.seq, None)
                 ref = self.refs.pop(action.seq, None)
                 if ref is not None and self.ring is not None:
                     self.ring.free_ref(ref)
@@ -365,6 +542,7 @@ class BrokerNode(Node):
                     "dispatched to that worker or was answered already", wire(action.worker),
                     wire(action.pool), action.seq, action.reason)
             elif isinstance(action, Evicted):
+                self.remotes.evicted(action.worker, action.reason)
                 # A worker told to stop leaves on purpose; anything else is news.
                 level = logging.INFO if action.reason == messages.GONE_STOPPING else logging.WARNING
                 self.ratelog.log(
@@ -428,6 +606,22 @@ class BrokerNode(Node):
         row = self.ring.payload(ref)
         return [frames[0], bytes(row[0]), bytes(row[1])]
 
+    def _remote_payload(self, seq: int) -> list[Any]:
+        """[header, left, right] as JPEG for a remote pool: a raw pair (the default on one
+        host) is encoded once, whichever remote pools take it; a JPEG pair goes as it came."""
+        cached = self._jpeg.get(seq)
+        if cached is not None:
+            return cached
+        frames = self._payload(seq, copy=True)
+        header = messages.decode_pair_header(_bytes(frames[0]))
+        if header.encoding != "raw":
+            return frames
+        header, left, right = jpeg.to_jpeg_pair(header, _bytes(frames[1]), _bytes(frames[2]),
+                                                self.cfg.source.jpeg_quality)
+        out = [messages.encode(header), left, right]
+        self._jpeg[seq] = out
+        return out
+
     def _reclaim_held(self) -> None:
         """A new broker knows of no pair: slots a previous broker held are free again."""
         assert self.ring is not None
@@ -463,9 +657,21 @@ class BrokerNode(Node):
             rate_in=round((self.state.pairs_in - self._last_in) / dt, 2),
             malformed=self.malformed,
             pools=pools,
+            remote=self.remotes.stats(dt, self.state.worker_pools()),
         )
         self._last_in = self.state.pairs_in
         self._publish(messages.TOPIC_STATS, messages.encode(stats))  # cheap: once a second
+
+
+def _local_msg(msg: messages.AnyWorkerMsg) -> messages.Ready | messages.Alive | messages.Done \
+        | messages.Failed | messages.Gone | messages.PoolSwitch:
+    """Hello, JoinRequest and HostAlive belong to the remote socket; on a local path they
+    are refused."""
+    if isinstance(msg, (messages.Hello, messages.JoinRequest, messages.HostAlive)):
+        raise ProtocolError(f"worker message: expected ready, alive, done, failed or gone on "
+                            f"a local path, got {type(msg).__name__} (remote workers connect "
+                            f"to network.remote.bind)")
+    return msg
 
 
 def _bytes(frame: Any) -> bytes:

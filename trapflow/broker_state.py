@@ -2,8 +2,9 @@
 actions out (dispatch, release). No sockets, no clocks: callers pass `now` in seconds.
 
 Every pair that reaches a pool ends in exactly one counter (the loss ledger): processed,
-failed (by kind), dropped (by the pool's policy), timed out (its worker held it too
-long) or lost (its worker died, or the run ended first).
+failed (by kind), dropped (by the pool's policy), inactive (the pool was deactivated,
+`trapflow pool NAME --deactivate`), timed out (its worker held it too long) or lost (its
+worker died, or the run ended first).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 from trapflow.messages import PoolStats
-from trapflow.policy import Pending, Policy
+from trapflow.policy import Pending, Policy, parse_policy
 
 # A worker that has said nothing for this long while idle is presumed dead.
 IDLE_LIVENESS_S = 5.0
@@ -100,6 +101,8 @@ class _Pool:
     errors: int = 0
     timed_out: int = 0
     lost: int = 0
+    inactive: int = 0
+    active: bool = True
     failures: dict[str, int] = field(default_factory=dict)
     rr: int = 0
 
@@ -128,6 +131,10 @@ class BrokerState:
         self._holders[seq] = len(self._pools)
         for pool in self._pools.values():
             pool.received += 1
+            if not pool.active:
+                pool.inactive += 1
+                actions.extend(self._unhold(seq))
+                continue
             for old in pool.pending.push(seq):
                 pool.dropped += 1
                 actions.extend(self._unhold(old))
@@ -219,6 +226,32 @@ class BrokerState:
                 return self._evict(pool, w, reason) + self._dispatch(pool, now)
         return []
 
+    def set_active(self, pool_name: str, active: bool, now: float) -> list[Action]:
+        """Deactivate a pool (what it holds pending is dropped as inactive; pairs in flight
+        finish) or activate it again. ValueError for a pool this broker does not have."""
+        pool = self._known(pool_name)
+        pool.active = active
+        actions: list[Action] = []
+        if not active:
+            for seq in pool.pending.clear():
+                pool.inactive += 1
+                actions.extend(self._unhold(seq))
+        return actions
+
+    def set_policy(self, pool_name: str, policy: str, now: float) -> list[Action]:
+        """A new policy: what is pending is queued again under it (its drops counted).
+        ValueError for an unknown pool or a policy that does not parse."""
+        pool = self._known(pool_name)
+        parsed = parse_policy(policy)
+        pool.spec = PoolSpec(parsed, pool.spec.timeout_s)
+        old, pool.pending = pool.pending.clear(), Pending(parsed)
+        actions: list[Action] = []
+        for seq in old:
+            for dropped in pool.pending.push(seq):
+                pool.dropped += 1
+                actions.extend(self._unhold(dropped))
+        return actions + self._dispatch(pool, now)
+
     def finish(self) -> list[Action]:
         """The run ends: what is pending or in flight is lost; every pair is accounted for."""
         actions: list[Action] = []
@@ -231,6 +264,10 @@ class BrokerState:
         return actions
 
     # --- queries ------------------------------------------------------------------
+
+    def pool_workers(self, pool_name: str) -> list[bytes]:
+        """The workers this pool knows now (ValueError for an unknown pool)."""
+        return list(self._known(pool_name).workers)
 
     def held(self) -> int:
         """Pairs still referenced by some pool (pending or in flight)."""
@@ -250,16 +287,29 @@ class BrokerState:
                 errors=p.errors,
                 timed_out=p.timed_out,
                 lost=p.lost,
+                inactive=p.inactive,
                 failures=dict(p.failures),
+                active=p.active,
             )
             for p in self._pools.values()
         }
+
+    def worker_pools(self) -> dict[bytes, str]:
+        """Every worker the state knows (live), and its pool."""
+        return {w: p.name for p in self._pools.values() for w in p.workers}
 
     def drained(self) -> bool:
         """Nothing pending or in flight anywhere."""
         return not self._holders
 
     # --- internals ----------------------------------------------------------------
+
+    def _known(self, name: str) -> _Pool:
+        pool = self._pools.get(name)
+        if pool is None:
+            raise ValueError(f"no pool {name!r} in the broker (pools: "
+                             f"{', '.join(sorted(self._pools)) or 'none'})")
+        return pool
 
     def _reject(self, ident: bytes, pool: str, seq: int, reason: str) -> list[Action]:
         self.rejected[reason] = self.rejected.get(reason, 0) + 1

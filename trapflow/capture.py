@@ -125,7 +125,7 @@ class CaptureNode(Node):
                     self.source.close()
                     self._open()
                     continue
-                self.set_state(FINALIZED, "source exhausted")
+                self.set_state(FINALIZED, "source exhausted", normal=True)
                 self.beat()
                 return 0
             self._send(frames)
@@ -218,6 +218,8 @@ class CaptureNode(Node):
                 self.ring.release(slot)
             return
         self.produced += 1
+        if self.produced == 1:
+            self.beat(due=True)  # the supervisor times --duration from the first pair
         if f.truth is not None:
             truth = msgspec.structs.replace(f.truth, seq=seq)
             # Truth is for tests and viewers; never worth a wait.

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -32,10 +31,19 @@ class TrapflowGroup(click.Group):
             raise failed(exc) from None
 
 
-@click.group(cls=TrapflowGroup)
+# Every option can come from the environment as TRAPFLOW_<COMMAND>_<OPTION> (a systemd
+# unit's Environment=, a container's env), e.g. TRAPFLOW_START_RUN_DIR; a flag given on the
+# command line wins. See README "Deploy".
+ENVVAR_PREFIX = "TRAPFLOW"
+
+
+@click.group(cls=TrapflowGroup, context_settings={"auto_envvar_prefix": ENVVAR_PREFIX})
 @click.version_option(package_name="trapflow")
 def main() -> None:
-    """trapflow: stereo capture, worker pools over ZeroMQ, compact results."""
+    """trapflow: stereo capture, worker pools over ZeroMQ, compact results.
+
+    Any option may be set in the environment as TRAPFLOW_<COMMAND>_<OPTION>, e.g.
+    TRAPFLOW_START_RUN_DIR=/var/lib/trapflow/run."""
 
 
 @main.command()
@@ -168,10 +176,18 @@ def tap(what: str, count: int | None, save_frames: Path | None, run_dir: Path,
     from trapflow.tap import run_tap
 
     try:
-        n = run_tap(what, run_dir, list(endpoint), count, save_frames, timeout)
+        n = run_tap(what, run_dir, list(endpoint), count, save_frames, timeout,
+                    notice=lambda line: click.echo(f"tap: {line}", err=True))
     except TrapflowError as exc:
         _fail(exc)
-    sys.exit(0 if count is None or n >= count else 1)
+    where = ", ".join(endpoint) or str(run_dir)
+    if timeout is not None and n == 0:
+        raise CommandFailed(f"tap received no message from {where} within {timeout:g} s; "
+                            "expected a running pipeline there: start one (trapflow start) "
+                            "or name its --run-dir")
+    if count is not None and n < count:
+        raise CommandFailed(f"tap received {n} of the {count} messages asked for (--count) "
+                            f"from {where}; the pipeline stopped or --timeout ended first")
 
 
 @main.command()
@@ -192,19 +208,106 @@ def status(run_dir: Path, as_json: bool, stop: bool, timeout: float) -> None:
     click.echo(format_status(reply, as_json))
 
 
+def _control(run_dir: Path, req: Any, timeout: float, as_json: bool) -> None:
+    """Send one runtime change; print what changed, or end with why it was refused."""
+    import json
+
+    from trapflow.control import request
+
+    try:
+        reply = request(run_dir, req, timeout)
+    except TrapflowError as exc:
+        _fail(exc)
+    if "error" in reply:
+        raise CommandFailed(reply["error"])
+    click.echo(json.dumps(reply, indent=2) if as_json else
+               f"{reply['changed']}: {reply['change']}")
+
+
+_RUN_DIR = click.option("--run-dir", type=click.Path(file_okay=False, path_type=Path),
+                        default=Path("runs/latest"), show_default=True,
+                        help="The running pipeline's run directory.")
+_TIMEOUT = click.option("--timeout", type=click.FloatRange(min=0, min_open=True), default=3.0,
+                        show_default=True, help="Seconds to wait for the supervisor.")
+_JSON = click.option("--json", "as_json", is_flag=True, help="Print the raw JSON reply.")
+
+
+@main.command()
+@click.argument("name")
+@click.option("--count", type=click.IntRange(1, 64), help="Run this many workers.")
+@click.option("--policy", help="New queueing policy, e.g. latest, fifo:8, ordered:4.")
+@click.option("--deactivate", is_flag=True,
+              help="Stop giving the pool pairs (counted as dropped while inactive); its "
+                   "workers keep their models loaded.")
+@click.option("--activate", is_flag=True, help="Give it pairs again.")
+@_RUN_DIR
+@_TIMEOUT
+@_JSON
+def pool(name: str, count: int | None, policy: str | None, deactivate: bool, activate: bool,
+         run_dir: Path, timeout: float, as_json: bool) -> None:
+    """Change a running pool: its worker count, policy, or lifecycle (one change)."""
+    from trapflow import messages
+
+    given = [f for f, v in (("--count", count is not None), ("--policy", policy is not None),
+                            ("--activate", activate), ("--deactivate", deactivate)) if v]
+    active = True if activate else False if deactivate else None
+    if len(given) != 1:
+        raise click.UsageError(f"expected exactly one of --count, --policy, --activate, "
+                               f"--deactivate; got {', '.join(given) or 'none'}")
+    # Bounds (name, count) are the control decoder's, checked by the supervisor.
+    _control(run_dir, messages.PoolRequest(pool=name, count=count, policy=policy,
+                                           active=active), timeout, as_json)
+
+
+@main.command()
+@click.argument("pool_name", metavar="POOL")
+@click.argument("assignment", metavar="KEY=VALUE")
+@_RUN_DIR
+@_TIMEOUT
+@_JSON
+def param(pool_name: str, assignment: str, run_dir: Path, timeout: float,
+          as_json: bool) -> None:
+    """Set one plugin parameter of a running pool; its workers restart with it."""
+    from trapflow import messages
+    from trapflow.control import parse_assignment
+
+    try:
+        key, value = parse_assignment(assignment)
+    except ValueError as exc:
+        raise click.UsageError(str(exc)) from None
+    _control(run_dir, messages.ParamRequest(pool=pool_name, key=key, value=value), timeout,
+             as_json)
+
+
 def _add_commands() -> None:
-    from trapflow import cli_dataset, cli_sources
+    from trapflow import cli_dataset, cli_remote, cli_sources
     from trapflow.batch.cli import process
     from trapflow.export import cli as cli_export
     from trapflow.modem import cli as cli_modem
 
     for cmd in (*cli_modem.COMMANDS, process, cli_sources.calibrate, cli_sources.record,
                 cli_sources.replay, cli_sources.recover, cli_dataset.dataset,
-                *cli_export.COMMANDS):
+                *cli_export.COMMANDS, *cli_remote.COMMANDS):
         main.add_command(cmd)
 
 
+def flag_envvars(group: click.Group, prefix: str = ENVVAR_PREFIX) -> None:
+    """Name every option's variable after its flag (TRAPFLOW_START_CONFIG for --config),
+    as click's auto_envvar_prefix does for all options whose parameter has the flag's name;
+    the others (--config stored as config_path) would otherwise read TRAPFLOW_START_CONFIG_PATH."""
+    for name, cmd in group.commands.items():
+        sub = f"{prefix}_{name.upper().replace('-', '_')}"
+        if isinstance(cmd, click.Group):
+            flag_envvars(cmd, sub)
+            continue
+        for p in cmd.params:
+            longs = [o for o in p.opts if o.startswith("--")]
+            if isinstance(p, click.Option) and longs and not p.envvar:
+                p.envvar = f"{sub}_{longs[0][2:].upper().replace('-', '_')}"
+
+
 _add_commands()
+flag_envvars(main)
 
 if __name__ == "__main__":
     main()

@@ -37,7 +37,9 @@ class SourceConfig(_Section):
     rate_hz: Annotated[float, msgspec.Meta(gt=0, le=240)] = 15.0
     width: Annotated[int, msgspec.Meta(ge=16, le=8192)] = 1280
     height: Annotated[int, msgspec.Meta(ge=16, le=8192)] = 720
-    encoding: Literal["jpeg", "raw"] = "jpeg"
+    # raw: the ring holds the decoded frames; every local pool reads them, nothing decodes.
+    # jpeg: capture encodes each side (~3 ms at 1280x720) and every pool decodes it again.
+    encoding: Literal["jpeg", "raw"] = "raw"
     jpeg_quality: Annotated[int, msgspec.Meta(ge=1, le=100)] = 90
     seed: int = 1
     moving: bool = False
@@ -110,23 +112,72 @@ class LogFileConfig(_Section):
     backups: Annotated[int, msgspec.Meta(ge=1, le=100)] = 3
 
 
+def _is_loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return host == "localhost"
+
+
+class RemoteConfig(_Section):
+    """Where worker pools on other hosts connect (`trapflow worker --connect`), and the
+    CURVE keys that guard it. Off while `bind` is empty."""
+
+    bind: str = ""
+    """tcp://HOST:PORT the broker binds for remote workers; beyond loopback only with keys."""
+    server_key: str = ""
+    """The pipeline's secret key file (NAME.key_secret from `trapflow keys generate`)."""
+    authorized_keys: str = ""
+    """Folder of the public keys (*.key) of the workers that may connect."""
+
+    def __post_init__(self) -> None:
+        if bool(self.server_key) != bool(self.authorized_keys):
+            raise ValueError(
+                "expected both server_key and authorized_keys (CURVE) or neither, got only "
+                f"{'server_key' if self.server_key else 'authorized_keys'}; "
+                "make keys with `trapflow keys generate DIR`")
+        if not self.bind:
+            return
+        scheme, sep, rest = self.bind.partition("://")
+        host, colon, port = rest.rpartition(":")
+        if scheme != "tcp" or not sep or not colon or not host or not port.isdigit() or not (
+                1024 <= int(port) <= 65535):
+            raise ValueError(f"expected bind as tcp://HOST:PORT with a port in 1024..65535, "
+                             f"got {self.bind!r}")
+        if not _is_loopback(host.strip("[]")) and not self.server_key:
+            raise ValueError(
+                f"binding {self.bind!r} beyond loopback needs CURVE keys: expected "
+                "server_key and authorized_keys, got none; make them with "
+                "`trapflow keys generate DIR` or bind tcp://127.0.0.1:PORT")
+
+    @property
+    def curve(self) -> bool:
+        """Remote workers must prove a key in authorized_keys."""
+        return bool(self.server_key)
+
+
 class NetworkConfig(_Section):
-    """Endpoints: ipc:// in the run directory on one host, or tcp:// on a loopback host."""
+    """Endpoints: ipc:// in the run directory on one host, or tcp:// on a loopback host;
+    remote workers connect to a port of their own (`remote`)."""
 
     transport: Literal["ipc", "tcp"] = "ipc"
     host: str = "127.0.0.1"
     base_port: Annotated[int, msgspec.Meta(ge=1024, le=65000)] = 5550
+    remote: RemoteConfig = msgspec.field(default_factory=RemoteConfig)
 
     def __post_init__(self) -> None:
-        try:
-            loopback = ipaddress.ip_address(self.host).is_loopback
-        except ValueError:
-            loopback = self.host == "localhost"
-        if not loopback:
+        if not _is_loopback(self.host):
             raise ValueError(
-                f"expected a loopback host (127.0.0.1), got {self.host!r}: "
-                "binding beyond loopback needs CURVE keys, which this build does not configure"
+                f"expected a loopback host (127.0.0.1), got {self.host!r}: the pipeline's own "
+                "endpoints never leave this host; workers on other hosts connect to "
+                "network.remote.bind, guarded by CURVE keys"
             )
+        port = self.remote.bind.rpartition(":")[2]
+        if self.transport == "tcp" and port.isdigit() and (
+                self.base_port <= int(port) <= self.base_port + 6):
+            raise ValueError(
+                f"remote.bind {self.remote.bind!r} takes a port of the pipeline's own "
+                f"endpoints ({self.base_port}..{self.base_port + 6}); expected another port")
 
 
 class FramesConfig(_Section):

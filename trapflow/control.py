@@ -1,4 +1,5 @@
-"""Client side of the supervisor's control socket: `trapflow status` and `--stop`.
+"""Client side of the supervisor's control socket: `trapflow status`, `--stop`, and the
+runtime changes `trapflow pool` and `trapflow param`.
 
 The human status renders the run ledger's own model (trapflow.run_ledger), as the status
 line and ledger.json do."""
@@ -16,13 +17,20 @@ from trapflow import messages, run_ledger
 from trapflow.errors import StartupError
 from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
 
+# The pool table's columns and their units: counts are pairs since the run started (over
+# broker restarts), workers are processes, rate is results per second lately.
+POOL_UNITS = {"workers": "procs", "received": "pairs", "processed": "pairs",
+              "dropped": "pairs", "inactive": "pairs", "in_flight": "pairs", "pending": "pairs",
+              "errors": "pairs",
+              "timed_out": "pairs", "lost": "pairs", "rate": "pairs/s"}
 # Give-ups and retries `trapflow status` lists (the newest); the JSON has them all.
 TIMELINE_SHOWN = 5
 
 
-def request(run_dir: Path, what: str, timeout_s: float = 3.0,
+def request(run_dir: Path, what: str | messages.Msg, timeout_s: float = 3.0,
             cfg: configmod.Config | None = None) -> dict[str, Any]:
-    """Send one control request and return the decoded JSON reply."""
+    """Send one control request ("status", "stop" or a request message) and return the
+    decoded JSON reply."""
     cfg = cfg or configmod.Config()
     if not run_dir.exists():
         raise StartupError(f"no run directory {run_dir}: is a pipeline running there?")
@@ -30,7 +38,8 @@ def request(run_dir: Path, what: str, timeout_s: float = 3.0,
     ctx = new_context()
     try:
         sock = open_socket(ctx, SocketSpec(zmq.REQ, ep))
-        req = messages.StopRequest() if what == "stop" else messages.StatusRequest()
+        req = what if isinstance(what, messages.Msg) else \
+            messages.StopRequest() if what == "stop" else messages.StatusRequest()
         sock.send(messages.encode(req))
         if not sock.poll(int(timeout_s * 1000), zmq.POLLIN):
             raise StartupError(f"no answer from {ep} within {timeout_s:g} s: "
@@ -52,24 +61,55 @@ def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
                      f"fy {r['fy']:.1f} cx {r['cx']:.1f} cy {r['cy']:.1f}, baseline "
                      f"{r['baseline_m']:.3f} m, from {r['origin']}")
     lines.append(f"{'node':<22} {'pid':>7} {'state':<12} {'restarts':>8}  reason")
+    lines.append(f"{'':<22} {'':>7} {'(lifecycle)':<12} {'(count)':>8}")
     for n in reply["nodes"]:
         lines.append(f"{n['name']:<22} {n['pid'] or '-':>7} {n['state']:<12} "
                      f"{n['restarts']:>8}  {n['reason']}")
     stats = reply.get("stats")
     if stats:
-        lines.append(f"pairs in {stats['pairs_in']} ({stats['rate_in']}/s), "
-                     f"malformed {stats['malformed']}")
-        keys = ("workers", "received", "processed", "dropped", "in_flight", "pending",
-                "errors", "timed_out", "lost", "rate")
-        lines.append(f"{'pool':<10}" + "".join(f"{k:>11}" for k in keys))
+        lines.append(f"pairs in {stats['pairs_in']} ({stats['rate_in']} pairs/s), "
+                     f"malformed {stats['malformed']} messages")
+        lines.append(f"{'pool':<10}" + "".join(f"{k:>11}" for k in POOL_UNITS))
+        lines.append(f"{'':<10}" + "".join(f"{'(' + u + ')':>11}" for u in POOL_UNITS.values()))
         for name, p in stats["pools"].items():
-            lines.append(f"{name:<10}" + "".join(f"{p.get(k, 0):>11}" for k in keys))
+            lines.append(f"{name:<10}" + "".join(f"{p.get(k, 0):>11}" for k in POOL_UNITS))
+        remote = stats.get("remote") or []
+        if remote:
+            lines.append(f"{'remote worker':<34} {'host':<16} {'pool':<10} {'state':<8} "
+                         f"{'processed':>9} {'rate':>7}  reason")
+        for r in remote:
+            lines.append(f"{r['worker']:<34} {r['host']:<16} {r['pool']:<10} {r['state']:<8} "
+                         f"{r.get('processed', 0):>9} {r.get('rate', 0.0):>7}  "
+                         f"{r.get('reason', '')}")
     sup = reply.get("supervision")
     if sup:
         lines.append(f"supervision: {sup['gave_up']} give-ups, {sup['retries']} retries, "
-                     f"{sup['capped']} capped restarts of essential nodes")
+                     f"{sup['capped']} capped restarts of essential nodes, "
+                     f"{sup.get('control', 0)} runtime changes")
+        for name, p in sup.get("pools", {}).items():
+            params = ", ".join(f"{k}={v!r}" for k, v in p["params"].items()) or "defaults"
+            lines.append(f"  pool {name:<10} {p['state']:<9} {p['count']} workers, policy "
+                         f"{p['policy']}, params {params}, {p['changes']} changes")
         for e in sup["timeline"][-TIMELINE_SHOWN:]:
             lines.append(f"  {e['t_s']:>8} s  {e['node']:<20} {e['kind']:<8} {e['reason']}")
     if reply.get("ledger"):
         lines.append(run_ledger.totals_text(reply["ledger"]).rstrip("\n"))
     return "\n".join(lines)
+
+
+def parse_assignment(text: str) -> tuple[str, Any]:
+    """`KEY=VALUE` of `trapflow param`: the value read as YAML (0.5, true, text), a scalar."""
+    import yaml
+
+    key, sep, raw = text.partition("=")
+    if not sep or not key.strip():
+        raise ValueError(f"expected KEY=VALUE (e.g. conf_threshold=0.5), got {text!r}")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError:
+        value = raw
+    if not isinstance(value, (str, int, float, bool)) and value is not None:
+        raise ValueError(f"{key.strip()}: expected a single value (number, true/false, text), "
+                         f"got {type(value).__name__} {raw!r}; set lists and maps in the "
+                         "config file")
+    return key.strip(), value

@@ -12,7 +12,7 @@ import logging
 
 import zmq
 
-from trapflow import messages
+from trapflow import jpeg, messages
 from trapflow.errors import ProtocolError
 from trapflow.events import EventCapture
 from trapflow.node import ACTIVE, FINALIZED, Node, NodeSpec
@@ -57,6 +57,10 @@ class EventsNode(Node):
         topic = frames[0].bytes
         if topic == messages.TOPIC_IMAGE:
             header = messages.check_pair_frames(frames[1:])
-            self.capture.on_pair(header, frames[2].bytes, frames[3].bytes)
+            # Raw pairs (the default ring) become JPEG here, once: the pre-roll holds
+            # hundreds of pairs and an event folder keeps photos, not 2.7 MB frames.
+            header, left, right = jpeg.to_jpeg_pair(header, frames[2].buffer, frames[3].buffer,
+                                                    self.cfg.source.jpeg_quality)
+            self.capture.on_pair(header, left, right)
         elif topic == messages.TOPIC_RESULT and len(frames) == 2:
             self.capture.on_result(json.loads(frames[1].bytes))

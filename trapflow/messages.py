@@ -265,7 +265,81 @@ class Failed(Msg, frozen=True, tag="failed"):
     kind: str = "error"  # short class of the failure (exception name), for the ledger
 
 
-WorkerMsg = Union[Ready, Alive, Done, Failed, Gone]
+# --- remote workers (another host, over CURVE) -------------------------------------
+
+_Short = Annotated[str, msgspec.Meta(min_length=1, max_length=128)]
+
+
+class JoinRequest(Msg, frozen=True, tag="join_request"):
+    """`trapflow worker` -> broker: how does this pool run? Answered by a Welcome."""
+
+    pool: _Short
+    host: _Short
+
+
+class Hello(Msg, frozen=True, tag="hello"):
+    """A remote worker process joins a pool; `owner` is its local supervisor's identity,
+    which may tell of its death (Gone). Answered by a Welcome; Ready follows."""
+
+    worker: _Short
+    pool: _Short
+    host: _Short
+    owner: _Short
+
+
+class HostAlive(Msg, frozen=True, tag="host_alive"):
+    """A `trapflow worker` supervisor's heartbeat: its host is up. Its workers are silent
+    while they compute; when their supervisor is silent too, the host is gone."""
+
+    host: _Short
+
+
+class Welcome(Msg, frozen=True, tag="welcome"):
+    """Broker -> remote: the pool's plugin configuration and the run's rig, as plain data
+    (the receiver validates them into its own Structs), or why it may not join."""
+
+    pool: str
+    plugin: str = ""
+    pool_config: dict[str, Any] = {}
+    rig: dict[str, Any] = {}
+    heartbeat_interval_s: float = 1.0
+    error: str = ""
+
+
+
+
+# A pool's or a parameter's name on the control path: short, plain, safe to log.
+ControlName = Annotated[str, msgspec.Meta(min_length=1, max_length=64,
+                                          pattern=r"^[A-Za-z_][A-Za-z0-9_.\-]*$")]
+PolicyText = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+
+
+ParamValue = Union[Annotated[str, msgspec.Meta(max_length=256)], int, float, bool, None]
+# A pool's whole params mapping (config values may be lists or maps), bounded in keys here
+# and in bytes by the header limit.
+Params = Annotated[dict[ControlName, Any], msgspec.Meta(max_length=64)]
+
+
+class PoolSwitch(Msg, frozen=True, tag="pool_switch"):
+    """Supervisor -> broker: a pool becomes (in)active, takes a new policy, or new plugin
+    parameters that its workers apply in place (None: as is). An inactive pool counts every
+    pair it would have queued as dropped-while-inactive."""
+
+    pool: ControlName
+    active: bool | None = None
+    policy: PolicyText | None = None
+    params: Params | None = None
+
+
+class Configure(Msg, frozen=True, tag="configure"):
+    """Broker -> each worker of a pool (one frame): configure the plugin again with these
+    parameters, between pairs."""
+
+    pool: ControlName
+    params: Params
+
+
+WorkerMsg = Union[Ready, Alive, Done, Failed, Gone, Hello, JoinRequest, HostAlive, PoolSwitch]
 
 
 # --- stats and control ----------------------------------------------------------
@@ -284,8 +358,22 @@ class PoolStats(Msg, frozen=True):
     errors: int = 0  # failed pairs (bad input, plugin error); by kind in `failures`
     timed_out: int = 0  # a worker held the pair longer than the pool's timeout_s
     lost: int = 0  # the worker holding it died, or the run stopped before it finished
+    inactive: int = 0  # dropped because the pool was deactivated (trapflow pool --deactivate)
     failures: dict[str, int] = {}
     rate: float = 0.0  # processed per second over the last interval
+    active: bool = True
+
+
+class RemoteWorker(Msg, frozen=True):
+    """One worker process on another host, as the broker sees it."""
+
+    worker: str
+    host: str
+    pool: str
+    state: str  # active, evicted
+    processed: int = 0
+    rate: float = 0.0  # processed per second over the last interval
+    reason: str = ""  # why it was evicted
 
 
 class Stats(Msg, frozen=True, tag="stats"):
@@ -297,6 +385,7 @@ class Stats(Msg, frozen=True, tag="stats"):
     rate_in: float
     malformed: int
     pools: dict[str, PoolStats]
+    remote: list[RemoteWorker] = []
 
 
 class StatusRequest(Msg, frozen=True, tag="status"):
@@ -307,7 +396,25 @@ class StopRequest(Msg, frozen=True, tag="stop"):
     """Ask the supervisor to stop the pipeline."""
 
 
-ControlRequest = Union[StatusRequest, StopRequest]
+class PoolRequest(Msg, frozen=True, tag="pool"):
+    """Change one pool at run time: exactly one of count, policy, active."""
+
+    pool: ControlName
+    count: Annotated[int, msgspec.Meta(ge=1, le=64)] | None = None
+    policy: PolicyText | None = None
+    active: bool | None = None
+
+
+class ParamRequest(Msg, frozen=True, tag="param"):
+    """Set one plugin parameter of a pool at run time (its workers are reconfigured)."""
+
+    pool: ControlName
+    key: ControlName
+    value: ParamValue
+
+
+ControlRequest = Union[StatusRequest, StopRequest, PoolRequest, ParamRequest]
+AnyControl = StatusRequest | StopRequest | PoolRequest | ParamRequest
 
 
 class LogEntry(Msg, frozen=True, tag="log"):
@@ -342,6 +449,7 @@ _ack_dec = msgspec.msgpack.Decoder(ResultsAck)
 _stats_dec = msgspec.msgpack.Decoder(Stats)
 _control_dec = msgspec.msgpack.Decoder(ControlRequest)
 _heartbeat_dec = msgspec.msgpack.Decoder(Heartbeat)
+_configure_dec = msgspec.msgpack.Decoder(Configure)
 
 
 def encode(msg: Msg) -> bytes:
@@ -403,12 +511,28 @@ def decode_job(data: Buffer) -> Job:
     return job
 
 
-def decode_worker_msg(data: Buffer) -> Ready | Alive | Done | Failed | Gone:
-    """Decode frame 0 of a message a worker (or the supervisor) sent to the broker."""
-    msg: Ready | Alive | Done | Failed | Gone = _decode(
-        _worker_dec, data, "worker message", MAX_HEADER_BYTES
-    )
+def decode_configure(data: Buffer) -> Configure:
+    """Decode the broker's one-frame Configure message to a worker."""
+    msg: Configure = _decode(_configure_dec, data, "configure", MAX_HEADER_BYTES)
     return msg
+
+
+AnyWorkerMsg = Ready | Alive | Done | Failed | Gone | Hello | JoinRequest | HostAlive | PoolSwitch
+
+
+def decode_worker_msg(data: Buffer) -> AnyWorkerMsg:
+    """Decode frame 0 of a message a worker (or the supervisor) sent to the broker."""
+    msg: AnyWorkerMsg = _decode(_worker_dec, data, "worker message", MAX_HEADER_BYTES)
+    return msg
+
+
+_welcome_dec = msgspec.msgpack.Decoder(Welcome)
+
+
+def decode_welcome(data: Buffer) -> Welcome:
+    """Decode the broker's answer to a JoinRequest or Hello."""
+    welcome: Welcome = _decode(_welcome_dec, data, "welcome", MAX_RESULT_BYTES)
+    return welcome
 
 
 def decode_results_ack(data: Buffer) -> ResultsAck:
@@ -459,11 +583,15 @@ def decode_result_line(data: Buffer) -> tuple[str, dict[str, Any]]:
     return kind, fields
 
 
-def decode_control(data: Buffer) -> StatusRequest | StopRequest:
-    """Decode a control request."""
-    req: StatusRequest | StopRequest = _decode(
-        _control_dec, data, "control request", MAX_HEADER_BYTES
-    )
+def decode_control(data: Buffer) -> AnyControl:
+    """Decode a control request (a pool change names exactly one change)."""
+    req: AnyControl = _decode(_control_dec, data, "control request", MAX_HEADER_BYTES)
+    if isinstance(req, PoolRequest):
+        given = [k for k in ("count", "policy", "active") if getattr(req, k) is not None]
+        if len(given) != 1:
+            raise ProtocolError(f"control request: a pool change names exactly one of "
+                                f"count, policy, active; got {given or 'none'} for pool "
+                                f"{req.pool!r}: send one change per request")
     return req
 
 
@@ -481,6 +609,17 @@ def decode_log(data: Buffer) -> LogEntry:
 def worker_identity(pool: str, index: int, pid: int) -> str:
     """The routing identity of one worker process (new with every restart)."""
     return f"{pool}:{index}:{pid}"
+
+
+def remote_identity(pool: str, host: str, index: int, pid: int) -> str:
+    """The routing identity of a worker process on another host: never a local one's
+    (those have no '@'), so a remote peer cannot answer for a local worker."""
+    return f"{pool}@{host}:{index}:{pid}"
+
+
+def owner_identity(host: str, pid: int) -> str:
+    """The identity of a `trapflow worker` supervisor on another host."""
+    return f"owner@{host}:{pid}"
 
 
 # Tap topics: the first frame of every tap message.

@@ -27,7 +27,7 @@ from trapflow.camera import StereoRig
 from trapflow.config import Config
 from trapflow.logchannel import LogSender
 from trapflow.supervisor_state import Lifecycle
-from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
+from trapflow.transport import Endpoints, SocketSpec, log_endpoint, new_context, open_socket
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +47,7 @@ ROLES = {
     "capture": "trapflow.capture:CaptureNode",
     "broker": "trapflow.broker:BrokerNode",
     "worker": "trapflow.worker:WorkerNode",
+    "remote_worker": "trapflow.remote_worker:RemoteWorkerNode",  # `trapflow worker`
     "normalizer": "trapflow.normalizer:NormalizerNode",
     "modem": "trapflow.modem.node:ModemNode",
     "events": "trapflow.events_node:EventsNode",
@@ -56,6 +57,16 @@ ROLES = {
 _PR_SET_PDEATHSIG = 1
 # Set to a folder to have every node write a cProfile of its loop there on exit.
 PROFILE_ENV = "TRAPFLOW_PROFILE_DIR"
+
+
+@dataclass(frozen=True)
+class JoinSpec:
+    """How a worker process on another host reaches the pipeline (`trapflow worker`)."""
+
+    endpoint: str  # tcp://HOST:PORT of the pipeline's network.remote.bind
+    keys: str  # folder with client.key_secret and server.key; empty: no CURVE (loopback)
+    host: str  # this host's name in identities and status
+    owner: str  # the identity of this host's `trapflow worker` supervisor
 
 
 @dataclass(frozen=True)
@@ -74,6 +85,7 @@ class NodeSpec:
     # (capture's first pairs may already hold slots on their way to it).
     restarted: bool = False
     first_seq: int = 0  # capture numbers pairs from here (past a predecessor's numbers)
+    join: JoinSpec | None = None  # a remote worker's way to the pipeline
 
     def the_rig(self) -> StereoRig:
         """The run's rig; a node spawned without one (a test, a benchmark) gets the config's."""
@@ -102,13 +114,14 @@ class Node:
         self._hb_interval_ns = int(spec.cfg.supervisor.heartbeat_interval_s * 1e9)
         self._next_beat = 0
 
-    def set_state(self, state: Lifecycle, reason: str = "") -> None:
-        """Move to a lifecycle state and tell the supervisor at once."""
+    def set_state(self, state: Lifecycle, reason: str = "", normal: bool = False) -> None:
+        """Move to a lifecycle state and tell the supervisor at once. A reason is a
+        warning unless the change is `normal` (a planned end: a source exhausted)."""
         if (state, reason) != (self.lifecycle, self.reason):
-            if reason:
+            if reason and not normal:
                 log.warning("%s: %s (%s)", self.name, state, reason)
             else:
-                log.info("%s: %s", self.name, state)
+                log.info("%s: %s%s", self.name, state, f" ({reason})" if reason else "")
         self.lifecycle, self.reason = state, reason
         self._next_beat = 0
 
@@ -197,8 +210,7 @@ def node_main(spec: NodeSpec, parent_pid: int) -> None:
     _set_title(f"trapflow:{spec.name}")
     faulthandler.enable()
     root = logging.getLogger()
-    root.handlers[:] = [LogSender(Endpoints.for_run(spec.cfg.network, spec.run_dir).log,
-                                  spec.name)]
+    root.handlers[:] = [LogSender(log_endpoint(spec.run_dir), spec.name)]
     root.setLevel(spec.cfg.log_level)
     # Ctrl-C reaches the whole process group; only the supervisor acts on it, in order.
     signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -51,6 +51,14 @@ class Worker:
 
     #: whether process() needs decoded images; False skips JPEG decoding entirely
     needs_images: bool = True
+    #: whether configure() may be called again, between pairs, with new params: a pool's
+    #: parameter change (`trapflow param`) then applies in place (deactivate, configure,
+    #: activate) instead of restarting the pool's workers
+    reconfigurable: bool = False
+    #: the colour process() uses: "bgr" (HxWx3) or "grey". A grey plugin gets a JPEG pair
+    #: decoded straight to grey (HxW, about 30 % cheaper); raw frames come as they are
+    #: (BGR views of the ring), so it accepts both
+    colour: str = "bgr"
     #: the rig a geometric plugin computes with when it is not the run's (its own
     #: `calibration` param); the worker stamps this rig's id on stereo results as `calib`
     rig: StereoRig | None = None

@@ -57,3 +57,26 @@ def wire(value: str | bytes) -> str:
     cut = text[:MAX_WIRE_CHARS]
     out = repr(cut)[1:-1]
     return out + "..." if len(text) > MAX_WIRE_CHARS else out
+
+
+# A record logged with extra={CONSOLE_ONCE: True} reaches the console once per distinct
+# message (every worker says it; the log file keeps them all).
+CONSOLE_ONCE = "console_once"
+
+
+class ConsoleOnce(logging.Filter):
+    """Pass a record marked CONSOLE_ONCE only the first time its message is seen."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._seen: set[str] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not getattr(record, CONSOLE_ONCE, False):
+            return True
+        text = record.getMessage()
+        if text in self._seen:
+            return False
+        if len(self._seen) < MAX_KEYS:
+            self._seen.add(text)
+        return True

@@ -9,7 +9,7 @@ supervisor resolves it once at preflight and hands it to every node through Node
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +34,7 @@ class Resolved:
 
     rig: StereoRig
     origin: str
+    where: str = ""  # what the source's frames are: "images in DIR", a bag's topics
 
 
 def from_config(cfg: Config, size: tuple[int, int] | None = None) -> StereoRig:
@@ -84,7 +85,8 @@ def describe(cfg: Config) -> Resolved:
     """The rig of the source the config names, asked of the source without opening it."""
     from trapflow.sources import build_source  # sources import the config; keep this lazy
 
-    return resolve(cfg, build_source(cfg.source, from_config(cfg)).geometry())
+    geometry = build_source(cfg.source, from_config(cfg)).geometry()
+    return replace(resolve(cfg, geometry), where=geometry.where)
 
 
 # --- rig files ---------------------------------------------------------------------------

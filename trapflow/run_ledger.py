@@ -24,6 +24,10 @@ __all__ = ["FAILED_PREFIX", "Delivered", "RunLedger", "capture_failures", "combi
 # The normalizer's heartbeat counters route:<pool>:<kind> say which pool's results become lines
 # of which kind (the first key of a results.jsonl line); results.jsonl itself has no pool.
 ROUTE_PREFIX = "route:"
+# The console's width: the status line never wraps on an 80-column terminal.
+STATUS_WIDTH = 80
+# The ledger's key for pairs a planned stop caught on their way (not lost).
+UNFINISHED = "unfinished_at_stop"
 # Seqs remembered per kind to count a result written twice (resent to a restarted
 # normalizer before it acknowledged) once; resends are never further apart than this.
 RECENT_SEQS = 65536
@@ -94,7 +98,8 @@ def routes_of(counters: dict[str, int]) -> dict[str, str]:
             pool, _, kind = key[len(ROUTE_PREFIX):].partition(":")
             out[kind] = pool
     return out
-_SUMMED = ("received", "dispatched", "dropped", "processed", "errors", "timed_out", "lost")
+_SUMMED = ("received", "dispatched", "dropped", "processed", "errors", "timed_out", "lost",
+           "inactive")
 
 
 def retire(last: Stats) -> Stats:
@@ -164,6 +169,9 @@ class RunLedger:
     seen_capture: bool = False
     delivered: Delivered = field(default_factory=Delivered)  # results.jsonl, as written
     routes: dict[str, str] = field(default_factory=dict)  # result kind -> pool
+    # Pairs the brokers had counted lost, per pool, when a planned stop began: what they
+    # count lost after it (workers told to leave, a queue never served) is the stop's doing.
+    lost_at_stop: dict[str, int] | None = None
 
     # --- events ---------------------------------------------------------------------
 
@@ -177,6 +185,13 @@ class RunLedger:
 
     def on_normalizer(self, counters: dict[str, int]) -> None:
         self.routes.update(routes_of(counters))
+
+    def stopping(self) -> None:
+        """A planned stop begins (before any process is told): keep what was lost so far.
+        The brokers' stats are at most a stats interval old: a pair lost to a crash in that
+        last interval is reported unfinished at stop."""
+        self.lost_at_stop = {n: p.lost for n, p in (self.stats.pools.items()
+                                                     if self.stats else ())}
 
     def retire_broker(self) -> None:
         """A restarted broker counts from zero: the run's totals keep what it saw."""
@@ -215,7 +230,7 @@ class RunLedger:
             return self.capture().produced
         delivered = self.delivered.by_pool(self.routes)
         accounted = [delivered.get(n, p.processed) + p.dropped + p.timed_out + p.errors
-                     for n, p in s.pools.items()]
+                     + p.inactive for n, p in s.pools.items()]
         return max(self.capture().produced, s.pairs_in, *accounted)
 
     def drained(self) -> bool:
@@ -226,13 +241,16 @@ class RunLedger:
                 and all(p.pending == 0 and p.in_flight == 0 for p in s.pools.values()))
 
     def ledger(self, policies: dict[str, str], restarts: dict[str, int],
-               supervision: dict[str, Any] | None = None, final: bool = True
-               ) -> dict[str, Any]:
+               supervision: dict[str, Any] | None = None, final: bool = True,
+               planned_stop: bool = False) -> dict[str, Any]:
         """Where every pair went: capture's count, then per pool exactly one state each;
         restarts per pool and the supervision timeline (give-ups, retries).
 
         While the run goes on (not final), pairs pending or in flight are in progress, not
-        lost; at its end they can no longer finish."""
+        lost. At its end they can no longer finish: after a planned stop (duration, a stop
+        request, a signal, a drained source) those that no broker counted as lost were
+        merely on their way (capture link, queue, worker, normalizer) and are "unfinished
+        at stop", counted apart; after a failure they are lost."""
         cap = self.capture()
         s = self.stats
         produced = self.produced()
@@ -250,38 +268,64 @@ class RunLedger:
             # Processed: the results written for this pool (known once its results are
             # routed); lost: whatever else is not in a state, as the brokers counted them.
             processed = delivered.get(name, p.processed)
-            ended = processed + p.dropped + p.timed_out + p.errors
-            in_progress = 0 if final else p.pending + p.in_flight
+            ended = processed + p.dropped + p.timed_out + p.errors + p.inactive
+            rest = max(0, produced - ended)
+            if not final:
+                in_progress = min(rest, p.pending + p.in_flight)
+            elif planned_stop:  # what no broker had counted lost when the stop began
+                lost = p.lost if self.lost_at_stop is None else self.lost_at_stop.get(name, 0)
+                in_progress = rest - min(rest, lost)
+            else:
+                in_progress = 0
             out["pools"][name] = {
                 "processed": processed, "dropped_by_policy": p.dropped,
-                "policy": policies.get(name, ""), "timed_out": p.timed_out,
+                "policy": policies.get(name, ""), "dropped_inactive": p.inactive,
+                "timed_out": p.timed_out,
                 "failed": p.errors, "failures": p.failures,
-                "lost": max(0, produced - ended - in_progress),
+                "lost": rest - in_progress,
                 "restarts": restarts.get(name, 0),
             }
             if not final:
                 out["pools"][name]["in_progress"] = in_progress
+            elif planned_stop:
+                out["pools"][name][UNFINISHED] = in_progress
         if supervision is not None:
             out["supervision"] = supervision
         return out
 
-    def status_text(self, up: float, restarts: dict[str, int]) -> str:
-        """One line: time, pairs/s in, per pool processed/s, dropped, restarts."""
+    def status_text(self, up: float, restarts: dict[str, int], width: int = STATUS_WIDTH
+                    ) -> str:
+        """One line of at most `width` columns: seconds up, pairs/s in (pairs in), then per
+        pool workers and results/s, with drops, failures, losses and restarts only when
+        there are any. The widest pools (most workers) come first; those that do not fit
+        are counted ("+2 pools"); `trapflow status` shows them all."""
         s = self.stats
         if s is None:
-            return f"{up:6.1f}s | waiting for stats"
+            return f"{up:6.1f}s | waiting for stats"[:width]
         cap = self.capture()
-        parts = [f"{up:6.1f}s | in {s.rate_in:5.1f}/s ({s.pairs_in})"]
+        head = f"{up:6.1f}s | in {s.rate_in:5.1f}/s ({s.pairs_in})"
         if cap.dropped:
-            parts[0] += f" capture-drop {cap.dropped}"
+            head += f" cap-drop {cap.dropped}"
         if cap.failed:
-            parts[0] += f" capture-fail {cap.failed}"
-        for name, p in s.pools.items():
-            parts.append(
-                f"{name} {p.workers}w {p.rate:5.1f}/s drop {p.dropped} "
-                f"err {p.errors} lost {p.lost} rst {restarts.get(name, 0)}"
-            )
-        return " | ".join(parts)
+            head += f" cap-fail {cap.failed}"
+        pools = []
+        for name, p in sorted(s.pools.items(), key=lambda kv: (-kv[1].workers, kv[0])):
+            flags = "".join(f" {k} {n}" for k, n in (
+                ("drop", p.dropped + p.inactive), ("err", p.errors), ("lost", p.lost),
+                ("rst", restarts.get(name, 0))) if n)
+            state = "" if p.active else " (inactive)"
+            pools.append(f"{name}{state} {p.workers}w {p.rate:.1f}/s{flags}")
+        line = " | ".join([head, *pools])
+        if len(line) <= width:
+            return line
+        room = width - len(f" | +{len(pools)} pools")  # kept for counting those left out
+        line, left = head[:room], 0
+        for part in pools:
+            if len(line) + 3 + len(part) <= room:
+                line += " | " + part
+            else:
+                left += 1
+        return f"{line} | +{left} pools"
 
 
 def totals_text(ledger: dict[str, Any]) -> str:
@@ -294,9 +338,12 @@ def totals_text(ledger: dict[str, Any]) -> str:
     for name, p in ledger["pools"].items():
         kinds = ", ".join(f"{k} {v}" for k, v in p["failures"].items())
         going = f"in progress {p['in_progress']}, " if "in_progress" in p else ""
+        if UNFINISHED in p:
+            going = f"unfinished at stop {p[UNFINISHED]}, "
+        inactive = f", inactive {p['dropped_inactive']}" if p.get("dropped_inactive") else ""
         lines.append(
             f"  {name}: processed {p['processed']}, dropped {p['dropped_by_policy']} "
-            f"({p['policy']}), timed out {p['timed_out']}, failed {p['failed']}"
+            f"({p['policy']}){inactive}, timed out {p['timed_out']}, failed {p['failed']}"
             f"{f' ({kinds})' if kinds else ''}, lost {p['lost']}, {going}"
             f"restarts {p['restarts']}")
     sup = ledger.get("supervision")

@@ -18,7 +18,7 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
@@ -27,25 +27,32 @@ from typing import IO, Any
 import msgspec
 import zmq
 
-from trapflow import messages, registry, rig, run_ledger
+from trapflow import messages, registry, rig, run_ledger, run_summary, sdnotify
 from trapflow.camera import StereoRig
 from trapflow.config import Config
 from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError, TrapflowError
 from trapflow.frame_ring import FrameRing, cleanup_stale, ring_slots, slot_capacity
 from trapflow.logchannel import LogListener, PrivateRotatingFile
 from trapflow.node import NodeSpec, node_main
-from trapflow.ratelog import RateLimitedLog, wire
+from trapflow.ratelog import ConsoleOnce, RateLimitedLog, wire
 from trapflow.run_ledger import RunLedger
 from trapflow.supervisor_state import (
     Action,
+    AddWorker,
     Budget,
+    DurationClock,
     GiveUp,
     Kill,
+    Lifecycle,
     NodePlan,
+    Reconfigure,
+    Refused,
+    Retire,
     Retry,
     Spawn,
     Stop,
     SupervisorState,
+    SwitchPool,
     WorkerGone,
 )
 from trapflow.transport import (
@@ -134,12 +141,15 @@ class Supervisor:
         self.core = SupervisorState((), _budget(cfg))  # the decisions (filled by boot())
         self.ledger_model = RunLedger()  # the counters (status line, status, ledger.json)
         self.stop_requested = False
+        self.planned_stop = False  # a duration, stop request, signal or drained source
         self.exit_code = EXIT_OK
         self.failure: str | None = None  # one line: why the run failed (exit status 1)
         self.t0 = time.monotonic()
         self.rig: StereoRig | None = None  # decided at preflight (trapflow.rig)
         self.rig_origin = ""
+        self.source_where = ""  # what the source reads (a recording's image topics)
         self.ring: FrameRing | None = None
+        self.notifier = sdnotify.Notifier()  # READY/WATCHDOG/STATUS under systemd, else no-op
 
     # --- the process graph --------------------------------------------------------------
 
@@ -153,10 +163,14 @@ class Supervisor:
         self._add(NodeSpec("normalizer", "normalizer", cfg, run, ring=ring), sup.liveness_s)
         if cfg.modem.enabled:
             self._add(NodeSpec("modem", "modem", cfg, run, ring=ring), sup.liveness_s)
-        self._add(NodeSpec("broker", "broker", cfg, run, ring=ring), sup.liveness_s)
+        self._add(NodeSpec("broker", "broker", cfg, run, ring=ring, rig=self.rig),
+                  sup.liveness_s)
         if cfg.events.enabled:
             self._add(NodeSpec("events", "events", cfg, run, ring=ring), sup.liveness_s)
         for pool, pcfg in cfg.pools.items():
+            if pcfg.count:  # runtime control (trapflow pool / param) knows the pools run
+                self.core.add_pool(pool, pcfg.count, pcfg.policy, pcfg.params,
+                                   worker_liveness(pcfg.timeout_s, sup.heartbeat_interval_s))
             for i in range(pcfg.count):
                 spec = NodeSpec("worker", f"worker:{pool}:{i}", cfg, run, pool=pool, index=i,
                                 rig=self.rig, ring=ring)
@@ -172,7 +186,7 @@ class Supervisor:
 
     def _add(self, spec: NodeSpec, liveness_s: float) -> None:
         self.children.append(Child(spec))
-        self.core.add(NodePlan(spec.name, spec.role, liveness_s))
+        self.core.add(NodePlan(spec.name, spec.role, liveness_s, pool=spec.pool))
 
     def _spawn(self, child: Child, now: float) -> None:
         child.proc = self.mp.Process(
@@ -214,8 +228,10 @@ class Supervisor:
             self._wait_started()  # every consumer is ready before the first pair exists
             self._spawn(self._child("capture"), time.monotonic())
             self._wait_started()
+            self.notifier.ready(f"running in {self.run_dir}")
             self._supervise()
         finally:
+            self.notifier.stopping()
             if self.children:
                 self._stop_all()
                 self._judge()
@@ -257,7 +273,7 @@ class Supervisor:
             why = str(exc)  # source errors mostly name their kind already
             prefix = "" if why.startswith(f"{c.source.kind}:") else f"{c.source.kind}: "
             raise StartupError(f"source {prefix}{why}") from None
-        self.rig, self.rig_origin = found.rig, found.origin
+        self.rig, self.rig_origin, self.source_where = found.rig, found.origin, found.where
         for pool, pcfg in self.cfg.pools.items():
             if pcfg.count > 0:
                 try:
@@ -275,7 +291,8 @@ class Supervisor:
         c = self.cfg
         if c.frames.transport != "shm":
             return None
-        pools = [p for p in c.pools.values() if p.count > 0 and not p.remote]
+        # A remote pool's pending pairs hold slots too (its remote workers get copies).
+        pools = [p for p in c.pools.values() if p.count > 0 or p.remote]
         slots = ring_slots(pools, c.frames.preroll_slots, c.frames.spare_slots)
         # Sized from the rig: capture sends only pairs of the rig's size, so every one fits.
         w, h = self.rig.size if self.rig is not None else (c.source.width, c.source.height)
@@ -287,6 +304,7 @@ class Supervisor:
         def _stop(signo: int, _frame: Any) -> None:
             if not self.stop_requested:
                 log.info("received %s, stopping", signal.Signals(signo).name)
+                self.planned_stop = True
             self.stop_requested = True
 
         signal.signal(signal.SIGINT, _stop)
@@ -315,25 +333,36 @@ class Supervisor:
                 return
 
     def _supervise(self) -> None:
-        end = self.t0 + self.duration if self.duration else None
+        # --duration counts from the first pair (capture beats at once when it sends it).
+        clock = DurationClock(self.duration or None, time.monotonic())
         next_status = time.monotonic() + 1.0
         drain_until: float | None = None
         while not self.stop_requested:
             self._poll(0.1)
             now = time.monotonic()
             self._watch(now)
-            if end is not None and now >= end:
+            if clock.due(now, self.ledger_model.capture().produced):
                 log.info("duration of %g s reached", self.duration)
+                self.planned_stop = True
                 break
             if self.core.node("capture").finished and drain_until is None:
                 log.info("source exhausted; draining the pools")
                 drain_until = now + max(p.timeout_s for p in self.cfg.pools.values()) + 2
             if drain_until is not None and (self.ledger_model.drained() or now > drain_until):
+                self.planned_stop = True
                 break
             if now >= next_status:
                 next_status = now + 1.0
                 self._read_results()
                 self._status_line()
+                self._notify_systemd()
+                self._reconcile_pools()
+
+    def _notify_systemd(self) -> None:
+        """Once a second under systemd: the watchdog's keep-alive and the status line."""
+        if self.notifier.enabled:
+            self.notifier.notify(**({"WATCHDOG": 1} if self.notifier.watchdog_s else {}),
+                                 STATUS=self.status_text())
 
     def _child(self, role: str) -> Child:
         return next(c for c in self.children if c.spec.role == role)
@@ -433,12 +462,26 @@ class Supervisor:
             elif isinstance(a, Stop):
                 log.info("stopping: %s", a.reason)
                 self.stop_requested = True
+            elif isinstance(a, AddWorker):
+                self._add_worker(a)
+            elif isinstance(a, Retire):
+                log.info("retiring %s: %s", a.name, a.reason)
+                c = self._named(a.name)
+                if c.alive():
+                    c.proc.terminate()  # finishes its pair, says goodbye to the broker
+            elif isinstance(a, SwitchPool):
+                self._switch_pool(a.pool, a.active, a.policy, a.params)
+            elif isinstance(a, Reconfigure):
+                self._reconfigure(a)
 
     def _respawn(self, c: Child, now: float) -> None:
         """A restart: what the dead process had counted is kept, then a new one starts."""
         spec = c.spec
         if spec.role == "broker":
             self.ledger_model.retire_broker()
+            # Pools as runtime control left them (policies); activity is reconciled by
+            # _reconcile_pools once its first stats arrive.
+            spec = replace(spec, cfg=self.cfg)
         if spec.role == "capture":
             # Numbering goes on past any pair the dead capture may have sent after its last
             # heartbeat: a pool sees a gap, never a repeated seq.
@@ -448,6 +491,63 @@ class Supervisor:
             spec = replace(spec, first_seq=self.ledger_model.retire_capture(margin))
         c.spec = replace(spec, restarted=True)
         self._spawn(c, now)
+
+    def _pool_cfg(self, pool: str, **changes: Any) -> Config:
+        """The run's config with one pool's fields changed (new workers start with it)."""
+        pools = dict(self.cfg.pools)
+        pools[pool] = msgspec.structs.replace(pools[pool], **changes)
+        self.cfg = msgspec.structs.replace(self.cfg, pools=pools)
+        return self.cfg
+
+    def _add_worker(self, a: AddWorker) -> None:
+        """A pool grew: a new child (or a retired one's slot again), spawned by the Spawn
+        that follows."""
+        self.cfg = self._pool_cfg(a.pool, count=max(self.cfg.pools[a.pool].count, a.index + 1))
+        spec = NodeSpec("worker", a.name, self.cfg, self.run_dir, pool=a.pool, index=a.index,
+                        rig=self.rig, ring=self.ring.name if self.ring is not None else "")
+        for c in self.children:
+            if c.name == a.name:
+                c.spec = spec
+                return
+        self.children.append(Child(spec))
+
+    def _switch_pool(self, pool: str, active: bool | None, policy: str | None,
+                     params: Mapping[str, Any] | None = None) -> None:
+        if policy is not None:
+            self._pool_cfg(pool, policy=policy)
+        try:
+            self.to_broker.send(messages.encode(messages.PoolSwitch(
+                pool=pool, active=active, policy=policy,
+                params=dict(params) if params is not None else None)), zmq.NOBLOCK)
+        except zmq.Again:
+            log.warning("could not tell the broker about pool %s now; status reconciles it",
+                        pool)
+
+    def _reconcile_pools(self) -> None:
+        """A restarted broker starts every pool active: tell it again which are not."""
+        stats = self.stats
+        for name, p in self.core.pools.items():
+            seen = stats.pools.get(name) if stats is not None else None
+            want = p.state == Lifecycle.ACTIVE
+            if seen is not None and seen.active != want:
+                self._switch_pool(name, want, None)
+
+    def _reconfigure(self, a: Reconfigure) -> None:
+        """New parameters: the worker restarts with them (its exit is respawned at once)."""
+        self._pool_cfg(a.pool, params=dict(a.params))
+        c = self._named(a.name)
+        c.spec = replace(c.spec, cfg=self.cfg)
+        if a.restart and c.alive() and self.core.node(a.name).reconfiguring:
+            c.proc.terminate()
+
+    def _reconfigurable(self, pool: str) -> bool:
+        """Whether the pool's plugin takes new parameters in place (its class says so)."""
+        try:
+            return bool(registry.resolve(self.cfg.plugin_of(pool)).reconfigurable)
+        except Exception as exc:  # the workers report a plugin that cannot load
+            log.warning("pool %s: cannot tell whether its plugin reconfigures in place (%s); "
+                        "restarting its workers instead", pool, exc)
+            return False
 
     def _tell_broker_gone(self, c: Child, reason: str) -> None:
         ident = messages.worker_identity(c.spec.pool, c.spec.index, c.proc.pid)
@@ -487,7 +587,8 @@ class Supervisor:
         """Give-ups and retries over the run, and their timeline (seconds since start)."""
         counts = self.core.counts()
         return {"gave_up": counts["gave_up"], "retries": counts["retry"],
-                "capped": counts["capped"],
+                "capped": counts["capped"], "control": counts["control"],
+                "pools": self.core.pool_view(),
                 "timeline": [{"t_s": round(e.t - self.t0, 1), "node": e.node, "kind": e.kind,
                               "reason": e.reason} for e in self.core.timeline]}
 
@@ -507,10 +608,35 @@ class Supervisor:
             self.control.send(msgspec.json.encode({"error": str(exc)}))
             return
         if isinstance(req, messages.StopRequest):
+            self.planned_stop = self.planned_stop or not self.stop_requested
             self.stop_requested = True
             self.control.send(msgspec.json.encode({"stopping": True}))
+        elif isinstance(req, (messages.PoolRequest, messages.ParamRequest)):
+            self.control.send(msgspec.json.encode(self._change(req)))
         else:
             self.control.send(msgspec.json.encode(self.status()))
+
+    def _change(self, req: messages.PoolRequest | messages.ParamRequest) -> dict[str, Any]:
+        """A runtime change: the core decides, this applies; the reply says what changed."""
+        now = time.monotonic()
+        try:
+            if isinstance(req, messages.ParamRequest):
+                in_place = req.pool in self.core.pools and self._reconfigurable(req.pool)
+                actions = self.core.set_param(req.pool, req.key, req.value, now, in_place)
+            elif req.count is not None:
+                actions = self.core.set_count(req.pool, req.count, now)
+            elif req.policy is not None:
+                actions = self.core.set_policy(req.pool, req.policy, now)
+            else:
+                actions = self.core.set_active(req.pool, bool(req.active), now)
+        except Refused as exc:
+            log.warning("refused a control change: %s", exc)
+            return {"error": str(exc)}
+        change = self.core.timeline[-1]
+        log.info("control: %s %s", change.node, change.reason)
+        self._act(actions, now)
+        return {"changed": change.node, "change": change.reason,
+                "pool": self.core.pool_view()[req.pool]}
 
     def _pool_restarts(self) -> dict[str, int]:
         out: dict[str, int] = {}
@@ -534,7 +660,8 @@ class Supervisor:
     def ledger(self, final: bool = True) -> dict[str, Any]:
         """Where every pair went: capture's count, then per pool exactly one state each."""
         return self.ledger_model.ledger({n: p.policy for n, p in self.cfg.pools.items()},
-                                        self._pool_restarts(), self.supervision(), final)
+                                        self._pool_restarts(), self.supervision(), final,
+                                        planned_stop=self.planned_stop)
 
     def _print_totals(self) -> None:
         if self.out.isatty():
@@ -548,7 +675,12 @@ class Supervisor:
         (self.run_dir / "ledger.json").write_text(json.dumps(ledger, indent=1) + "\n")
         if self.stats is not None:
             self.out.write(run_ledger.totals_text(ledger))
-        self.out.write(f"results: {self.run_dir / self.cfg.normalizer.results_file}\n")
+        c = self.cfg
+        self.out.write("".join(f"{line}\n" for line in run_summary.summary_lines(
+            self.run_dir / c.normalizer.results_file,
+            sum(self.ledger_model.delivered.counts.values()), self.run_dir / c.outbox.path,
+            self.run_dir / c.events.folder if c.events.enabled else None, c.source.kind,
+            self.source_where, c.outbox)))
         self.out.flush()
 
     def _judge(self) -> None:
@@ -573,6 +705,8 @@ class Supervisor:
     def _stop_all(self) -> None:
         """The stop ladder: ask (SIGTERM) by role in order, wait, kill what is left, join."""
         self.core.stop("stop ladder")
+        if self.planned_stop:
+            self.ledger_model.stopping()  # pairs on their way from here are not lost
         timeout = self.cfg.supervisor.stop_timeout_s
         for role in STOP_ORDER:
             group = [c for c in self.children if c.spec.role == role and c.alive()]
@@ -604,6 +738,7 @@ class Supervisor:
         fileh.setFormatter(fmt)
         errh = logging.StreamHandler(sys.stderr)
         errh.setLevel(logging.WARNING)
+        errh.addFilter(ConsoleOnce())  # a warning every worker gives, said once
         errh.setFormatter(logging.Formatter("%(levelname)s %(message)s"))
         # Nodes' records arrive on the log socket; the supervisor's own go straight out.
         self.listener = LogListener(self.ctx, self.endpoints.log, [fileh, errh])

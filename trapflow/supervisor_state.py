@@ -9,14 +9,24 @@ back-off, and what happens when the budget is spent: an ordinary node is given u
 retried after a cool-down with a fresh budget; an essential node (broker, capture,
 normalizer) is never abandoned while the supervisor lives, it keeps restarting at the
 capped back-off. Every give-up and retry is kept in a timeline for status and the ledger.
+
+Runtime control (`trapflow pool`, `trapflow param`) is decided here too: per pool its
+lifecycle (active/inactive, moved as a ROS 2 lifecycle node moves: deactivate only from
+active, activate only from inactive), its worker count, policy and parameters. A command
+that cannot apply raises Refused (with what was expected and the fix); one that applies
+returns actions (add or retire workers, tell the broker, restart the pool's workers with
+new parameters) and one "control" entry in the timeline.
 """
 
 from __future__ import annotations
 
 import enum
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
+
+from trapflow.policy import parse_policy
 
 # Roles the pipeline cannot do without: never given up while the supervisor lives.
 ESSENTIAL_ROLES = frozenset({"broker", "capture", "normalizer"})
@@ -24,6 +34,8 @@ ESSENTIAL_ROLES = frozenset({"broker", "capture", "normalizer"})
 STARTUP_TIMEOUT_S = 60.0
 # Timeline entries kept for status and the ledger (the oldest go first).
 MAX_TIMELINE = 1000
+# Workers one pool may have (config's PoolConfig.count bound).
+MAX_POOL_COUNT = 64
 
 
 class Lifecycle(str, enum.Enum):
@@ -65,6 +77,7 @@ class NodePlan:
     role: str
     liveness_s: float
     startup_s: float = STARTUP_TIMEOUT_S
+    pool: str = ""  # a worker's pool
 
     @property
     def essential(self) -> bool:
@@ -122,7 +135,52 @@ class Stop:
     reason: str
 
 
-Action = Spawn | Kill | WorkerGone | GiveUp | Retry | Stop
+@dataclass(frozen=True)
+class AddWorker:
+    """A pool grew: create worker `index` of `pool` (a Spawn of `name` follows)."""
+
+    name: str
+    pool: str
+    index: int
+
+
+@dataclass(frozen=True)
+class Retire:
+    """A pool shrank: stop this worker gracefully; it is not restarted."""
+
+    name: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class SwitchPool:
+    """Tell the broker: the pool is (in)active, takes a new policy, or new parameters for
+    its workers to apply in place (None: unchanged)."""
+
+    pool: str
+    active: bool | None = None
+    policy: str | None = None
+    params: Mapping[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class Reconfigure:
+    """This worker's pool has new parameters: every later start uses them, and with
+    `restart` the running process is stopped now and started again (outside its restart
+    budget); without, it applies them in place (a SwitchPool with the params follows)."""
+
+    name: str
+    pool: str
+    params: Mapping[str, Any]
+    restart: bool = True
+
+
+Action = Spawn | Kill | WorkerGone | GiveUp | Retry | Stop | AddWorker | Retire | SwitchPool \
+    | Reconfigure
+
+
+class Refused(ValueError):
+    """A control command that cannot apply now; the message says why and what would."""
 
 
 @dataclass(frozen=True)
@@ -131,7 +189,7 @@ class Event:
 
     t: float
     node: str
-    kind: str  # "gave_up", "retry", "capped"
+    kind: str  # "gave_up", "retry", "capped", "control"
     reason: str
 
 
@@ -156,6 +214,12 @@ class NodeState:
     gave_up: int = 0
     retried: int = 0
     finished: bool = False  # ended on purpose (a finite source exhausted)
+    retired: bool = False  # its pool shrank: stopped on purpose, never restarted
+    reconfiguring: bool = False  # restarted on purpose with new parameters
+
+    @property
+    def pool(self) -> str:
+        return self.plan.pool
 
     @property
     def name(self) -> str:
@@ -167,6 +231,24 @@ class NodeState:
             self.plan.liveness_s
 
 
+@dataclass
+class PoolState:
+    """A pool as runtime control sees it: lifecycle, size, policy, parameters."""
+
+    name: str
+    count: int
+    policy: str
+    params: dict[str, Any]
+    liveness_s: float
+    state: Lifecycle = Lifecycle.ACTIVE
+    changes: int = 0
+
+
+def worker_name(pool: str, index: int) -> str:
+    """A worker node's name (its index within the pool)."""
+    return f"worker:{pool}:{index}"
+
+
 class SupervisorState:
     """Lifecycle, liveness and restart decisions for every node of one pipeline."""
 
@@ -174,8 +256,9 @@ class SupervisorState:
         self.nodes = {p.name: NodeState(p) for p in plans}
         self.budget = budget
         self.timeline: deque[Event] = deque(maxlen=MAX_TIMELINE)
-        self._counts = {"gave_up": 0, "retry": 0, "capped": 0}
+        self._counts = {"gave_up": 0, "retry": 0, "capped": 0, "control": 0}
         self.stopping = False
+        self.pools: dict[str, PoolState] = {}
 
     def add(self, plan: NodePlan) -> None:
         """One more node to supervise (not spawned yet)."""
@@ -215,6 +298,14 @@ class SupervisorState:
         actions: list[Action] = []
         if n.plan.role == "worker":
             actions.append(WorkerGone(name, f"process exited with status {code}"))
+        if n.retired:
+            n.finished, n.state, n.reason = True, Lifecycle.FINALIZED, "retired: pool shrank"
+            return actions
+        if n.reconfiguring:  # stopped on purpose: back at once, outside the budget
+            n.reconfiguring = False
+            n.state, n.reason = Lifecycle.INACTIVE, "restarting with new parameters"
+            n.restart_total += 1
+            return [*actions, Spawn(name, n.restart_total)]
         b = self.budget
         while n.restarts and now - n.restarts[0] > b.window_s:
             n.restarts.popleft()
@@ -283,6 +374,114 @@ class SupervisorState:
         self.stopping = True
         return [Stop(reason)]
 
+    # --- runtime control ----------------------------------------------------------------
+
+    def add_pool(self, name: str, count: int, policy: str, params: Mapping[str, Any],
+                 liveness_s: float) -> None:
+        """A pool started at boot (its workers are added as nodes by the caller)."""
+        self.pools[name] = PoolState(name, count, policy, dict(params), liveness_s)
+
+    def _pool(self, name: str) -> PoolState:
+        p = self.pools.get(name)
+        if p is None:
+            started = ", ".join(sorted(self.pools)) or "none"
+            raise Refused(f"no pool {name!r} in this run (pools started: {started}); "
+                          "a pool with count 0 at start has no broker queue: start it "
+                          "with a count of at least 1")
+        if self.stopping:
+            raise Refused(f"pool {name!r}: the pipeline is stopping; no changes now")
+        return p
+
+    def _control(self, now: float, pool: PoolState, what: str) -> None:
+        pool.changes += 1
+        self._note(now, f"pool:{pool.name}", "control", what)
+
+    def set_count(self, name: str, count: int, now: float) -> list[Action]:
+        """Grow or shrink a pool to `count` workers (the highest indices go first)."""
+        p = self._pool(name)
+        if not 1 <= count <= MAX_POOL_COUNT:
+            raise Refused(f"pool {name!r}: count must be 1..{MAX_POOL_COUNT}, got {count}; "
+                          "to stop its work without losing the pool, use --deactivate")
+        if count == p.count:
+            raise Refused(f"pool {name!r} already has {count} workers")
+        actions: list[Action] = []
+        for i in range(p.count, count):
+            wname = worker_name(name, i)
+            n = self.nodes.get(wname)
+            if n is not None and n.running:  # still stopping from an earlier shrink
+                raise Refused(f"pool {name!r}: {wname} is still stopping; try again in a "
+                              "few seconds")
+            self.nodes[wname] = NodeState(NodePlan(wname, "worker", p.liveness_s,
+                                                   pool=name))
+            actions += [AddWorker(wname, name, i), Spawn(wname, 0)]
+        for i in range(count, p.count):
+            wname = worker_name(name, i)
+            n = self.nodes[wname]
+            n.retired, n.restart_at, n.retry_at = True, None, None
+            if n.running:
+                actions.append(Retire(wname, f"pool {name} shrank to {count}"))
+            else:
+                n.finished, n.state = True, Lifecycle.FINALIZED
+        self._control(now, p, f"count {p.count} -> {count}")
+        p.count = count
+        return actions
+
+    def set_active(self, name: str, active: bool, now: float) -> list[Action]:
+        """activate/deactivate, as a ROS 2 lifecycle node moves between active and inactive:
+        an inactive pool's workers keep their models loaded and get no pairs."""
+        p = self._pool(name)
+        want = Lifecycle.ACTIVE if active else Lifecycle.INACTIVE
+        if p.state == want:
+            verb = "activate" if active else "deactivate"
+            raise Refused(f"pool {name!r} is {p.state}: {verb} is a transition from "
+                          f"{'inactive' if active else 'active'} (ROS 2 lifecycle); "
+                          "nothing to do")
+        self._control(now, p, f"{'activated' if active else 'deactivated'} "
+                              f"(was {p.state})")
+        p.state = want
+        return [SwitchPool(name, active=active)]
+
+    def set_policy(self, name: str, policy: str, now: float) -> list[Action]:
+        """A new queueing policy for the pool's pending pairs (the broker applies it)."""
+        p = self._pool(name)
+        try:
+            parse_policy(policy)
+        except ValueError as exc:
+            raise Refused(f"pool {name!r}: {exc}") from None
+        if policy == p.policy:
+            raise Refused(f"pool {name!r} already has policy {policy!r}")
+        self._control(now, p, f"policy {p.policy} -> {policy}")
+        p.policy = policy
+        return [SwitchPool(name, policy=policy)]
+
+    def set_param(self, name: str, key: str, value: Any, now: float,
+                  in_place: bool = False) -> list[Action]:
+        """One plugin parameter changed. A plugin that can be configured again
+        (`in_place`) gets the pool's new parameters between pairs; otherwise every worker
+        of the pool restarts with them."""
+        p = self._pool(name)
+        if key in p.params and p.params[key] == value:
+            raise Refused(f"pool {name!r}: {key} is already {value!r}")
+        before = p.params.get(key, "(default)")
+        p.params[key] = value
+        how = "reconfigured in place" if in_place else "restarting workers"
+        self._control(now, p, f"param {key}: {before!r} -> {value!r}; {how}")
+        actions: list[Action] = []
+        for i in range(p.count):
+            n = self.nodes[worker_name(name, i)]
+            actions.append(Reconfigure(n.name, name, dict(p.params), restart=not in_place))
+            if n.running and not in_place:
+                n.reconfiguring = True
+        if in_place:
+            actions.append(SwitchPool(name, params=dict(p.params)))
+        return actions
+
+    def pool_view(self) -> dict[str, dict[str, Any]]:
+        """Every pool's control state, for status and the ledger."""
+        return {p.name: {"state": str(p.state), "count": p.count, "policy": p.policy,
+                         "params": dict(p.params), "changes": p.changes}
+                for p in self.pools.values()}
+
     # --- start-up -------------------------------------------------------------------------
 
     def start_problem(self, names: Iterable[str], now: float) -> str | None:
@@ -312,3 +511,25 @@ class SupervisorState:
     def counts(self) -> dict[str, int]:
         """Give-ups, retries and capped restarts over the run (the timeline keeps the last)."""
         return dict(self._counts)
+
+
+@dataclass
+class DurationClock:
+    """When `--duration` ends a run: that long after the first pair capture sent (boot and
+    model loading are not counted), or, when no pair comes at all, that long after capture
+    became active (a source that never delivers still ends)."""
+
+    duration: float | None
+    active_at: float  # capture active (monotonic seconds)
+    end: float | None = None
+
+    def due(self, now: float, produced: int) -> bool:
+        """Whether the run should stop now, given the pairs capture has sent so far."""
+        if self.duration is None:
+            return False
+        if self.end is None:
+            if produced > 0:
+                self.end = now + self.duration
+            elif now >= self.active_at + self.duration:
+                self.end = now
+        return self.end is not None and now >= self.end

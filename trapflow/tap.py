@@ -7,14 +7,19 @@ PUB sockets drop for slow subscribers, so a tap never slows the pipeline.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import zmq
 
 from trapflow import config as configmod
-from trapflow import messages
+from trapflow import jpeg, messages
 from trapflow.errors import ProtocolError, StartupError
 from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
+
+# Nothing for this long: say once that the tap is waiting (no pipeline may be running yet).
+WAITING_NOTICE_S = 1.0
+JPEG_QUALITY = 90  # of frames saved from a raw pipeline
 
 TOPICS = {
     "results": (messages.TOPIC_RESULT,),
@@ -50,8 +55,12 @@ def describe(frames: list[bytes]) -> str:
 
 def run_tap(what: str, run_dir: Path, endpoints: list[str], count: int | None = None,
             save_frames: Path | None = None, timeout_s: float | None = None,
-            cfg: configmod.Config | None = None) -> int:
-    """Print tap messages until count, timeout or Ctrl-C; return how many were printed."""
+            cfg: configmod.Config | None = None,
+            notice: Callable[[str], None] | None = None) -> int:
+    """Print tap messages until count, timeout or Ctrl-C; return how many were printed.
+
+    When nothing comes for WAITING_NOTICE_S, `notice` is told once that the tap is waiting
+    (and where), so a tap started before its pipeline does not look hung."""
     topics = list(TOPICS[what])
     if save_frames is not None:
         save_frames.mkdir(parents=True, exist_ok=True)
@@ -63,7 +72,9 @@ def run_tap(what: str, run_dir: Path, endpoints: list[str], count: int | None = 
         endpoints = [ep.tap, ep.results_tap]
     ctx = new_context()
     n = 0
-    deadline = time.monotonic() + timeout_s if timeout_s else None
+    started = time.monotonic()
+    deadline = started + timeout_s if timeout_s else None
+    waiting_said = notice is None
     try:
         sub = open_socket(ctx, SocketSpec(zmq.SUB, endpoints[0], subscribe=tuple(topics),
                                           rcvhwm=100))
@@ -74,6 +85,10 @@ def run_tap(what: str, run_dir: Path, endpoints: list[str], count: int | None = 
             if deadline is not None and wait_ms == 0:
                 break
             if not sub.poll(min(wait_ms, 200), zmq.POLLIN):
+                if not waiting_said and n == 0 and time.monotonic() - started >= WAITING_NOTICE_S:
+                    assert notice is not None
+                    notice(f"waiting for a pipeline: nothing yet from {', '.join(endpoints)}")
+                    waiting_said = True
                 continue
             frames = sub.recv_multipart()
             try:
@@ -81,10 +96,11 @@ def run_tap(what: str, run_dir: Path, endpoints: list[str], count: int | None = 
             except ProtocolError as exc:
                 line = f"malformed tap message: {exc}"
             if save_frames is not None and frames[0] == messages.TOPIC_IMAGE and len(frames) == 4:
-                p = messages.decode_pair_header(frames[1])
-                ext = "jpg" if p.encoding == "jpeg" else "bgr"
-                (save_frames / f"{p.seq:08d}_left.{ext}").write_bytes(frames[2])
-                (save_frames / f"{p.seq:08d}_right.{ext}").write_bytes(frames[3])
+                # Photos on disk: a raw pair (the default ring) is encoded here, once.
+                p, left, right = jpeg.to_jpeg_pair(messages.decode_pair_header(frames[1]),
+                                                   frames[2], frames[3], JPEG_QUALITY)
+                (save_frames / f"{p.seq:08d}_left.jpg").write_bytes(left)
+                (save_frames / f"{p.seq:08d}_right.jpg").write_bytes(right)
             print(line, flush=True)
             n += 1
     except KeyboardInterrupt:

@@ -1,6 +1,7 @@
 """The only module that creates sockets: an endpoint table, SocketSpec -> open socket,
 and the local links that carry shared-memory descriptors on one host, with one poller
-over both.
+over both. It also loads CURVE keys, and starts the ZAP authenticator and the handshake
+monitor of a socket that remote workers reach.
 
 Sockets are opened inside the process that uses them (never inherited across a
 fork), from that process's single context, with linger 0 so shutdown never hangs.
@@ -17,6 +18,7 @@ import stat
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import zmq
 
@@ -89,6 +91,11 @@ def _ipc_url(run_dir: Path, fname: str) -> str:
     return f"ipc://{path}"
 
 
+def log_endpoint(run_dir: Path) -> str:
+    """Where a process's nodes send their log records: log.sock in its run directory."""
+    return _ipc_url(run_dir, _LOCAL_ENDPOINTS["log"])
+
+
 def make_private(run_dir: Path) -> None:
     """Make run_dir (created if missing) its owner's alone, whatever the umask."""
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -156,6 +163,18 @@ _BOUND_MAX_MSG_BYTES: dict[int, int] = {
 
 
 @dataclass(frozen=True)
+class CurveKeys:
+    """This side's CURVE key pair (Z85), and for a client the server's public key."""
+
+    public: bytes
+    secret: bytes
+    server: bytes | None = None  # None: this side is the server
+
+    def __repr__(self) -> str:  # never print a secret key into a log
+        return f"CurveKeys(public={self.public!r}, server={self.server!r})"
+
+
+@dataclass(frozen=True)
 class SocketSpec:
     """Everything needed to open one socket."""
 
@@ -170,6 +189,7 @@ class SocketSpec:
     # Largest message part taken from a peer; None: a bound socket's default for its kind.
     max_msg_bytes: int | None = None
     xpub_manual: bool = False  # XPUB: the process decides which subscriptions count (TapGate)
+    curve: CurveKeys | None = None  # CURVE encryption and authentication
 
 
 def open_socket(ctx: zmq.Context[zmq.Socket[bytes]], spec: SocketSpec) -> zmq.Socket[bytes]:
@@ -191,6 +211,13 @@ def open_socket(ctx: zmq.Context[zmq.Socket[bytes]], spec: SocketSpec) -> zmq.So
         sock.setsockopt(zmq.XPUB_MANUAL, 1)
     for topic in spec.subscribe:
         sock.setsockopt(zmq.SUBSCRIBE, topic)
+    if spec.curve is not None:
+        sock.setsockopt(zmq.CURVE_PUBLICKEY, spec.curve.public)
+        sock.setsockopt(zmq.CURVE_SECRETKEY, spec.curve.secret)
+        if spec.curve.server is None:
+            sock.setsockopt(zmq.CURVE_SERVER, 1)
+        else:
+            sock.setsockopt(zmq.CURVE_SERVERKEY, spec.curve.server)
     try:
         if spec.bind:
             sock.bind(spec.endpoint)
@@ -255,6 +282,94 @@ class TapGate:
     def wanted(self, topic: bytes) -> bool:
         """Somebody reads topic (subscribed to a prefix of it)."""
         return any(topic.startswith(p) for p in self.readers)
+
+
+# --- CURVE: keys, the authenticator, the handshake monitor ------------------------------
+
+SERVER_KEY_NAME = "server.key"  # the pipeline's public key, in a remote worker's key folder
+CLIENT_SECRET_NAME = "client.key_secret"  # a remote worker's own key pair, in the same folder
+
+
+def load_key_file(path: Path, secret: bool) -> tuple[bytes, bytes | None]:
+    """(public, secret) from a key file made by zmq.auth; StartupError naming the fix."""
+    import zmq.auth
+
+    kind = "secret key file (NAME.key_secret)" if secret else "public key file (NAME.key)"
+    if not path.is_file():
+        raise StartupError(f"expected a CURVE {kind} at {path}, got no such file; make one "
+                           f"with `trapflow keys generate DIR`")
+    try:
+        public, sec = zmq.auth.load_certificate(str(path))
+    except (OSError, ValueError) as exc:
+        raise StartupError(f"expected a CURVE {kind} at {path}, got: {exc}; "
+                           f"make one with `trapflow keys generate DIR`") from None
+    if secret and not sec:
+        raise StartupError(f"expected a CURVE {kind} at {path}, got a public key only; "
+                           f"give the .key_secret file of `trapflow keys generate`")
+    return public, sec
+
+
+def server_keys(secret_file: Path) -> CurveKeys:
+    """The pipeline's CURVE server keys (network.remote.server_key)."""
+    public, secret = load_key_file(secret_file, secret=True)
+    assert secret is not None
+    return CurveKeys(public, secret)
+
+
+def client_keys(folder: Path) -> CurveKeys:
+    """A remote worker's keys: its own pair and the pipeline's public key, in one folder."""
+    public, secret = load_key_file(folder / CLIENT_SECRET_NAME, secret=True)
+    server, _ = load_key_file(folder / SERVER_KEY_NAME, secret=False)
+    assert secret is not None
+    return CurveKeys(public, secret, server)
+
+
+def start_authenticator(ctx: zmq.Context[zmq.Socket[bytes]], authorized: Path) -> Any:
+    """ZAP for every CURVE server socket of ctx: only the public keys in `authorized` pass.
+
+    zmq.auth's ThreadAuthenticator answers handshakes from a thread of its own; it sees
+    keys, never frames.
+    """
+    from zmq.auth.thread import ThreadAuthenticator
+
+    if not authorized.is_dir():
+        raise StartupError(f"network.remote.authorized_keys: expected a folder of public "
+                           f"keys (*.key), got {authorized} (not a folder)")
+    auth = ThreadAuthenticator(ctx)
+    auth.start()
+    auth.configure_curve(domain="*", location=str(authorized))
+    return auth
+
+
+# Handshake failures of a CURVE server socket, as the reason they are counted under.
+HANDSHAKE_REFUSALS = {
+    int(zmq.EVENT_HANDSHAKE_FAILED_AUTH): "remote_unauthorised_key",
+    int(zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL): "remote_bad_handshake",
+    int(zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL): "remote_bad_handshake",
+}
+
+
+def open_monitor(sock: zmq.Socket[bytes]) -> zmq.Socket[bytes]:
+    """A PAIR socket that receives sock's refused handshakes (zmq's socket monitor)."""
+    events = 0
+    for ev in HANDSHAKE_REFUSALS:
+        events |= ev
+    mon: zmq.Socket[bytes] = sock.get_monitor_socket(events)
+    mon.setsockopt(zmq.LINGER, 0)
+    return mon
+
+
+def read_monitor(mon: zmq.Socket[bytes]) -> list[str]:
+    """The refusal reasons waiting on a monitor socket (never blocks)."""
+    from zmq.utils.monitor import parse_monitor_message
+
+    out: list[str] = []
+    while zmq_readable(mon):
+        event = parse_monitor_message(mon.recv_multipart())
+        reason = HANDSHAKE_REFUSALS.get(int(event["event"]))
+        if reason is not None:
+            out.append(reason)
+    return out
 
 
 def new_context() -> zmq.Context[zmq.Socket[bytes]]:

@@ -18,7 +18,7 @@ import numpy as np
 import psutil
 import zmq
 
-from trapflow import messages, registry
+from trapflow import jpeg, messages, registry
 from trapflow.errors import ProtocolError, WorkerError
 from trapflow.frame_ring import RingError, RingReader
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec, freeze_heap
@@ -35,12 +35,14 @@ SEND_WAIT_MS = 1000  # how long a Done may wait for room in a busy broker's queu
 STAMPED = (messages.StereoIR, messages.StereoVO, messages.Tags)
 
 
-def decode_image(frame: Any, pair: messages.StereoPair, side: str) -> np.ndarray:
-    """A BGR uint8 image from a JPEG or raw frame (or ring view); ProtocolError if not one."""
+def decode_image(frame: Any, pair: messages.StereoPair, side: str,
+                 grey: bool = False) -> np.ndarray:
+    """A BGR uint8 image from a JPEG or raw frame (or ring view), grey (HxW) from a JPEG when
+    the plugin asks for grey; ProtocolError if not one."""
     buf = _as_bytes(frame)
     if pair.encoding == "raw":
         return buf.reshape(pair.height, pair.width, 3)
-    img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+    img = jpeg.decode(buf, grey=grey)  # libjpeg-turbo (simplejpeg), OpenCV as the fallback
     if img is None:
         raise ProtocolError(f"pair {pair.seq}: {side} image is not a decodable JPEG "
                             f"({buf.size} bytes)")
@@ -78,16 +80,13 @@ class WorkerNode(Node):
         super().__init__(spec)
         self.pool = spec.pool
         self.pcfg = self.cfg.pools[self.pool]
-        self.ident = messages.worker_identity(self.pool, spec.index, os.getpid())
+        self.ident = self._identity()
         # Local workers of the ring get descriptors over a local link; others, bytes over zmq.
         self.local = bool(spec.ring) and not self.pcfg.remote
         self.link = LinkClient(self.endpoints.workers_link)
         self.dealer: zmq.Socket[bytes] | None = None
         if not self.local:
-            self.dealer = open_socket(
-                self.ctx,
-                SocketSpec(zmq.DEALER, self.endpoints.workers, identity=self.ident.encode()),
-            )
+            self.dealer = self._open_dealer()
         self.plugin: Worker | None = None
         self.rig = spec.the_rig()
         self.calib = self.rig.id
@@ -95,16 +94,26 @@ class WorkerNode(Node):
         self._next_save = 0.0
         self.processed = 0
         self.proc_us = 0  # processing time of every processed pair, summed (for /metrics)
+        self.proc_cpu_us = 0  # CPU time (all threads) inside process(), summed (for the bench)
         self.failed = 0
         self.free = self.pcfg.credit
         self.ratelog = RateLimitedLog(log)
         if self.pcfg.debug:
             logging.getLogger().setLevel(logging.DEBUG)
 
+    def _identity(self) -> str:
+        """The routing identity of this process (a remote worker names its host too)."""
+        return messages.worker_identity(self.pool, self.spec.index, os.getpid())
+
+    def _open_dealer(self) -> zmq.Socket[bytes]:
+        """The DEALER to the broker, for workers that get the bytes (remote: true)."""
+        return open_socket(
+            self.ctx, SocketSpec(zmq.DEALER, self.endpoints.workers, identity=self.ident.encode()))
+
     def counters(self) -> dict[str, int]:
         stale = self._reader.rejected if self._reader is not None else 0
         return {"processed": self.processed, "failed": self.failed, "stale_reads": stale,
-                "proc_us": self.proc_us}
+                "proc_us": self.proc_us, "proc_cpu_us": self.proc_cpu_us}
 
     def _ring(self) -> RingReader:
         """The shared-memory ring, mapped once, on first use."""
@@ -149,6 +158,9 @@ class WorkerNode(Node):
         next_alive = 0.0
         while not self.stopping:
             frames = self._recv(100)
+            if frames is not None and len(frames) == 1:  # not a job: new parameters
+                self._reconfigure(frames[0])
+                frames = None
             if frames is not None:
                 # Taking work: the supervisor times this pair from here (its pool's timeout_s
                 # bounds the process) and knows the worker active, even on its first pair.
@@ -171,6 +183,38 @@ class WorkerNode(Node):
         self.plugin.shutdown()
         self.set_state(FINALIZED)
         return 0
+
+    def _reconfigure(self, frame: Any) -> None:
+        """The pool's parameters changed (`trapflow param`): configure the plugin again,
+        between pairs. A plugin that fails with them ends this process, and the supervisor
+        starts a new one with the same parameters (it reports why, like any start)."""
+        try:
+            msg = messages.decode_configure(frame)
+        except ProtocolError as exc:
+            self.ratelog.warning("configure", "%s: dropped malformed configure: %s",
+                                 self.ident, exc)
+            return
+        assert self.plugin is not None
+        if msg.pool != self.pool or not self.plugin.reconfigurable:
+            log.warning("%s: ignored new parameters for pool %s (plugin reconfigurable: %s)",
+                        self.ident, msg.pool, self.plugin.reconfigurable)
+            return
+        self.pcfg = msgspec.structs.replace(self.pcfg, params=dict(msg.params))
+        ctx = Context(pool=self.pool, worker=self.ident, run_dir=self.spec.run_dir,
+                      rig=self.rig, debug=self.pcfg.debug, save=self.pcfg.save,
+                      time=self.pcfg.time)
+        try:
+            self.plugin.deactivate()
+            self.set_state(INACTIVE)
+            self.plugin.configure(self.pcfg.params, ctx)
+            self.plugin.activate()
+        except Exception as exc:  # the new parameters do not work: a fresh process reports it
+            why = str(exc) if isinstance(exc, WorkerError) else f"{type(exc).__name__}: {exc}"
+            log.error("%s: cannot apply new parameters: %s; restarting", self.ident, why)
+            self.stopping = True
+            return
+        self.set_state(ACTIVE)
+        log.info("%s: reconfigured in place with %s", self.ident, sorted(msg.params))
 
     def _stamp(self, body: messages.Body) -> messages.Body:
         """A stereo result carries the id of the rig it was computed with (`calib`)."""
@@ -263,13 +307,15 @@ class WorkerNode(Node):
                 raw_left, raw_right = frames[2], frames[3]
             seq = header.seq
             if self.plugin.needs_images:
-                left = decode_image(raw_left, header, "left")
-                right = decode_image(raw_right, header, "right")
+                grey = self.plugin.colour == "grey"
+                left = decode_image(raw_left, header, "left", grey)
+                right = decode_image(raw_right, header, "right", grey)
             else:  # the encoded bytes, zero-copy: plugins that never look at pixels
                 left, right = _as_bytes(raw_left), _as_bytes(raw_right)
-            t0 = time.monotonic_ns()
+            t0, c0 = time.monotonic_ns(), time.process_time_ns()
             body = self.plugin.process(Pair(header=header, left=left, right=right, gap=job.gap))
             proc_ns = time.monotonic_ns() - t0
+            self.proc_cpu_us += (time.process_time_ns() - c0) // 1000
             if ref is not None:
                 # The slot must still hold this pair, or the result came from other bytes.
                 self._ring().check(ref)

@@ -40,7 +40,7 @@ import cv2
 import msgspec
 import numpy as np
 from trapflow_workers.calibration import resolve_rig
-from trapflow_workers.common import Params, check_frame, floats, parse_params
+from trapflow_workers.common import Params, check_frame, floats, parse_params, to_grey
 
 from trapflow.errors import WorkerError
 from trapflow.messages import Tag, Tags
@@ -139,6 +139,8 @@ def _rms(obj: np.ndarray, rvec: Any, tvec: Any, k: np.ndarray, px: np.ndarray) -
 class AprilTags(Worker):
     """Detect tags, solve each tag's pose, report the reprojection error in pixels."""
 
+    colour = "grey"  # a JPEG pair is decoded straight to grey
+
     def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
         p = parse_params(params, TagParams, ctx.pool)
         self.p = p
@@ -199,9 +201,10 @@ class AprilTags(Worker):
         ]
 
     def process(self, pair: Pair) -> Tags:
-        check_frame(pair, (self.rig.width, self.rig.height), "the calibration's image size")
+        check_frame(pair, (self.rig.width, self.rig.height), "the calibration's image size",
+                    grey_ok=True)
         image = pair.left if self.p.image == "left" else pair.right
-        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        gray = to_grey(image)
         K = self.rig.K  # noqa: N806 - the usual name of the matrix
         tags = []
         for tag_id, px in self.detect(gray):

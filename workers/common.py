@@ -13,6 +13,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
+import cv2
 import msgspec
 import numpy as np
 
@@ -122,15 +123,21 @@ def load_labels(
     return None
 
 
-def check_frame(pair: Pair, size: tuple[int, int] | None = None, what: str = "") -> None:
-    """Raise WorkerError unless both images are HxWx3 uint8 of the header's (and `size`'s) size."""
+def to_grey(img: np.ndarray) -> np.ndarray:
+    """A grey image from a BGR one, or the image itself when it is grey already."""
+    return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+
+
+def check_frame(pair: Pair, size: tuple[int, int] | None = None, what: str = "",
+                grey_ok: bool = False) -> None:
+    """Raise WorkerError unless both images are HxWx3 uint8 (or HxW with grey_ok) of the
+    header's (and `size`'s) size."""
     w, h = pair.header.width, pair.header.height
     for side, img in (("left", pair.left), ("right", pair.right)):
         if (
             not isinstance(img, np.ndarray)
             or img.dtype != np.uint8
-            or img.ndim != 3
-            or img.shape[2] != 3
+            or not ((img.ndim == 3 and img.shape[2] == 3) or (grey_ok and img.ndim == 2))
         ):
             shape = getattr(img, "shape", None)
             raise WorkerError(

@@ -165,11 +165,13 @@ def input_spec(
 class CrabDetector(Worker):
     """Letterbox -> ONNX model -> decoder -> NMS -> boxes in image pixels, as the toolchain does."""
 
+    reconfigurable = True  # configure() opens a new session; nothing else is kept
+
     def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
         p = parse_params(params, DetectorParams, ctx.pool)
         self.p = p
         path = model_path(p.model, "crab_detector.onnx")
-        self.session: Session = open_session(path, p.providers, p.threads)
+        self.session: Session = open_session(path, p.providers, p.threads, settings=p)
         meta = self.session.metadata
         inp = self.session.inputs[0]
         shape = list(inp.shape)

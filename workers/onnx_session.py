@@ -1,7 +1,10 @@
 """onnxruntime sessions for the ONNX plugins: providers in order of preference, with fallback.
 
-One intra-op thread by default: a pool runs one session per worker process, and
-several sessions spinning on all cores would fight each other.
+Session options come from the pool's params (ModelParams): graph optimisation level,
+intra- and inter-op threads, execution mode, thread spinning, and per-provider options
+(TensorRT engine cache and fp16, CUDA device id). One intra-op thread and no spinning by
+default: a pool runs one session per worker process, and several sessions spinning on
+all cores would fight each other.
 """
 
 from __future__ import annotations
@@ -11,7 +14,7 @@ import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import msgspec
 import numpy as np
@@ -19,6 +22,7 @@ import onnxruntime as ort
 from trapflow_workers.common import Params
 
 from trapflow.errors import WorkerError
+from trapflow.ratelog import CONSOLE_ONCE
 
 log = logging.getLogger(__name__)
 
@@ -74,44 +78,95 @@ class Session:
         return [np.asarray(o) for o in self.session.run(None, feeds)]
 
 
+OptionValue = str | int | float | bool
+
+_GRAPH = {
+    "disable": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
+    "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+    "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
+    "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+}
+_MODE = {"sequential": ort.ExecutionMode.ORT_SEQUENTIAL,
+         "parallel": ort.ExecutionMode.ORT_PARALLEL}
+
+
+class SessionSettings(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """How onnxruntime runs a model (the session keys of ModelParams)."""
+
+    threads: Annotated[int, msgspec.Meta(ge=1, le=64)] = 1
+    inter_threads: Annotated[int, msgspec.Meta(ge=1, le=64)] = 1
+    graph_optimization: Literal["disable", "basic", "extended", "all"] = "all"
+    execution_mode: Literal["sequential", "parallel"] = "sequential"
+    spinning: bool = False
+    provider_options: dict[str, dict[str, OptionValue]] = {}
+
+
+def session_options(s: SessionSettings | ModelParams) -> ort.SessionOptions:
+    """The onnxruntime SessionOptions these settings describe."""
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = s.threads
+    opts.inter_op_num_threads = s.inter_threads
+    opts.execution_mode = _MODE[s.execution_mode]
+    opts.graph_optimization_level = _GRAPH[s.graph_optimization]
+    # Spinning threads burn a core each while idle; pools share few cores.
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if s.spinning else "0")
+    opts.add_session_config_entry("session.inter_op.allow_spinning", "1" if s.spinning else "0")
+    opts.log_severity_level = 3
+    return opts
+
+
+def provider_list(names: Sequence[str], options: dict[str, dict[str, OptionValue]]
+                  ) -> list[tuple[str, dict[str, str]]]:
+    """Providers as (name, options) in order; options keyed by short or full name. WorkerError
+    for options of a provider that is not in the list."""
+    full = [provider_name(n) for n in names]
+    opts = {provider_name(k): v for k, v in options.items()}
+    stray = sorted(set(opts) - set(full))
+    if stray:
+        raise WorkerError(f"provider_options names {', '.join(stray)}, which is not in "
+                          f"providers ({', '.join(names)}): add it there or drop its options")
+    return [(n, {k: str(v) for k, v in opts.get(n, {}).items()}) for n in full]
+
+
 def open_session(
-    path: Path, providers: Sequence[str] = DEFAULT_PROVIDERS, threads: int = 1
+    path: Path, providers: Sequence[str] = DEFAULT_PROVIDERS, threads: int = 1,
+    settings: SessionSettings | ModelParams | None = None,
 ) -> Session:
     """Load an ONNX model on the first available provider of `providers` (CPU as last resort).
 
-    Logs one line naming the provider used and the ones skipped. WorkerError if the
-    file is missing or is not a loadable model.
+    `settings` (ModelParams is one) gives the session options and per-provider options;
+    without it, `threads` intra-op threads and the defaults. Logs one line naming the
+    provider used and the ones skipped. WorkerError if the file is missing or is not a
+    loadable model.
     """
-    wanted = [provider_name(p) for p in providers]
+    s = settings if settings is not None else SessionSettings(threads=threads)
+    wanted = provider_list(providers, s.provider_options)
     available = set(ort.get_available_providers())
-    usable = [p for p in wanted if p in available]
-    skipped = [p for p in wanted if p not in available]
-    if CPU not in usable:
-        usable.append(CPU)
+    usable = [p for p in wanted if p[0] in available]
+    skipped = [p for p, _ in wanted if p not in available]
+    if CPU not in [p for p, _ in usable]:
+        usable.append((CPU, {}))
     if not path.is_file():
         raise WorkerError(f"model file not found: {path}")
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads
-    opts.inter_op_num_threads = 1
-    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    # Spinning threads burn a core each while idle; pools share few cores.
-    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    opts.log_severity_level = 3
+    opts = session_options(s)
     try:
-        session = ort.InferenceSession(str(path), sess_options=opts, providers=usable)
+        session = ort.InferenceSession(str(path), sess_options=opts,
+                                       providers=[p for p, _ in usable],
+                                       provider_options=[o for _, o in usable])
     except Exception as exc:  # onnxruntime raises its own unrelated exception types
         raise WorkerError(f"cannot load ONNX model {path}: {str(exc).strip()[:300]}") from None
     used = session.get_providers()[0]
-    if used != (wanted[0] if wanted else CPU):
+    if used != (wanted[0][0] if wanted else CPU):
+        # Said once on the console however many models and workers (ONCE, trapflow.log
+        # keeps every one); which model runs where is an info line.
         log.warning(
-            "model %s runs on %s (requested %s; not available here: %s)",
-            path.name,
+            "ONNX runs on %s (requested %s; not available here: %s)",
             used,
-            ", ".join(wanted),
+            ", ".join(p for p, _ in wanted),
             ", ".join(skipped) or "none",
+            extra={CONSOLE_ONCE: True},
         )
-    else:
-        log.info("model %s runs on %s", path.name, used)
+    log.info("model %s runs on %s", path.name, used)
     meta = session.get_modelmeta()
     return Session(
         session=session, path=path, provider=used, metadata=dict(meta.custom_metadata_map or {}),
@@ -129,7 +184,10 @@ def model_hash(path: Path) -> str:
 
 
 class ModelParams(Params):
-    """Parameters every ONNX-model plugin takes (its own params add to these)."""
+    """Parameters every ONNX-model plugin takes (its own params add to these).
+
+    The session keys mirror SessionSettings, so a ModelParams is passed to open_session.
+    """
 
     model: str = ""
     """ONNX file; empty = the plugin's packaged demo model."""
@@ -139,3 +197,16 @@ class ModelParams(Params):
     """Execution providers in order of preference (tensorrt, cuda, cpu, ...)."""
     threads: Annotated[int, msgspec.Meta(ge=1, le=64)] = 1
     """onnxruntime intra-op threads; 1 so the processes of a pool do not fight over cores."""
+    inter_threads: Annotated[int, msgspec.Meta(ge=1, le=64)] = 1
+    """onnxruntime inter-op threads (used by execution_mode parallel)."""
+    graph_optimization: Literal["disable", "basic", "extended", "all"] = "all"
+    """onnxruntime graph optimisation level."""
+    execution_mode: Literal["sequential", "parallel"] = "sequential"
+    """Run independent branches of the graph one after another or in parallel."""
+    spinning: bool = False
+    """Let idle onnxruntime threads spin (faster wake-up, a core burnt each); off when
+    pools share cores."""
+    provider_options: dict[str, dict[str, OptionValue]] = {}
+    """Options per provider, keyed by its short or full name, e.g. tensorrt:
+    {trt_engine_cache_enable: true, trt_engine_cache_path: cache, trt_fp16_enable: true,
+    device_id: 0}, cuda: {device_id: 0}."""

@@ -55,7 +55,7 @@ class SceneClassifier(Worker):
         p = parse_params(params, ClassifierParams, ctx.pool)
         self.p = p
         path = model_path(p.model, "scene_classifier.onnx")
-        self.session: Session = open_session(path, p.providers, p.threads)
+        self.session: Session = open_session(path, p.providers, p.threads, settings=p)
         meta = self.session.metadata
         inputs = self.session.inputs
         arrangement = p.arrangement if p.arrangement != "auto" else meta.get("arrangement", "auto")

@@ -22,7 +22,7 @@ import cv2
 import msgspec
 import numpy as np
 from trapflow_workers.calibration import resolve_rig
-from trapflow_workers.common import Params, check_frame, floats, parse_params
+from trapflow_workers.common import Params, check_frame, floats, parse_params, to_grey
 
 from trapflow.camera import StereoRig
 from trapflow.messages import StereoVO
@@ -120,6 +120,8 @@ def _angle_deg(r: np.ndarray) -> float:
 
 class StereoOdometry(Worker):
     """Keyframe-based stereo VO; needs an `ordered` pool (one worker, pairs in order)."""
+
+    colour = "grey"  # a JPEG pair is decoded straight to grey
 
     def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
         p = parse_params(params, VOParams, ctx.pool)
@@ -260,15 +262,16 @@ class StereoOdometry(Worker):
         return _inv(_from_rt(rvec, tvec)), cur, mask
 
     def process(self, pair: Pair) -> StereoVO:
-        check_frame(pair, (self.rig.width, self.rig.height), "the calibration's image size")
-        left = cv2.cvtColor(pair.left, cv2.COLOR_BGR2GRAY)
+        check_frame(pair, (self.rig.width, self.rig.height), "the calibration's image size",
+                    grey_ok=True)
+        left = to_grey(pair.left)
         reinit = self.key is None or pair.gap > 0
         if reinit:
             first, self.first = self.first, False
             if pair.gap > 0:
                 log.debug("gap of %d pairs before %d: re-initialising", pair.gap, pair.header.seq)
             self.reset(self.world)
-            right = cv2.cvtColor(pair.right, cv2.COLOR_BGR2GRAY)
+            right = to_grey(pair.right)
             self.key = self._keyframe(left, right, self.world)
             ok = first and self.key is not None
             return self._result(ok, np.eye(4), self.key.initial if self.key else 0, True)
@@ -296,7 +299,7 @@ class StereoOdometry(Worker):
         # The next pair is tracked from this image, where the points look most alike.
         key.image, key.pts2d, key.pts3d = left, cur[mask].astype(np.float32), key.pts3d[mask]
         if self.p.keyframe_ratio >= 1.0 or n < self.p.keyframe_ratio * key.initial:
-            right = cv2.cvtColor(pair.right, cv2.COLOR_BGR2GRAY)
+            right = to_grey(pair.right)
             new = self._keyframe(left, right, self.world)
             if new is not None:
                 self.key, self.key_to_prev = new, np.eye(4)

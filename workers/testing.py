@@ -43,6 +43,23 @@ class Slow(Worker):
         return Extra(name="slow", fields={"gap": pair.gap})
 
 
+class Burn(Worker):
+    """Burns `cpu_s` of CPU per pair (default 0.1 s), spinning, never sleeping: a saturating
+    recogniser for the VO floor benchmark."""
+
+    needs_images = False
+
+    def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
+        self.cpu_s = float(params.get("cpu_s", 0.1))
+
+    def process(self, pair: Pair) -> Extra:
+        end = time.process_time() + self.cpu_s
+        n = 0
+        while time.process_time() < end:
+            n += 1
+        return Extra(name="burn", fields={"spins": n})
+
+
 class Digest(Worker):
     """A digest of the decoded pixels of both images: shows two paths deliver the same pair."""
 
@@ -53,7 +70,9 @@ class Digest(Worker):
         h = hashlib.sha1(pair.left.tobytes())
         h.update(pair.right.tobytes())
         return Extra(name="digest", fields={"sha1": h.hexdigest()[:16], "pool": self.pool,
-                                            "shape": list(pair.left.shape)})
+                                            "shape": list(pair.left.shape),
+                                            "encoding": pair.header.encoding,
+                                            "mean": round(float(pair.left.mean()), 3)})
 
 
 class Flaky(Worker):

@@ -4,6 +4,11 @@ The kit's YOLOv8n, configured only through `pools.mono.params` in a user's YAML,
 the photo read by the images source, decoded at capture, carried through the ring and
 the broker to a mono worker and written by the normalizer: results.jsonl holds the kit's
 reference detections, within 1 px and 0.005 confidence.
+
+Run with the default configuration and with `--encoding raw` spelled out: both must give
+the reference. Regression: with `encoding: jpeg` as the default, capture re-encoded the
+decoded photo (quality 90) and the worker saw a second JPEG generation, which moved a box
+by 8 px; the ring now holds the frames decoded once at capture by default.
 """
 
 from __future__ import annotations
@@ -22,7 +27,9 @@ IMAGE = "zidane.jpg"
 
 
 @pytest.mark.timeout(120)
-def test_run_writes_the_reference_detections(realdata: Path, spawn, run_dir: Path) -> None:
+@pytest.mark.parametrize("extra", [[], ["--encoding", "raw"]], ids=["default", "raw"])
+def test_run_writes_the_reference_detections(realdata: Path, spawn, run_dir: Path,
+                                             extra: list[str]) -> None:
     model = kit_path(realdata, KIT, "ultralytics_yolov8n_int8", "yolov8n_int8.onnx")
     photo = kit_path(realdata, KIT, "images", IMAGE)
     ref = kit_path(realdata, KIT, "ultralytics_yolov8n_int8", "reference_detections.json")
@@ -33,9 +40,7 @@ def test_run_writes_the_reference_detections(realdata: Path, spawn, run_dir: Pat
         (folder / side / "000000.jpg").symlink_to(photo)
     params = {"model": str(model), "confidence": 0.25, "iou": 0.7, "max_detections": 300}
     cfg = write_config(run_dir.parent / "detector.yaml", {"pools": {"mono": {"params": params}}})
-    # Raw pairs: with `encoding: jpeg` capture re-encodes the decoded photo (quality 90)
-    # and the worker sees a second JPEG generation, which is not the photo the reference saw.
-    args = ["--config", str(cfg), "--workers", "mono=1", "--encoding", "raw"]
+    args = ["--config", str(cfg), "--workers", "mono=1", *extra]
     p: Pipeline = spawn([*args, "--source", f"images:{folder}"], run_dir)
     code, _, err = p.wait(90)
     assert code == 0, err

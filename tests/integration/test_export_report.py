@@ -75,7 +75,8 @@ def test_report_of_a_real_run(spawn, run_dir: Path) -> None:
     ledger = json.loads((run_dir / "ledger.json").read_text())
     pools = {r[0]: [int(v) for v in r[1:]] for r in page.tables[2][1:]}
     assert pools == {name: [q["processed"], q["dropped_by_policy"], q["timed_out"],
-                            q["failed"], q["lost"]] for name, q in ledger["pools"].items()}
+                            q["failed"], q["lost"], q.get("unfinished_at_stop", 0)]
+                     for name, q in ledger["pools"].items()}
 
     # Charts: a rate series per pool, the VO path with one point per ok pose.
     series = {pl["data-name"]: int(pl["data-points"]) for pl in page.polylines}

@@ -44,6 +44,8 @@ def test_start_runs_every_pool_and_writes_results(spawn, run_dir: Path) -> None:
 
 @pytest.mark.timeout(90)
 def test_tap_and_status_attach_to_a_running_pipeline(spawn, run_dir: Path) -> None:
+    """Regression: with raw frames in the ring by default, `tap --save-frames` wrote the raw
+    bytes (.bgr); it saves JPEG photos, encoding a raw pair once."""
     p: Pipeline = spawn(["--workers", "mono=1,vo=1", *SMALL], run_dir)
     def all_active() -> dict | None:
         s = p.status()

@@ -8,6 +8,7 @@ import os
 import signal
 from collections import defaultdict
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -19,8 +20,9 @@ SMALL = {"width": 320, "height": 240, "rate_hz": 15.0}
 
 @pytest.mark.timeout(90)
 def test_local_shm_and_remote_byte_paths_give_identical_pixels(spawn, run_dir: Path) -> None:
+    """JPEG pairs: the ring and the remote byte path carry the same bytes."""
     cfg = write_config(run_dir.parent / "paths.yaml", {
-        "source": {**SMALL, "encoding": "raw"},
+        "source": {**SMALL, "encoding": "jpeg"},
         "frames": {"transport": "shm"},
         "pools": only_pools({
             "local": {"plugin": "digest", "policy": "ordered:64"},
@@ -41,6 +43,34 @@ def test_local_shm_and_remote_byte_paths_give_identical_pixels(spawn, run_dir: P
     assert len({seen["local"][s] for s in common}) > len(common) // 2  # the pixels do change
     ledger = json.loads((run_dir / "ledger.json").read_text())
     assert ledger["dropped_at_capture"] == 0
+
+
+@pytest.mark.timeout(90)
+def test_remote_pools_get_jpeg_made_once_from_the_raw_ring(spawn, run_dir: Path) -> None:
+    """Raw frames in the ring (the default): a remote pool gets the pair as JPEG, encoded
+    by the broker from the same pixels, never the 2.7 MB raw frames over the network."""
+    cfg = write_config(run_dir.parent / "paths.yaml", {
+        "source": SMALL,
+        "pools": only_pools({
+            "local": {"plugin": "digest", "policy": "ordered:64"},
+            "remote": {"plugin": "digest", "policy": "ordered:64", "remote": True},
+        }),
+    })
+    p: Pipeline = spawn(["--config", str(cfg), "--duration", "6"], run_dir)
+    code, _, err = p.wait(60)
+    assert code == 0, err
+    seen: dict[str, dict[int, dict[str, Any]]] = defaultdict(dict)
+    for row in p.results():
+        body = row["digest"]
+        seen[body["pool"]][body["seq"]] = body
+    common = set(seen["local"]) & set(seen["remote"])
+    assert len(common) > 20, {k: len(v) for k, v in seen.items()}
+    assert {seen["local"][s]["encoding"] for s in common} == {"raw"}
+    assert {seen["remote"][s]["encoding"] for s in common} == {"jpeg"}
+    for s in common:  # the same pair, through a JPEG generation: close, not equal
+        local, remote = seen["local"][s], seen["remote"][s]
+        assert remote["shape"] == local["shape"]
+        assert abs(remote["mean"] - local["mean"]) < 2.0, (s, local, remote)
 
 
 @pytest.mark.timeout(90)

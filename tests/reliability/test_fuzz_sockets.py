@@ -212,7 +212,7 @@ def test_fuzz_every_socket_and_link_of_a_running_pipeline(spawn, run_dir: Path, 
     pool = ledger["pools"]["fast"]
     assert len(seqs) == len(set(seqs)) == pool["processed"] > 100  # each once, none lost
     assert (pool["processed"] + pool["dropped_by_policy"] + pool["timed_out"] + pool["failed"]
-            + pool["lost"]) == ledger["produced"], ledger
+            + pool["lost"] + pool.get("unfinished_at_stop", 0)) == ledger["produced"], ledger
     log_lines = (run_dir / "trapflow.log").read_text().count("\n")
     print(f"trapflow.log: {log_lines} lines")
     figures("fuzz", seconds=FUZZ_S, messages=n, kinds=len(fuzz.sent), results=len(seqs),

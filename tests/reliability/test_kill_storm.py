@@ -136,7 +136,7 @@ def test_kill_storm_ledger_equals_results_and_nothing_is_abandoned(spawn, run_di
         # Every pair counted processed has its line, and every line is counted processed.
         assert led["processed"] == len(delivered[kind]), (pool, led, len(delivered[kind]))
         ended = (led["processed"] + led["dropped_by_policy"] + led["timed_out"]
-                 + led["failed"] + led["lost"])
+                 + led["failed"] + led["lost"] + led.get("unfinished_at_stop", 0))
         assert ended == produced, (pool, led, produced)  # no line is also counted lost
     assert ledger["supervision"]["retries"] >= 1
     assert "give-ups" in out and "retries" in out

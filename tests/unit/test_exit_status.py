@@ -45,7 +45,10 @@ def _exists(d: Path) -> str:
         (["recover", "{exists}"], 2, "exists; name another output"),
         (["status", "--run-dir", "{d}/none"], 2, "no run directory"),
         (["calibrate", "{d}/L*.png", "{d}/R*.png"], 1, "no images"),
-        (["tap", "--endpoint", "ipc://{d}/nobody", "--count", "1", "--timeout", "0.2"], 1, ""),
+        (["tap", "--endpoint", "ipc://{d}/nobody", "--count", "1", "--timeout", "0.2"], 1,
+         "tap received no message from ipc://.*/nobody within 0.2 s"),
+        (["tap", "--endpoint", "ipc://{d}/nobody", "--timeout", "0.2"], 1,
+         "tap received no message"),
     ],
 )
 def test_every_command_follows_the_exit_code_policy(

@@ -185,7 +185,8 @@ def render_html(s: RunSummary) -> str:
                 for hour, per in sorted(s.per_class_hour.items())]
     pools = s.ledger.get("pools", {})
     ledger_rows = [[name, p.get("processed", 0), p.get("dropped_by_policy", 0),
-                    p.get("timed_out", 0), p.get("failed", 0), p.get("lost", 0)]
+                    p.get("timed_out", 0), p.get("failed", 0), p.get("lost", 0),
+                    p.get("unfinished_at_stop", 0)]
                    for name, p in sorted(pools.items())]
     capture = [[k, s.ledger[k]] for k in ("produced", "reached_broker", "dropped_at_capture",
                                           "failed_at_capture") if k in s.ledger]
@@ -208,8 +209,9 @@ def render_html(s: RunSummary) -> str:
         svg_lines("VO path from above", {"left camera": s.vo_path} if s.vo_path else {},
                   "x (m)", "z (m)", equal=True),
         "<h2>Drops and losses</h2>", _table(["capture", "pairs"], capture),
-        _table(["pool", "processed", "dropped by policy", "timed out", "failed", "lost"],
-               ledger_rows) if s.ledger else "<p>no ledger.json (the run did not end cleanly)</p>",
+        _table(["pool", "processed", "dropped by policy", "timed out", "failed", "lost",
+                "unfinished at stop"], ledger_rows)
+        if s.ledger else "<p>no ledger.json (the run did not end cleanly)</p>",
         "<h2>Restarts</h2>", _table(["time", "node", "restart"], [list(r) for r in s.restarts]),
         "<h2>Events</h2>",
         _table(["event", "pairs", "first seq", "last seq", "results"],

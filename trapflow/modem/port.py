@@ -16,6 +16,8 @@ import serial
 
 log = logging.getLogger(__name__)
 
+STOPPED = "stopped"  # the reason a sender or surface gives close() at a planned stop
+
 
 class LinkPort:
     """A pyserial port by URL (or an open port object) with reopen on failure."""
@@ -67,7 +69,8 @@ class LinkPort:
 
     def _fail(self, reason: str) -> None:
         if reason != self.reason:
-            log.warning("link port inactive: %s", reason)
+            # Closed on purpose at a stop is no problem; anything else is.
+            (log.info if reason == STOPPED else log.warning)("link port inactive: %s", reason)
         self.reason = reason
         self.failures += 1
 

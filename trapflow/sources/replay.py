@@ -199,7 +199,7 @@ class ReplaySource(Source):
         assert reader is not None
         conns = reader.connections
         lt, rt = _pick_topics(conns, self.opts.get("left_topic"), self.opts.get("right_topic"))
-        where = f"{lt} in {self.path}"
+        where = f"{lt} and {rt} in {self.path}"
         first = next(reader.messages(connections=[c for c in conns if c.topic == lt]), None)
         if first is None:
             return Geometry(where=where)

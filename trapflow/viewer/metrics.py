@@ -32,6 +32,7 @@ LIFECYCLE = (UNCONFIGURED, INACTIVE, ACTIVE, FINALIZED)
 POOL_COUNTERS = {
     "received": "received", "dispatched": "dispatched", "dropped": "dropped",
     "processed": "processed", "errors": "failed", "timed_out": "timed_out", "lost": "lost",
+    "inactive": "inactive",  # dropped while the pool was deactivated (trapflow pool)
 }
 POOL_GAUGES = {"workers": "workers", "pending": "pending_pairs", "in_flight": "in_flight_pairs"}
 

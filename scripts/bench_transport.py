@@ -212,12 +212,11 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
     push.connect(ep.capture)
     hb = ctx.socket(zmq.PULL)  # stand-in supervisor: heartbeats are received and ignored
     hb.bind(ep.heartbeat)
-    q = mp.get_context("spawn").Queue()
     specs = [NodeSpec("broker", "broker", cfg, run_dir, ring=ring_name)] + [
         NodeSpec("worker", f"worker:p{p}:{i}", cfg, run_dir, pool=f"p{p}", index=i,
                  ring=ring_name)
         for p in range(pools) for i in range(workers)]
-    procs = [mp.get_context("spawn").Process(target=node_main, args=(s, q, os.getpid()))
+    procs = [mp.get_context("spawn").Process(target=node_main, args=(s, os.getpid()))
              for s in specs]
     for p in procs:
         p.start()

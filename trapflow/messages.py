@@ -417,6 +417,17 @@ ControlRequest = Union[StatusRequest, StopRequest, PoolRequest, ParamRequest]
 AnyControl = StatusRequest | StopRequest | PoolRequest | ParamRequest
 
 
+class LogEntry(Msg, frozen=True, tag="log"):
+    """One log record a node sends to the supervisor's log listener (never pickled)."""
+
+    name: str  # the logger's name
+    levelno: int
+    process: str  # the node's name, e.g. "worker:mono:1"
+    pid: int
+    created: float  # wall clock, a label only
+    message: str  # the formatted message, with any traceback appended
+
+
 # --- codecs ---------------------------------------------------------------------
 
 
@@ -582,6 +593,17 @@ def decode_control(data: Buffer) -> AnyControl:
                                 f"count, policy, active; got {given or 'none'} for pool "
                                 f"{req.pool!r}: send one change per request")
     return req
+
+
+_log_dec = msgspec.msgpack.Decoder(LogEntry)
+# A log record with a traceback can be long; past this a node cuts the message.
+MAX_LOG_BYTES = 64 << 10
+
+
+def decode_log(data: Buffer) -> LogEntry:
+    """Decode a LogEntry a node sent to the supervisor's log listener."""
+    entry: LogEntry = _decode(_log_dec, data, "log record", MAX_LOG_BYTES)
+    return entry
 
 
 def worker_identity(pool: str, index: int, pid: int) -> str:

@@ -1,7 +1,8 @@
 """The process base class: title, signals, faulthandler, logging, heartbeats, lifecycle.
 
 Every pipeline process is a Node started by the supervisor with the spawn method;
-subclasses write only run(). Owns one socket: a PUSH of heartbeats to the supervisor.
+subclasses write only run(). Owns one socket: a PUSH of heartbeats to the supervisor (and
+through its log handler, trapflow.logchannel, a PUSH of log records).
 """
 
 from __future__ import annotations
@@ -11,7 +12,6 @@ import faulthandler
 import gc
 import importlib
 import logging
-import logging.handlers
 import os
 import signal
 import sys
@@ -25,8 +25,9 @@ import zmq
 from trapflow import messages
 from trapflow.camera import StereoRig
 from trapflow.config import Config
+from trapflow.logchannel import LogSender
 from trapflow.supervisor_state import Lifecycle
-from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
+from trapflow.transport import Endpoints, SocketSpec, log_endpoint, new_context, open_socket
 
 log = logging.getLogger(__name__)
 
@@ -201,7 +202,7 @@ def freeze_heap() -> None:
     gc.freeze()
 
 
-def node_main(spec: NodeSpec, log_queue: Any, parent_pid: int) -> None:
+def node_main(spec: NodeSpec, parent_pid: int) -> None:
     """Entry point of every spawned node process."""
     _die_with_parent()
     if os.getppid() != parent_pid:  # the supervisor died before prctl took effect
@@ -209,7 +210,7 @@ def node_main(spec: NodeSpec, log_queue: Any, parent_pid: int) -> None:
     _set_title(f"trapflow:{spec.name}")
     faulthandler.enable()
     root = logging.getLogger()
-    root.handlers[:] = [logging.handlers.QueueHandler(log_queue)]
+    root.handlers[:] = [LogSender(log_endpoint(spec.run_dir), spec.name)]
     root.setLevel(spec.cfg.log_level)
     # Ctrl-C reaches the whole process group; only the supervisor acts on it, in order.
     signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -30,6 +30,7 @@ from trapflow.transport import (
     SocketSpec,
     TapGate,
     open_socket,
+    set_file_mode,
 )
 
 log = logging.getLogger(__name__)
@@ -56,6 +57,7 @@ class NormalizerNode(Node):
         # Unbuffered: a batch is in the kernel (safe from a crash of this process) before it is
         # acknowledged; fsync (power cuts) follows on its interval.
         self.file: IO[bytes] = open(self.path, "ab", buffering=0)  # noqa: SIM115
+        set_file_mode(self.path)  # 0640 whatever the umask
         # With a modem, every result is stored durably before anything tries to send it.
         self.outbox: Outbox | None = None
         if self.cfg.modem.enabled:

@@ -9,7 +9,6 @@ DEALER: Hello (answered by a Welcome), then Ready, jobs as bytes, Alive, as on o
 from __future__ import annotations
 
 import logging
-import logging.handlers
 import multiprocessing as mp
 import os
 import signal
@@ -27,8 +26,9 @@ from trapflow import config as configmod
 from trapflow import messages, registry
 from trapflow.camera import StereoRig
 from trapflow.errors import ConfigError, ProtocolError, StartupError
+from trapflow.logchannel import LogListener
 from trapflow.node import JoinSpec, NodeSpec, node_main
-from trapflow.transport import SocketSpec, client_keys, new_context, open_socket
+from trapflow.transport import SocketSpec, client_keys, log_endpoint, new_context, open_socket
 from trapflow.worker import WorkerNode
 
 log = logging.getLogger(__name__)
@@ -164,9 +164,8 @@ class RemotePool:
     def run(self) -> int:
         """Join, supervise until SIGINT or SIGTERM, stop; return the exit status."""
         ctx = new_context()
-        queue = self.mp.Queue()
-        listener = logging.handlers.QueueListener(queue, *logging.getLogger().handlers,
-                                                  respect_handler_level=True)
+        # The worker processes' records, over log.sock in the run directory (no semaphore).
+        listener = LogListener(ctx, log_endpoint(self.run_dir), logging.getLogger().handlers)
         listener.start()
         try:
             self.sock = open_socket(ctx, dealer_spec(self.join, self.join.owner))
@@ -177,11 +176,11 @@ class RemotePool:
             self.announce(f"joined pool {self.pool!r} at {self.join.endpoint} as "
                           f"{self.join.host}: {self.count} worker(s) of {welcome.plugin!r}")
             self._install_signals()
-            self._supervise(cfg, rig, queue)
+            self._supervise(cfg, rig)
         finally:
             self._stop_all()
+            listener.stop()  # its thread's socket is in the context: stop it first
             ctx.destroy(linger=0)
-            listener.stop()
         return 0
 
     def _install_signals(self) -> None:
@@ -191,7 +190,7 @@ class RemotePool:
         signal.signal(signal.SIGINT, _stop)
         signal.signal(signal.SIGTERM, _stop)
 
-    def _supervise(self, cfg: configmod.Config, rig: StereoRig, queue: Any) -> None:
+    def _supervise(self, cfg: configmod.Config, rig: StereoRig) -> None:
         next_alive = 0.0
         while not self.stopping:
             now = time.monotonic()
@@ -201,17 +200,17 @@ class RemotePool:
             for p in self.procs:
                 if p.proc is None:
                     if now >= p.restart_at:
-                        self._spawn(p, cfg, rig, queue)
+                        self._spawn(p, cfg, rig)
                 elif not p.proc.is_alive():
                     self._died(p, now)
             self._drain()
             time.sleep(WATCH_INTERVAL_S)
 
-    def _spawn(self, p: _Proc, cfg: configmod.Config, rig: StereoRig, queue: Any) -> None:
+    def _spawn(self, p: _Proc, cfg: configmod.Config, rig: StereoRig) -> None:
         spec = NodeSpec("remote_worker", f"worker:{self.pool}@{self.join.host}:{p.index}", cfg,
                         self.run_dir, pool=self.pool, index=p.index, rig=rig,
                         join=self.join)
-        p.proc = self.mp.Process(target=node_main, args=(spec, queue, os.getpid()),
+        p.proc = self.mp.Process(target=node_main, args=(spec, os.getpid()),
                                  name=spec.name, daemon=False)
         p.proc.start()
         p.started = time.monotonic()

@@ -1,7 +1,8 @@
 """The supervisor (`trapflow start`): boots the process graph, watches it, restarts, stops.
 
-Owns a PULL of heartbeats from every node, a REP control socket (status, stop)
-and a SUB of the broker's stats for the status line. The whole graph is in boot().
+Owns a PULL of heartbeats from every node, a REP control socket (status, stop), the PULL
+of every node's log records (trapflow.logchannel, in its own thread) and a SUB of the
+broker's stats for the status line. The whole graph is in boot().
 The decisions are trapflow.supervisor_state's and the counting trapflow.run_ledger's: this
 shell turns processes, sockets and time into their events, and their actions into effects.
 """
@@ -31,6 +32,7 @@ from trapflow.camera import StereoRig
 from trapflow.config import Config
 from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError, TrapflowError
 from trapflow.frame_ring import FrameRing, cleanup_stale, ring_slots, slot_capacity
+from trapflow.logchannel import LogListener, PrivateRotatingFile
 from trapflow.node import NodeSpec, node_main
 from trapflow.ratelog import ConsoleOnce, RateLimitedLog, wire
 from trapflow.run_ledger import RunLedger
@@ -53,7 +55,14 @@ from trapflow.supervisor_state import (
     SwitchPool,
     WorkerGone,
 )
-from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
+from trapflow.transport import (
+    Endpoints,
+    SocketSpec,
+    check_ports_free,
+    make_private,
+    new_context,
+    open_socket,
+)
 
 log = logging.getLogger(__name__)
 
@@ -181,7 +190,7 @@ class Supervisor:
 
     def _spawn(self, child: Child, now: float) -> None:
         child.proc = self.mp.Process(
-            target=node_main, args=(child.spec, self.log_queue, os.getpid()),
+            target=node_main, args=(child.spec, os.getpid()),
             name=child.name, daemon=False,
         )
         child.proc.start()
@@ -192,21 +201,23 @@ class Supervisor:
 
     def run(self) -> int:
         """Start, supervise until stopped, stop; return the exit status."""
-        self.run_dir.mkdir(parents=True, exist_ok=True)
+        make_private(self.run_dir)
         lock = self._lock_run_dir()
         results = self.run_dir / self.cfg.normalizer.results_file
         if results.exists():  # a reused run directory: this run's results start at its end
             self.ledger_model.delivered.offset = results.stat().st_size
-        self._preflight()
-        self.endpoints = Endpoints.for_run(self.cfg.network, self.run_dir)
-        self.ring = self._create_ring()
         self.ctx = new_context()
-        self._start_logging()
+        self.listener: LogListener | None = None
         try:
+            self._preflight()
+            self.endpoints = Endpoints.for_run(self.cfg.network, self.run_dir)
+            self._start_logging()
             self.hb = open_socket(self.ctx, SocketSpec(zmq.PULL, self.endpoints.heartbeat,
                                                        bind=True))
             self.control = open_socket(self.ctx, SocketSpec(zmq.REP, self.endpoints.control,
                                                             bind=True))
+            check_ports_free(self.cfg.network)  # a used port: one line, before any ring exists
+            self.ring = self._create_ring()
             # Tells the broker at once when a worker process dies (its pairs are lost).
             self.to_broker = open_socket(self.ctx, SocketSpec(
                 zmq.DEALER, self.endpoints.workers, identity=b"supervisor", sndhwm=100))
@@ -221,11 +232,12 @@ class Supervisor:
             self._supervise()
         finally:
             self.notifier.stopping()
-            self._stop_all()
-            self._judge()
-            self._print_totals()
+            if self.children:
+                self._stop_all()
+                self._judge()
+                self._print_totals()
+            self._stop_logging()  # its thread's socket is in the context: stop it first
             self.ctx.destroy(linger=0)
-            self._stop_logging()
             if self.ring is not None:
                 self.ring.close()  # unlinks the segment: nothing left in /dev/shm
             lock.close()
@@ -717,29 +729,32 @@ class Supervisor:
     # --- logging -----------------------------------------------------------------------------
 
     def _start_logging(self) -> None:
-        self.log_queue = self.mp.Queue()
         fmt = logging.Formatter("%(asctime)s %(processName)s %(name)s %(levelname)s %(message)s")
         self.ratelog = RateLimitedLog(log)  # warnings about messages from sockets
         lcfg = self.cfg.log_file
-        fileh = logging.handlers.RotatingFileHandler(
-            self.run_dir / "trapflow.log", maxBytes=lcfg.max_bytes, backupCount=lcfg.backups)
+        logfile = self.run_dir / "trapflow.log"
+        fileh = PrivateRotatingFile(logfile, maxBytes=lcfg.max_bytes,
+                                    backupCount=lcfg.backups)
         fileh.setFormatter(fmt)
         errh = logging.StreamHandler(sys.stderr)
         errh.setLevel(logging.WARNING)
         errh.addFilter(ConsoleOnce())  # a warning every worker gives, said once
         errh.setFormatter(logging.Formatter("%(levelname)s %(message)s"))
-        self.listener = logging.handlers.QueueListener(
-            self.log_queue, fileh, errh, respect_handler_level=True)
+        # Nodes' records arrive on the log socket; the supervisor's own go straight out.
+        self.listener = LogListener(self.ctx, self.endpoints.log, [fileh, errh])
         root = logging.getLogger()
         root.setLevel(self.cfg.log_level)
         self._root_handlers = root.handlers[:]
-        root.handlers[:] = [logging.handlers.QueueHandler(self.log_queue)]
+        root.handlers[:] = [fileh, errh]
         self.listener.start()
 
     def _stop_logging(self) -> None:
+        if self.listener is None:
+            return
         self.listener.stop()
+        for h in logging.getLogger().handlers:
+            h.close()
         logging.getLogger().handlers[:] = self._root_handlers
-        self.log_queue.close()
 
 
 @dataclass

@@ -14,6 +14,7 @@ import errno
 import os
 import select
 import socket
+import stat
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,14 +36,83 @@ _ENDPOINTS = {
     "tap": ("tap.sock", 3),  # broker PUB: frames and stats
     "results_tap": ("results-tap.sock", 4),  # normalizer PUB: JSON results
     "heartbeat": ("heartbeat.sock", 5),  # nodes PUSH -> supervisor PULL
-    "control": ("control.sock", 6),  # supervisor REP: status, stop
 }
+# Always ipc files in the run directory, even in TCP mode: only who may enter the run
+# directory (0700, its owner) may stop the pipeline or write its log, and `trapflow status
+# --run-dir` finds a TCP-mode pipeline where it finds an ipc one.
+_LOCAL_ENDPOINTS = {
+    "control": "control.sock",  # supervisor REP: status, stop
+    "log": "log.sock",  # nodes PUSH -> supervisor PULL: log records (messages.LogEntry)
+}
+# Modes that hold whatever the umask: the run directory is its owner's alone; sockets and
+# links in it are read-write for the owner only; results and logs may be read by its group.
+RUN_DIR_MODE = 0o700
+SOCKET_MODE = 0o600
+FILE_MODE = 0o640
 # Local links (always files in the run directory): descriptors of pairs in the ring, results.
 _LINKS = {
     "capture_link": "capture.link",  # capture -> broker
     "workers_link": "workers.link",  # broker <-> local workers
     "results_link": "results.link",  # broker -> normalizer, results in batches
 }
+
+
+def check_ports_free(net: NetworkConfig) -> None:
+    """StartupError naming the first TCP port of the pipeline another process holds.
+
+    The supervisor asks before it creates anything big (the ring), so a second pipeline on
+    the same ports ends in one line with nothing left behind. In ipc mode, nothing to do.
+    """
+    if net.transport == "ipc":
+        return
+    for name, (_fname, offset) in _ENDPOINTS.items():
+        if name == "heartbeat":
+            continue  # the supervisor's own, bound already
+        port = net.base_port + offset
+        with socket.socket(socket.AF_INET6 if ":" in net.host else socket.AF_INET) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind((net.host, port))
+            except OSError as exc:
+                why = (exc.strerror or str(exc)).lower()
+                raise StartupError(
+                    f"cannot start: cannot bind tcp://{net.host}:{port} ({name}): {why}; "
+                    f"another pipeline or program holds it: stop it, or set "
+                    f"network.base_port to a free range") from None
+
+
+def _ipc_url(run_dir: Path, fname: str) -> str:
+    path = str(run_dir.resolve() / fname)
+    if len(path) > MAX_IPC_PATH:
+        raise StartupError(
+            f"run directory path too long for ipc sockets: {path!r} has {len(path)} "
+            f"bytes, expected at most {MAX_IPC_PATH}; use a shorter --run-dir"
+        )
+    return f"ipc://{path}"
+
+
+def log_endpoint(run_dir: Path) -> str:
+    """Where a process's nodes send their log records: log.sock in its run directory."""
+    return _ipc_url(run_dir, _LOCAL_ENDPOINTS["log"])
+
+
+def make_private(run_dir: Path) -> None:
+    """Make run_dir (created if missing) its owner's alone, whatever the umask."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    st = run_dir.stat()
+    if st.st_mode & stat.S_ISVTX or st.st_uid != os.geteuid():
+        # /tmp and the like: closing them to everybody else would break other programs.
+        raise StartupError(
+            f"run directory {run_dir}: expected a directory of this user's own, got a shared "
+            f"one (owner uid {st.st_uid}{', sticky bit' if st.st_mode & stat.S_ISVTX else ''})"
+            f"; give --run-dir a new folder, e.g. {run_dir / 'run'}")
+    os.chmod(run_dir, RUN_DIR_MODE)
+
+
+def set_file_mode(path: Path | str) -> None:
+    """Results and logs: the owner writes, the group reads, nobody else (whatever the umask)."""
+    with contextlib.suppress(FileNotFoundError):
+        os.chmod(path, FILE_MODE)
 
 
 @dataclass(frozen=True)
@@ -55,6 +125,7 @@ class Endpoints:
     results_tap: str
     heartbeat: str
     control: str
+    log: str
     capture_link: str
     workers_link: str
     results_link: str
@@ -65,15 +136,11 @@ class Endpoints:
         urls: dict[str, str] = {}
         for name, (fname, offset) in _ENDPOINTS.items():
             if net.transport == "ipc":
-                path = str(run_dir.resolve() / fname)
-                if len(path) > MAX_IPC_PATH:
-                    raise StartupError(
-                        f"run directory path too long for ipc sockets: {path!r} has {len(path)} "
-                        f"bytes, expected at most {MAX_IPC_PATH}; use a shorter --run-dir"
-                    )
-                urls[name] = f"ipc://{path}"
+                urls[name] = _ipc_url(run_dir, fname)
             else:
                 urls[name] = f"tcp://{net.host}:{net.base_port + offset}"
+        for name, fname in _LOCAL_ENDPOINTS.items():
+            urls[name] = _ipc_url(run_dir, fname)
         for name, fname in _LINKS.items():
             urls[name] = str(run_dir.resolve() / fname)
         return cls(**urls)
@@ -154,6 +221,9 @@ def open_socket(ctx: zmq.Context[zmq.Socket[bytes]], spec: SocketSpec) -> zmq.So
     try:
         if spec.bind:
             sock.bind(spec.endpoint)
+            if spec.endpoint.startswith("ipc://"):
+                # The socket file follows the umask; the run directory is 0700 anyway.
+                os.chmod(spec.endpoint[len("ipc://"):], SOCKET_MODE)
         else:
             sock.connect(spec.endpoint)
     except zmq.ZMQError as exc:
@@ -415,6 +485,7 @@ def listen_link(path: str) -> socket.socket:
         os.unlink(path)
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     sock.bind(path)
+    os.chmod(path, SOCKET_MODE)  # before listen(): nobody else may connect
     sock.listen(64)
     sock.setblocking(False)
     return sock

@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 
 from tests.conftest import Pipeline, only_pools, poll_for, write_config
-from trapflow.frame_ring import list_segments
+from trapflow.frame_ring import PREFIX, list_segments
 
 SMALL = {"width": 320, "height": 240, "rate_hz": 15.0}
 
@@ -105,18 +105,30 @@ def test_ring_does_not_leak_and_dead_workers_return_slots(spawn, run_dir: Path) 
     assert ledger["pools"]["fast"]["processed"] >= ledger["produced"] - 5
 
 
+def _own_segments(pids: set[int]) -> list[str]:
+    """Segments this test's supervisors created (named trapflow-<owner pid>-...), not the
+    segments of other pipelines that may run on the same host meanwhile."""
+    return [n for n in list_segments() if n[len(PREFIX):].split("-", 1)[0] in map(str, pids)]
+
+
 @pytest.mark.timeout(120)
 def test_no_shm_growth_across_supervisor_kill_cycles(spawn, run_dir: Path) -> None:
-    before = set(list_segments())
+    """Pins: the test compared every trapflow segment on the host, so it failed whenever
+    another pipeline ran beside it; it now counts only its own supervisors' segments."""
+    pids: set[int] = set()
     for i in range(4):
         p: Pipeline = spawn(["--workers", "vo=1", "--size", "320x240"], run_dir / str(i))
         p.wait_active()
+        pids.add(p.proc.pid)
+        assert _own_segments({p.proc.pid}), "the supervisor created no ring segment"
         p.proc.kill()  # kill -9 of the supervisor: its segment stays behind for now
         p.proc.wait(10)
         p.leftovers()  # children die with their parent
+    assert len(_own_segments(pids)) == 1  # each start removed its killed predecessor's
     final: Pipeline = spawn(["--workers", "vo=1", "--size", "320x240", "--duration", "3"],
                             run_dir / "final")
+    pids.add(final.proc.pid)
     code, _, err = final.wait(60)
     assert code == 0, err
     assert "removed stale shared-memory segment" in err
-    assert set(list_segments()) <= before  # the next start cleaned up all four
+    assert _own_segments(pids) == []  # the next start cleaned up all four, and its own

@@ -19,11 +19,13 @@ import zmq
 
 from tests import builders
 from tests.conftest import Pipeline, only_pools, poll_for, recv, write_config
+from tests.reliability import figures, scaled
 from trapflow import messages
 from trapflow.transport import LinkClosed, connect_link
 
 SMALL = {"width": 320, "height": 240, "rate_hz": 15.0}
 FORGED = "forged"  # a field no real noop result has
+FLOOD = int(scaled("TRAPFLOW_CHAOS_FLOOD", 10_000))  # malformed heartbeats; chaos.sh sends more
 
 
 def _config(path: Path, **extra: Any) -> Path:
@@ -181,7 +183,7 @@ def test_multi_frame_control_request_gets_an_error_and_the_supervisor_lives(
     assert code == 0, err
 
 
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(int(100 + FLOOD / 500))
 def test_heartbeat_flood_writes_few_lines_and_wire_names_cannot_forge_a_line(
         spawn, run_dir: Path, zctx) -> None:
     """Issue 16 item 8: 10,000 malformed heartbeats wrote 19,511 warning lines, and names
@@ -193,7 +195,7 @@ def test_heartbeat_flood_writes_few_lines_and_wire_names_cannot_forge_a_line(
     hb.connect(f"ipc://{run_dir.resolve() / 'heartbeat.sock'}")
     rng = __import__("random").Random(16)
     t0 = time.monotonic()
-    for i in range(10_000):
+    for i in range(FLOOD):
         hb.send(b"\x93" + rng.randbytes(i % 40) + b"\n\x1b[31mERROR fake\n")
     forger = connect_link(str(run_dir / "workers.link"))
     evil = "evil\n2026-01-01 00:00:00,000 MainProcess trapflow.supervisor ERROR FAKE LINE\x1b[2J"
@@ -214,6 +216,8 @@ def test_heartbeat_flood_writes_few_lines_and_wire_names_cannot_forge_a_line(
     # One line per 5 s interval (RateLimitedLog), and the one that reports the rest.
     assert 1 <= len(hb_lines) <= flood_s / 5 + 3, (len(hb_lines), flood_s)
     rejected = [x for x in lines if "dropped an answer from worker" in x]
+    figures("log_flood", heartbeats=FLOOD, forged_names=200, seconds=round(flood_s, 1),
+            warning_lines=len(hb_lines) + len(rejected), log_bytes=len(text), exit=code)
     assert 1 <= len(rejected) <= flood_s / 5 + 3
     assert "evil\\n2026-01-01" in rejected[0]  # escaped, on its own line
     assert not [x for x in lines if "FAKE LINE" in x and "dropped an answer" not in x]

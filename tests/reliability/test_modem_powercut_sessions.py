@@ -29,6 +29,7 @@ from tests.conftest import (
     surface_idents,
 )
 from tests.integration.modem_writer import record
+from tests.reliability import figures, scaled
 from trapflow.modem.outbox import OutboxConfig, OutboxQueue
 
 SEED = 20261123
@@ -36,6 +37,11 @@ WRITER = Path(__file__).parent.parent / "integration" / "modem_writer.py"
 # The outbox each power-up runs on: Y and Z are fresh when first used (the surface has
 # heard X by then), X and Y come back after another outbox ran.
 SCHEDULE = ["X", "X", "Y", "X", "Z", "Y", "X", "Z"]
+# scripts/chaos.sh asks for more power cuts: the schedule goes on, fresh outboxes included
+# (a new outbox name every round).
+CUTS = int(scaled("TRAPFLOW_CHAOS_POWERCUTS", len(SCHEDULE)))
+SCHEDULE = [f"{n}{i // len(SCHEDULE)}" if i >= len(SCHEDULE) else n
+            for i, n in ((i, SCHEDULE[i % len(SCHEDULE)]) for i in range(CUTS))]
 
 
 def start_box(outbox_dir: Path, port: Path, run: int) -> subprocess.Popen[bytes]:
@@ -66,7 +72,7 @@ def acknowledged(outbox_dir: Path) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b, *_ in (r for r in rows if len(r) == 2)]
 
 
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(int(60 + 10 * CUTS))
 def test_power_cuts_with_fresh_outboxes_lose_nothing(
     tmp_path: Path, started_procs: list[subprocess.Popen[bytes]]
 ) -> None:
@@ -117,6 +123,9 @@ def test_power_cuts_with_fresh_outboxes_lose_nothing(
             queue.close()
         print(f"outbox {name}: {len(stored)} records, {len(acks)} appends acknowledged")
     missing = sorted(set(expected) - set(at_surface))
+    figures("modem_power_cuts", cuts=len(SCHEDULE), outboxes=len(dirs),
+            acknowledged=len(expected), at_surface=len(at_surface), lost=len(missing),
+            duplicates=len(at_surface) - len(set(at_surface)))
     assert not missing, f"{len(missing)} acknowledged records never reached the surface"
     assert len(at_surface) == len(set(at_surface)), "a record was written twice"
     assert sorted(at_surface) == sorted(expected)

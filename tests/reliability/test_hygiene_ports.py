@@ -1,0 +1,49 @@
+"""A TCP port of the pipeline already in use: one line, the policy's exit status, nothing left.
+
+Pins issue 16, item 11: a second pipeline on used ports crashed with a traceback and left
+its 60 MB ring segment in /dev/shm.
+"""
+
+from __future__ import annotations
+
+import socket
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import Pipeline, only_pools, write_config
+from tests.reliability.test_hygiene_modes import SMALL, _free_base_port
+from trapflow.errors import EXIT_USAGE
+from trapflow.frame_ring import PREFIX, list_segments
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize(("offset", "what"), [
+    (0, "capture"),  # bound by the broker
+    (3, "tap"),  # bound by the broker
+    (4, "results_tap"),  # bound by the normalizer
+    (5, "heartbeat"),  # bound by the supervisor itself
+])
+def test_used_tcp_port_ends_start_in_one_line_with_nothing_left(
+        spawn, run_dir: Path, offset: int, what: str) -> None:
+    """`what` names the socket on that port (for the reader; the message names the port)."""
+    base = _free_base_port()
+    cfg = write_config(run_dir.parent / "p.yaml", {
+        "source": SMALL, "pools": only_pools({"vo": {"count": 1}}),
+        "network": {"transport": "tcp", "base_port": base}})
+    with socket.socket() as holder:  # another program (or pipeline) holds one port
+        holder.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        holder.bind(("127.0.0.1", base + offset))
+        holder.listen(1)
+        p: Pipeline = spawn(["--config", str(cfg)], run_dir)
+        code, out, err = p.wait(45)
+        mine = [n for n in list_segments() if n.startswith(f"{PREFIX}{p.proc.pid}-")]
+        kids = p.track()
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert code == EXIT_USAGE, (code, err)
+    assert "Traceback" not in err + out
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("trapflow: error:") and str(base + offset) in lines[0], lines
+    assert "in use" in lines[0], lines
+    assert mine == [], f"ring segment left behind: {mine}"
+    assert kids == [], f"processes left behind: {kids}"

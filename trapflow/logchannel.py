@@ -18,7 +18,7 @@ import zmq
 
 from trapflow import messages
 from trapflow.errors import ProtocolError
-from trapflow.ratelog import RateLimitedLog, wire
+from trapflow.ratelog import CONSOLE_ONCE, RateLimitedLog, wire
 from trapflow.transport import SocketSpec, new_context, open_socket, set_file_mode
 
 log = logging.getLogger(__name__)
@@ -57,7 +57,8 @@ class LogSender(logging.Handler):
             text = text[: messages.MAX_LOG_BYTES // 2]  # leaves room for the other fields
             entry = messages.LogEntry(name=record.name, levelno=record.levelno,
                                       process=self.process, pid=os.getpid(),
-                                      created=record.created, message=text)
+                                      created=record.created, message=text,
+                                      console_once=bool(getattr(record, CONSOLE_ONCE, False)))
             with self._lock_send:
                 self._sock.send(messages.encode(entry), zmq.NOBLOCK)
         except zmq.Again:
@@ -108,7 +109,7 @@ class LogListener:
             "name": e.name, "levelno": e.levelno, "levelname": logging.getLevelName(e.levelno),
             "processName": e.process, "process": e.pid, "created": e.created,
             "msecs": (e.created % 1) * 1000,
-            "msg": e.message, "args": None,
+            "msg": e.message, "args": None, CONSOLE_ONCE: e.console_once,
         })
         self.handle(record)
 

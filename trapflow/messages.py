@@ -426,6 +426,7 @@ class LogEntry(Msg, frozen=True, tag="log"):
     pid: int
     created: float  # wall clock, a label only
     message: str  # the formatted message, with any traceback appended
+    console_once: bool = False  # said once on the console however many nodes say it
 
 
 # --- codecs ---------------------------------------------------------------------

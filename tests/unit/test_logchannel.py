@@ -18,6 +18,7 @@ from trapflow import messages
 from trapflow.config import NetworkConfig
 from trapflow.errors import ProtocolError, StartupError
 from trapflow.logchannel import LogListener, LogSender, PrivateRotatingFile
+from trapflow.ratelog import CONSOLE_ONCE
 from trapflow.transport import Endpoints, check_ports_free, new_context
 
 
@@ -48,18 +49,22 @@ def test_records_cross_as_structs_with_traceback_and_level(run_dir: Path) -> Non
             raise ValueError("boom")
         except ValueError:
             logger.exception("crashed")
-        poll_for(lambda: len(sink.records) == 2, 5, what="both records")
+        logger.warning("runs on CPU", extra={CONSOLE_ONCE: True})
+        poll_for(lambda: len(sink.records) == 3, 5, what="all three records")
     finally:
         logger.removeHandler(sender)
         sender.close()
         listener.stop()
         ctx.destroy(linger=0)
-    first, second = sink.records
+    first, second, third = sink.records
     assert first.getMessage() == "pair 7 took 100%"
     assert first.levelno == logging.WARNING and first.processName == "worker:mono:1"
     assert first.process == os.getpid() and first.name == "tftest.logchannel"
     assert second.levelno == logging.ERROR
     assert "ValueError: boom" in second.getMessage() and "Traceback" in second.getMessage()
+    # Regression: the mark that has the console say a warning once (the ONNX provider line,
+    # given by every worker) was lost on the way, and the console said it once per worker.
+    assert getattr(third, CONSOLE_ONCE) is True and not getattr(first, CONSOLE_ONCE)
     assert stat.S_IMODE(os.stat(ep[len("ipc://"):]).st_mode) == 0o600
 
 

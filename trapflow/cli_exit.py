@@ -18,7 +18,8 @@ class CommandFailed(click.ClickException):
 
     def __init__(self, message: str, code: int = EXIT_FAILURE) -> None:
         super().__init__(message)
-        self.exit_code = code
+        # click declares exit_code a class variable (8.5); an instance value still wins.
+        setattr(self, "exit_code", code)  # noqa: B010
 
     def show(self, file: IO[Any] | None = None) -> None:
         click.echo(f"trapflow: error: {self.format_message()}", file=file, err=file is None)

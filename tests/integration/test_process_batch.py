@@ -231,6 +231,20 @@ def run_process_remote(args: list[str], timeout: float = 90) -> tuple[int, str, 
 
 
 @pytest.mark.timeout(150)
+def _named_semaphores(pids: list[int]) -> set[Path]:
+    """The POSIX named semaphores (/dev/shm/sem.*) these processes have mapped: what a kill -9
+    of them leaves behind, and only theirs."""
+    out: set[Path] = set()
+    for pid in pids:
+        try:
+            maps = Path(f"/proc/{pid}/maps").read_text()
+        except OSError:
+            continue
+        out |= {Path(line.split()[-1]) for line in maps.splitlines()
+                if line.rstrip().split()[-1].startswith("/dev/shm/sem.")}
+    return out
+
+
 def test_killed_mid_run_then_resumed_skips_the_finished_chunks(tmp_path: Path) -> None:
     """kill -9 of the whole `process` (client, nannies, workers) mid-run, then the same
     command: the chunks finished before the kill are not run again, the rest are, and the
@@ -258,10 +272,13 @@ def test_killed_mid_run_then_resumed_skips_the_finished_chunks(tmp_path: Path) -
             assert time.monotonic() < deadline, "no chunk finished within 60 s"
             time.sleep(0.05)
     finally:
+        sems = _named_semaphores([proc.pid, *seen])
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait(10)
     _gone, alive = psutil.wait_procs(list(seen.values()), timeout=10)
     assert not [p.pid for p in alive if p.status() != psutil.STATUS_ZOMBIE]
+    for sem in sems:  # Dask's multiprocessing semaphores: kill -9 leaves them to us
+        sem.unlink(missing_ok=True)
     before = {p.name: p.stat().st_mtime_ns for p in chunks.iterdir()
               if not p.name.startswith(".")}
     done = [p for p in before if p.endswith(".json")]

@@ -588,11 +588,26 @@ def decode_control(data: Buffer) -> AnyControl:
     """Decode a control request (a pool change names exactly one change)."""
     req: AnyControl = _decode(_control_dec, data, "control request", MAX_HEADER_BYTES)
     if isinstance(req, PoolRequest):
-        given = [k for k in ("count", "policy", "active") if getattr(req, k) is not None]
-        if len(given) != 1:
-            raise ProtocolError(f"control request: a pool change names exactly one of "
-                                f"count, policy, active; got {given or 'none'} for pool "
-                                f"{req.pool!r}: send one change per request")
+        _check_one_change(req, "control request")
+    return req
+
+
+def _check_one_change(req: PoolRequest, what: str) -> None:
+    given = [k for k in ("count", "policy", "active") if getattr(req, k) is not None]
+    if len(given) != 1:
+        raise ProtocolError(f"{what}: a pool change names exactly one of count, policy, "
+                            f"active; got {given or 'none'} for pool {req.pool!r}: send one "
+                            f"change per request")
+
+
+_pool_json_dec = msgspec.json.Decoder(PoolRequest)
+
+
+def decode_pool_change(data: Buffer) -> PoolRequest:
+    """A pool change as JSON (the viewer's page): {"pool": NAME, and one of "count": N,
+    "policy": P, "active": true|false}."""
+    req: PoolRequest = _decode(_pool_json_dec, data, "pool change", MAX_HEADER_BYTES)
+    _check_one_change(req, "pool change")
     return req
 
 

@@ -45,6 +45,7 @@ from trapflow.messages import (
     check_pair_frames,
     to_builtins,
 )
+from trapflow.transport import SocketSpec, open_socket
 
 log = logging.getLogger(__name__)
 
@@ -298,14 +299,14 @@ def record(endpoint: str | Sequence[str], out: str | Path, stop: threading.Event
     if counts is not None:
         rec.counts = counts
     ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context.instance()
-    sub = ctx.socket(zmq.SUB)
-    sub.setsockopt(zmq.LINGER, 0)
-    sub.setsockopt(zmq.RCVHWM, 1000)
+    first, *more = [endpoint] if isinstance(endpoint, str) else endpoint
     try:
-        sub.setsockopt(zmq.SUBSCRIBE, TOPIC_IMAGE)
-        sub.setsockopt(zmq.SUBSCRIBE, TOPIC_RESULT)
-        for ep in ([endpoint] if isinstance(endpoint, str) else endpoint):
-            sub.connect(ep)
+        sub = open_socket(ctx, SocketSpec(zmq.SUB, first, rcvhwm=1000, also_connect=tuple(more),
+                                          subscribe=(TOPIC_IMAGE, TOPIC_RESULT)))
+    except BaseException:
+        rec.close()
+        raise
+    try:
         while not stop.is_set():
             if not sub.poll(poll_ms):
                 rec.maybe_flush()  # a quiet pipeline: what came last is on disk all the same

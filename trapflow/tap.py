@@ -77,9 +77,7 @@ def run_tap(what: str, run_dir: Path, endpoints: list[str], count: int | None = 
     waiting_said = notice is None
     try:
         sub = open_socket(ctx, SocketSpec(zmq.SUB, endpoints[0], subscribe=tuple(topics),
-                                          rcvhwm=100))
-        for extra in endpoints[1:]:
-            sub.connect(extra)
+                                          rcvhwm=100, also_connect=tuple(endpoints[1:])))
         while count is None or n < count:
             wait_ms = 200 if deadline is None else int(max(0.0, deadline - time.monotonic()) * 1000)
             if deadline is not None and wait_ms == 0:

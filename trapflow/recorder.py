@@ -38,11 +38,12 @@ from trapflow import recording_msgs as msgs
 from trapflow.camera import StereoRig
 from trapflow.errors import ProtocolError, TrapflowError
 from trapflow.messages import (
-    MAX_RESULT_BYTES,
     TOPIC_IMAGE,
     TOPIC_RESULT,
     StereoPair,
-    check_pair_frames,
+    TapPair,
+    TapResult,
+    decode_tap,
     to_builtins,
 )
 from trapflow.transport import SocketSpec, open_socket
@@ -312,17 +313,12 @@ def record(endpoint: str | Sequence[str], out: str | Path, stop: threading.Event
                 rec.maybe_flush()  # a quiet pipeline: what came last is on disk all the same
                 continue
             frames = sub.recv_multipart(copy=False)
-            topic = frames[0].bytes
             try:
-                if topic == TOPIC_IMAGE:
-                    header = check_pair_frames(frames[1:])
-                    rec.add_pair(header, frames[2].buffer, frames[3].buffer)
-                elif topic == TOPIC_RESULT:
-                    if len(frames) != 2 or len(frames[1]) > MAX_RESULT_BYTES:
-                        raise ProtocolError(
-                            f"result: expected [topic, JSON line], got {len(frames)} frames"
-                        )
-                    rec.add_result(frames[1].bytes)
+                msg = decode_tap(frames)
+                if isinstance(msg, TapPair):
+                    rec.add_pair(msg.header, msg.left, msg.right)
+                elif isinstance(msg, TapResult):
+                    rec.add_result(msg.line)
             except (ProtocolError, RecorderError) as exc:
                 if rec.counts.malformed == 0:
                     log.warning("record: skipping malformed tap message: %s", exc)

@@ -83,18 +83,15 @@ class PipelineTaps:
         return n
 
     def _feed(self, frames: list[bytes], now: float) -> None:
-        topic = frames[0]
-        if topic == messages.TOPIC_RESULT and len(frames) == 2:
-            kind, fields = messages.decode_result_line(frames[1])
-            self.state.on_result(kind, fields, time.time())
-        elif topic == messages.TOPIC_IMAGE and len(frames) == 4:
-            header = messages.decode_pair_header(frames[1])
-            self.state.on_image(header, frames[2], frames[3])
-        elif topic == messages.TOPIC_STATS and len(frames) == 2:
-            self.state.on_stats(messages.decode_stats(frames[1]), now)
+        msg = messages.decode_tap(frames)
+        if isinstance(msg, messages.TapResult):
+            self.state.on_result(msg.kind, msg.fields, time.time())
+        elif isinstance(msg, messages.TapPair):
+            self.state.on_image(msg.header, bytes(msg.left), bytes(msg.right))
+        elif isinstance(msg, messages.TapStats):
+            self.state.on_stats(msg.stats, now)
         else:
-            raise ProtocolError(f"tap: expected image (4 frames), stats or result (2 frames), "
-                                f"got topic {topic[:20]!r} with {len(frames)} frames")
+            raise ProtocolError(f"tap: expected image, stats or result, got {msg!r:.60}")
 
     # --- control ---------------------------------------------------------------------
 

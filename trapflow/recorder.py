@@ -389,7 +389,7 @@ def _copy_complete(part: Path, src: IO[bytes], tmp: Path) -> int:
                     copied += 1
         except RecorderError:
             raise
-        except Exception as exc:  # the cut: a short read, a half chunk, a CRC that fails
+        except Exception as exc:  # noqa: BLE001 - the cut: short read, half chunk, bad CRC
             log.info("recover: %s ends after %d complete messages (%s: %s)",
                      part, copied, type(exc).__name__, exc)
         if not started:

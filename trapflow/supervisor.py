@@ -544,7 +544,7 @@ class Supervisor:
         """Whether the pool's plugin takes new parameters in place (its class says so)."""
         try:
             return bool(registry.resolve(self.cfg.plugin_of(pool)).reconfigurable)
-        except Exception as exc:  # the workers report a plugin that cannot load
+        except Exception as exc:  # noqa: BLE001 - the workers report a plugin that cannot load
             log.warning("pool %s: cannot tell whether its plugin reconfigures in place (%s); "
                         "restarting its workers instead", pool, exc)
             return False

@@ -19,10 +19,11 @@ from typing import Annotated, Literal
 import msgspec
 import numpy as np
 import onnxruntime as ort
-from trapflow_workers.common import Params
 
 from trapflow.errors import WorkerError
 from trapflow.ratelog import CONSOLE_ONCE
+
+from .common import Params
 
 log = logging.getLogger(__name__)
 

@@ -5,13 +5,13 @@ sensor_msgs/msg/CameraInfo and the left-to-right transform on /tf_static (when t
 known); pair headers and results are std_msgs/msg/String JSON (one results topic per
 algorithm); VO poses are nav_msgs/msg/Odometry, and the trajectory one nav_msgs/msg/Path at
 the end; detections and tags are foxglove_msgs/msg/ImageAnnotations on the left image, one
-message per pair (with foxglove-schemas-protobuf installed). vision_msgs is not in the
-rosbags typestore, so there is no Detection2DArray. Every message is stamped with its pair's
-capture time; definitions come from recording_msgs. The file is written as OUT.part and
-renamed on close, so an interrupted recording never leaves a half-written OUT behind. Every
-second the chunk in progress is closed and the file synced, so a recorder killed by a crash
-or a power cut loses at most that second: recover() copies every complete message of the
-.part into a valid MCAP. record() owns one SUB socket."""
+message per pair (with foxglove-schemas-protobuf installed). No installable package
+carries vision_msgs (docs/recordings.md), so there is no Detection2DArray. Every message is
+stamped with its pair's capture time; definitions come from recording_msgs. The file is
+written as OUT.part and renamed on close, so an interrupted recording never leaves a
+half-written OUT behind. Every second the chunk in progress is closed and the file synced,
+so a recorder killed by a crash or a power cut loses at most that second: recover() copies
+every complete message of the .part into a valid MCAP. record() owns one SUB socket."""
 
 from __future__ import annotations
 

@@ -60,6 +60,7 @@ class PipelineTaps:
         self._queued = deque()
         self._waiting: asyncio.Future[dict[str, Any]] | None = None
         self._refresh = False  # a change was answered: ask for status at once
+        self._control_out = False  # the request out is a queued one (its reply is no status)
         self.ratelog = RateLimitedLog(log)
 
     # --- taps ------------------------------------------------------------------------
@@ -118,7 +119,7 @@ class PipelineTaps:
                     self._answer({"error": f"reply is not JSON: {exc}"})
                     self.state.on_status(None, f"status reply is not JSON: {exc}")
                     return
-                if self._waiting is not None:
+                if self._control_out:  # the answer to a change or a stop, not status
                     self._answer(reply)
                     self._refresh = True
                 else:
@@ -131,6 +132,7 @@ class PipelineTaps:
                 self.state.on_status(None, error)
             return
         what: messages.AnyControl = messages.StatusRequest()
+        self._control_out = bool(self._queued)
         if self._queued:
             what, self._waiting = self._queued.popleft()
         else:

@@ -119,8 +119,9 @@ def _default_triggers() -> list[TriggerConfig]:
 
     def trig(sensor: Sensor, enter: tuple[float, ...], release: tuple[float, ...],
              dwell_s: float, pool: str = "") -> TriggerConfig:
-        return TriggerConfig(sensor=sensor, pool=pool, enter=dict(zip(levels, enter)),
-                             release=dict(zip(levels, release)), dwell_s=dwell_s)
+        return TriggerConfig(sensor=sensor, pool=pool,
+                             enter=dict(zip(levels, enter, strict=True)),
+                             release=dict(zip(levels, release, strict=True)), dwell_s=dwell_s)
 
     return [
         trig("cpu_temp_c", (75.0, 80.0, 85.0), (70.0, 75.0, 80.0), 10.0),
@@ -171,13 +172,14 @@ class LadderConfig(_Section):
                     raise ValueError(f"triggers[{i}] ({t.key}): expected levels among "
                                      f"{names[1:]} (the first level is entered only by "
                                      f"release), got {level!r}")
-            order = [t.enter[n] for n in names if n in t.enter]
+            named = [n for n in names if n in t.enter]
+            order = [t.enter[n] for n in named]
             lower = t.sensor in LOWER_IS_WORSE
             if order != sorted(order, reverse=lower):
                 how = "fall" if lower else "rise"
                 raise ValueError(f"triggers[{i}] ({t.key}): enter thresholds must {how} "
                                  f"with the levels (worse reading, deeper level), got "
-                                 f"{dict(zip([n for n in names if n in t.enter], order))}")
+                                 f"{dict(zip(named, order, strict=True))}")
 
 
 @dataclass(frozen=True)
@@ -257,9 +259,9 @@ class Ladder:
         """The level this reading demands at the current level, and the threshold that
         decides it (see the module's docstring)."""
         lower = t.sensor in LOWER_IS_WORSE
-        worse_or_at = (lambda a, b: a <= b) if lower else (lambda a, b: a >= b)
         up = [(i, t.enter[n]) for i, n in enumerate(self.names)
-              if n in t.enter and i > self.index and worse_or_at(v, t.enter[n])]
+              if n in t.enter and i > self.index
+              and (v <= t.enter[n] if lower else v >= t.enter[n])]
         if up:
             return max(up)
         # Still held: not yet back past the release threshold of a level at or below.
@@ -275,7 +277,7 @@ class Ladder:
     def update(self, readings: Readings, now: float) -> Step:
         """Take a snapshot of the sensors; step one level when a trigger's dwell is over."""
         demands: list[tuple[int, float | None, float | None]] = []
-        for t, w in zip(self.cfg.triggers, self._watch):
+        for t, w in zip(self.cfg.triggers, self._watch, strict=True):
             v = readings.value(t)
             want, at = self._demand(t, v) if v is not None else (0, None)
             demands.append((want, v, at))
@@ -289,7 +291,7 @@ class Ladder:
                 w.up_since = w.down_since = None
         if self.forced:
             return self._same()
-        for i, (t, w) in enumerate(zip(self.cfg.triggers, self._watch)):
+        for i, (t, w) in enumerate(zip(self.cfg.triggers, self._watch, strict=True)):
             want, v, at = demands[i]
             if w.up_since is not None and now - w.up_since >= t.dwell_s and v is not None \
                     and at is not None:
@@ -300,8 +302,9 @@ class Ladder:
                           f"for {_fmt(t.dwell_s)} s")
                 self._held_by = i
                 return self._move(self.index + 1, reason, now, t.key, v, at)
-        if self.index > 0 and all(w.down_since is not None and now - w.down_since >= t.dwell_s
-                                  for t, w in zip(self.cfg.triggers, self._watch)):
+        if self.index > 0 and all(
+                w.down_since is not None and now - w.down_since >= t.dwell_s
+                for t, w in zip(self.cfg.triggers, self._watch, strict=True)):
             by = self._held_by
             if by is not None and demands[by][1] is not None:
                 t = self.cfg.triggers[by]

@@ -26,8 +26,9 @@ LEVELS = ("ir_slowed", "mono_vo", "vo_health")
 
 def trig(sensor: Any, enter: tuple[float, ...], release: tuple[float, ...],
          dwell_s: float = 0.0, pool: str = "") -> TriggerConfig:
-    return TriggerConfig(sensor=sensor, pool=pool, enter=dict(zip(LEVELS, enter)),
-                         release=dict(zip(LEVELS, release)), dwell_s=dwell_s)
+    return TriggerConfig(sensor=sensor, pool=pool, enter=dict(zip(LEVELS, enter, strict=True)),
+                         release=dict(zip(LEVELS, release, strict=True)),
+                         dwell_s=dwell_s)
 
 
 TEMP = trig("cpu_temp_c", (75, 80, 85), (70, 75, 80))

@@ -1,8 +1,9 @@
 """The modem process: sends outbox records to the surface and adds health records.
 
-Owns a SUB of the broker's stats (pool rates for health). The serial port is
-opened and re-opened by the sender; while it is missing the node is inactive with
-the reason, the outbox keeps filling, and sending resumes when the port is back.
+Owns a SUB of the broker's stats (pool rates and the ladder's level for health: a level
+change sends a health record at once). The serial port is opened and re-opened by the
+sender; while it is missing the node is inactive with the reason, the outbox keeps filling,
+and sending resumes when the port is back.
 """
 
 from __future__ import annotations
@@ -31,8 +32,9 @@ class ModemNode(Node):
             zmq.SUB, self.endpoints.tap, subscribe=(messages.TOPIC_STATS,), rcvhwm=4))
         self.pools: dict[str, tuple[float, int]] = {}
         health = None
-        if self.cfg.health.enabled:
+        if self.cfg.health.enabled or self.cfg.ladder.enabled:  # a level change: a record
             health = HealthMonitor(self.cfg.health, spec.run_dir, lambda: self.pools)
+        self.health = health
         self.sender = ModemSender(spec.run_dir / self.cfg.outbox.path, self.cfg.modem.port,
                                   self.cfg.modem, self.cfg.outbox, health)
 
@@ -67,3 +69,5 @@ class ModemNode(Node):
             except ProtocolError:
                 continue
             self.pools = {n: (p.rate, p.dropped) for n, p in stats.pools.items()}
+            if self.health is not None:
+                self.health.set_level(stats.level)

@@ -65,6 +65,11 @@ class Sensors:
             if len(text) > MAX_SENSOR_BYTES:
                 raise ValueError(f"more than {MAX_SENSOR_BYTES} bytes")
             return float(text.decode("ascii").strip()) * _SCALE[unit]
+        except FileNotFoundError:
+            # A machine without that sensor (a container, most PCs): said, not warned.
+            self.ratelog.log(logging.INFO, what, "ladder: no %s sensor at %s; the reading is "
+                             "missing (set ladder.sensors to its file, or \"\")", what, path)
+            return None
         except (OSError, ValueError, UnicodeDecodeError) as exc:
             self.ratelog.warning(what, "ladder: cannot read the %s sensor %s (%s); expected one "
                                  "number in %s: the reading is missing", what, path, exc, unit)

@@ -72,6 +72,9 @@ log = logging.getLogger(__name__)
 # Stop ladder: capture first (no new pairs), then workers and broker, the normalizer last.
 STOP_ORDER = ("viewer", "capture", "worker", "events", "broker", "normalizer", "modem")
 SEQ_RESTART_GAP = 100  # extra seqs skipped at a capture restart, beyond the heartbeat lag
+# The broker's stats may predate a switch told to it this long ago (published once a second):
+# only older switches are reconciled, so a change is not sent twice.
+RECONCILE_AFTER_S = 2.0
 LOCK_FILE = "supervisor.lock"
 # results.jsonl is read incrementally for the ledger, at most this much per status tick.
 RESULTS_READ_BYTES = 4 << 20
@@ -153,6 +156,7 @@ class Supervisor:
         self.source_where = ""  # what the source reads (a recording's image topics)
         self.ring: FrameRing | None = None
         self.notifier = sdnotify.Notifier()  # READY/WATCHDOG/STATUS under systemd, else no-op
+        self._switched_at = 0.0  # when the broker was last told of a pool switch or level
         # The degradation ladder: its decisions are the core's, its readings these sensors'.
         self.sensors: Sensors | None = None
         if cfg.ladder.enabled:
@@ -537,6 +541,7 @@ class Supervisor:
                      min_interval_s: float | None = None) -> None:
         if policy is not None:
             self._pool_cfg(pool, policy=policy)
+        self._switched_at = time.monotonic()
         try:
             self.to_broker.send(messages.encode(messages.PoolSwitch(
                 pool=pool, active=active, policy=policy,
@@ -552,6 +557,7 @@ class Supervisor:
         view = self.core.ladder_view()
         if view is None:
             return
+        self._switched_at = time.monotonic()
         try:
             self.to_broker.send(messages.encode(messages.LadderLevel(
                 level=view["level"], reason=view["reason"][:256])), zmq.NOBLOCK)
@@ -562,6 +568,8 @@ class Supervisor:
         """A restarted broker starts every pool active, with no minimum interval and no
         level: tell it again what runtime control and the ladder decided."""
         stats = self.stats
+        if time.monotonic() - self._switched_at < RECONCILE_AFTER_S:
+            return  # its stats may not show the latest switch yet
         for name, p in self.core.pools.items():
             seen = stats.pools.get(name) if stats is not None else None
             want = p.state == Lifecycle.ACTIVE

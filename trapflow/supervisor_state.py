@@ -21,8 +21,9 @@ The degradation ladder (trapflow.ladder) is applied here: a level change deactiv
 pools the new level switches off, activates again those the ladder itself had switched off,
 sets each pool's minimum interval between pairs, and leaves one "level" entry. The rule
 with the operator: the ladder never activates a pool the operator deactivated (it stays
-inactive whatever the level until the operator activates it); a pool the operator activates
-while the ladder has it off runs until the next level change.
+inactive whatever the level until the operator activates it; deactivating a pool the ladder
+has off takes it over); a pool the operator activates while the ladder has it off runs
+until the next level change.
 """
 
 from __future__ import annotations
@@ -453,6 +454,12 @@ class SupervisorState:
         an inactive pool's workers keep their models loaded and get no pairs."""
         p = self._pool(name)
         want = Lifecycle.ACTIVE if active else Lifecycle.INACTIVE
+        if not active and p.state == Lifecycle.INACTIVE and p.off_by == "ladder":
+            # Off already: the operator takes it over, so no level change turns it back on.
+            self._control(now, p, "deactivated (held by the operator; the ladder had "
+                                  "switched it off)")
+            p.off_by = "operator"
+            return []
         if p.state == want:
             verb = "activate" if active else "deactivate"
             raise Refused(f"pool {name!r} is {p.state}: {verb} is a transition from "

@@ -93,6 +93,23 @@ def test_the_ladder_never_activates_a_pool_the_operator_deactivated() -> None:
     assert s.pools["stereo"].state == Lifecycle.ACTIVE  # the ladder's own: back on
 
 
+def test_the_operator_takes_over_a_pool_the_ladder_switched_off() -> None:
+    s = core()
+    hot(s, 90, 0.0)
+    hot(s, 90, 1.0)  # mono_vo: stereo off by the ladder
+    assert s.set_active("stereo", False, 2.0) == []  # off already: nothing to tell
+    assert s.pool_view()["stereo"]["off_by"] == "operator"
+    assert s.timeline[-1].kind == "control"
+    for t in range(3, 6):
+        acts = hot(s, 40, float(t))
+        assert not any(isinstance(a, SwitchPool) and a.pool == "stereo" and a.active
+                       for a in acts)
+    assert s.ladder is not None and s.ladder.level == "full"
+    assert s.pools["stereo"].state == Lifecycle.INACTIVE
+    with pytest.raises(Refused, match="is inactive"):
+        s.set_active("stereo", False, 6.0)  # the operator's own: no transition
+
+
 def test_an_operator_activation_holds_until_the_next_level_change() -> None:
     s = core()
     hot(s, 90, 0.0)

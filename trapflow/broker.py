@@ -122,7 +122,10 @@ class BrokerNode(Node):
         self._last_in = 0
         self._last_processed: dict[str, int] = {}
         self._last_stats = self.started
-        self.level = ""  # the ladder's level, as the supervisor last said (for Stats)
+        # The ladder's level, as the supervisor last said (for Stats): the first level at
+        # the run's start; unknown after a restart until the supervisor tells it again.
+        ladder = self.cfg.ladder
+        self.level = ladder.levels[0].name if ladder.enabled and not spec.restarted else ""
         self.level_reason = ""
 
     def counters(self) -> dict[str, int]:

@@ -79,10 +79,9 @@ def test_hot_cpu_slows_stereo_and_it_comes_back(spawn, run_dir: Path) -> None:
         "ir_slowed"
     assert "cpu_temp_c 85C >= 80C" in s["ladder"]["reason"]
 
-    text = tf("status", "--run-dir", str(run_dir))
-    assert text.returncode == 0, text.stderr
-    assert "ladder: level ir_slowed (1 of 1, auto)" in text.stdout
-    assert "at most 1 pair / 1 s" in text.stdout
+    text = control.format_status(control.request(run_dir, "status"))  # `trapflow status`
+    assert "ladder: level ir_slowed (1 of 1, auto)" in text
+    assert "at most 1 pair / 1 s" in text
 
     temp.write_text("40000\n")  # cool again
     poll_for(lambda: stereo(p)[1]["min_interval_s"] == 0.0, 20, interval=0.2,

@@ -613,6 +613,8 @@ class Supervisor:
             self.control.send(msgspec.json.encode({"stopping": True}))
         elif isinstance(req, (messages.PoolRequest, messages.ParamRequest)):
             self.control.send(msgspec.json.encode(self._change(req)))
+        elif isinstance(req, messages.LevelRequest):
+            self.control.send(msgspec.json.encode({"error": "no degradation ladder in this build"}))
         else:
             self.control.send(msgspec.json.encode(self.status()))
 

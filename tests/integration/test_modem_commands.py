@@ -16,6 +16,7 @@ from typing import Any
 import pytest
 
 from tests.conftest import REPO, Pipeline, modem_cli, only_pools, poll_for, write_config
+from trapflow.control import request
 from trapflow.modem.command import parse_reply_body, sign, verify
 from trapflow.modem.frame import (
     CMD_POOL_COUNT,
@@ -32,17 +33,19 @@ from trapflow.modem.surface import SurfaceReceiver
 from trapflow.modem.surface_command import CommandClient
 
 
+def status(p: Pipeline) -> dict[str, Any]:
+    """The status straight from the control socket (no interpreter start per call)."""
+    return request(p.run_dir, "status", timeout_s=10)
+
+
 def modem_counters(p: Pipeline) -> dict[str, int]:
-    st = p.status()
-    node = next((n for n in st["nodes"] if n["name"] == "modem"), {}) if st else {}
-    counters: dict[str, int] = node.get("counters", {})
+    node = next(n for n in status(p)["nodes"] if n["name"] == "modem")
+    counters: dict[str, int] = node["counters"]
     return counters
 
 
 def control_changes(p: Pipeline) -> list[dict[str, Any]]:
-    st = p.status()
-    assert st is not None
-    return [e for e in st["supervision"]["timeline"] if e["kind"] == "control"]
+    return [e for e in status(p)["supervision"]["timeline"] if e["kind"] == "control"]
 
 
 @pytest.mark.timeout(90)
@@ -146,8 +149,7 @@ def test_commands_run_once_replays_and_forgeries_are_refused(
     assert counters["replies"] >= 3
     changes = control_changes(p)
     assert len(changes) == 1 and changes[0]["node"] == "pool:stereo", changes
-    st = p.status()
-    assert st is not None and st["supervision"]["pools"]["stereo"]["count"] == 2
+    assert status(p)["supervision"]["pools"]["stereo"]["count"] == 2
     code, _out, err = p.stop()
     assert code == 0, err
     assert "surface command refused" in (run_dir / "trapflow.log").read_text()

@@ -5,11 +5,15 @@ files, the surface's grammar and its client's corrections."""
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 import pytest
+import zmq
 
+from tests.conftest import poll_for, recv
 from trapflow import messages
+from trapflow.control import ControlClient
 from trapflow.errors import ConfigError, ProtocolError
 from trapflow.modem import command as C
 from trapflow.modem.frame import (
@@ -39,6 +43,7 @@ from trapflow.modem.frame import (
     split_signed,
 )
 from trapflow.modem.surface_command import CommandClient, take_counter
+from trapflow.transport import SocketSpec, open_socket
 
 KEY = bytes(range(32))
 OTHER_KEY = bytes(range(1, 33))
@@ -358,3 +363,35 @@ def test_client_follows_session_and_stale_corrections_signed_by_the_box(tmp_path
     client2 = CommandClient(OTHER_KEY, tmp_path / "c", SESSION, Command(CMD_STATUS))
     client2.on_reply(box.reply(client2.counter, REPLY_OK, {}))
     assert not client2.done and client2.counts["forged_replies"] == 1
+
+
+# --- the box's control client: bounded, never blocking ----------------------------------------
+
+
+def test_control_client_answers_or_gives_up_in_time(tmp_path: Path,
+                                                    zctx: zmq.Context[zmq.Socket[bytes]]
+                                                    ) -> None:
+    """A supervisor that does not answer costs the modem loop nothing: poll() returns at
+    once, and after the timeout an error reply says the change may still be made."""
+    endpoint = f"ipc://{tmp_path}/control"
+    rep = open_socket(zctx, SocketSpec(zmq.REP, endpoint, bind=True))
+    client = ControlClient(zctx, endpoint)
+    try:
+        client.send(messages.StatusRequest(), 5.0, now=100.0)
+        assert client.busy
+        assert messages.decode_control(recv(rep)[0]) == messages.StatusRequest()
+        rep.send(b'{"uptime_s": 3}')
+        reply = poll_for(lambda: client.poll(101.0), 5, what="the reply")
+        assert reply == {"uptime_s": 3} and not client.busy
+        # No answer this time: nothing until the deadline, then an error, not a hang.
+        client.send(messages.LevelRequest(level="auto"), 2.0, now=200.0)
+        recv(rep)
+        t0 = time.monotonic()
+        assert client.poll(201.0) is None
+        late = client.poll(202.5)
+        assert time.monotonic() - t0 < 0.5
+        assert late is not None and "did not answer within 2 s" in late["error"]
+        assert not client.busy
+    finally:
+        client.close()
+        rep.close(linger=0)

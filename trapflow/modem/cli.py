@@ -62,7 +62,7 @@ def _output(path: Path | None) -> Iterator[IO[bytes]]:
     default=None,
     help="Send one signed command to the box, print its reply as JSON and exit (0: done, "
     "1: refused or no reply in --timeout). Results arriving meanwhile are written only with "
-    "-o. See the grammar below.",
+    "-o. The commands are listed above.",
 )
 @click.option(
     "--key",
@@ -129,8 +129,19 @@ def surface(
     if state_path is None and output is not None and os.path.isfile(output):
         state_path = output.with_name(output.name + ".state")
     if command_text is not None:
-        _send_command(port, output, state_path, baudrate, labels, command_text, key_path,
-                      counter_path, session, retry, timeout)
+        _send_command(
+            port,
+            output,
+            state_path,
+            baudrate,
+            labels,
+            command_text,
+            key_path,
+            counter_path,
+            session,
+            retry,
+            timeout,
+        )
         return
     stop = stop_on_signals()
     with _output(output) as out:
@@ -170,8 +181,11 @@ def _send_command(
         key = load_key(key_path)
         sid = bytes.fromhex(session) if session else None
     except (TrapflowError, ValueError) as exc:
-        raise bad_input(str(exc) if not isinstance(exc, ValueError) else
-                        f"--session: expected 8 hex digits, got {session!r}") from None
+        raise bad_input(
+            str(exc)
+            if not isinstance(exc, ValueError)
+            else f"--session: expected 8 hex digits, got {session!r}"
+        ) from None
     stop = stop_on_signals()
     with contextlib.ExitStack() as stack:
         out = stack.enter_context(open(output, "ab")) if output is not None else None
@@ -179,8 +193,13 @@ def _send_command(
         if sid is None:  # the last session heard (a wrong one is corrected by the box)
             sid = receiver.current or bytes(4)
         try:
-            client = CommandClient(key, counter_path or key_path.with_name(key_path.name +
-                                   ".counter"), sid, cmd, retry_s=retry)
+            client = CommandClient(
+                key,
+                counter_path or key_path.with_name(key_path.name + ".counter"),
+                sid,
+                cmd,
+                retry_s=retry,
+            )
         except (TrapflowError, OSError) as exc:
             raise bad_input(exc) from None
         receiver.on_reply = client.on_reply
@@ -188,8 +207,8 @@ def _send_command(
         try:
             while not client.done and not stop.is_set() and time.monotonic() < deadline:
                 receiver.step()
-                wire = client.due(time.monotonic())
-                if wire is not None and receiver.port.ensure_open():
+                wire = client.due(time.monotonic()) if receiver.port.ensure_open() else None
+                if wire is not None:
                     receiver.port.write(wire)
                 receiver.port.wait_readable(0.1)
         finally:
@@ -197,8 +216,11 @@ def _send_command(
     click.echo(json.dumps(client.outcome()))
     click.echo(json.dumps({**client.counts, "link": receiver.deframer.stats()}), err=True)
     if not client.ok:
-        why = client.outcome().get("error", "no reply") if client.done else \
-            f"no reply within {timeout:g} s"
+        why = (
+            client.outcome().get("error", "no reply")
+            if client.done
+            else f"no reply within {timeout:g} s"
+        )
         raise CommandFailed(f"command {text!r}: {why}")
 
 

@@ -69,17 +69,23 @@ def load_key(path: str | Path) -> bytes:
     try:
         st = os.stat(path)
     except OSError as exc:
-        raise ConfigError(f"command key file {path}: expected a readable file, got "
-                          f"{exc.strerror}; make one with `head -c 32 /dev/urandom > {path}; "
-                          f"chmod 600 {path}`") from None
+        raise ConfigError(
+            f"command key file {path}: expected a readable file, got "
+            f"{exc.strerror}; make one with `head -c 32 /dev/urandom > {path}; "
+            f"chmod 600 {path}`"
+        ) from None
     if st.st_mode & 0o077:
-        raise ConfigError(f"command key file {path} is readable by group or others (mode "
-                          f"{stat.S_IMODE(st.st_mode):03o}): expected mode 600; fix it with "
-                          f"`chmod 600 {path}`")
+        raise ConfigError(
+            f"command key file {path} is readable by group or others (mode "
+            f"{stat.S_IMODE(st.st_mode):03o}): expected mode 600; fix it with "
+            f"`chmod 600 {path}`"
+        )
     key = path.read_bytes()
     if len(key) < MIN_KEY_BYTES:
-        raise ConfigError(f"command key file {path}: expected at least {MIN_KEY_BYTES} bytes, "
-                          f"got {len(key)}; make one with `head -c 32 /dev/urandom > {path}`")
+        raise ConfigError(
+            f"command key file {path}: expected at least {MIN_KEY_BYTES} bytes, "
+            f"got {len(key)}; make one with `head -c 32 /dev/urandom > {path}`"
+        )
     return key
 
 
@@ -106,7 +112,7 @@ def write_durably(path: Path, data: bytes) -> None:
     try:
         view = memoryview(data)
         while view:
-            view = view[os.write(fd, view):]
+            view = view[os.write(fd, view) :]
         os.fsync(fd)
     finally:
         os.close(fd)
@@ -142,9 +148,11 @@ def load_counter(path: Path, session: bytes) -> CounterState:
     try:
         state = msgspec.json.decode(data, type=CounterState)
     except msgspec.DecodeError as exc:
-        raise ConfigError(f"command counter file {path} is corrupt ({exc}): expected the "
-                          f"JSON it was saved as; remove it only with a fresh outbox (a new "
-                          f"session), or old commands could be replayed") from None
+        raise ConfigError(
+            f"command counter file {path} is corrupt ({exc}): expected the "
+            f"JSON it was saved as; remove it only with a fresh outbox (a new "
+            f"session), or old commands could be replayed"
+        ) from None
     if state.session != session.hex():
         return CounterState(session=session.hex())
     return state
@@ -203,12 +211,14 @@ class CommandGuard:
         self._count(kind)
         return Refuse(kind, why)
 
-    def _refusal_reply(self, kind: str, status: int, counter: int, data: dict[str, Any],
-                       now: float) -> Decision:
+    def _refusal_reply(
+        self, kind: str, status: int, counter: int, data: dict[str, Any], now: float
+    ) -> Decision:
         self._count(kind)
         if now < self._next_refusal_reply:
-            return Refuse(kind, f"{kind} (reply held back: at most one per "
-                                f"{REFUSAL_REPLY_INTERVAL_S:g} s)")
+            return Refuse(
+                kind, f"{kind} (reply held back: at most one per {REFUSAL_REPLY_INTERVAL_S:g} s)"
+            )
         self._next_refusal_reply = now + REFUSAL_REPLY_INTERVAL_S
         return Reply(self.reply(counter, status, data))
 
@@ -220,20 +230,32 @@ class CommandGuard:
     def receive(self, payload: bytes, now: float) -> Decision:
         """What to do with one COMMAND payload."""
         if self.key is None:
-            return self._refuse("refused_no_key", "command received but modem.command_key "
-                                "is not set: expected a key file shared with the surface")
+            return self._refuse(
+                "refused_no_key",
+                "command received but modem.command_key "
+                "is not set: expected a key file shared with the surface",
+            )
         try:
             frame = split_signed(COMMAND, payload)
         except ProtocolError as exc:
             return self._refuse("refused_malformed", f"malformed command: {exc}")
         if not verify(self.key, frame):
-            return self._refuse("refused_tag", f"command {frame.counter} with a bad tag "
-                                "(forged, damaged, or signed with another key)")
+            return self._refuse(
+                "refused_tag",
+                f"command {frame.counter} with a bad tag "
+                "(forged, damaged, or signed with another key)",
+            )
         if frame.session != self.session:
             return self._refusal_reply(
-                "refused_session", REPLY_SESSION, frame.counter,
-                {"error": f"addressed to session {frame.session.hex()}, this box's is "
-                          f"{self.session.hex()}"}, now)
+                "refused_session",
+                REPLY_SESSION,
+                frame.counter,
+                {
+                    "error": f"addressed to session {frame.session.hex()}, this box's is "
+                    f"{self.session.hex()}"
+                },
+                now,
+            )
         last = self.state.counter
         if frame.counter == last and frame.tag.hex() == self.state.tag:
             if self.running == frame.counter:
@@ -242,31 +264,50 @@ class CommandGuard:
             if self.state.reply:
                 return Reply(bytes.fromhex(self.state.reply))
             # Taken before a restart of the box, its reply unsaved: it never runs twice.
-            return Reply(self.reply(last, REPLY_LOST, {"error": f"command {last} was taken "
-                                    "before the box restarted; its reply is lost"}))
+            return Reply(
+                self.reply(
+                    last,
+                    REPLY_LOST,
+                    {
+                        "error": f"command {last} was taken "
+                        "before the box restarted; its reply is lost"
+                    },
+                )
+            )
         if frame.counter <= last:
             return self._refusal_reply(
-                "refused_old", REPLY_STALE, frame.counter,
-                {"error": f"counter {frame.counter} is not above the last accepted {last}",
-                 "last": last}, now)
+                "refused_old",
+                REPLY_STALE,
+                frame.counter,
+                {
+                    "error": f"counter {frame.counter} is not above the last accepted {last}",
+                    "last": last,
+                },
+                now,
+            )
         if self.running is not None:
             self._count("busy")
-            return Reply(self.reply(frame.counter, REPLY_BUSY,
-                                    {"error": f"command {self.running} still runs"}))
+            return Reply(
+                self.reply(
+                    frame.counter, REPLY_BUSY, {"error": f"command {self.running} still runs"}
+                )
+            )
         try:
             cmd = parse_command_body(frame.body)
         except (ProtocolError, IndexError) as exc:
             # Authentic but not understood (a newer surface): the counter is taken, the
             # reply says why, and a retransmission gets that reply.
             cmd = Command(0, text=str(exc))
-        self.state = CounterState(session=self.session.hex(), counter=frame.counter,
-                                  tag=frame.tag.hex())
+        self.state = CounterState(
+            session=self.session.hex(), counter=frame.counter, tag=frame.tag.hex()
+        )
         self.running = frame.counter
         self._count("accepted")
         return Execute(frame.counter, cmd, self.state)
 
-    def finished(self, counter: int, status: int, data: dict[str, Any]) -> tuple[bytes,
-                                                                                   CounterState]:
+    def finished(
+        self, counter: int, status: int, data: dict[str, Any]
+    ) -> tuple[bytes, CounterState]:
         """The command ran: its reply, cached for retransmissions, and the state to save."""
         payload = self.reply(counter, status, data)
         if counter == self.state.counter:
@@ -335,33 +376,37 @@ def status_summary(st: dict[str, Any]) -> dict[str, Any]:
     pools: dict[str, list[Any]] = {}
     for name, p in (stats.get("pools") or {}).items():
         ctl = (sup.get("pools") or {}).get(name, {})
-        pools[name] = [ctl.get("state", "active" if p.get("active", True) else "inactive"),
-                       p.get("workers", 0), p.get("processed", 0), p.get("dropped", 0),
-                       p.get("rate", 0.0)]
-    return {"status": {"uptime_s": int(st.get("uptime_s", 0)), "active": f"{active}/{len(nodes)}",
-                       "pairs_in": stats.get("pairs_in", 0), "changes": sup.get("control", 0),
-                       "gave_up": sup.get("gave_up", 0)}, "pools": pools}
+        pools[name] = [
+            ctl.get("state", "active" if p.get("active", True) else "inactive"),
+            p.get("workers", 0),
+            p.get("processed", 0),
+            p.get("dropped", 0),
+            p.get("rate", 0.0),
+        ]
+    return {
+        "status": {
+            "uptime_s": int(st.get("uptime_s", 0)),
+            "active": f"{active}/{len(nodes)}",
+            "pairs_in": stats.get("pairs_in", 0),
+            "changes": sup.get("control", 0),
+            "gave_up": sup.get("gave_up", 0),
+        },
+        "pools": pools,
+    }
 
 
 # --- the surface's grammar ----------------------------------------------------------------
 
-GRAMMAR = """\
-level NAME|auto                  force the degradation ladder to a level, or let it decide
-pool NAME --count N              run N workers in a pool
-pool NAME --activate|--deactivate
-pool NAME --policy POLICY        e.g. latest, fifo:8
-param POOL KEY=VALUE             set one plugin parameter
-status                           a short status now
-health                           a health record now"""
-
 
 def parse_command_text(text: str) -> Command:
-    """One command of GRAMMAR; ValueError saying what was expected and what came."""
+    """One command of `trapflow surface --command` (its --help lists them); ValueError
+    saying what was expected and what came."""
     try:
         words = shlex.split(text)
     except ValueError as exc:
-        raise ValueError(f"expected a command like 'pool stereo --count 2', got {text!r}: "
-                         f"{exc}") from None
+        raise ValueError(
+            f"expected a command like 'pool stereo --count 2', got {text!r}: {exc}"
+        ) from None
     if not words:
         raise ValueError("expected a command (level, pool, param, status, health), got none")
     verb, args = words[0], words[1:]
@@ -385,8 +430,9 @@ def parse_command_text(text: str) -> Command:
     if verb == "pool":
         usage = "pool NAME --count N|--activate|--deactivate|--policy P"
         if len(args) == 2 and args[1] in ("--activate", "--deactivate"):
-            return Command(CMD_POOL_ACTIVATE if args[1] == "--activate" else
-                           CMD_POOL_DEACTIVATE, args[0])
+            return Command(
+                CMD_POOL_ACTIVATE if args[1] == "--activate" else CMD_POOL_DEACTIVATE, args[0]
+            )
         want(3, usage)
         if args[1] == "--count":
             if not args[2].isdigit():
@@ -405,4 +451,3 @@ def describe(cmd: Command) -> str:
     if cmd.kind == CMD_POOL_COUNT:
         parts.append(str(cmd.count))
     return " ".join(p for p in parts if p)
-

@@ -353,8 +353,13 @@ def command_body(cmd: Command) -> bytes:
     out = bytearray((cmd.kind,))
     if cmd.kind == CMD_LEVEL:
         _put_text(out, cmd.text)
-    elif cmd.kind in (CMD_POOL_COUNT, CMD_POOL_ACTIVATE, CMD_POOL_DEACTIVATE, CMD_POOL_POLICY,
-                      CMD_PARAM):
+    elif cmd.kind in (
+        CMD_POOL_COUNT,
+        CMD_POOL_ACTIVATE,
+        CMD_POOL_DEACTIVATE,
+        CMD_POOL_POLICY,
+        CMD_PARAM,
+    ):
         _put_text(out, cmd.pool)
         if cmd.kind == CMD_POOL_COUNT:
             put_uvarint(out, cmd.count)
@@ -402,8 +407,10 @@ def parse_command_body(body: bytes) -> Command:
     r = Reader(body)
     kind = r.take(1)[0]
     if kind not in CMD_KINDS:
-        raise ProtocolError(f"expected a command kind in {sorted(CMD_KINDS)}, got {kind}: "
-                            f"update trapflow on the box to the surface's version")
+        raise ProtocolError(
+            f"expected a command kind in {sorted(CMD_KINDS)}, got {kind}: "
+            f"update trapflow on the box to the surface's version"
+        )
     if kind == CMD_LEVEL:
         cmd = Command(kind, text=_text(r))
     elif kind in (CMD_STATUS, CMD_HEALTH):
@@ -420,8 +427,7 @@ def parse_command_body(body: bytes) -> Command:
         else:
             cmd = Command(kind, pool)
     if not r.done():
-        raise ProtocolError(f"expected {r.pos} bytes of {CMD_KINDS[kind]} command, "
-                            f"got {len(body)}")
+        raise ProtocolError(f"expected {r.pos} bytes of {CMD_KINDS[kind]} command, got {len(body)}")
     return cmd
 
 
@@ -438,12 +444,13 @@ def split_signed(kind: int, payload: bytes) -> SignedFrame:
     if len(payload) < SESSION_BYTES + 1 + 1 + TAG_BYTES:
         raise ProtocolError(
             f"expected a signed payload of at least {SESSION_BYTES + 2 + TAG_BYTES} bytes "
-            f"(session, counter, kind, tag), got {len(payload)}")
+            f"(session, counter, kind, tag), got {len(payload)}"
+        )
     head, tag = payload[:-TAG_BYTES], payload[-TAG_BYTES:]
     r = Reader(head)
     session = r.take(SESSION_BYTES)
     counter = r.uvarint()
-    body = head[r.pos:]
+    body = head[r.pos :]
     if not body:
         raise ProtocolError("expected a command kind or reply status before the tag, got none")
     return SignedFrame(session, counter, body, tag, bytes((kind,)) + head)

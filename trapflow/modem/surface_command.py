@@ -51,9 +51,10 @@ def take_counter(path: Path, at_least: int = 1) -> int:
     except FileNotFoundError:
         state = SurfaceCounter()
     except msgspec.DecodeError as exc:
-        raise ConfigError(f"command counter file {path} is corrupt ({exc}): expected "
-                          '{"next": N}; remove it (the box tells the next free counter)'
-                          ) from None
+        raise ConfigError(
+            f"command counter file {path} is corrupt ({exc}): expected "
+            '{"next": N}; remove it (the box tells the next free counter)'
+        ) from None
     counter = max(state.next, at_least)
     write_durably(path, msgspec.json.encode(SurfaceCounter(next=counter + 1)) + b"\n")
     return counter
@@ -62,25 +63,39 @@ def take_counter(path: Path, at_least: int = 1) -> int:
 class CommandClient:
     """One command until its reply: call step() in the loop, on_reply() with REPLY payloads."""
 
-    def __init__(self, key: bytes, counter_path: Path, session: bytes, cmd: Command,
-                 retry_s: float = 8.0, backoff: float = 1.5, retry_max_s: float = 60.0) -> None:
+    def __init__(
+        self,
+        key: bytes,
+        counter_path: Path,
+        session: bytes,
+        cmd: Command,
+        retry_s: float = 8.0,
+        backoff: float = 1.5,
+        retry_max_s: float = 60.0,
+    ) -> None:
         if len(session) != SESSION_BYTES:
-            raise ConfigError(f"--session: expected {SESSION_BYTES * 2} hex digits, got "
-                              f"{session.hex()!r}")
+            raise ConfigError(
+                f"--session: expected {SESSION_BYTES * 2} hex digits, got {session.hex()!r}"
+            )
         self.key = key
         self.counter_path = counter_path
         self.session = session
         self.body = command_body(cmd)
         self.retry_s, self.backoff, self.retry_max_s = retry_s, backoff, retry_max_s
         self.result: tuple[int, dict[str, Any]] | None = None
-        self.counts = {"sent": 0, "bad_replies": 0, "forged_replies": 0, "other_replies": 0,
-                       "busy": 0, "corrections": 0}
+        self.counts = {
+            "sent": 0,
+            "bad_replies": 0,
+            "forged_replies": 0,
+            "other_replies": 0,
+            "busy": 0,
+            "corrections": 0,
+        }
         self._issue(1)
 
     def _issue(self, at_least: int) -> None:
         self.counter = take_counter(self.counter_path, at_least)
-        self.wire = frame(COMMAND, sign(self.key, COMMAND, self.session, self.counter,
-                                        self.body))
+        self.wire = frame(COMMAND, sign(self.key, COMMAND, self.session, self.counter, self.body))
         self._interval = self.retry_s
         self._next_send = 0.0
 
@@ -121,12 +136,14 @@ class CommandClient:
         if status == REPLY_BUSY:
             self.counts["busy"] += 1
             return  # sent again at the next retry
-        if status in (REPLY_SESSION, REPLY_STALE) and \
-                self.counts["corrections"] < MAX_CORRECTIONS:
+        if status in (REPLY_SESSION, REPLY_STALE) and self.counts["corrections"] < MAX_CORRECTIONS:
             self.counts["corrections"] += 1
             if status == REPLY_SESSION:
-                log.info("the box's outbox session is %s (not %s): sending there",
-                         reply.session.hex(), self.session.hex())
+                log.info(
+                    "the box's outbox session is %s (not %s): sending there",
+                    reply.session.hex(),
+                    self.session.hex(),
+                )
                 self.session = reply.session
                 self._issue(self.counter + 1)
             else:
@@ -141,8 +158,12 @@ class CommandClient:
         if self.result is None:
             return {"reply": "timeout", "counter": self.counter, "session": self.session.hex()}
         status, data = self.result
-        return {"reply": REPLY_STATUSES.get(status, str(status)), "counter": self.counter,
-                "session": self.session.hex(), **data}
+        return {
+            "reply": REPLY_STATUSES.get(status, str(status)),
+            "counter": self.counter,
+            "session": self.session.hex(),
+            **data,
+        }
 
     @property
     def ok(self) -> bool:

@@ -96,7 +96,9 @@ class ModemNode(Node):
         for payload in self.sender.take_commands():
             d = self.guard.receive(payload, now)
             if isinstance(d, Refuse):
-                self.ratelog.warning(d.kind, "surface command refused: %s", wire(d.why))
+                # A retransmission of the running command is the link's doing, not an attack.
+                level = logging.INFO if d.kind == "duplicates" else logging.WARNING
+                self.ratelog.log(level, d.kind, "surface command refused: %s", wire(d.why))
             elif isinstance(d, Execute):
                 self._execute(d, now)
             else:

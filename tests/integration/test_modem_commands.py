@@ -1,7 +1,8 @@
 """Signed commands from the surface to a real running pipeline over the simulated lossy
 acoustic link: `trapflow surface --command` changes a pool once however often the frame
-travels, a retransmission gets the cached reply, a replayed older frame and a forged frame
-are refused and counted by the box's modem node."""
+travels, a retransmission gets the cached reply, status and a health record come back
+signed, a replayed older frame and a forged frame are refused and counted by the box's
+modem node."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from tests.conftest import REPO, Pipeline, modem_cli, only_pools, poll_for, writ
 from trapflow.control import request
 from trapflow.modem.command import parse_reply_body, sign, verify
 from trapflow.modem.frame import (
+    CMD_HEALTH,
     CMD_POOL_COUNT,
     CMD_STATUS,
     COMMAND,
@@ -115,21 +117,28 @@ def test_commands_run_once_replays_and_forgeries_are_refused(
         again = send_until(first, cached, "the cached reply")
         assert again == {"changed": "pool:stereo", "change": reply["change"]}
 
-        # 3. A second command (status) through the library client: the pool has 2 workers.
-        client = CommandClient(key, key_path.with_name("key.counter"), session,
-                               Command(CMD_STATUS), retry_s=0.6)
-        surface.on_reply = client.on_reply
-        deadline = time.monotonic() + 20
-        while not client.done and time.monotonic() < deadline:
-            surface.step()
-            wire = client.due(time.monotonic())
-            if wire is not None and surface.port.ensure_open():
-                surface.port.write(wire)
-            surface.port.wait_readable(0.05)
-        assert client.ok, client.outcome()
-        assert client.counter == counter + 1
-        assert client.result is not None and client.result[0] == REPLY_OK
-        assert client.outcome()["pools"]["stereo"][1] == 2  # workers
+        def run_command(cmd: Command) -> dict[str, Any]:
+            """One command through the library client (as the command line runs it)."""
+            client = CommandClient(key, key_path.with_name("key.counter"), session, cmd,
+                                   retry_s=0.6)
+            surface.on_reply = client.on_reply
+            deadline = time.monotonic() + 20
+            while not client.done and time.monotonic() < deadline:
+                surface.step()
+                wire = client.due(time.monotonic())
+                if wire is not None and surface.port.ensure_open():
+                    surface.port.write(wire)
+                surface.port.wait_readable(0.05)
+            assert client.ok, client.outcome()
+            assert client.result is not None and client.result[0] == REPLY_OK
+            return client.outcome()
+
+        # 3. Status and a health record now: the pool has 2 workers.
+        st = run_command(Command(CMD_STATUS))
+        assert st["counter"] == counter + 1
+        assert st["pools"]["stereo"][:2] == ["active", 2]  # state, workers
+        health = run_command(Command(CMD_HEALTH))["health"]
+        assert health["disk_free_mb"] > 0 and health["link"] == "active"
 
         # 4. The first frame once more: now older than the last accepted, refused.
         surface.on_reply = replies.append
@@ -144,7 +153,7 @@ def test_commands_run_once_replays_and_forgeries_are_refused(
         surface.close()
 
     counters = modem_counters(p)
-    assert counters["commands_accepted"] == 2  # the pool change and the status, once each
+    assert counters["commands_accepted"] == 3  # the pool change, status, health: once each
     assert counters["commands_duplicates"] >= 1
     assert counters["replies"] >= 3
     changes = control_changes(p)

@@ -206,6 +206,14 @@ def test_no_key_refuses_everything() -> None:
     assert isinstance(d, C.Refuse) and "command_key" in d.why
 
 
+def test_a_corrupt_counter_file_refuses_every_command() -> None:
+    """Starting from 0 would let this session's old commands run again: refuse them all."""
+    guard = C.CommandGuard(KEY, SESSION, C.CounterState(session=SESSION.hex()),
+                           disabled="command counter file x is corrupt")
+    d = guard.receive(cmd_payload(100), 0.0)
+    assert isinstance(d, C.Refuse) and d.kind == "refused_disabled" and "corrupt" in d.why
+
+
 def test_counter_survives_a_restart_and_a_lost_reply_is_never_run_again(tmp_path: Path
                                                                        ) -> None:
     """The box saves the counter before running; after a power cut between running and

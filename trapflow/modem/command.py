@@ -201,6 +201,7 @@ class CommandGuard:
     session: bytes
     state: CounterState
     running: int | None = None  # counter of the command being executed
+    disabled: str = ""  # why every command is refused (the counter file cannot be trusted)
     counts: dict[str, int] = field(default_factory=dict)
     _next_refusal_reply: float = 0.0
 
@@ -235,6 +236,8 @@ class CommandGuard:
                 "command received but modem.command_key "
                 "is not set: expected a key file shared with the surface",
             )
+        if self.disabled:
+            return self._refuse("refused_disabled", self.disabled)
         try:
             frame = split_signed(COMMAND, payload)
         except ProtocolError as exc:

@@ -19,7 +19,7 @@ import zmq
 
 from trapflow import messages
 from trapflow.control import ControlClient
-from trapflow.errors import ProtocolError
+from trapflow.errors import ConfigError, ProtocolError
 from trapflow.modem.command import (
     CommandGuard,
     CounterState,
@@ -61,8 +61,13 @@ class ModemNode(Node):
         mcfg = self.cfg.modem
         key = load_key(mcfg.command_key) if mcfg.command_key else None
         self.counter_path = outbox.with_name(COUNTER_FILE)
-        self.guard = CommandGuard(key, self.sender.session,
-                                  load_counter(self.counter_path, self.sender.session))
+        try:
+            state, disabled = load_counter(self.counter_path, self.sender.session), ""
+        except ConfigError as exc:
+            # Results must still reach the surface: only commands stop, none can be replayed.
+            log.error("surface commands refused: %s", exc)
+            state, disabled = CounterState(session=self.sender.session.hex()), str(exc)
+        self.guard = CommandGuard(key, self.sender.session, state, disabled=disabled)
         self.control = ControlClient(self.ctx, self.endpoints.control)
         self.health_now = HealthMonitor(self.cfg.health, spec.run_dir, lambda: self.pools)
         self.running: tuple[int, Command] | None = None

@@ -413,8 +413,14 @@ class ParamRequest(Msg, frozen=True, tag="param"):
     value: ParamValue
 
 
-ControlRequest = Union[StatusRequest, StopRequest, PoolRequest, ParamRequest]
-AnyControl = StatusRequest | StopRequest | PoolRequest | ParamRequest
+class LevelRequest(Msg, frozen=True, tag="level"):
+    """Force the degradation ladder to a level by name, or `auto` to let the triggers decide."""
+
+    level: str
+
+
+ControlRequest = Union[StatusRequest, StopRequest, PoolRequest, ParamRequest, LevelRequest]
+AnyControl = StatusRequest | StopRequest | PoolRequest | ParamRequest | LevelRequest
 
 
 class LogEntry(Msg, frozen=True, tag="log"):

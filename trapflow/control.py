@@ -51,6 +51,57 @@ def request(run_dir: Path, what: str | messages.Msg, timeout_s: float = 3.0,
         ctx.destroy(linger=0)
 
 
+class ControlClient:
+    """A control client for a node's loop (the modem's surface commands): one request at a
+    time, never blocking; a request the supervisor does not answer within its time is given
+    up with an error reply (the REQ socket is then replaced, as REQ allows no second send)."""
+
+    def __init__(self, ctx: zmq.Context[zmq.Socket[bytes]], endpoint: str) -> None:
+        self.ctx = ctx
+        self.endpoint = endpoint
+        self._sock: zmq.Socket[bytes] | None = None
+        self.deadline: float | None = None  # set while a request waits for its reply
+        self.timeout_s = 0.0
+
+    @property
+    def busy(self) -> bool:
+        """True while a request waits for its reply."""
+        return self.deadline is not None
+
+    def send(self, req: messages.Msg, timeout_s: float, now: float) -> None:
+        """Send one request; poll() gives its reply."""
+        if self.busy:
+            raise RuntimeError("ControlClient.send while a request is waiting")
+        if self._sock is None:
+            self._sock = open_socket(self.ctx, SocketSpec(zmq.REQ, self.endpoint))
+        self._sock.send(messages.encode(req), zmq.NOBLOCK)
+        self.deadline, self.timeout_s = now + timeout_s, timeout_s
+
+    def poll(self, now: float) -> dict[str, Any] | None:
+        """The reply once it came (or an error once the time is over); None meanwhile."""
+        if self.deadline is None or self._sock is None:
+            return None
+        if self._sock.poll(0, zmq.POLLIN):
+            self.deadline = None
+            try:
+                reply: dict[str, Any] = json.loads(self._sock.recv())
+            except ValueError as exc:
+                return {"error": f"the supervisor's reply is not JSON: {exc}"}
+            return reply
+        if now < self.deadline:
+            return None
+        self.close()
+        return {"error": f"the supervisor did not answer within {self.timeout_s:g} s; the "
+                         "change may still be made: ask for status"}
+
+    def close(self) -> None:
+        """Drop the socket (and any request waiting)."""
+        if self._sock is not None:
+            self._sock.close(linger=0)
+        self._sock = None
+        self.deadline = None
+
+
 def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
     """A human table of nodes and pool counters, or the JSON itself."""
     if as_json or "nodes" not in reply:

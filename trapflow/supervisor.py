@@ -286,6 +286,10 @@ class Supervisor:
             prefix = "" if why.startswith(f"{c.source.kind}:") else f"{c.source.kind}: "
             raise StartupError(f"source {prefix}{why}") from None
         self.rig, self.rig_origin, self.source_where = found.rig, found.origin, found.where
+        if c.modem.enabled and c.modem.command_key:  # a bad key file: one line, nothing spawned
+            from trapflow.modem.command import load_key
+
+            load_key(c.modem.command_key)
         for pool, pcfg in self.cfg.pools.items():
             if pcfg.count > 0:
                 try:

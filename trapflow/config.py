@@ -16,6 +16,7 @@ import yaml
 
 from trapflow.errors import ConfigError
 from trapflow.events import EventsConfig
+from trapflow.ladder import LadderConfig
 from trapflow.modem.config import ModemConfig
 from trapflow.modem.health import HealthConfig
 from trapflow.modem.outbox import OutboxConfig
@@ -234,6 +235,7 @@ class Config(_Section):
     health: HealthConfig = msgspec.field(default_factory=HealthConfig)
     events: EventsConfig = msgspec.field(default_factory=EventsConfig)
     viewer: ViewerConfig = msgspec.field(default_factory=ViewerConfig)
+    ladder: LadderConfig = msgspec.field(default_factory=LadderConfig)
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
     log_file: LogFileConfig = msgspec.field(default_factory=LogFileConfig)
 

@@ -20,7 +20,8 @@ from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
 # The pool table's columns and their units: counts are pairs since the run started (over
 # broker restarts), workers are processes, rate is results per second lately.
 POOL_UNITS = {"workers": "procs", "received": "pairs", "processed": "pairs",
-              "dropped": "pairs", "inactive": "pairs", "in_flight": "pairs", "pending": "pairs",
+              "dropped": "pairs", "inactive": "pairs", "throttled": "pairs", "in_flight": "pairs",
+              "pending": "pairs",
               "errors": "pairs",
               "timed_out": "pairs", "lost": "pairs", "rate": "pairs/s"}
 # Give-ups and retries `trapflow status` lists (the newest); the JSON has them all.
@@ -137,10 +138,19 @@ def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
         lines.append(f"supervision: {sup['gave_up']} give-ups, {sup['retries']} retries, "
                      f"{sup['capped']} capped restarts of essential nodes, "
                      f"{sup.get('control', 0)} runtime changes")
+        lad = sup.get("ladder")
+        if lad:
+            how = "forced" if lad["forced"] else "auto"
+            lines.append(f"ladder: level {lad['level']} ({lad['index']} of "
+                         f"{len(lad['levels']) - 1}, {how}), {lad['changes']} changes; "
+                         f"{lad['reason']}")
         for name, p in sup.get("pools", {}).items():
             params = ", ".join(f"{k}={v!r}" for k, v in p["params"].items()) or "defaults"
-            lines.append(f"  pool {name:<10} {p['state']:<9} {p['count']} workers, policy "
-                         f"{p['policy']}, params {params}, {p['changes']} changes")
+            off = f" (by the {p['off_by']})" if p.get("off_by") else ""
+            every = f", at most 1 pair / {p['min_interval_s']:g} s" \
+                if p.get("min_interval_s") else ""
+            lines.append(f"  pool {name:<10} {p['state']:<9}{off} {p['count']} workers, policy "
+                         f"{p['policy']}{every}, params {params}, {p['changes']} changes")
         for e in sup["timeline"][-TIMELINE_SHOWN:]:
             lines.append(f"  {e['t_s']:>8} s  {e['node']:<20} {e['kind']:<8} {e['reason']}")
     if reply.get("ledger"):

@@ -21,6 +21,7 @@ from trapflow.control import request
 from trapflow.modem.command import parse_reply_body, sign, verify
 from trapflow.modem.frame import (
     CMD_HEALTH,
+    CMD_LEVEL,
     CMD_POOL_COUNT,
     CMD_STATUS,
     COMMAND,
@@ -139,6 +140,12 @@ def test_commands_run_once_replays_and_forgeries_are_refused(
         assert st["pools"]["stereo"][:2] == ["active", 2]  # state, workers
         health = run_command(Command(CMD_HEALTH))["health"]
         assert health["disk_free_mb"] > 0 and health["link"] == "active"
+        # The degradation ladder forced from the surface: stereo off at mono_vo.
+        lv = run_command(Command(CMD_LEVEL, text="mono_vo"))
+        assert (lv["level"], lv["auto"]) == ("mono_vo", False), lv
+        assert lv["reason"] == "full -> mono_vo: forced by the operator"
+        assert run_command(Command(CMD_STATUS))["status"]["level"] == "mono_vo"
+        assert status(p)["supervision"]["pools"]["stereo"]["off_by"] == "ladder"
 
         # 4. The first frame once more: now older than the last accepted, refused.
         surface.on_reply = replies.append
@@ -153,7 +160,7 @@ def test_commands_run_once_replays_and_forgeries_are_refused(
         surface.close()
 
     counters = modem_counters(p)
-    assert counters["commands_accepted"] == 3  # the pool change, status, health: once each
+    assert counters["commands_accepted"] == 5  # pool change, status, health, level, status
     assert counters["commands_duplicates"] >= 1
     assert counters["replies"] >= 3
     changes = control_changes(p)

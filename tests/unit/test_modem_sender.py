@@ -101,6 +101,25 @@ def test_health_record_fits_the_link(tmp_path: Path) -> None:
     assert LinkCodec().decode(data) == first
 
 
+@pytest.mark.parametrize("periodic", [True, False])
+def test_a_level_change_sends_a_health_record_at_once(tmp_path: Path, periodic: bool) -> None:
+    """The ladder's level (from the broker's stats) changes: a record now, carrying it, even
+    inside the interval and with periodic records off; the same level again: none."""
+    monitor = HealthMonitor(HealthConfig(enabled=periodic, interval_s=3600), tmp_path)
+    first = monitor({"backlog": 0})
+    assert (first is not None) == periodic and (first is None or "level" not in first["health"])
+    monitor.set_level("full")
+    now = monitor({"backlog": 0})
+    assert now is not None and now["health"]["level"] == "full"
+    monitor.set_level("full")
+    assert monitor({"backlog": 0}) is None
+    monitor.set_level("ir_slowed")
+    rec = monitor({"backlog": 0})
+    assert rec is not None and rec["health"]["level"] == "ir_slowed"
+    assert LinkCodec().decode(LinkCodec().encode(rec)) == rec
+    assert monitor({"backlog": 0}) is None
+
+
 def test_commands_come_in_and_replies_go_out_first_within_rate_and_budget(tmp_path: Path
                                                                           ) -> None:
     """On a real pty: a COMMAND frame is handed to the node; a queued REPLY leaves before the

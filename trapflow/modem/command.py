@@ -393,6 +393,7 @@ def status_summary(st: dict[str, Any]) -> dict[str, Any]:
             "pairs_in": stats.get("pairs_in", 0),
             "changes": sup.get("control", 0),
             "gave_up": sup.get("gave_up", 0),
+            **({"level": sup["ladder"]["level"]} if sup.get("ladder") else {}),
         },
         "pools": pools,
     }

@@ -1,10 +1,11 @@
 """The modem process: sends outbox records to the surface and adds health records, and
 executes the surface's signed commands.
 
-Owns a SUB of the broker's stats (pool rates for health) and a REQ to the supervisor's
-control socket (trapflow.control.ControlClient) through which commands run. The serial
-port is opened and re-opened by the sender; while it is missing the node is inactive with
-the reason, the outbox keeps filling, and sending resumes when the port is back.
+Owns a SUB of the broker's stats (pool rates and the ladder's level for health: a level
+change sends a health record at once) and a REQ to the supervisor's control socket
+(trapflow.control.ControlClient) through which commands run. The serial port is opened and
+re-opened by the sender; while it is missing the node is inactive with the reason, the
+outbox keeps filling, and sending resumes when the port is back.
 A command is checked by trapflow.modem.command.CommandGuard; its counter is saved (beside
 the outbox, fsynced) before it runs; its reply goes out before any data.
 """
@@ -32,7 +33,15 @@ from trapflow.modem.command import (
     save_counter,
     status_summary,
 )
-from trapflow.modem.frame import CMD_HEALTH, CMD_KINDS, CMD_STATUS, REPLY_ERROR, REPLY_OK, Command
+from trapflow.modem.frame import (
+    CMD_HEALTH,
+    CMD_KINDS,
+    CMD_LEVEL,
+    CMD_STATUS,
+    REPLY_ERROR,
+    REPLY_OK,
+    Command,
+)
 from trapflow.modem.health import HealthMonitor
 from trapflow.modem.sender import ModemSender
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
@@ -53,8 +62,9 @@ class ModemNode(Node):
             zmq.SUB, self.endpoints.tap, subscribe=(messages.TOPIC_STATS,), rcvhwm=4))
         self.pools: dict[str, tuple[float, int]] = {}
         health = None
-        if self.cfg.health.enabled:
+        if self.cfg.health.enabled or self.cfg.ladder.enabled:  # a level change: a record
             health = HealthMonitor(self.cfg.health, spec.run_dir, lambda: self.pools)
+        self.health = health
         outbox = spec.run_dir / self.cfg.outbox.path
         self.sender = ModemSender(outbox, self.cfg.modem.port, self.cfg.modem, self.cfg.outbox,
                                   health)
@@ -149,6 +159,10 @@ class ModemNode(Node):
             self._finish(counter, REPLY_ERROR, {"error": str(reply["error"])})
         elif cmd.kind == CMD_STATUS:
             self._finish(counter, REPLY_OK, status_summary(reply))
+        elif cmd.kind == CMD_LEVEL:  # the supervisor's answer to a LevelRequest
+            self._finish(counter, REPLY_OK, {"level": str(reply.get("level", "")),
+                                             "auto": bool(reply.get("auto")),
+                                             "reason": str(reply.get("reason", ""))})
         else:
             self._finish(counter, REPLY_OK, {"changed": str(reply.get("changed", "")),
                                              "change": str(reply.get("change", ""))})
@@ -180,3 +194,6 @@ class ModemNode(Node):
             except ProtocolError:
                 continue
             self.pools = {n: (p.rate, p.dropped) for n, p in stats.pools.items()}
+            if self.health is not None:
+                self.health.set_level(stats.level)
+            self.health_now.level = stats.level  # a record asked for now says it too

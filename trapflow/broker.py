@@ -122,6 +122,11 @@ class BrokerNode(Node):
         self._last_in = 0
         self._last_processed: dict[str, int] = {}
         self._last_stats = self.started
+        # The ladder's level, as the supervisor last said (for Stats): the first level at
+        # the run's start; unknown after a restart until the supervisor tells it again.
+        ladder = self.cfg.ladder
+        self.level = ladder.levels[0].name if ladder.enabled and not spec.restarted else ""
+        self.level_reason = ""
 
     def counters(self) -> dict[str, int]:
         return {"pairs_in": self.state.pairs_in, "malformed": self.malformed,
@@ -253,10 +258,10 @@ class BrokerNode(Node):
                 msg = _local_msg(messages.decode_worker_msg(frames[0]))
                 ident = self.link_ident.get(link)
                 if ident is None:  # a worker names itself in its first message
-                    if isinstance(msg, messages.PoolSwitch):
+                    if isinstance(msg, (messages.PoolSwitch, messages.LadderLevel)):
                         raise ProtocolError("worker link: expected a worker message first, "
-                                            "got a pool switch (only the supervisor sends "
-                                            "those, on the workers socket)")
+                                            f"got a {msg.__struct_config__.tag} (only the "
+                                            "supervisor sends those, on the workers socket)")
                     ident = msg.worker.encode()
                     if ident in self.worker_links:  # that name is another live link's
                         self._refuse("duplicate_worker",
@@ -338,6 +343,12 @@ class BrokerNode(Node):
             self._apply(self.state.worker_gone(gone, msg.reason, now))
         elif isinstance(msg, messages.PoolSwitch):
             self._on_pool_switch(ident, msg, now)
+        elif isinstance(msg, messages.LadderLevel):
+            if ident != SUPERVISOR_IDENT:
+                self._refuse("forged_level", "refused a ladder level '%s' from '%s': only the "
+                             "supervisor may send it", wire(msg.level), wire(ident))
+                return
+            self.level, self.level_reason = msg.level, msg.reason  # in the next Stats
         elif isinstance(msg, messages.Failed):
             actions = self.state.job_done(ident, msg.pool, msg.seq, False, now, msg.kind)
             if not any(isinstance(a, Rejected) for a in actions):
@@ -420,6 +431,10 @@ class BrokerNode(Node):
                                      wire(ident.decode("utf-8", "replace")))
                         continue
                     self._apply(self.state.worker_gone(target, msg.reason, time.monotonic()))
+                elif isinstance(msg, messages.LadderLevel):
+                    self._refuse("forged_level", "refused a ladder level from remote '%s': "
+                                 "only the supervisor may send it",
+                                 wire(ident.decode("utf-8", "replace")))
                 elif self.remotes.pool_of(ident) != msg.pool:
                     self._refuse("remote_not_joined", "refused a message from remote '%s' "
                                  "for pool '%s': expected a hello for that pool first",
@@ -474,6 +489,9 @@ class BrokerNode(Node):
             if msg.policy is not None:
                 self._apply(self.state.set_policy(msg.pool, msg.policy, now))
                 log.info("pool %s policy %s", msg.pool, msg.policy)
+            if msg.min_interval_s is not None:
+                self._apply(self.state.set_interval(msg.pool, msg.min_interval_s, now))
+                log.info("pool %s minimum interval %g s", msg.pool, msg.min_interval_s)
             if msg.params is not None:
                 self._configure_workers(msg.pool, msg.params)
         except ValueError as exc:
@@ -658,13 +676,15 @@ class BrokerNode(Node):
             malformed=self.malformed,
             pools=pools,
             remote=self.remotes.stats(dt, self.state.worker_pools()),
+            level=self.level,
+            level_reason=self.level_reason,
         )
         self._last_in = self.state.pairs_in
         self._publish(messages.TOPIC_STATS, messages.encode(stats))  # cheap: once a second
 
 
 def _local_msg(msg: messages.AnyWorkerMsg) -> messages.Ready | messages.Alive | messages.Done \
-        | messages.Failed | messages.Gone | messages.PoolSwitch:
+        | messages.Failed | messages.Gone | messages.PoolSwitch | messages.LadderLevel:
     """Hello, JoinRequest and HostAlive belong to the remote socket; on a local path they
     are refused."""
     if isinstance(msg, (messages.Hello, messages.JoinRequest, messages.HostAlive)):

@@ -3,8 +3,9 @@ actions out (dispatch, release). No sockets, no clocks: callers pass `now` in se
 
 Every pair that reaches a pool ends in exactly one counter (the loss ledger): processed,
 failed (by kind), dropped (by the pool's policy), inactive (the pool was deactivated,
-`trapflow pool NAME --deactivate`), timed out (its worker held it too long) or lost (its
-worker died, or the run ended first).
+`trapflow pool NAME --deactivate`), throttled (the degradation ladder gives the pool at most
+one pair per minimum interval), timed out (its worker held it too long) or lost (its worker
+died, or the run ended first).
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ from trapflow.policy import Pending, Policy, parse_policy
 IDLE_LIVENESS_S = 5.0
 # Distinct failure kinds counted per pool; the rest are counted as "other".
 MAX_FAILURE_KINDS = 16
+# Weight of the newest pair in a pool's latency (an exponential moving average).
+LATENCY_WEIGHT = 0.2
 # Pairs of evicted workers whose late answer is still taken (per worker, oldest forgotten).
 MAX_LATE_PER_WORKER = 64
 MAX_LATE_WORKERS = 256
@@ -102,7 +105,11 @@ class _Pool:
     timed_out: int = 0
     lost: int = 0
     inactive: int = 0
+    throttled: int = 0
     active: bool = True
+    min_interval_s: float = 0.0  # at most one dispatch per interval (0: no limit)
+    next_at: float = 0.0  # earliest next dispatch under min_interval_s
+    latency_s: float | None = None  # pair arrival to answer, moving average
     failures: dict[str, int] = field(default_factory=dict)
     rr: int = 0
 
@@ -113,6 +120,7 @@ class BrokerState:
     def __init__(self, pools: Mapping[str, PoolSpec], idle_liveness_s: float = IDLE_LIVENESS_S):
         self._pools = {n: _Pool(n, s, Pending(s.policy)) for n, s in pools.items()}
         self._holders: dict[int, int] = {}  # seq -> number of pools holding it
+        self._arrived: dict[int, float] = {}  # seq -> when it reached the broker
         self._idle_liveness = idle_liveness_s
         # Evicted worker -> the pairs it held: its late answer is genuine (counted as late).
         self._late: dict[bytes, dict[int, str]] = {}
@@ -129,10 +137,15 @@ class BrokerState:
         if not self._pools:
             return [Release(seq)]
         self._holders[seq] = len(self._pools)
+        self._arrived[seq] = now
         for pool in self._pools.values():
             pool.received += 1
             if not pool.active:
                 pool.inactive += 1
+                actions.extend(self._unhold(seq))
+                continue
+            if pool.min_interval_s and now < pool.next_at:
+                pool.throttled += 1  # the level's doing, not the policy's
                 actions.extend(self._unhold(seq))
                 continue
             for old in pool.pending.push(seq):
@@ -190,6 +203,11 @@ class BrokerState:
                 w = pool.workers.setdefault(ident, _Worker(ident, pool_name))
         else:
             del w.in_flight[seq]
+            arrived = self._arrived.get(seq)
+            if arrived is not None:
+                took = now - arrived
+                pool.latency_s = took if pool.latency_s is None else \
+                    pool.latency_s + LATENCY_WEIGHT * (took - pool.latency_s)
             if ok:
                 pool.processed += 1
             else:
@@ -237,6 +255,20 @@ class BrokerState:
                 pool.inactive += 1
                 actions.extend(self._unhold(seq))
         return actions
+
+    def set_interval(self, pool_name: str, min_interval_s: float, now: float
+                     ) -> list[Action]:
+        """At most one pair dispatched per `min_interval_s` (0: no limit), as the
+        degradation ladder asks: pairs that arrive before the next one is due, and those
+        left pending when one goes, are counted throttled. ValueError for an unknown pool
+        or a negative interval."""
+        pool = self._known(pool_name)
+        if not min_interval_s >= 0:
+            raise ValueError(f"pool {pool_name!r}: expected a minimum interval >= 0 s, got "
+                             f"{min_interval_s}")
+        pool.min_interval_s = min_interval_s
+        pool.next_at = min(pool.next_at, now + min_interval_s) if min_interval_s else 0.0
+        return self._dispatch(pool, now)
 
     def set_policy(self, pool_name: str, policy: str, now: float) -> list[Action]:
         """A new policy: what is pending is queued again under it (its drops counted).
@@ -288,8 +320,11 @@ class BrokerState:
                 timed_out=p.timed_out,
                 lost=p.lost,
                 inactive=p.inactive,
+                throttled=p.throttled,
                 failures=dict(p.failures),
                 active=p.active,
+                min_interval_s=p.min_interval_s,
+                latency_ms=round(p.latency_s * 1000, 1) if p.latency_s is not None else 0.0,
             )
             for p in self._pools.values()
         }
@@ -332,6 +367,7 @@ class BrokerState:
             self._holders[seq] = n
             return []
         self._holders.pop(seq, None)
+        self._arrived.pop(seq, None)
         return [Release(seq)]
 
     def _pick(self, pool: _Pool) -> _Worker | None:
@@ -347,6 +383,8 @@ class BrokerState:
     def _dispatch(self, pool: _Pool, now: float) -> list[Action]:
         actions: list[Action] = []
         while len(pool.pending):
+            if pool.min_interval_s and now < pool.next_at:
+                break
             w = self._pick(pool)
             if w is None:
                 break
@@ -358,6 +396,13 @@ class BrokerState:
             w.in_flight[seq] = now
             pool.dispatched += 1
             actions.append(Dispatch(w.ident, pool.name, seq, max(gap, 0)))
+            if pool.min_interval_s:
+                # One pair per interval: the rest waiting now would be due only later,
+                # older than what will have arrived by then.
+                pool.next_at = now + pool.min_interval_s
+                for old in pool.pending.clear():
+                    pool.throttled += 1
+                    actions.extend(self._unhold(old))
         return actions
 
     def _evict(self, pool: _Pool, w: _Worker, reason: str,

@@ -271,6 +271,30 @@ def param(pool_name: str, assignment: str, run_dir: Path, timeout: float,
              as_json)
 
 
+@main.command()
+@click.argument("level_name", metavar="NAME|auto")
+@_RUN_DIR
+@_TIMEOUT
+@_JSON
+def level(level_name: str, run_dir: Path, timeout: float, as_json: bool) -> None:
+    """Force the degradation ladder to a level (held until `auto`), or `auto`: the triggers
+    decide again."""
+    import json
+
+    from trapflow import messages
+    from trapflow.control import request
+
+    try:
+        reply = request(run_dir, messages.LevelRequest(level=level_name), timeout)
+    except TrapflowError as exc:
+        _fail(exc)
+    if "error" in reply:
+        raise CommandFailed(reply["error"])
+    how = "auto" if reply["auto"] else "forced"
+    click.echo(json.dumps(reply, indent=2) if as_json else
+               f"level {reply['level']} ({how}): {reply['reason']}")
+
+
 def _add_commands() -> None:
     from trapflow import cli_dataset, cli_remote, cli_sources
     from trapflow.batch.cli import process

@@ -17,6 +17,7 @@ import msgspec
 import yaml
 
 from trapflow.errors import ConfigError
+from trapflow.ladder import LadderConfig
 from trapflow.modem.config import HealthConfig, ModemConfig, OutboxConfig
 
 
@@ -304,6 +305,7 @@ class Config(_Section):
     health: HealthConfig = msgspec.field(default_factory=HealthConfig)
     events: EventsConfig = msgspec.field(default_factory=EventsConfig)
     viewer: ViewerConfig = msgspec.field(default_factory=ViewerConfig)
+    ladder: LadderConfig = msgspec.field(default_factory=LadderConfig)
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
     log_file: LogFileConfig = msgspec.field(default_factory=LogFileConfig)
 

@@ -20,7 +20,8 @@ from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
 # The pool table's columns and their units: counts are pairs since the run started (over
 # broker restarts), workers are processes, rate is results per second lately.
 POOL_UNITS = {"workers": "procs", "received": "pairs", "processed": "pairs",
-              "dropped": "pairs", "inactive": "pairs", "in_flight": "pairs", "pending": "pairs",
+              "dropped": "pairs", "inactive": "pairs", "throttled": "pairs", "in_flight": "pairs",
+              "pending": "pairs",
               "errors": "pairs",
               "timed_out": "pairs", "lost": "pairs", "rate": "pairs/s"}
 # Give-ups and retries `trapflow status` lists (the newest); the JSON has them all.
@@ -48,6 +49,57 @@ def request(run_dir: Path, what: str | messages.Msg, timeout_s: float = 3.0,
         return reply
     finally:
         ctx.destroy(linger=0)
+
+
+class ControlClient:
+    """A control client for a node's loop (the modem's surface commands): one request at a
+    time, never blocking; a request the supervisor does not answer within its time is given
+    up with an error reply (the REQ socket is then replaced, as REQ allows no second send)."""
+
+    def __init__(self, ctx: zmq.Context[zmq.Socket[bytes]], endpoint: str) -> None:
+        self.ctx = ctx
+        self.endpoint = endpoint
+        self._sock: zmq.Socket[bytes] | None = None
+        self.deadline: float | None = None  # set while a request waits for its reply
+        self.timeout_s = 0.0
+
+    @property
+    def busy(self) -> bool:
+        """True while a request waits for its reply."""
+        return self.deadline is not None
+
+    def send(self, req: messages.Msg, timeout_s: float, now: float) -> None:
+        """Send one request; poll() gives its reply."""
+        if self.busy:
+            raise RuntimeError("ControlClient.send while a request is waiting")
+        if self._sock is None:
+            self._sock = open_socket(self.ctx, SocketSpec(zmq.REQ, self.endpoint))
+        self._sock.send(messages.encode(req), zmq.NOBLOCK)
+        self.deadline, self.timeout_s = now + timeout_s, timeout_s
+
+    def poll(self, now: float) -> dict[str, Any] | None:
+        """The reply once it came (or an error once the time is over); None meanwhile."""
+        if self.deadline is None or self._sock is None:
+            return None
+        if self._sock.poll(0, zmq.POLLIN):
+            self.deadline = None
+            try:
+                reply: dict[str, Any] = json.loads(self._sock.recv())
+            except ValueError as exc:
+                return {"error": f"the supervisor's reply is not JSON: {exc}"}
+            return reply
+        if now < self.deadline:
+            return None
+        self.close()
+        return {"error": f"the supervisor did not answer within {self.timeout_s:g} s; the "
+                         "change may still be made: ask for status"}
+
+    def close(self) -> None:
+        """Drop the socket (and any request waiting)."""
+        if self._sock is not None:
+            self._sock.close(linger=0)
+        self._sock = None
+        self.deadline = None
 
 
 def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
@@ -86,10 +138,19 @@ def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
         lines.append(f"supervision: {sup['gave_up']} give-ups, {sup['retries']} retries, "
                      f"{sup['capped']} capped restarts of essential nodes, "
                      f"{sup.get('control', 0)} runtime changes")
+        lad = sup.get("ladder")
+        if lad:
+            how = "forced" if lad["forced"] else "auto"
+            lines.append(f"ladder: level {lad['level']} ({lad['index']} of "
+                         f"{len(lad['levels']) - 1}, {how}), {lad['changes']} changes; "
+                         f"{lad['reason']}")
         for name, p in sup.get("pools", {}).items():
             params = ", ".join(f"{k}={v!r}" for k, v in p["params"].items()) or "defaults"
-            lines.append(f"  pool {name:<10} {p['state']:<9} {p['count']} workers, policy "
-                         f"{p['policy']}, params {params}, {p['changes']} changes")
+            off = f" (by the {p['off_by']})" if p.get("off_by") else ""
+            every = f", at most 1 pair / {p['min_interval_s']:g} s" \
+                if p.get("min_interval_s") else ""
+            lines.append(f"  pool {name:<10} {p['state']:<9}{off} {p['count']} workers, policy "
+                         f"{p['policy']}{every}, params {params}, {p['changes']} changes")
         for e in sup["timeline"][-TIMELINE_SHOWN:]:
             lines.append(f"  {e['t_s']:>8} s  {e['node']:<20} {e['kind']:<8} {e['reason']}")
     if reply.get("ledger"):

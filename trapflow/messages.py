@@ -329,6 +329,16 @@ class PoolSwitch(Msg, frozen=True, tag="pool_switch"):
     active: bool | None = None
     policy: PolicyText | None = None
     params: Params | None = None
+    # At most one pair per this many seconds (the degradation ladder; 0: no limit).
+    min_interval_s: Annotated[float, msgspec.Meta(ge=0, le=3600)] | None = None
+
+
+class LadderLevel(Msg, frozen=True, tag="ladder_level"):
+    """Supervisor -> broker: the degradation ladder's level and why, published in Stats
+    so that every view (status, viewer, the modem's health records) reads it."""
+
+    level: ControlName
+    reason: Annotated[str, msgspec.Meta(max_length=256)] = ""
 
 
 class Configure(Msg, frozen=True, tag="configure"):
@@ -339,7 +349,8 @@ class Configure(Msg, frozen=True, tag="configure"):
     params: Params
 
 
-WorkerMsg = Union[Ready, Alive, Done, Failed, Gone, Hello, JoinRequest, HostAlive, PoolSwitch]
+WorkerMsg = Union[Ready, Alive, Done, Failed, Gone, Hello, JoinRequest, HostAlive, PoolSwitch,
+                  LadderLevel]
 
 
 # --- stats and control ----------------------------------------------------------
@@ -359,9 +370,12 @@ class PoolStats(Msg, frozen=True):
     timed_out: int = 0  # a worker held the pair longer than the pool's timeout_s
     lost: int = 0  # the worker holding it died, or the run stopped before it finished
     inactive: int = 0  # dropped because the pool was deactivated (trapflow pool --deactivate)
+    throttled: int = 0  # dropped by the ladder's level: inside the pool's minimum interval
     failures: dict[str, int] = {}
     rate: float = 0.0  # processed per second over the last interval
     active: bool = True
+    min_interval_s: float = 0.0  # the ladder's minimum interval between pairs (0: none)
+    latency_ms: float = 0.0  # arrival at the broker to answer, moving average
 
 
 class RemoteWorker(Msg, frozen=True):
@@ -386,6 +400,8 @@ class Stats(Msg, frozen=True, tag="stats"):
     malformed: int
     pools: dict[str, PoolStats]
     remote: list[RemoteWorker] = []
+    level: str = ""  # the degradation ladder's level ("": no ladder)
+    level_reason: str = ""
 
 
 class StatusRequest(Msg, frozen=True, tag="status"):
@@ -413,8 +429,14 @@ class ParamRequest(Msg, frozen=True, tag="param"):
     value: ParamValue
 
 
-ControlRequest = Union[StatusRequest, StopRequest, PoolRequest, ParamRequest]
-AnyControl = StatusRequest | StopRequest | PoolRequest | ParamRequest
+class LevelRequest(Msg, frozen=True, tag="level"):
+    """Force the degradation ladder to a level by name, or `auto` to let the triggers decide."""
+
+    level: str
+
+
+ControlRequest = Union[StatusRequest, StopRequest, PoolRequest, ParamRequest, LevelRequest]
+AnyControl = StatusRequest | StopRequest | PoolRequest | ParamRequest | LevelRequest
 
 
 class LogEntry(Msg, frozen=True, tag="log"):
@@ -518,7 +540,8 @@ def decode_configure(data: Buffer) -> Configure:
     return msg
 
 
-AnyWorkerMsg = Ready | Alive | Done | Failed | Gone | Hello | JoinRequest | HostAlive | PoolSwitch
+AnyWorkerMsg = Ready | Alive | Done | Failed | Gone | Hello | JoinRequest | HostAlive | PoolSwitch \
+    | LadderLevel
 
 
 def decode_worker_msg(data: Buffer) -> AnyWorkerMsg:

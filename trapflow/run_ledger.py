@@ -99,7 +99,7 @@ def routes_of(counters: dict[str, int]) -> dict[str, str]:
             out[kind] = pool
     return out
 _SUMMED = ("received", "dispatched", "dropped", "processed", "errors", "timed_out", "lost",
-           "inactive")
+           "inactive", "throttled")
 
 
 def retire(last: Stats) -> Stats:
@@ -230,7 +230,7 @@ class RunLedger:
             return self.capture().produced
         delivered = self.delivered.by_pool(self.routes)
         accounted = [delivered.get(n, p.processed) + p.dropped + p.timed_out + p.errors
-                     + p.inactive for n, p in s.pools.items()]
+                     + p.inactive + p.throttled for n, p in s.pools.items()]
         return max(self.capture().produced, s.pairs_in, *accounted)
 
     def drained(self) -> bool:
@@ -268,7 +268,7 @@ class RunLedger:
             # Processed: the results written for this pool (known once its results are
             # routed); lost: whatever else is not in a state, as the brokers counted them.
             processed = delivered.get(name, p.processed)
-            ended = processed + p.dropped + p.timed_out + p.errors + p.inactive
+            ended = processed + p.dropped + p.timed_out + p.errors + p.inactive + p.throttled
             rest = max(0, produced - ended)
             if not final:
                 in_progress = min(rest, p.pending + p.in_flight)
@@ -280,6 +280,7 @@ class RunLedger:
             out["pools"][name] = {
                 "processed": processed, "dropped_by_policy": p.dropped,
                 "policy": policies.get(name, ""), "dropped_inactive": p.inactive,
+                "dropped_by_level": p.throttled,
                 "timed_out": p.timed_out,
                 "failed": p.errors, "failures": p.failures,
                 "lost": rest - in_progress,
@@ -293,17 +294,20 @@ class RunLedger:
             out["supervision"] = supervision
         return out
 
-    def status_text(self, up: float, restarts: dict[str, int], width: int = STATUS_WIDTH
-                    ) -> str:
+    def status_text(self, up: float, restarts: dict[str, int], width: int = STATUS_WIDTH,
+                    level: str = "") -> str:
         """One line of at most `width` columns: seconds up, pairs/s in (pairs in), then per
         pool workers and results/s, with drops, failures, losses and restarts only when
         there are any. The widest pools (most workers) come first; those that do not fit
-        are counted ("+2 pools"); `trapflow status` shows them all."""
+        are counted ("+2 pools"); `trapflow status` shows them all. A degraded ladder
+        `level` is shown after the input rate."""
         s = self.stats
         if s is None:
             return f"{up:6.1f}s | waiting for stats"[:width]
         cap = self.capture()
         head = f"{up:6.1f}s | in {s.rate_in:5.1f}/s ({s.pairs_in})"
+        if level:  # the ladder has stepped down: said before the pools
+            head += f" [{level}]"
         if cap.dropped:
             head += f" cap-drop {cap.dropped}"
         if cap.failed:
@@ -311,7 +315,8 @@ class RunLedger:
         pools = []
         for name, p in sorted(s.pools.items(), key=lambda kv: (-kv[1].workers, kv[0])):
             flags = "".join(f" {k} {n}" for k, n in (
-                ("drop", p.dropped + p.inactive), ("err", p.errors), ("lost", p.lost),
+                ("drop", p.dropped + p.inactive + p.throttled), ("err", p.errors),
+                ("lost", p.lost),
                 ("rst", restarts.get(name, 0))) if n)
             state = "" if p.active else " (inactive)"
             pools.append(f"{name}{state} {p.workers}w {p.rate:.1f}/s{flags}")
@@ -341,6 +346,8 @@ def totals_text(ledger: dict[str, Any]) -> str:
         if UNFINISHED in p:
             going = f"unfinished at stop {p[UNFINISHED]}, "
         inactive = f", inactive {p['dropped_inactive']}" if p.get("dropped_inactive") else ""
+        if p.get("dropped_by_level"):
+            inactive += f", by level {p['dropped_by_level']}"
         lines.append(
             f"  {name}: processed {p['processed']}, dropped {p['dropped_by_policy']} "
             f"({p['policy']}){inactive}, timed out {p['timed_out']}, failed {p['failed']}"
@@ -349,4 +356,8 @@ def totals_text(ledger: dict[str, Any]) -> str:
     sup = ledger.get("supervision")
     if sup and (sup["gave_up"] or sup["retries"]):
         lines.append(f"  supervision: {sup['gave_up']} give-ups, {sup['retries']} retries")
+    ladder = sup.get("ladder") if sup else None
+    if ladder and ladder.get("changes"):
+        lines.append(f"  ladder: {ladder['changes']} level changes, at {ladder['level']} "
+                     f"({ladder['reason']})")
     return "\n".join(lines) + "\n"

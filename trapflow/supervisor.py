@@ -32,10 +32,12 @@ from trapflow.camera import StereoRig
 from trapflow.config import Config
 from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError, TrapflowError
 from trapflow.frame_ring import FrameRing, cleanup_stale, ring_slots, slot_capacity
+from trapflow.ladder import Ladder
 from trapflow.logchannel import LogListener, PrivateRotatingFile
 from trapflow.node import NodeSpec, node_main
 from trapflow.ratelog import ConsoleOnce, RateLimitedLog, wire
 from trapflow.run_ledger import RunLedger
+from trapflow.sensors import Sensors
 from trapflow.supervisor_state import (
     Action,
     AddWorker,
@@ -43,6 +45,7 @@ from trapflow.supervisor_state import (
     DurationClock,
     GiveUp,
     Kill,
+    LevelChanged,
     Lifecycle,
     NodePlan,
     Reconfigure,
@@ -69,6 +72,9 @@ log = logging.getLogger(__name__)
 # Stop ladder: capture first (no new pairs), then workers and broker, the normalizer last.
 STOP_ORDER = ("viewer", "capture", "worker", "events", "broker", "normalizer", "modem")
 SEQ_RESTART_GAP = 100  # extra seqs skipped at a capture restart, beyond the heartbeat lag
+# The broker's stats may predate a switch told to it this long ago (published once a second):
+# only older switches are reconciled, so a change is not sent twice.
+RECONCILE_AFTER_S = 2.0
 LOCK_FILE = "supervisor.lock"
 # results.jsonl is read incrementally for the ledger, at most this much per status tick.
 RESULTS_READ_BYTES = 4 << 20
@@ -150,6 +156,12 @@ class Supervisor:
         self.source_where = ""  # what the source reads (a recording's image topics)
         self.ring: FrameRing | None = None
         self.notifier = sdnotify.Notifier()  # READY/WATCHDOG/STATUS under systemd, else no-op
+        self._switched_at = 0.0  # when the broker was last told of a pool switch or level
+        # The degradation ladder: its decisions are the core's, its readings these sensors'.
+        self.sensors: Sensors | None = None
+        if cfg.ladder.enabled:
+            self.core.ladder = Ladder(cfg.ladder)
+            self.sensors = Sensors(cfg.ladder.sensors, run_dir)
 
     # --- the process graph --------------------------------------------------------------
 
@@ -274,6 +286,10 @@ class Supervisor:
             prefix = "" if why.startswith(f"{c.source.kind}:") else f"{c.source.kind}: "
             raise StartupError(f"source {prefix}{why}") from None
         self.rig, self.rig_origin, self.source_where = found.rig, found.origin, found.where
+        if c.modem.enabled and c.modem.command_key:  # a bad key file: one line, nothing spawned
+            from trapflow.modem.command import load_key
+
+            load_key(c.modem.command_key)
         for pool, pcfg in self.cfg.pools.items():
             if pcfg.count > 0:
                 try:
@@ -336,11 +352,16 @@ class Supervisor:
         # --duration counts from the first pair (capture beats at once when it sends it).
         clock = DurationClock(self.duration or None, time.monotonic())
         next_status = time.monotonic() + 1.0
+        next_ladder = time.monotonic()
         drain_until: float | None = None
         while not self.stop_requested:
             self._poll(0.1)
             now = time.monotonic()
             self._watch(now)
+            if self.sensors is not None and now >= next_ladder:
+                next_ladder = now + self.cfg.ladder.interval_s
+                self._act(self.core.degrade(self.sensors.read(self.stats, self._outbox()),
+                                            now), now)
             if clock.due(now, self.ledger_model.capture().produced):
                 log.info("duration of %g s reached", self.duration)
                 self.planned_stop = True
@@ -357,6 +378,11 @@ class Supervisor:
                 self._status_line()
                 self._notify_systemd()
                 self._reconcile_pools()
+
+    def _outbox(self) -> int | None:
+        """Records waiting for the modem, as the modem node last counted (None: no modem)."""
+        modem = next((c for c in self.children if c.spec.role == "modem"), None)
+        return modem.counters.get("backlog") if modem is not None else None
 
     def _notify_systemd(self) -> None:
         """Once a second under systemd: the watchdog's keep-alive and the status line."""
@@ -470,7 +496,10 @@ class Supervisor:
                 if c.alive():
                     c.proc.terminate()  # finishes its pair, says goodbye to the broker
             elif isinstance(a, SwitchPool):
-                self._switch_pool(a.pool, a.active, a.policy, a.params)
+                self._switch_pool(a.pool, a.active, a.policy, a.params, a.min_interval_s)
+            elif isinstance(a, LevelChanged):
+                log.info("ladder: level %s (%s)", a.level, a.reason)
+                self._tell_level()
             elif isinstance(a, Reconfigure):
                 self._reconfigure(a)
 
@@ -512,25 +541,49 @@ class Supervisor:
         self.children.append(Child(spec))
 
     def _switch_pool(self, pool: str, active: bool | None, policy: str | None,
-                     params: Mapping[str, Any] | None = None) -> None:
+                     params: Mapping[str, Any] | None = None,
+                     min_interval_s: float | None = None) -> None:
         if policy is not None:
             self._pool_cfg(pool, policy=policy)
+        self._switched_at = time.monotonic()
         try:
             self.to_broker.send(messages.encode(messages.PoolSwitch(
                 pool=pool, active=active, policy=policy,
-                params=dict(params) if params is not None else None)), zmq.NOBLOCK)
+                params=dict(params) if params is not None else None,
+                min_interval_s=min_interval_s)), zmq.NOBLOCK)
         except zmq.Again:
             log.warning("could not tell the broker about pool %s now; status reconciles it",
                         pool)
 
+    def _tell_level(self) -> None:
+        """The ladder's level to the broker, which publishes it in its stats (status, the
+        viewer, and the modem node, which sends a health record when it changes)."""
+        view = self.core.ladder_view()
+        if view is None:
+            return
+        self._switched_at = time.monotonic()
+        try:
+            self.to_broker.send(messages.encode(messages.LadderLevel(
+                level=view["level"], reason=view["reason"][:256])), zmq.NOBLOCK)
+        except zmq.Again:
+            log.warning("could not tell the broker the ladder's level now; status reconciles it")
+
     def _reconcile_pools(self) -> None:
-        """A restarted broker starts every pool active: tell it again which are not."""
+        """A restarted broker starts every pool active, with no minimum interval and no
+        level: tell it again what runtime control and the ladder decided."""
         stats = self.stats
+        if time.monotonic() - self._switched_at < RECONCILE_AFTER_S:
+            return  # its stats may not show the latest switch yet
         for name, p in self.core.pools.items():
             seen = stats.pools.get(name) if stats is not None else None
             want = p.state == Lifecycle.ACTIVE
             if seen is not None and seen.active != want:
                 self._switch_pool(name, want, None)
+            if seen is not None and seen.min_interval_s != p.min_interval_s:
+                self._switch_pool(name, None, None, min_interval_s=p.min_interval_s)
+        view = self.core.ladder_view()
+        if stats is not None and view is not None and stats.level != view["level"]:
+            self._tell_level()
 
     def _reconfigure(self, a: Reconfigure) -> None:
         """New parameters: the worker restarts with them (its exit is respawned at once)."""
@@ -588,7 +641,7 @@ class Supervisor:
         counts = self.core.counts()
         return {"gave_up": counts["gave_up"], "retries": counts["retry"],
                 "capped": counts["capped"], "control": counts["control"],
-                "pools": self.core.pool_view(),
+                "pools": self.core.pool_view(), "ladder": self.core.ladder_view(),
                 "timeline": [{"t_s": round(e.t - self.t0, 1), "node": e.node, "kind": e.kind,
                               "reason": e.reason} for e in self.core.timeline]}
 
@@ -613,6 +666,8 @@ class Supervisor:
             self.control.send(msgspec.json.encode({"stopping": True}))
         elif isinstance(req, (messages.PoolRequest, messages.ParamRequest)):
             self.control.send(msgspec.json.encode(self._change(req)))
+        elif isinstance(req, messages.LevelRequest):
+            self.control.send(msgspec.json.encode(self._force_level(req.level)))
         else:
             self.control.send(msgspec.json.encode(self.status()))
 
@@ -638,6 +693,22 @@ class Supervisor:
         return {"changed": change.node, "change": change.reason,
                 "pool": self.core.pool_view()[req.pool]}
 
+    def _force_level(self, level: str) -> dict[str, Any]:
+        """`trapflow level NAME|auto`: the core decides, this applies; the reply says the
+        level, whether it is forced and why (or the error)."""
+        now = time.monotonic()
+        try:
+            actions = self.core.force_level(level, now)
+        except Refused as exc:
+            log.warning("refused a level change: %s", wire(str(exc)))
+            return {"error": str(exc)}
+        if not actions:
+            log.info("ladder: %s", self.core.timeline[-1].reason)
+        self._act(actions, now)
+        view = self.core.ladder_view()
+        assert view is not None
+        return {"level": view["level"], "auto": not view["forced"], "reason": view["reason"]}
+
     def _pool_restarts(self) -> dict[str, int]:
         out: dict[str, int] = {}
         for c in self.children:
@@ -647,7 +718,10 @@ class Supervisor:
 
     def status_text(self) -> str:
         """One line: time, pairs/s in, per pool processed/s, dropped, restarts."""
-        return self.ledger_model.status_text(time.monotonic() - self.t0, self._pool_restarts())
+        view = self.core.ladder_view()
+        level = view["level"] if view is not None and view["index"] else ""
+        return self.ledger_model.status_text(time.monotonic() - self.t0, self._pool_restarts(),
+                                             level=level)
 
     def _status_line(self) -> None:
         line = self.status_text()

@@ -16,6 +16,14 @@ active, activate only from inactive), its worker count, policy and parameters. A
 that cannot apply raises Refused (with what was expected and the fix); one that applies
 returns actions (add or retire workers, tell the broker, restart the pool's workers with
 new parameters) and one "control" entry in the timeline.
+
+The degradation ladder (trapflow.ladder) is applied here: a level change deactivates the
+pools the new level switches off, activates again those the ladder itself had switched off,
+sets each pool's minimum interval between pairs, and leaves one "level" entry. The rule
+with the operator: the ladder never activates a pool the operator deactivated (it stays
+inactive whatever the level until the operator activates it; deactivating a pool the ladder
+has off takes it over); a pool the operator activates while the ladder has it off runs
+until the next level change.
 """
 
 from __future__ import annotations
@@ -26,6 +34,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from trapflow.ladder import Ladder, PoolLevel, Readings
 from trapflow.policy import parse_policy
 
 # Roles the pipeline cannot do without: never given up while the supervisor lives.
@@ -161,6 +170,17 @@ class SwitchPool:
     active: bool | None = None
     policy: str | None = None
     params: Mapping[str, Any] | None = None
+    min_interval_s: float | None = None
+
+
+@dataclass(frozen=True)
+class LevelChanged:
+    """The degradation ladder moved (or was forced): log it, tell the broker (and through
+    its stats, every view and the modem's health record)."""
+
+    level: str
+    reason: str
+    forced: bool = False
 
 
 @dataclass(frozen=True)
@@ -176,7 +196,7 @@ class Reconfigure:
 
 
 Action = Spawn | Kill | WorkerGone | GiveUp | Retry | Stop | AddWorker | Retire | SwitchPool \
-    | Reconfigure
+    | Reconfigure | LevelChanged
 
 
 class Refused(ValueError):
@@ -189,7 +209,7 @@ class Event:
 
     t: float
     node: str
-    kind: str  # "gave_up", "retry", "capped", "control"
+    kind: str  # "gave_up", "retry", "capped", "control", "level"
     reason: str
 
 
@@ -242,6 +262,8 @@ class PoolState:
     liveness_s: float
     state: Lifecycle = Lifecycle.ACTIVE
     changes: int = 0
+    off_by: str = ""  # who deactivated it: "operator" or "ladder" ("" while active)
+    min_interval_s: float = 0.0  # the ladder's, at its current level
 
 
 def worker_name(pool: str, index: int) -> str:
@@ -256,9 +278,10 @@ class SupervisorState:
         self.nodes = {p.name: NodeState(p) for p in plans}
         self.budget = budget
         self.timeline: deque[Event] = deque(maxlen=MAX_TIMELINE)
-        self._counts = {"gave_up": 0, "retry": 0, "capped": 0, "control": 0}
+        self._counts = {"gave_up": 0, "retry": 0, "capped": 0, "control": 0, "level": 0}
         self.stopping = False
         self.pools: dict[str, PoolState] = {}
+        self.ladder: Ladder | None = None  # set by the shell when the ladder is enabled
 
     def add(self, plan: NodePlan) -> None:
         """One more node to supervise (not spawned yet)."""
@@ -431,6 +454,12 @@ class SupervisorState:
         an inactive pool's workers keep their models loaded and get no pairs."""
         p = self._pool(name)
         want = Lifecycle.ACTIVE if active else Lifecycle.INACTIVE
+        if not active and p.state == Lifecycle.INACTIVE and p.off_by == "ladder":
+            # Off already: the operator takes it over, so no level change turns it back on.
+            self._control(now, p, "deactivated (held by the operator; the ladder had "
+                                  "switched it off)")
+            p.off_by = "operator"
+            return []
         if p.state == want:
             verb = "activate" if active else "deactivate"
             raise Refused(f"pool {name!r} is {p.state}: {verb} is a transition from "
@@ -439,6 +468,7 @@ class SupervisorState:
         self._control(now, p, f"{'activated' if active else 'deactivated'} "
                               f"(was {p.state})")
         p.state = want
+        p.off_by = "" if active else "operator"
         return [SwitchPool(name, active=active)]
 
     def set_policy(self, name: str, policy: str, now: float) -> list[Action]:
@@ -479,8 +509,63 @@ class SupervisorState:
     def pool_view(self) -> dict[str, dict[str, Any]]:
         """Every pool's control state, for status and the ledger."""
         return {p.name: {"state": str(p.state), "count": p.count, "policy": p.policy,
-                         "params": dict(p.params), "changes": p.changes}
+                         "params": dict(p.params), "changes": p.changes, "off_by": p.off_by,
+                         "min_interval_s": p.min_interval_s}
                 for p in self.pools.values()}
+
+    # --- degradation ladder ---------------------------------------------------------------
+
+    def degrade(self, readings: Readings, now: float) -> list[Action]:
+        """A snapshot of the sensors: the ladder may step one level (see trapflow.ladder)."""
+        if self.ladder is None or self.stopping:
+            return []
+        step = self.ladder.update(readings, now)
+        return self._level(now) if step.changed else []
+
+    def force_level(self, level: str, now: float) -> list[Action]:
+        """The operator's `trapflow level NAME|auto`; Refused for an unknown level."""
+        if self.ladder is None:
+            raise Refused("no degradation ladder in this run: it is off in the config "
+                          "(ladder.enabled: false)")
+        if self.stopping:
+            raise Refused("the pipeline is stopping; no changes now")
+        try:
+            step = self.ladder.force(level, now)
+        except ValueError as exc:
+            raise Refused(str(exc)) from None
+        if step.changed:
+            return self._level(now, forced=True)
+        self._note(now, "ladder", "level", f"{self.ladder.level}: {self.ladder.reason}")
+        return []
+
+    def _level(self, now: float, forced: bool = False) -> list[Action]:
+        """Pools to the ladder's new level (the operator's rule in the module docstring)."""
+        assert self.ladder is not None
+        plan = self.ladder.plan()
+        actions: list[Action] = []
+        for p in self.pools.values():
+            want = plan.get(p.name, PoolLevel())
+            active: bool | None = None
+            if not want.active and p.state == Lifecycle.ACTIVE:
+                p.state, p.off_by, active = Lifecycle.INACTIVE, "ladder", False
+            elif want.active and p.state == Lifecycle.INACTIVE and p.off_by == "ladder":
+                p.state, p.off_by, active = Lifecycle.ACTIVE, "", True
+            interval = None
+            if want.min_interval_s != p.min_interval_s:
+                p.min_interval_s = interval = want.min_interval_s
+            if active is not None or interval is not None:
+                actions.append(SwitchPool(p.name, active=active, min_interval_s=interval))
+        self._note(now, "ladder", "level", self.ladder.reason)
+        return [*actions, LevelChanged(self.ladder.level, self.ladder.reason, forced)]
+
+    def ladder_view(self) -> dict[str, Any] | None:
+        """The ladder's level, why, whether forced and its changes, for status and the
+        ledger (None: no ladder)."""
+        if self.ladder is None:
+            return None
+        lad = self.ladder
+        return {"level": lad.level, "index": lad.index, "levels": list(lad.names),
+                "reason": lad.reason, "forced": lad.forced, "changes": lad.changes}
 
     # --- start-up -------------------------------------------------------------------------
 

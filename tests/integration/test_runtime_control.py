@@ -116,7 +116,8 @@ def test_pool_count_lifecycle_and_param_at_run_time(spawn, run_dir: Path) -> Non
     sup = st["supervision"]
     assert sup["control"] == 7
     assert sup["pools"]["mono"] == {"state": "active", "count": 1, "policy": "latest",
-                                    "params": {"confidence": 0.25}, "changes": 6}
+                                    "params": {"confidence": 0.25}, "changes": 6,
+                                    "off_by": "", "min_interval_s": 0.0}
     assert sup["pools"]["slow"]["params"] == {"delay_s": 0.1}
     text = tf("status", *rd).stdout
     assert "pool mono" in text and "runtime changes" in text

@@ -141,6 +141,12 @@ class Fuzzer:
                 _forged_result(recent)], "forged_done"),
             lambda: self._send(self.workers, [messages.encode(messages.Gone(
                 worker=self.real, reason="forged"))], "forged_gone"),
+            # Only the supervisor switches a pool or tells the ladder's level.
+            lambda: self._send(self.workers, [messages.encode(r.choice([
+                messages.PoolSwitch(pool="fast", active=False),
+                messages.PoolSwitch(pool="fast", min_interval_s=100.0)]))], "forged_switch"),
+            lambda: self._send(self.workers, [messages.encode(messages.LadderLevel(
+                level="vo_health", reason=FORGED))], "forged_level"),
             lambda: self._send(self.heartbeat, self.frames(), "heartbeat"),
             lambda: self._send(self.heartbeat, [b"\x93" + self.junk() + b"\n"], "heartbeat"),
             lambda: self._send(self.control, self.frames(), "control"),
@@ -200,6 +206,8 @@ def test_fuzz_every_socket_and_link_of_a_running_pipeline(spawn, run_dir: Path, 
     assert all(x["state"] == "active" for x in st2["nodes"]), st2["nodes"]
     assert all(x["restarts"] == 0 for x in st2["nodes"]), st2["nodes"]
     assert {x["name"]: x["pid"] for x in st2["nodes"]} == pids
+    assert st2["stats"]["level"] == "full" and st2["stats"]["pools"]["fast"]["active"]
+    assert st2["stats"]["pools"]["fast"]["min_interval_s"] == 0.0
     print("broker counters:", _node(st2, "broker")["counters"])
     n0 = len(p.results())
     poll_for(lambda: len(p.results()) > n0 + 20, 30, what="results after the fuzzing")
@@ -211,6 +219,7 @@ def test_fuzz_every_socket_and_link_of_a_running_pipeline(spawn, run_dir: Path, 
     ledger = json.loads((run_dir / "ledger.json").read_text())
     pool = ledger["pools"]["fast"]
     assert len(seqs) == len(set(seqs)) == pool["processed"] > 100  # each once, none lost
+    assert pool["dropped_inactive"] == pool["dropped_by_level"] == 0  # no forged switch
     assert (pool["processed"] + pool["dropped_by_policy"] + pool["timed_out"] + pool["failed"]
             + pool["lost"] + pool.get("unfinished_at_stop", 0)) == ledger["produced"], ledger
     log_lines = (run_dir / "trapflow.log").read_text().count("\n")

@@ -8,6 +8,7 @@ from typing import Any
 import msgspec
 import pytest
 
+from tests.conftest import poll_for
 from trapflow.modem.codec import LinkCodec
 from trapflow.modem.config import ModemConfig
 from trapflow.modem.health import HealthConfig, HealthMonitor
@@ -98,3 +99,69 @@ def test_health_record_fits_the_link(tmp_path: Path) -> None:
     data = LinkCodec().encode(first)
     assert len(data) <= 48
     assert LinkCodec().decode(data) == first
+
+
+@pytest.mark.parametrize("periodic", [True, False])
+def test_a_level_change_sends_a_health_record_at_once(tmp_path: Path, periodic: bool) -> None:
+    """The ladder's level (from the broker's stats) changes: a record now, carrying it, even
+    inside the interval and with periodic records off; the same level again: none."""
+    monitor = HealthMonitor(HealthConfig(enabled=periodic, interval_s=3600), tmp_path)
+    first = monitor({"backlog": 0})
+    assert (first is not None) == periodic and (first is None or "level" not in first["health"])
+    monitor.set_level("full")
+    now = monitor({"backlog": 0})
+    assert now is not None and now["health"]["level"] == "full"
+    monitor.set_level("full")
+    assert monitor({"backlog": 0}) is None
+    monitor.set_level("ir_slowed")
+    rec = monitor({"backlog": 0})
+    assert rec is not None and rec["health"]["level"] == "ir_slowed"
+    assert LinkCodec().decode(LinkCodec().encode(rec)) == rec
+    assert monitor({"backlog": 0}) is None
+
+
+def test_commands_come_in_and_replies_go_out_first_within_rate_and_budget(tmp_path: Path
+                                                                          ) -> None:
+    """On a real pty: a COMMAND frame is handed to the node; a queued REPLY leaves before the
+    DATA that waits, never before the link is free, and counts in the hourly budget."""
+    import os
+    import tty
+
+    from trapflow.modem.frame import COMMAND, DATA, REPLY, Deframer, frame
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    os.set_blocking(master, False)
+    path = tmp_path / "outbox.sqlite"
+    box = Outbox(path, OutboxConfig())
+    for i in range(6):
+        box.append({"stereo_ir": {"seq": i, "label": "scallop", "confidence": 0.9}})
+    cfg = ModemConfig(bit_rate=300, max_frame_payload=32, window=8, aggregate=[], ttl_s={},
+                      housekeeping_s=0.01)
+    sender = ModemSender(path, os.ttyname(slave), cfg)
+    try:
+        t = 1000.0
+        sender.step(t)  # opens the port, sends the first DATA frame
+        os.write(master, frame(COMMAND, b"\x01" * 24))
+        poll_for(lambda: sender.step(t + 0.01) is not None and sender.commands, 5,
+                 what="the command read")
+        assert sender.take_commands() == [b"\x01" * 24]
+        sender.send_reply(b"\x02" * 24)
+        sender.send_reply(b"\x02" * 24)  # the same reply again (a retransmission): once
+        assert sender.step(t + 0.02) > 0 and sender.blocked == "bit rate"
+        sender.step(t + 5)
+        sender.step(t + 10)
+        kinds = [k for k, _ in Deframer().feed(os.read(master, 4096))]
+        assert kinds == [DATA, REPLY, DATA]
+        assert sender.stats()["replies"] == 1
+        spent = sender.stats()["bytes_last_hour"]
+        # A budget already spent holds the reply back.
+        sender.cfg.bytes_per_hour = spent
+        sender.send_reply(b"\x03" * 24)
+        sender.step(t + 20)
+        assert sender.blocked == "hourly byte budget spent" and len(sender.replies) == 1
+    finally:
+        sender.close()
+        box.close()
+        os.close(master)
+        os.close(slave)

@@ -56,19 +56,172 @@ def _output(path: Path | None) -> Iterator[IO[bytes]]:
 )
 @click.option("--baudrate", type=click.IntRange(50, 4_000_000), default=9600, show_default=True)
 @click.option("--labels", default=None, help="Comma-separated label table (must match the box).")
+@click.option(
+    "--command",
+    "command_text",
+    default=None,
+    help="Send one signed command to the box, print its reply as JSON and exit (0: done, "
+    "1: refused or no reply in --timeout). Results arriving meanwhile are written only with "
+    "-o. The commands are listed above.",
+)
+@click.option(
+    "--key",
+    "key_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="File with the key shared with the box (its modem.command_key), mode 600.",
+)
+@click.option(
+    "--counter",
+    "counter_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="File keeping the next command counter (default: KEY.counter).",
+)
+@click.option(
+    "--session",
+    default=None,
+    help="The box's outbox session (8 hex digits; default: the last one heard, from the "
+    "state file; the box names its own if this one is wrong).",
+)
+@click.option(
+    "--retry",
+    type=click.FloatRange(min=0.1),
+    default=8.0,
+    show_default=True,
+    help="Seconds before the command is sent again (growing by half each time, up to 60).",
+)
+@click.option(
+    "--timeout",
+    type=click.FloatRange(min=0.1),
+    default=120.0,
+    show_default=True,
+    help="Seconds to wait for the reply.",
+)
 def surface(
-    port: str, output: Path | None, state_path: Path | None, baudrate: int, labels: str | None
+    port: str,
+    output: Path | None,
+    state_path: Path | None,
+    baudrate: int,
+    labels: str | None,
+    command_text: str | None,
+    key_path: Path | None,
+    counter_path: Path | None,
+    session: str | None,
+    retry: float,
+    timeout: float,
 ) -> None:
-    """Receive results from the modem link on PORT, acknowledge them, write JSON lines."""
+    """Receive results from the modem link on PORT, acknowledge them, write JSON lines.
+
+    With --command, send one signed command instead and print the box's reply. Commands:
+
+    \b
+    level NAME|auto                  force the degradation ladder to a level, or let it decide
+    pool NAME --count N              run N workers in a pool
+    pool NAME --activate|--deactivate
+    pool NAME --policy POLICY        e.g. latest, fifo:8
+    param POOL KEY=VALUE             set one plugin parameter
+    status                           a short status now
+    health                           a health record now
+    """
     from trapflow.modem.surface import SurfaceReceiver
 
+    if state_path is None and output is not None and os.path.isfile(output):
+        state_path = output.with_name(output.name + ".state")
+    if command_text is not None:
+        _send_command(
+            port,
+            output,
+            state_path,
+            baudrate,
+            labels,
+            command_text,
+            key_path,
+            counter_path,
+            session,
+            retry,
+            timeout,
+        )
+        return
     stop = stop_on_signals()
     with _output(output) as out:
-        if state_path is None and output is not None and os.path.isfile(output):
-            state_path = output.with_name(output.name + ".state")
         receiver = SurfaceReceiver(port, out, _labels(labels), baudrate, state_path=state_path)
         receiver.run(stop)
     click.echo(json.dumps(receiver.stats()), err=True)
+
+
+def _send_command(
+    port: str,
+    output: Path | None,
+    state_path: Path | None,
+    baudrate: int,
+    labels: str | None,
+    text: str,
+    key_path: Path | None,
+    counter_path: Path | None,
+    session: str | None,
+    retry: float,
+    timeout: float,
+) -> None:
+    import time
+
+    from trapflow.cli_exit import CommandFailed, bad_input
+    from trapflow.errors import TrapflowError
+    from trapflow.modem.command import load_key, parse_command_text
+    from trapflow.modem.surface import SurfaceReceiver
+    from trapflow.modem.surface_command import CommandClient
+
+    try:
+        cmd = parse_command_text(text)
+    except ValueError as exc:
+        raise click.UsageError(f"--command: {exc}") from None
+    if key_path is None:
+        raise click.UsageError("--command needs --key: the file with the key shared with the box")
+    try:
+        key = load_key(key_path)
+        sid = bytes.fromhex(session) if session else None
+    except (TrapflowError, ValueError) as exc:
+        raise bad_input(
+            str(exc)
+            if not isinstance(exc, ValueError)
+            else f"--session: expected 8 hex digits, got {session!r}"
+        ) from None
+    stop = stop_on_signals()
+    with contextlib.ExitStack() as stack:
+        out = stack.enter_context(open(output, "ab")) if output is not None else None
+        receiver = SurfaceReceiver(port, out, _labels(labels), baudrate, state_path=state_path)
+        if sid is None:  # the last session heard (a wrong one is corrected by the box)
+            sid = receiver.current or bytes(4)
+        try:
+            client = CommandClient(
+                key,
+                counter_path or key_path.with_name(key_path.name + ".counter"),
+                sid,
+                cmd,
+                retry_s=retry,
+            )
+        except (TrapflowError, OSError) as exc:
+            raise bad_input(exc) from None
+        receiver.on_reply = client.on_reply
+        deadline = time.monotonic() + timeout
+        try:
+            while not client.done and not stop.is_set() and time.monotonic() < deadline:
+                receiver.step()
+                wire = client.due(time.monotonic()) if receiver.port.ensure_open() else None
+                if wire is not None:
+                    receiver.port.write(wire)
+                receiver.port.wait_readable(0.1)
+        finally:
+            receiver.close()
+    click.echo(json.dumps(client.outcome()))
+    click.echo(json.dumps({**client.counts, "link": receiver.deframer.stats()}), err=True)
+    if not client.ok:
+        why = (
+            client.outcome().get("error", "no reply")
+            if client.done
+            else f"no reply within {timeout:g} s"
+        )
+        raise CommandFailed(f"command {text!r}: {why}")
 
 
 @click.command("modem-sim")

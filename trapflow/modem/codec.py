@@ -344,7 +344,7 @@ KINDS: dict[int, tuple[str, list[tuple[str, tuple[Enc, Dec]]]]] = {
     5: ("health", [("timestamp", TS), ("uptime_s", UINT), ("cpu_pct", _fixed(10)),
                    ("load1", _fixed(100)), ("temp_c", _fixed(10)), ("mem_pct", _fixed(10)),
                    ("disk_free_mb", UINT), ("backlog", UINT), ("link", STR),
-                   ("pools", (_enc_pools, _dec_pools))]),
+                   ("pools", (_enc_pools, _dec_pools)), ("level", STR)]),
     6: ("aggregate", [("class", STR), ("from", TS), ("to", TS), ("count", UINT),
                       ("best", (_enc_records, _dec_records))]),
 }  # fmt: skip

@@ -67,6 +67,12 @@ class ModemConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     """How often to retry a port that cannot be opened."""
     housekeeping_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 0.5
     """How often to look for new records, expire and aggregate."""
+    command_key: str = ""
+    """File holding the key shared with the surface for signed commands (mode 600, at least
+    16 bytes: `head -c 32 /dev/urandom > FILE`); never the key itself. Empty: every command
+    from the surface is refused."""
+    command_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 5.0
+    """How long a surface command waits for the supervisor; then its reply says so."""
 
     @property
     def bytes_per_s(self) -> float:

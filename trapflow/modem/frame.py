@@ -10,12 +10,19 @@ from (created with the outbox, kept in it): message ids are the outbox's seqs, w
 fresh outbox numbers from 1 again, so the surface keeps its de-duplication per session
 and the sender takes only acknowledgements of its own session. Link protocol 1 (types
 1 and 2, without a session) is still recognised, so that it can be refused by name.
+
+COMMAND (surface -> box) and REPLY (box -> surface) carry signed operator commands: the
+box's outbox session, a counter, the command or the reply, and a truncated HMAC-SHA256 tag
+over the frame type and everything before the tag (trapflow.modem.command checks it).
+Frame types are append only: a receiver that does not know one drops it as garbage.
 """
 
 from __future__ import annotations
 
 import binascii
+import struct
 from collections.abc import Iterable
+from dataclasses import dataclass
 
 from trapflow.errors import ProtocolError
 from trapflow.modem.config import MAX_PAYLOAD as MAX_PAYLOAD
@@ -28,8 +35,10 @@ LEGACY_DATA = 0x01  # link protocol 1, no session: refused and counted, never ac
 LEGACY_ACK = 0x02  # link protocol 1, no session: ignored by the sender
 DATA = 0x03  # box -> surface: session, floor, then (msg id, body) pairs
 ACK = 0x04  # surface -> box: session, message ids received
+COMMAND = 0x05  # surface -> box: session, counter, command, tag
+REPLY = 0x06  # box -> surface: session, counter, status, body, tag
 LEGACY_TYPES = (LEGACY_DATA, LEGACY_ACK)
-FRAME_TYPES = (DATA, ACK, *LEGACY_TYPES)
+FRAME_TYPES = (DATA, ACK, COMMAND, REPLY, *LEGACY_TYPES)
 
 SESSION_BYTES = 4
 """Size of an outbox's session id. One in 2**32 fresh outboxes collides with the one
@@ -258,3 +267,190 @@ def parse_ack(payload: bytes) -> tuple[bytes, list[int]]:
         prev += r.uvarint()
         ids.append(prev)
     return session, ids
+
+
+# --- signed commands ----------------------------------------------------------------
+
+TAG_BYTES = 16
+"""HMAC-SHA256 tags are cut to their first 16 bytes (RFC 2104 allows truncation to half
+the hash). A forger then needs 2**128 tries on average, out of reach on a link of a few
+hundred bits per second, while the full 32 bytes would double the cost of a typical
+20-byte command on the slowest link."""
+
+# Command kinds (one byte after the counter). Append only: the box must know them all.
+CMD_LEVEL = 1  # level name (text), or "auto"
+CMD_POOL_COUNT = 2  # pool, count
+CMD_POOL_ACTIVATE = 3  # pool
+CMD_POOL_DEACTIVATE = 4  # pool
+CMD_POOL_POLICY = 5  # pool, policy (text)
+CMD_PARAM = 6  # pool, key, value
+CMD_STATUS = 7  # a short status now
+CMD_HEALTH = 8  # a health record now
+CMD_KINDS = {CMD_LEVEL: "level", CMD_POOL_COUNT: "pool_count", CMD_POOL_ACTIVATE: "activate",
+             CMD_POOL_DEACTIVATE: "deactivate", CMD_POOL_POLICY: "policy", CMD_PARAM: "param",
+             CMD_STATUS: "status", CMD_HEALTH: "health"}  # fmt: skip
+
+# A parameter value: one type byte, then the value.
+_V_NONE, _V_FALSE, _V_TRUE, _V_INT, _V_FLOAT, _V_STR = range(6)
+MAX_TEXT = 64  # bytes of a name or text argument
+
+# Reply statuses.
+REPLY_OK = 0  # executed; body: what changed, the status or the health record
+REPLY_ERROR = 1  # executed but the supervisor refused or could not answer; body: why
+REPLY_STALE = 2  # counter at or below the last accepted one; body: that counter
+REPLY_SESSION = 3  # addressed to another session; the reply carries the box's own
+REPLY_BUSY = 4  # another command is still running: send this one again later
+REPLY_LOST = 5  # executed before a restart of the box; its reply is lost
+REPLY_STATUSES = {REPLY_OK: "ok", REPLY_ERROR: "error", REPLY_STALE: "stale",
+                  REPLY_SESSION: "session", REPLY_BUSY: "busy", REPLY_LOST: "lost"}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Command:
+    """One operator command as the link carries it (kind is a CMD_* constant)."""
+
+    kind: int
+    pool: str = ""
+    count: int = 0
+    text: str = ""  # the level, the policy, or the parameter's key
+    value: str | int | float | bool | None = None  # the parameter's value
+
+
+@dataclass(frozen=True)
+class SignedFrame:
+    """A COMMAND or REPLY payload cut into its parts; `signed` is what the tag covers
+    (the frame type byte, then the payload up to the tag)."""
+
+    session: bytes
+    counter: int
+    body: bytes  # the command (kind byte first) or the reply (status byte first)
+    tag: bytes
+    signed: bytes
+
+
+def _put_text(out: bytearray, text: str) -> None:
+    data = text.encode()
+    if len(data) > MAX_TEXT:
+        raise ProtocolError(f"expected a name of at most {MAX_TEXT} bytes, got {len(data)}")
+    put_uvarint(out, len(data))
+    out += data
+
+
+def _text(r: Reader) -> str:
+    n = r.uvarint()
+    if n > MAX_TEXT:
+        raise ProtocolError(f"expected a name of at most {MAX_TEXT} bytes, got {n}")
+    try:
+        return r.take(n).decode()
+    except UnicodeDecodeError:
+        raise ProtocolError("expected UTF-8 text in a command") from None
+
+
+def command_body(cmd: Command) -> bytes:
+    """The command's bytes: kind, then its arguments."""
+    if cmd.kind not in CMD_KINDS:
+        raise ProtocolError(f"expected a command kind in {sorted(CMD_KINDS)}, got {cmd.kind}")
+    out = bytearray((cmd.kind,))
+    if cmd.kind == CMD_LEVEL:
+        _put_text(out, cmd.text)
+    elif cmd.kind in (
+        CMD_POOL_COUNT,
+        CMD_POOL_ACTIVATE,
+        CMD_POOL_DEACTIVATE,
+        CMD_POOL_POLICY,
+        CMD_PARAM,
+    ):
+        _put_text(out, cmd.pool)
+        if cmd.kind == CMD_POOL_COUNT:
+            put_uvarint(out, cmd.count)
+        elif cmd.kind in (CMD_POOL_POLICY, CMD_PARAM):
+            _put_text(out, cmd.text)
+        if cmd.kind == CMD_PARAM:
+            _put_value(out, cmd.value)
+    return bytes(out)
+
+
+def _put_value(out: bytearray, v: str | int | float | bool | None) -> None:
+    if v is None:
+        out.append(_V_NONE)
+    elif isinstance(v, bool):
+        out.append(_V_TRUE if v else _V_FALSE)
+    elif isinstance(v, int):
+        out.append(_V_INT)
+        put_svarint(out, v)
+    elif isinstance(v, float):
+        out.append(_V_FLOAT)
+        out += struct.pack(">d", v)
+    else:
+        out.append(_V_STR)
+        _put_text(out, v)
+
+
+def _value(r: Reader) -> str | int | float | bool | None:
+    kind = r.take(1)[0]
+    if kind == _V_NONE:
+        return None
+    if kind in (_V_FALSE, _V_TRUE):
+        return kind == _V_TRUE
+    if kind == _V_INT:
+        return r.svarint()
+    if kind == _V_FLOAT:
+        value: float = struct.unpack(">d", r.take(8))[0]
+        return value
+    if kind == _V_STR:
+        return _text(r)
+    raise ProtocolError(f"expected a value type in 0..{_V_STR}, got {kind}")
+
+
+def parse_command_body(body: bytes) -> Command:
+    """Inverse of command_body; ProtocolError for an unknown kind or malformed arguments."""
+    r = Reader(body)
+    kind = r.take(1)[0]
+    if kind not in CMD_KINDS:
+        raise ProtocolError(
+            f"expected a command kind in {sorted(CMD_KINDS)}, got {kind}: "
+            f"update trapflow on the box to the surface's version"
+        )
+    if kind == CMD_LEVEL:
+        cmd = Command(kind, text=_text(r))
+    elif kind in (CMD_STATUS, CMD_HEALTH):
+        cmd = Command(kind)
+    else:
+        pool = _text(r)
+        if kind == CMD_POOL_COUNT:
+            cmd = Command(kind, pool, count=r.uvarint())
+        elif kind == CMD_POOL_POLICY:
+            cmd = Command(kind, pool, text=_text(r))
+        elif kind == CMD_PARAM:
+            key = _text(r)
+            cmd = Command(kind, pool, text=key, value=_value(r))
+        else:
+            cmd = Command(kind, pool)
+    if not r.done():
+        raise ProtocolError(f"expected {r.pos} bytes of {CMD_KINDS[kind]} command, got {len(body)}")
+    return cmd
+
+
+def signed_payload(session: bytes, counter: int, body: bytes) -> bytes:
+    """A COMMAND or REPLY payload without its tag: session, counter, body."""
+    _check_session(session)
+    out = bytearray(session)
+    put_uvarint(out, counter)
+    return bytes(out + body)
+
+
+def split_signed(kind: int, payload: bytes) -> SignedFrame:
+    """A COMMAND or REPLY payload cut into session, counter, body and tag (unchecked)."""
+    if len(payload) < SESSION_BYTES + 1 + 1 + TAG_BYTES:
+        raise ProtocolError(
+            f"expected a signed payload of at least {SESSION_BYTES + 2 + TAG_BYTES} bytes "
+            f"(session, counter, kind, tag), got {len(payload)}"
+        )
+    head, tag = payload[:-TAG_BYTES], payload[-TAG_BYTES:]
+    r = Reader(head)
+    session = r.take(SESSION_BYTES)
+    counter = r.uvarint()
+    body = head[r.pos :]
+    if not body:
+        raise ProtocolError("expected a command kind or reply status before the tag, got none")
+    return SignedFrame(session, counter, body, tag, bytes((kind,)) + head)

@@ -1,6 +1,8 @@
-"""Health telemetry: a small record (uptime, CPU, temperature, memory, disk, backlog, pools).
+"""Health telemetry: a small record (uptime, CPU, temperature, memory, disk, backlog, pools,
+the degradation ladder's level).
 
-Sized for the modem link (about 40 bytes encoded); sampled with psutil on an interval.
+Sized for the modem link (about 40 bytes encoded); sampled with psutil on an interval, and
+at once when the ladder's level changes.
 """
 
 from __future__ import annotations
@@ -50,6 +52,8 @@ class HealthMonitor:
         self.disk_path = Path(disk_path)
         self.pool_rates = pool_rates
         self._next = 0.0
+        self.level = ""  # the ladder's level, from the broker's stats ("": none)
+        self._level_due = False
         psutil.cpu_percent(None)  # prime: the next call reports usage since now
 
     def sample(
@@ -77,14 +81,22 @@ class HealthMonitor:
             body["pools"] = {
                 name: [round(rate, 1), int(drops)] for name, (rate, drops) in pools.items()
             }
+        if self.level:
+            body["level"] = self.level
         return {"health": body}
+
+    def set_level(self, level: str) -> None:
+        """The ladder's level as the stats say; a change is reported at once (a record on
+        the next call, whatever the interval, even with periodic records off)."""
+        if level != self.level:
+            self._level_due = bool(level)
+            self.level = level
 
     def __call__(self, sender_stats: dict[str, Any]) -> dict[str, Any] | None:
         """A record when the interval has passed, else None."""
-        if not self.cfg.enabled:
-            return None
         now = time.monotonic()
-        if now < self._next:
+        if not self._level_due and (not self.cfg.enabled or now < self._next):
             return None
+        self._level_due = False
         self._next = now + self.cfg.interval_s
         return self.sample(int(sender_stats.get("backlog", 0)), str(sender_stats.get("state", "")))

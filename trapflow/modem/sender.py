@@ -22,8 +22,10 @@ from trapflow.modem.codec import LinkCodec
 from trapflow.modem.config import BITS_PER_BYTE, ModemConfig
 from trapflow.modem.frame import (
     ACK,
+    COMMAND,
     DATA,
     OVERHEAD,
+    REPLY,
     SESSION_BYTES,
     Deframer,
     data_payload,
@@ -40,6 +42,8 @@ log = logging.getLogger(__name__)
 HOUR_NS = 3600 * 10**9
 LOAD_PER_CLASS = 64  # pending records of one class held in memory at once
 PURGE_INTERVAL_S = 60.0
+MAX_COMMANDS = 8  # COMMAND payloads held for the node between two steps; more are dropped
+MAX_REPLIES = 4  # REPLY payloads waiting for the link; the oldest goes first when more come
 BACKLOG_INTERVAL_S = 5.0
 
 
@@ -100,6 +104,8 @@ class ModemSender:
         self.counters = collections.Counter[str]()
         self.blocked = ""
         self._backlog = 0
+        self.commands: collections.deque[bytes] = collections.deque()  # in, for the node
+        self.replies: collections.deque[bytes] = collections.deque()  # out, before any DATA
         # Worst case around a body in a DATA payload: session, floor, id delta (5 bytes
         # each), length.
         self._max_body = self.cfg.max_frame_payload - 12 - SESSION_BYTES
@@ -148,6 +154,12 @@ class ModemSender:
             return
         acked: list[int] = []
         for kind, payload in self.deframer.feed(data):
+            if kind == COMMAND:
+                if len(self.commands) >= MAX_COMMANDS:
+                    self.counters["commands_dropped"] += 1
+                else:
+                    self.commands.append(payload)
+                continue
             if kind != ACK:
                 self.counters["unexpected_frames"] += 1
                 continue
@@ -331,10 +343,50 @@ class ModemSender:
             return False
         return True
 
+    def send_reply(self, payload: bytes) -> None:
+        """Queue a REPLY payload: it goes out before any DATA, within the bit rate and the
+        hourly budget (the surface sends its command again until a reply arrives)."""
+        if payload in self.replies:
+            return  # the same reply already waits (a retransmitted command)
+        if len(self.replies) >= MAX_REPLIES:
+            self.replies.popleft()
+            self.counters["replies_dropped"] += 1
+        self.replies.append(payload)
+
+    def take_commands(self) -> list[bytes]:
+        """COMMAND payloads received since the last call."""
+        out = list(self.commands)
+        self.commands.clear()
+        return out
+
+    def _put_on_air(self, wire: bytes, now: float, wall: int) -> None:
+        airtime = len(wire) * BITS_PER_BYTE / self.cfg.bit_rate
+        self._link_free_at = max(now, self._link_free_at) + airtime
+        self._ledger.append((wall, len(wire)))
+        self._ledger_bytes += len(wire)
+
+    def _send_reply(self, now: float) -> bool:
+        wire = frame(REPLY, self.replies[0])
+        wall = time.time_ns()
+        if not self._budget_ok(len(wire), wall):
+            return False
+        if not self.port.write(wire):
+            self._requeue_all()
+            return False
+        self.replies.popleft()
+        self._put_on_air(wire, now, wall)
+        self.queue.record_sent(len(wire), [], wall)
+        self.counters["replies"] += 1
+        self.counters["bytes"] += len(wire)
+        self.blocked = ""
+        return True
+
     def _send(self, now: float) -> bool:
         if now < self._link_free_at:
             self.blocked = "bit rate"
             return False
+        if self.replies:  # above every class; no acknowledgement, so outside the window
+            return self._send_reply(now)
         if len(self._frames) >= self.cfg.window:
             self.blocked = "window full"
             return False
@@ -369,10 +421,7 @@ class ModemSender:
         if not self.port.write(wire):
             self._requeue_all()
             return False
-        airtime = len(wire) * BITS_PER_BYTE / self.cfg.bit_rate
-        self._link_free_at = max(now, self._link_free_at) + airtime
-        self._ledger.append((wall, len(wire)))
-        self._ledger_bytes += len(wire)
+        self._put_on_air(wire, now, wall)
         self.queue.record_sent(len(wire), [m.stored.seq for _, m in batch if not m.attempts], wall)
         ack_airtime = 24 * BITS_PER_BYTE / self.cfg.bit_rate
         for cls, msg in batch:

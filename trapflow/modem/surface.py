@@ -6,6 +6,7 @@ The memory of written ids is kept per outbox session (the id every DATA frame ca
 a frame of a session not heard from before starts that session's memory empty, so a
 fresh outbox's records (numbered from 1 again) are written, never taken for
 retransmissions. With a state file the memory survives a restart of the surface.
+REPLY frames (answers to signed commands, trapflow.modem.surface_command) go to on_reply.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import os
 import stat
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
@@ -27,6 +29,7 @@ from trapflow.modem.frame import (
     ACK,
     DATA,
     LEGACY_DATA,
+    REPLY,
     Deframer,
     ack_payload,
     frame,
@@ -61,15 +64,19 @@ class SurfaceReceiver:
     def __init__(
         self,
         port: str | Any,
-        out: IO[bytes],
+        out: IO[bytes] | None,
         labels: list[str] | tuple[str, ...] = DEFAULT_LABELS,
         baudrate: int = 9600,
         fsync_interval_s: float = 1.0,
         reopen_interval_s: float = 1.0,
         state_path: Path | None = None,
+        on_reply: Callable[[bytes], None] | None = None,
     ) -> None:
         self.port = LinkPort(port, baudrate, reopen_interval_s)
-        self.out = out
+        self.out = out  # None: DATA is left unacknowledged (for a surface that writes it)
+        self.on_reply = on_reply  # REPLY payloads (a command waits for one)
+        self.replies = 0
+        self.data_ignored = 0
         self.codec = LinkCodec(labels)
         self.deframer = Deframer()
         self.fsync_interval_s = fsync_interval_s
@@ -98,8 +105,12 @@ class SurfaceReceiver:
                 self.step()
                 self.port.wait_readable(0.1)
         finally:
-            self._flush(sync=True)
-            self.port.close("stopped")
+            self.close()
+
+    def close(self) -> None:
+        """Flush and sync the output, close the port."""
+        self._flush(sync=True)
+        self.port.close("stopped")
 
     def step(self) -> int:
         """Handle whatever bytes are waiting; returns how many new records were written."""
@@ -112,6 +123,14 @@ class SurfaceReceiver:
         for kind, payload in self.deframer.feed(data):
             if kind == LEGACY_DATA:
                 self._legacy()
+                continue
+            if kind == REPLY:
+                self.replies += 1
+                if self.on_reply is not None:
+                    self.on_reply(payload)
+                continue
+            if kind == DATA and self.out is None:
+                self.data_ignored += 1
                 continue
             if kind != DATA:
                 self.bad_frames += 1
@@ -165,6 +184,8 @@ class SurfaceReceiver:
 
     def _output_stat(self) -> os.stat_result | None:
         """The output's stat when it is a regular file (a pipe or terminal has no length)."""
+        if self.out is None:
+            return None
         try:
             st = os.fstat(self.out.fileno())
         except (OSError, ValueError, AttributeError):
@@ -193,6 +214,7 @@ class SurfaceReceiver:
             # Lines written after the last save were never acknowledged: the sender sends
             # them again, and they are written again, so the first copy goes.
             try:
+                assert self.out is not None  # a regular file (_output_stat)
                 self.out.flush()
                 os.ftruncate(self.out.fileno(), mark.size)
             except OSError as exc:
@@ -245,12 +267,15 @@ class SurfaceReceiver:
                 self.undecodable += 1
                 log.warning("message %d undecodable: %s", msg_id, exc)
                 record = {"undecodable": {"id": msg_id, "hex": body.hex()}}
+            assert self.out is not None
             self.out.write(msgspec.json.encode(record) + b"\n")
             self.written += 1
             new += 1
         return new
 
     def _flush(self, sync: bool) -> None:
+        if self.out is None:
+            return
         self.out.flush()
         now = time.monotonic()
         if sync or now - self._last_fsync >= self.fsync_interval_s:
@@ -275,5 +300,7 @@ class SurfaceReceiver:
             "legacy_frames": self.legacy_frames,
             "state_saves": self.state_saves,
             "cut_bytes": self.cut_bytes,
+            "replies": self.replies,
+            "data_ignored": self.data_ignored,
             "link": self.deframer.stats(),
         }

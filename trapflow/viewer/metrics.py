@@ -33,6 +33,7 @@ POOL_COUNTERS = {
     "received": "received", "dispatched": "dispatched", "dropped": "dropped",
     "processed": "processed", "errors": "failed", "timed_out": "timed_out", "lost": "lost",
     "inactive": "inactive",  # dropped while the pool was deactivated (trapflow pool)
+    "throttled": "throttled",  # dropped by the ladder's level (its minimum interval)
 }
 POOL_GAUGES = {"workers": "workers", "pending": "pending_pairs", "in_flight": "in_flight_pairs"}
 
@@ -90,6 +91,11 @@ class PipelineCollector(Collector):
         yield from counters.values()
         yield from gauges.values()
         yield rate
+        level = GaugeMetricFamily("trapflow_ladder_level", "The degradation ladder's level "
+                                  "(1 for the level it is at).", labels=["level"])
+        if s is not None and s.level:
+            level.add_metric([s.level], 1)
+        yield level
 
     def _latency(self) -> Iterator[Metric]:
         lat = HistogramMetricFamily(

@@ -2,8 +2,8 @@
 
 Errors name the YAML path (`$.pools.vo.policy`) and what was expected. The
 defaults here are the defaults; configs/default.yaml documents every key and a
-test keeps the two equal. A leaf: it imports only config-struct modules (modem/config.py),
-never a module of the runtime; those import their sections from here.
+test keeps the two equal. A leaf: it imports only config-struct modules (modem/config.py,
+ladder_config.py), never a module of the runtime; those import their sections from here.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import msgspec
 import yaml
 
 from trapflow.errors import ConfigError
-from trapflow.ladder import LadderConfig
+from trapflow.ladder_config import LadderConfig
 from trapflow.modem.config import HealthConfig, ModemConfig, OutboxConfig
 
 

@@ -189,5 +189,5 @@ def test_config_is_a_leaf_that_imports_no_runtime_module() -> None:
             "print(' '.join(sorted(m for m in sys.modules if m.startswith('trapflow'))))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, timeout=60).stdout.split()
-    assert out == ["trapflow", "trapflow.config", "trapflow.errors", "trapflow.modem",
-                   "trapflow.modem.config"]
+    assert out == ["trapflow", "trapflow.config", "trapflow.errors", "trapflow.ladder_config",
+                   "trapflow.modem", "trapflow.modem.config"]

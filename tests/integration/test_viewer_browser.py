@@ -104,8 +104,8 @@ def _control(page: Any, attr: str, value: str, timeout: int = 30_000) -> None:
 @pytest.mark.timeout(150)
 def test_pool_buttons_drive_runtime_control(spawn, run_dir: Path, page: Any) -> None:
     """The pool's buttons change it as `trapflow pool` does: deactivate, activate, one
-    worker more; the page shows the pool's control state, its last change and the ledger's
-    pairs in progress, and no ladder level while the status model has none."""
+    worker more; the page shows the pool's control state, its last change, the ledger's
+    pairs in progress and the degradation ladder's level."""
     p, url = _start(spawn, run_dir)
     page.goto(url)
     ctl = "#pool-mono .ctl"
@@ -114,7 +114,12 @@ def test_pool_buttons_drive_runtime_control(spawn, run_dir: Path, page: Any) -> 
     assert "policy" in page.inner_text(f"{ctl} .ctl-text")
     page.wait_for_function("document.getElementById('ledger').innerText.includes('in progress')",
                            timeout=10_000)
-    assert page.locator("#level").is_hidden()
+    # The default ladder's level (full on a bench, unless this machine's disk or heat moved it).
+    page.wait_for_function("document.getElementById('level').dataset.level", timeout=10_000)
+    assert page.locator("#level").is_visible()
+    status = p.status()
+    assert status is not None
+    assert page.get_attribute("#level", "data-level") in status["supervision"]["ladder"]["levels"]
 
     page.click(f"{ctl} button.toggle")
     _control(page, "state", "inactive")

@@ -264,11 +264,23 @@ def test_pool_control_state_with_its_last_change() -> None:
     assert snap["control"]["mono"]["last_change"] == {"t_s": 5.5,
                                                       "change": "deactivated (was active)"}
     assert snap["control"]["vo"]["last_change"] is None
-    # No ladder in this status model: the page hides the level.
+    # No ladder in this status: the page hides the level.
     assert snap["level"] is None and snap["level_reason"] is None
 
 
-def test_ladder_level_passes_through_when_status_has_it() -> None:
+def test_ladder_level_from_the_supervision_status() -> None:
+    v = ViewState()
+    st = _status()
+    st["supervision"]["ladder"] = {  # type: ignore[index]
+        "level": "mono_vo", "index": 2, "levels": ["full", "ir_slowed", "mono_vo"],
+        "reason": "cpu_temp_c 86 C >= 85 C for 30 s", "forced": False, "changes": 2}
+    v.on_status(st)
+    snap = v.snapshot(0.0)
+    assert (snap["level"], snap["level_reason"], snap["level_forced"]) == \
+        ("mono_vo", "cpu_temp_c 86 C >= 85 C for 30 s", False)
+
+
+def test_ladder_level_as_top_level_fields() -> None:
     v = ViewState()
     v.on_status(_status(level="mono_vo", level_reason="cpu 82 C > 80 C"))
     snap = v.snapshot(0.0)

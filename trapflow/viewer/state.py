@@ -249,10 +249,18 @@ class ViewState:
             "events": self.events,
             "results": dict(self.results_in),
             "control": control_view(sup),
-            # The degradation ladder's level, where the status model has one.
-            "level": st.get("level"),
-            "level_reason": st.get("level_reason"),
+            **ladder_view(st),
         }
+
+
+def ladder_view(status: dict[str, Any]) -> dict[str, Any]:
+    """The degradation ladder's level, why, and whether an operator forced it, where the
+    status has a ladder (supervision.ladder; a top-level level/level_reason also counts);
+    None for each where it has none."""
+    lad = (status.get("supervision") or {}).get("ladder") or {}
+    return {"level": lad.get("level", status.get("level")),
+            "level_reason": lad.get("reason", status.get("level_reason")),
+            "level_forced": lad.get("forced")}
 
 
 def control_view(supervision: dict[str, Any]) -> dict[str, dict[str, Any]]:

@@ -126,7 +126,9 @@ function drawControl(el, name, c) {
   st.textContent = c.state;
   st.className = `ctl-state ${c.state}`;
   const last = c.last_change ? `; last change at ${c.last_change.t_s} s: ${c.last_change.change}` : "";
-  box.querySelector(".ctl-text").textContent = `${c.count} workers, policy ${c.policy}${last}`;
+  const off = c.off_by ? ` (off by ${c.off_by})` : "";
+  const slow = c.min_interval_s ? `, at most one pair every ${c.min_interval_s} s` : "";
+  box.querySelector(".ctl-text").textContent = `${c.count} workers, policy ${c.policy}${off}${slow}${last}`;
   box.querySelector(".toggle").textContent = c.state === "active" ? "Deactivate" : "Activate";
   box.querySelector(".less").disabled = c.count <= 1;
 }
@@ -151,11 +153,12 @@ async function changePool(box, change) {
 }
 
 // The degradation ladder's level, shown only where the status model has one.
-function drawLevel(level, reason) {
+function drawLevel(level, reason, forced) {
   const el = $("level");
   if (level === undefined || level === null) { el.hidden = true; return; }
   el.hidden = false;
-  el.textContent = `level ${level}${reason ? ` (${reason})` : ""}`;
+  const why = [forced ? "forced" : "", reason || ""].filter((x) => x).join(": ");
+  el.textContent = `level ${level}${why ? ` (${why})` : ""}`;
   el.dataset.level = level;
 }
 
@@ -217,7 +220,7 @@ async function poll() {
     $("stereo").textContent = s.stereo ? `stereo: ${s.stereo.label} ${(s.stereo.confidence * 100).toFixed(0)}%` : "";
     if (s.frame) drawPair(s.frame);
     drawPools(s.pools, s.control);
-    drawLevel(s.level, s.level_reason);
+    drawLevel(s.level, s.level_reason, s.level_forced);
     drawVO(s.vo);
     drawTables(s);
   } catch (e) {

@@ -413,12 +413,14 @@ class Supervisor:
         if self.stats_sub in events:
             while True:
                 try:
-                    _topic, data = self.stats_sub.recv_multipart(zmq.NOBLOCK)
-                    self.ledger_model.on_stats(messages.decode_stats(data))
+                    msg = messages.decode_tap(self.stats_sub.recv_multipart(zmq.NOBLOCK))
                 except zmq.Again:
                     break
-                except (ValueError, ProtocolError) as exc:
+                except ProtocolError as exc:
                     self.ratelog.warning("stats", "bad stats message: %s", wire(str(exc)))
+                    continue
+                if isinstance(msg, messages.TapStats):
+                    self.ledger_model.on_stats(msg.stats)
         if self.control in events:
             self._on_control(self.control.recv())
 

@@ -28,7 +28,7 @@ from trapflow_workers.yolo_decode import (
     detect_layout,
     nms,
 )
-from trapflow_workers.yolo_preprocess import PAD_VALUE, PLACEMENTS, Placement, Preprocessor
+from trapflow_workers.yolo_preprocess import PAD_VALUE, PLACEMENTS, Placement, Preprocessor, fit
 
 from trapflow.errors import WorkerError
 from trapflow.messages import Detection, MonoIR
@@ -207,9 +207,13 @@ class CrabDetector(Worker):
             nhwc=self.nhwc,
             dtype=dtype,
         )
+        # The largest image the letterbox keeps of the run's frames: a JPEG is decoded at
+        # the DCT scale that still covers it (1280x720 into 320x320: 320x180, 1/4).
+        fitted = fit(ctx.rig.height, ctx.rig.width, self.input_hw, spec.placement)
+        self.max_size = (fitted.width, fitted.height)
         log.info(
             "detector %s: layout %s, input %dx%d, letterbox %s pad %d, %s, scale %.6g, "
-            "%s NMS, %d classes",
+            "%s NMS, %d classes, JPEG decoded to cover %dx%d",
             path.name,
             self.layout,
             self.input_hw[1],
@@ -220,6 +224,7 @@ class CrabDetector(Worker):
             spec.scale,
             "class-agnostic" if self.agnostic else "per-class",
             self.nc,
+            *self.max_size,
         )
 
     def _probe_layout(
@@ -261,9 +266,13 @@ class CrabDetector(Worker):
             self.p.iou,
             self.p.max_detections,
             agnostic=self.agnostic,
-            pixel=lb.scale if self.edge_pixel else 0.0,
+            # one frame pixel, in input pixels (an image reduced by r has r-pixel pixels)
+            pixel=lb.scale / pair.reduction if self.edge_pixel else 0.0,
         )
         mapped = lb.to_image(boxes[keep], image.shape[1], image.shape[0])
+        if pair.reduction > 1:  # back to frame pixels: image pixel x is frame pixel r * x
+            w, h = pair.header.width, pair.header.height
+            mapped = np.minimum(mapped * pair.reduction, np.array([w, h, w, h], np.float64))
         dets = [
             Detection(
                 label=self._label(int(ids[k])),

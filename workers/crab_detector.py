@@ -40,9 +40,16 @@ Unit = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
 Side = Annotated[int, msgspec.Meta(ge=16, le=4096)]
 
 
+#: the packaged demo models, by `variant`
+VARIANTS = {"fp32": "crab_detector.onnx", "int8": "crab_detector_int8.onnx"}
+
+
 class DetectorParams(ModelParams):
     """`pools.mono.params`: every key is optional (empty model: the packaged one)."""
 
+    variant: Literal["fp32", "int8"] = "fp32"
+    """Which packaged demo model runs when `model` is empty: fp32, or its int8 quantization
+    (static QDQ; accuracy and speed of both in models/crab_detector.md)."""
     layout: Literal["auto", "yolov8", "yolov5", "yolox", "yolox_decoded"] = "auto"
     """Output decoder; auto = metadata `layout`, else chosen from the output shape (and for
     YOLOX from its values: raw grid offsets or boxes decoded in the graph)."""
@@ -170,7 +177,13 @@ class CrabDetector(Worker):
     def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
         p = parse_params(params, DetectorParams, ctx.pool)
         self.p = p
-        path = model_path(p.model, "crab_detector.onnx")
+        if p.model and p.variant != "fp32":
+            raise WorkerError(
+                f"pools.{ctx.pool}.params.variant: {p.variant!r} picks a packaged demo model, "
+                f"but model is set ({p.model}): drop variant, or drop model to run the packaged "
+                f"{p.variant} one"
+            )
+        path = model_path(p.model, VARIANTS[p.variant])
         self.session: Session = open_session(path, p.providers, p.threads, settings=p)
         meta = self.session.metadata
         inp = self.session.inputs[0]

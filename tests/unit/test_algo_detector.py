@@ -224,3 +224,22 @@ def test_jpeg_decoded_at_reduced_scale_gives_boxes_in_frame_pixels(
     np.testing.assert_allclose(got, want, atol=1e-3)
     raw = decode_pair(det, builders.pair_header(3, w, h, "raw"), img.tobytes(), img.tobytes())
     assert raw.reduction == 1 and raw.left.shape == img.shape  # raw frames stay whole
+
+
+def test_variant_int8_runs_the_packaged_int8_model() -> None:
+    """`variant: int8` picks the quantized demo model; its metadata gives labels and layout
+    as the fp32 one does (accuracy is checked on held-out scenes in test_synth_models)."""
+    onnx = pytest.importorskip("onnx")
+    det = CrabDetector()
+    det.configure({"variant": "int8", "providers": ["cpu"]}, make_context(pool="mono"))
+    assert det.session.path.name == "crab_detector_int8.onnx"
+    assert det.labels == ["crab", "scallop"] and det.layout == "yolov8"
+    ops = {n.op_type for n in onnx.load(str(det.session.path)).graph.node}
+    assert {"QuantizeLinear", "DequantizeLinear"} <= ops  # QDQ: int8 inside
+
+
+def test_variant_with_a_model_path_is_refused(tmp_path: Path) -> None:
+    det = CrabDetector()
+    with pytest.raises(WorkerError, match=r"params\.variant: 'int8' picks a packaged"):
+        det.configure({"model": str(_model(tmp_path, "yolov8")), "variant": "int8"},
+                      make_context(pool="mono"))

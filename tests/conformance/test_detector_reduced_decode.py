@@ -13,6 +13,8 @@ at least MARGIN above the confidence threshold in either decode has one in the o
 the same label, IoU >= 0.95 and confidence within 0.02; detections within MARGIN of the
 threshold may come or go. Measured on zidane.jpg: the three detections within 9.1 px (boxes
 90-1000 px wide, IoU >= 0.987), confidences within 0.011, and one extra person at 0.252.
+A whole run with `--encoding jpeg` (capture encodes, the worker decodes at 1/2) meets the
+same bound against the kit's reference detections.
 """
 
 from __future__ import annotations
@@ -83,3 +85,37 @@ def test_reduced_decode_gives_the_full_decodes_detections(realdata: Path, image:
     _matched(got, want, f"{image}: 1/{reduction} -> full decode")
     for _, _, box in got:  # in frame pixels, inside the frame
         assert 0 <= box[0] < box[2] <= w and 0 <= box[1] < box[3] <= h
+
+
+@pytest.mark.timeout(120)
+def test_jpeg_run_decodes_for_the_detector_and_reports_frame_pixels(
+    realdata: Path, spawn, run_dir: Path
+) -> None:
+    """`trapflow start --encoding jpeg` on zidane.jpg: capture encodes the decoded photo
+    (quality 90), the mono worker decodes that JPEG at 1/2 for YOLOv8n's 640x640 input, and
+    results.jsonl holds the kit's reference detections within the tolerance above (boxes in
+    frame pixels: the reduction is undone)."""
+    import json
+
+    from tests.conftest import write_config
+
+    model = kit_path(realdata, KIT, "ultralytics_yolov8n_int8", "yolov8n_int8.onnx")
+    photo = kit_path(realdata, KIT, "images", "zidane.jpg")
+    ref = kit_path(realdata, KIT, "ultralytics_yolov8n_int8", "reference_detections.json")
+    folder = run_dir.parent / "pairs"
+    for side in ("left", "right"):
+        (folder / side).mkdir(parents=True)
+        (folder / side / "000000.jpg").symlink_to(photo)
+    params = {"model": str(model), "confidence": 0.25, "iou": 0.7, "max_detections": 300}
+    cfg = write_config(run_dir.parent / "detector.yaml", {"pools": {"mono": {"params": params}}})
+    p = spawn(["--config", str(cfg), "--workers", "mono=1", "--encoding", "jpeg",
+               "--source", f"images:{folder}"], run_dir)
+    code, _, err = p.wait(90)
+    assert code == 0, err
+    got: list[Det] = [(b["label"], b["confidence"], tuple(b["box"]))
+                      for row in p.results() for b in row.values()]
+    entry = next(e for e in json.loads(ref.read_text()) if e["image"] == "zidane.jpg")
+    want: list[Det] = [(d["name"], d["score"], tuple(d["xyxy"])) for d in entry["detections"]]
+    assert "decoded to cover 640x360" in (run_dir / "trapflow.log").read_text()
+    _matched(want, got, "reference -> jpeg run")
+    _matched(got, want, "jpeg run -> reference")

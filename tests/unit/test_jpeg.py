@@ -82,3 +82,18 @@ def test_reduced_decode_rounds_sizes_up_as_opencv_does(reduce: int) -> None:
     assert got is not None and got.shape == want.shape
     assert got.shape[1::-1] == jpeg.reduced_size((323, 241), reduce)
     assert int(np.abs(got.astype(int) - want).max()) <= 1
+
+
+@pytest.mark.parametrize(("grey", "reduce"), [(False, 1), (True, 1), (False, 4), (True, 2)])
+def test_opencv_fallback_decodes_like_simplejpeg(monkeypatch: pytest.MonkeyPatch, grey: bool,
+                                                 reduce: int) -> None:
+    """Without simplejpeg installed, OpenCV's IMREAD_REDUCED_* flags give the same sizes and
+    pixels (within 1 level), so a plugin's max_size works either way."""
+    img = cv2.resize(_photo(), (323, 241))
+    data = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
+    turbo = jpeg.decode(data, grey=grey, reduce=reduce)
+    monkeypatch.setattr(jpeg, "_sj", None)
+    opencv = jpeg.decode(data, grey=grey, reduce=reduce)
+    assert turbo is not None and opencv is not None and turbo.shape == opencv.shape
+    assert int(np.abs(turbo.astype(int) - opencv).max()) <= 1
+    assert jpeg.decode(b"\xff\xd8not-a-jpeg") is None

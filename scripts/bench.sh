@@ -20,7 +20,9 @@ Parts, in order, with their run time on a 2-core machine (full / --quick):
               2 s (stereo) and 100 ms (two mono workers) per pair ~1 min  / ~0.5 min
   decode      JPEG encode/decode of one image, OpenCV vs simplejpeg,
               colour, grey, 1/2 scale, 1280x720 and 1920x1080    ~1 min  / ~0.5 min
-  algorithms  decode and process time per algorithm               ~2 min  / skipped
+  algorithms  decode and process time per algorithm; the detector
+              fp32 vs int8, preallocated vs allocating input, JPEG
+              decoded whole vs reduced (ratios, same run)          ~3 min  / skipped
   process     Dask LocalCluster vs one plain loop                 ~2 min  / skipped
   viewer      live viewer against the default pipeline            ~1 min  / skipped
   modem       modem link                                          ~1 min  / skipped

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from trapflow_workers.apriltags import AprilTags
 from trapflow_workers.common import MODELS_DIR
-from trapflow_workers.crab_detector import CrabDetector
+from trapflow_workers.crab_detector import VARIANTS, CrabDetector
 from trapflow_workers.scene_classifier import SceneClassifier
 from trapflow_workers.stereo_vo import StereoOdometry
 from trapflow_workers.testkit import make_context, make_pair
@@ -87,6 +87,98 @@ def _time(
         "p95_ms": float(np.percentile(ms, 95)),
         "pairs_per_s": n / wall,
     }
+
+
+def _detector_variants(rig: StereoRig, params: dict[str, Any], n: int,
+                       repeats: int) -> dict[str, Any]:
+    """The detector in one process, each pair through both sides of each comparison in turn
+    (so load on the machine falls on both alike): process() with the fp32 and the int8 demo
+    model; the input tensor by the preallocated Preprocessor and by allocate_tensor (new
+    arrays at every step); a JPEG pair decoded whole and at the detector's DCT reduction."""
+    from trapflow_workers.yolo_preprocess import allocate_tensor
+
+    from trapflow import jpeg
+    from trapflow.messages import StereoPair
+    from trapflow.worker import decode_pair
+
+    cv2.setNumThreads(1)
+    frames = [left for left, _ in _frames("mono", rig, n)]
+    ctx = make_context(rig, pool="mono")
+    dets: dict[str, CrabDetector] = {}
+    for variant in ("fp32", "int8"):
+        if variant == "int8" and (params.get("model") or not (MODELS_DIR / VARIANTS["int8"])
+                                  .is_file()):
+            continue  # stand-in models, or no int8 file: fp32 only
+        det = CrabDetector()
+        det.configure({**params, "variant": variant} if variant != "fp32" else params, ctx)
+        dets[variant] = det
+    fp32 = dets["fp32"]
+    pre = fp32.preprocess
+    spec = (pre.input_hw, pre.placement, pre.fill, pre.rgb, pre.scale)
+    header = StereoPair(seq=0, t_wall_ns=0, t_mono_ns=0, t_left_ns=0, t_right_ns=0, skew_ns=0,
+                        encoding="jpeg", width=rig.width, height=rig.height)
+    jpegs = [jpeg.encode(f, 90) for f in frames]
+    whole = Worker()  # a plugin that declares no max_size: its JPEG pair is decoded whole
+
+    def run(fn: Any, i: int) -> float:
+        t = time.process_time()
+        fn(i)
+        return (time.process_time() - t) * 1000
+
+    cases: dict[str, Any] = {
+        "process fp32": lambda i: fp32.process(make_pair(frames[i], seq=i)),
+        "preprocess preallocated": lambda i: pre(frames[i]),
+        "preprocess allocating": lambda i: allocate_tensor(frames[i], *spec),
+        "jpeg pair decode whole": lambda i: decode_pair(whole, header, jpegs[i], jpegs[i]),
+        "jpeg pair decode reduced": lambda i: decode_pair(fp32, header, jpegs[i], jpegs[i]),
+    }
+    if "int8" in dets:
+        int8 = dets["int8"]
+        cases["process int8"] = lambda i: int8.process(make_pair(frames[i], seq=i))
+    for fn in cases.values():  # warm-up
+        fn(0)
+    ms: dict[str, list[float]] = {k: [] for k in cases}
+    for _ in range(repeats):
+        for i in range(n):
+            for k, fn in cases.items():
+                ms[k].append(run(fn, i))
+    med = {k: float(np.median(v)) for k, v in ms.items()}
+    out: dict[str, Any] = {"ms_median": med, "ms_mean": {k: float(np.mean(v))
+                                                         for k, v in ms.items()},
+                           "pairs": n, "repeats": repeats,
+                           "reduction": jpeg.scale_for((rig.width, rig.height), fp32.max_size),
+                           "ratios": {
+        "preallocated / allocating preprocessing":
+            med["preprocess preallocated"] / med["preprocess allocating"],
+        "reduced / whole JPEG pair decode":
+            med["jpeg pair decode reduced"] / med["jpeg pair decode whole"]}}
+    if "process int8" in med:
+        out["ratios"]["int8 / fp32 process()"] = med["process int8"] / med["process fp32"]
+    return out
+
+
+def _variants_table(v: dict[str, Any], size: str) -> str:
+    lines = [f"Detector variants at {size}, one process, CPU ms per pair (median of "
+             f"{v['pairs']} pairs x {v['repeats']}, each pair through every case in turn):",
+             "", "| case | median ms | mean ms |", "|---|---:|---:|"]
+    for k, m in v["ms_median"].items():
+        lines.append(f"| {k} | {m:.2f} | {v['ms_mean'][k]:.2f} |")
+    lines += ["", "| ratio, same run | |", "|---|---:|"]
+    lines += [f"| {k} | {r:.2f}x |" for k, r in v["ratios"].items()]
+    return "\n".join(lines)
+
+
+def _detector_only(out: Path, pairs: int) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        params, origin = _models(Path(tmp))
+        variants = {f"{w}x{h}": _detector_variants(StereoRig.from_fov(w, h, 70.0, 0.12),
+                                                   params["mono"], pairs, 3)
+                    for w, h in ((1280, 720), (1920, 1080))}
+    (out / "detector_variants.json").write_text(
+        json.dumps({"detector_variants": variants, "models": origin}, indent=2))
+    md = "".join(f"{_variants_table(v, k)}\n\n" for k, v in variants.items())
+    (out / "detector_variants.md").write_text(md)
+    print(md)
 
 
 def _together(rig: StereoRig, params: dict[str, dict[str, Any]], n: int) -> dict[str, Any]:
@@ -184,16 +276,26 @@ def main() -> None:
     ap.add_argument(
         "--speed", type=float, default=0.5, help="rig speed in m/s on the world (15 pairs/s)"
     )
+    ap.add_argument("--variant-pairs", type=int, default=40,
+                    help="pairs for the detector variants (fp32/int8, preprocessing, decode)")
+    ap.add_argument("--detector-only", action="store_true",
+                    help="only the detector variants; writes detector_variants.json and .md")
     ap.add_argument("--steps", type=int, default=600, help="pairs along the testkit path")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.detector_only:
+        _detector_only(out, args.variant_pairs)
+        return
     hd, vga = StereoRig.from_fov(1280, 720, 70.0, 0.12), StereoRig.from_fov(640, 480, 70.0, 0.12)
     with tempfile.TemporaryDirectory() as tmp:
         params, origin = _models(Path(tmp))
         alone = {k: _time(k, hd, params[k], args.frames) for k in PLUGINS}
         vo_vga = _time("vo", vga, {}, args.frames)
         together = _together(hd, params, args.frames)
+        variants = {f"{r.width}x{r.height}": _detector_variants(r, params["mono"],
+                                                                  args.variant_pairs, 3)
+                    for r in (hd, StereoRig.from_fov(1920, 1080, 70.0, 0.12))}
     drift = _drift(hd, args.drift_world, args.path_m, args.steps, args.speed)
     rows = [(k, "alone 1280x720", alone[k]) for k in PLUGINS]
     rows.append(("vo", "alone 640x480", vo_vga))
@@ -203,6 +305,7 @@ def main() -> None:
         "vo_640x480": vo_vga,
         "together": together,
         "drift": drift,
+        "detector_variants": variants,
         "models": origin,
         "threads": 1,
         "frames_from": f"moving synthetic world, {RATE_HZ:g} pairs/s",
@@ -221,6 +324,7 @@ def main() -> None:
         f"at 1280x720, {drift['ok']} ok): {drift['segment_drift_pct']:.3f} % (KITTI-style "
         f"segment metric, segments of {seg_m} m), {drift['end_drift_pct']:.3f} % at the end.\n"
     )
+    md += "".join(f"\n{_variants_table(v, k)}\n" for k, v in variants.items())
     (out / "bench_algorithms.md").write_text(md)
     print(md)
 

@@ -46,17 +46,28 @@ def to_jpeg_pair(header: StereoPair, left: Any, right: Any,
     return msgspec.structs.replace(header, encoding="jpeg"), lj, rj
 
 
-def scale_for(full: tuple[int, int], needed: int | None) -> int:
-    """The largest DCT reduction (1, 2, 4 or 8) that keeps the longer side >= needed."""
+def scale_for(full: tuple[int, int], needed: tuple[int, int] | None) -> int:
+    """The largest DCT reduction (1, 2, 4 or 8) of a full (width, height) frame that still
+    covers `needed` (width, height) in both directions; 1 when nothing is needed.
+
+    A plugin that shrinks each image to at most `needed` loses nothing it would have kept:
+    the reduced frame is at least that large, and a reduction is taken only where the
+    frame is twice `needed` or more.
+    """
     if not needed:
         return 1
-    longer = max(full)
-    return max(s for s in _SCALES if longer // s >= needed or s == 1)
+    (fw, fh), (nw, nh) = full, needed
+    return max(s for s in _SCALES if s == 1 or (fw >= s * nw and fh >= s * nh))
+
+
+def reduced_size(full: tuple[int, int], reduce: int) -> tuple[int, int]:
+    """(width, height) of a full (width, height) JPEG decoded at 1/reduce: libjpeg rounds up."""
+    return -(-full[0] // reduce), -(-full[1] // reduce)
 
 
 def decode(data: Any, grey: bool = False, reduce: int = 1) -> np.ndarray | None:
-    """JPEG bytes as BGR (or grey, HxW) uint8, reduced by `reduce` (1, 2, 4, 8); None if
-    the bytes are no decodable JPEG."""
+    """JPEG bytes as BGR (or grey, HxW) uint8, reduced by `reduce` (1, 2, 4, 8: each side
+    ceil(side / reduce), see reduced_size); None if the bytes are no decodable JPEG."""
     buf = data if isinstance(data, np.ndarray) else np.frombuffer(data, np.uint8)
     if _sj is not None:
         try:
@@ -78,6 +89,9 @@ def decode(data: Any, grey: bool = False, reduce: int = 1) -> np.ndarray | None:
 def _decode_reduced(buf: np.ndarray, grey: bool, reduce: int) -> np.ndarray:
     assert _sj is not None
     h, w = _sj.decode_jpeg_header(buf)[:2]
+    rw, rh = reduced_size((w, h), reduce)
+    # min_factor and the minimum size together pin libjpeg-turbo's scale to exactly
+    # 1/reduce (it also offers other eighths, which OpenCV's fallback cannot match).
     img: np.ndarray = _sj.decode_jpeg(buf, colorspace="GRAY" if grey else "BGR",
-                                      min_height=-(-h // reduce), min_width=-(-w // reduce))
+                                      min_height=rh, min_width=rw, min_factor=reduce)
     return img

@@ -20,12 +20,18 @@ from trapflow.messages import Body, StereoPair
 @dataclass(frozen=True)
 class Pair:
     """A stereo pair as a plugin sees it: BGR uint8 images, or, for a plugin whose
-    needs_images is False, the encoded payload bytes as 1-D uint8 views (zero-copy)."""
+    needs_images is False, the encoded payload bytes as 1-D uint8 views (zero-copy).
+
+    `reduction` > 1: the images are the frames reduced by that factor (a JPEG decoded at
+    a reduced DCT scale for the plugin's max_size), each side ceil(size / reduction); image
+    pixel x is frame pixel x * reduction. Raw frames always come at full size (1).
+    """
 
     header: StereoPair
     left: np.ndarray
     right: np.ndarray
     gap: int = 0  # pairs dropped since the previous one this worker saw (ordered pools)
+    reduction: int = 1
 
 
 @dataclass(frozen=True)
@@ -59,6 +65,13 @@ class Worker:
     #: decoded straight to grey (HxW, about 30 % cheaper); raw frames come as they are
     #: (BGR views of the ring), so it accepts both
     colour: str = "bgr"
+    #: the largest image (width, height) process() uses, or None for full frames. A plugin
+    #: that shrinks each image to at most this size in both directions (a detector's
+    #: letterbox, a classifier's resize) sets it, from its model's input, in configure():
+    #: a JPEG pair is then decoded at the largest DCT reduction (1/2, 1/4, 1/8) that still
+    #: covers it (trapflow.jpeg.scale_for), which costs a fraction of a full decode, and
+    #: Pair.reduction says by how much. Raw frames come at full size whatever it says
+    max_size: tuple[int, int] | None = None
     #: the rig a geometric plugin computes with when it is not the run's (its own
     #: `calibration` param); the worker stamps this rig's id on stereo results as `calib`
     rig: StereoRig | None = None

@@ -36,27 +36,45 @@ STAMPED = (messages.StereoIR, messages.StereoVO, messages.Tags)
 
 
 def decode_image(frame: Any, pair: messages.StereoPair, side: str,
-                 grey: bool = False) -> np.ndarray:
+                 grey: bool = False, reduce: int = 1) -> np.ndarray:
     """A BGR uint8 image from a JPEG or raw frame (or ring view), grey (HxW) from a JPEG when
-    the plugin asks for grey; ProtocolError if not one."""
+    the plugin asks for grey, and a JPEG decoded at 1/reduce of its size (a raw frame stays
+    whole); ProtocolError if not one."""
     buf = _as_bytes(frame)
     if pair.encoding == "raw":
         return buf.reshape(pair.height, pair.width, 3)
-    img = jpeg.decode(buf, grey=grey)  # libjpeg-turbo (simplejpeg), OpenCV as the fallback
+    # libjpeg-turbo (simplejpeg), OpenCV as the fallback
+    img = jpeg.decode(buf, grey=grey, reduce=reduce)
     if img is None:
         raise ProtocolError(f"pair {pair.seq}: {side} image is not a decodable JPEG "
                             f"({buf.size} bytes)")
-    if img.shape[:2] != (pair.height, pair.width):
+    width, height = jpeg.reduced_size((pair.width, pair.height), reduce)
+    if img.shape[:2] != (height, width):
+        at = f" (the header's {pair.width}x{pair.height} at 1/{reduce})" if reduce > 1 else ""
         raise ProtocolError(
-            f"pair {pair.seq}: {side} image expected {pair.width}x{pair.height}, "
+            f"pair {pair.seq}: {side} image expected {width}x{height}{at}, "
             f"got {img.shape[1]}x{img.shape[0]}"
         )
     return img
 
 
+def decode_pair(plugin: Worker, header: messages.StereoPair, left: Any, right: Any,
+                gap: int = 0) -> Pair:
+    """The pair as `plugin` wants it: decoded in its colour and, for a JPEG, at the largest
+    DCT reduction its max_size allows; the encoded bytes when it needs no images."""
+    if not plugin.needs_images:  # the encoded bytes, zero-copy: plugins that never look
+        return Pair(header=header, left=_as_bytes(left), right=_as_bytes(right), gap=gap)
+    grey = plugin.colour == "grey"
+    reduce = 1 if header.encoding == "raw" else jpeg.scale_for(
+        (header.width, header.height), plugin.max_size)
+    return Pair(header=header, left=decode_image(left, header, "left", grey, reduce),
+                right=decode_image(right, header, "right", grey, reduce), gap=gap,
+                reduction=reduce)
+
+
 def _as_bytes(frame: Any) -> np.ndarray:
     if isinstance(frame, np.ndarray):
-        return frame
+        return frame.reshape(-1)  # a view of a contiguous frame
     return np.frombuffer(frame.buffer if hasattr(frame, "buffer") else frame, dtype=np.uint8)
 
 
@@ -306,14 +324,9 @@ class WorkerNode(Node):
                 header = messages.check_pair_frames(frames[1:])
                 raw_left, raw_right = frames[2], frames[3]
             seq = header.seq
-            if self.plugin.needs_images:
-                grey = self.plugin.colour == "grey"
-                left = decode_image(raw_left, header, "left", grey)
-                right = decode_image(raw_right, header, "right", grey)
-            else:  # the encoded bytes, zero-copy: plugins that never look at pixels
-                left, right = _as_bytes(raw_left), _as_bytes(raw_right)
+            pair = decode_pair(self.plugin, header, raw_left, raw_right, job.gap)
             t0, c0 = time.monotonic_ns(), time.process_time_ns()
-            body = self.plugin.process(Pair(header=header, left=left, right=right, gap=job.gap))
+            body = self.plugin.process(pair)
             proc_ns = time.monotonic_ns() - t0
             self.proc_cpu_us += (time.process_time_ns() - c0) // 1000
             if ref is not None:
@@ -337,6 +350,6 @@ class WorkerNode(Node):
         if self.pcfg.time:
             log.info("%s: pair %d in %.1f ms", self.ident, header.seq, proc_ns / 1e6)
         if self.pcfg.save and self.plugin.needs_images:
-            self._save(left, right, result)
+            self._save(pair.left, pair.right, result)
         self._send([messages.Done(worker=self.ident, pool=self.pool, seq=header.seq),
                     messages.encode(result)])

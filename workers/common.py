@@ -18,6 +18,7 @@ import msgspec
 import numpy as np
 
 from trapflow.errors import WorkerError
+from trapflow.jpeg import reduced_size
 from trapflow.plugin import Pair
 
 PACKAGE_DIR = Path(__file__).resolve().parent
@@ -131,8 +132,10 @@ def to_grey(img: np.ndarray) -> np.ndarray:
 def check_frame(pair: Pair, size: tuple[int, int] | None = None, what: str = "",
                 grey_ok: bool = False) -> None:
     """Raise WorkerError unless both images are HxWx3 uint8 (or HxW with grey_ok) of the
-    header's (and `size`'s) size."""
+    header's (and `size`'s) size, reduced by pair.reduction (a JPEG decoded at a reduced
+    DCT scale for the plugin's max_size)."""
     w, h = pair.header.width, pair.header.height
+    iw, ih = reduced_size((w, h), pair.reduction)
     for side, img in (("left", pair.left), ("right", pair.right)):
         if (
             not isinstance(img, np.ndarray)
@@ -144,10 +147,11 @@ def check_frame(pair: Pair, size: tuple[int, int] | None = None, what: str = "",
                 f"pair {pair.header.seq}: expected a BGR uint8 {side} image, "
                 f"got shape {shape} dtype {getattr(img, 'dtype', None)}"
             )
-        if img.shape[:2] != (h, w):
+        if img.shape[:2] != (ih, iw):
+            at = f" at 1/{pair.reduction}: {iw}x{ih}" if pair.reduction > 1 else ""
             raise WorkerError(
                 f"pair {pair.header.seq}: {side} image is "
-                f"{img.shape[1]}x{img.shape[0]}, header says {w}x{h}"
+                f"{img.shape[1]}x{img.shape[0]}, header says {w}x{h}{at}"
             )
     if size is not None and size != (w, h):
         raise WorkerError(

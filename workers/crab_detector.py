@@ -33,7 +33,7 @@ from .yolo_decode import (
     detect_layout,
     nms,
 )
-from .yolo_preprocess import PAD_VALUE, PLACEMENTS, Placement, Preprocessor
+from .yolo_preprocess import PAD_VALUE, PLACEMENTS, Placement, Preprocessor, fit
 
 log = logging.getLogger(__name__)
 
@@ -41,9 +41,16 @@ Unit = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
 Side = Annotated[int, msgspec.Meta(ge=16, le=4096)]
 
 
+#: the packaged demo models, by `variant`
+VARIANTS = {"fp32": "crab_detector.onnx", "int8": "crab_detector_int8.onnx"}
+
+
 class DetectorParams(ModelParams):
     """`pools.mono.params`: every key is optional (empty model: the packaged one)."""
 
+    variant: Literal["fp32", "int8"] = "fp32"
+    """Which packaged demo model runs when `model` is empty: fp32, or its int8 quantization
+    (static QDQ; accuracy and speed of both in models/crab_detector.md)."""
     layout: Literal["auto", "yolov8", "yolov5", "yolox", "yolox_decoded"] = "auto"
     """Output decoder; auto = metadata `layout`, else chosen from the output shape (and for
     YOLOX from its values: raw grid offsets or boxes decoded in the graph)."""
@@ -171,7 +178,13 @@ class CrabDetector(Worker):
     def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
         p = parse_params(params, DetectorParams, ctx.pool)
         self.p = p
-        path = model_path(p.model, "crab_detector.onnx")
+        if p.model and p.variant != "fp32":
+            raise WorkerError(
+                f"pools.{ctx.pool}.params.variant: {p.variant!r} picks a packaged demo model, "
+                f"but model is set ({p.model}): drop variant, or drop model to run the packaged "
+                f"{p.variant} one"
+            )
+        path = model_path(p.model, VARIANTS[p.variant])
         self.session: Session = open_session(path, p.providers, p.threads, settings=p)
         meta = self.session.metadata
         inp = self.session.inputs[0]
@@ -208,9 +221,13 @@ class CrabDetector(Worker):
             nhwc=self.nhwc,
             dtype=dtype,
         )
+        # The largest image the letterbox keeps of the run's frames: a JPEG is decoded at
+        # the DCT scale that still covers it (1280x720 into 320x320: 320x180, 1/4).
+        fitted = fit(ctx.rig.height, ctx.rig.width, self.input_hw, spec.placement)
+        self.max_size = (fitted.width, fitted.height)
         log.info(
             "detector %s: layout %s, input %dx%d, letterbox %s pad %d, %s, scale %.6g, "
-            "%s NMS, %d classes",
+            "%s NMS, %d classes, JPEG decoded to cover %dx%d",
             path.name,
             self.layout,
             self.input_hw[1],
@@ -221,6 +238,7 @@ class CrabDetector(Worker):
             spec.scale,
             "class-agnostic" if self.agnostic else "per-class",
             self.nc,
+            *self.max_size,
         )
 
     def _probe_layout(
@@ -262,9 +280,13 @@ class CrabDetector(Worker):
             self.p.iou,
             self.p.max_detections,
             agnostic=self.agnostic,
-            pixel=lb.scale if self.edge_pixel else 0.0,
+            # one frame pixel, in input pixels (an image reduced by r has r-pixel pixels)
+            pixel=lb.scale / pair.reduction if self.edge_pixel else 0.0,
         )
         mapped = lb.to_image(boxes[keep], image.shape[1], image.shape[0])
+        if pair.reduction > 1:  # back to frame pixels: image pixel x is frame pixel r * x
+            w, h = pair.header.width, pair.header.height
+            mapped = np.minimum(mapped * pair.reduction, np.array([w, h, w, h], np.float64))
         dets = [
             Detection(
                 label=self._label(int(ids[k])),

@@ -93,6 +93,9 @@ class SceneClassifier(Worker):
                 f"pools.{ctx.pool}.params.input_size to (height, width)"
             )
         self.size: tuple[int, int] = (int(size[0]), int(size[1]))
+        # Each image is resized to exactly this: a JPEG is decoded at the DCT scale that
+        # still covers it (1280x720 for 160x96: 1/4).
+        self.max_size = (self.size[1], self.size[0])
         self.names = [i.name for i in inputs]
         self.dtype = self.session.input_dtype()
         color = p.color if p.color != "auto" else meta.get("color_order", "rgb").lower()

@@ -72,6 +72,32 @@ def letterbox(
     return out, lb
 
 
+def allocate_tensor(
+    image: np.ndarray,
+    size: tuple[int, int],
+    placement: Placement,
+    fill: int,
+    rgb: bool,
+    scale: float,
+    mean: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    std: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    nhwc: bool = False,
+) -> tuple[np.ndarray, Letterbox]:
+    """The float32 input tensor the straightforward way, new arrays at every step (a padded
+    copy, a channel swap, a float copy, a division): what Preprocessor must equal bit for
+    bit, and the baseline scripts/bench_algorithms.py times it against."""
+    boxed, lb = letterbox(image, size, fill, placement)
+    x = boxed[:, :, ::-1] if rgb else boxed
+    x = x.transpose(2, 0, 1).astype(np.float32)
+    div = _divisor(scale)
+    x = x / np.float32(div) if div is not None else x * np.float32(scale)
+    if tuple(mean) != (0.0, 0.0, 0.0) or tuple(std) != (1.0, 1.0, 1.0):
+        x = ((x - np.asarray(mean, np.float32).reshape(3, 1, 1))
+             / np.asarray(std, np.float32).reshape(3, 1, 1))
+    x = x[None]
+    return (np.ascontiguousarray(x.transpose(0, 2, 3, 1)) if nhwc else x), lb
+
+
 def _divisor(scale: float) -> float | None:
     """1/scale when it is a whole number: toolchains divide by 255, and so must we, bit for bit."""
     if scale <= 0.0:

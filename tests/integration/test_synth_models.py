@@ -48,10 +48,12 @@ def test_detector_reaches_map_on_held_out_scenes() -> None:
 
 
 @pytest.mark.timeout(90)
-def test_crab_detector_plugin_finds_held_out_crabs() -> None:
-    """CrabDetector with its defaults (packaged model, labels from metadata) on full frames."""
+@pytest.mark.parametrize("variant", ["fp32", "int8"])
+def test_crab_detector_plugin_finds_held_out_crabs(variant: str) -> None:
+    """CrabDetector with its defaults (packaged model, labels from metadata) on full frames;
+    the int8 variant (scripts/quantize_detector.py) to the same bounds."""
     det = CrabDetector()
-    det.configure({"providers": ["cpu"]}, make_context())
+    det.configure({"providers": ["cpu"], "variant": variant}, make_context())
     found = total = false_pos = 0
     for seq, (left, right, truth) in enumerate(_held_out()):
         got = det.process(make_pair(left, right, seq=seq))

@@ -74,3 +74,23 @@ def test_configure_rejects(tmp_path: Path, params: dict[str, Any], error: str) -
     params = {k: v.format(tmp=tmp_path) if isinstance(v, str) else v for k, v in params.items()}
     with pytest.raises(WorkerError, match=error):
         SceneClassifier().configure(params, make_context(pool="stereo"))
+
+
+def test_jpeg_pair_decoded_to_cover_the_input_classifies_alike(tmp_path: Path) -> None:
+    """The classifier resizes each image to its input (128x64 here): a 1280x720 JPEG pair
+    is decoded at 1/8 (160x90), and the scene comes out the same as from the full decode."""
+    from tests import builders
+    from trapflow.worker import decode_image, decode_pair
+
+    clf = _classifier(tmp_path, "concat_channels")
+    assert clf.max_size == (128, 64)
+    img = np.zeros((720, 1280, 3), np.uint8)
+    img[:] = (20, 200, 20)
+    img[100:400, 100:600] = (128, 128, 128)
+    data = builders.jpeg(img)
+    header = builders.pair_header(0, 1280, 720, "jpeg")
+    pair = decode_pair(clf, header, data, data)
+    assert pair.reduction == 8 and pair.left.shape == (90, 160, 3)
+    small, whole = clf.process(pair), clf.process(make_pair(decode_image(data, header, "left")))
+    assert small.label == whole.label == "green"
+    assert small.confidence == pytest.approx(whole.confidence, abs=0.01)

@@ -191,3 +191,55 @@ def test_wrong_frame_size_is_a_worker_error(tmp_path: Path) -> None:
         det.process(make_pair(frame, header_size=(1280, 720)))
     with pytest.raises(WorkerError, match="BGR uint8"):
         det.process(make_pair(frame[:, :, 0]))
+
+
+@pytest.mark.parametrize(("layout", "size", "reduction"), [
+    ("yolov8", (1280, 720), 4), ("yolox", (1280, 720), 4), ("yolov8", (1920, 1080), 4),
+    ("yolov8", (640, 480), 2), ("yolox", (600, 400), 1),
+])
+def test_jpeg_decoded_at_reduced_scale_gives_boxes_in_frame_pixels(
+    tmp_path: Path, layout: str, size: tuple[int, int], reduction: int
+) -> None:
+    """The detector covers its letterbox of the run's frames (max_size); a JPEG pair is then
+    decoded at 1/2, 1/4 or 1/8 and its boxes mapped back by the reduction. With a model whose
+    output ignores the pixels the boxes equal those of the full frame exactly."""
+    from tests import builders
+    from trapflow.camera import StereoRig
+    from trapflow.worker import decode_pair
+
+    w, h = size
+    det = CrabDetector()
+    det.configure({"model": str(_model(tmp_path, layout))},
+                  make_context(StereoRig.from_fov(w, h, 70.0, 0.12), pool="mono"))
+    r = min(HW[0] / h, HW[1] / w)
+    assert det.max_size == pytest.approx((w * r, h * r), abs=1)
+    img = builders.image(w, h, seed=5)
+    data = builders.jpeg(img)
+    pair = decode_pair(det, builders.pair_header(3, w, h, "jpeg"), data, data)
+    assert pair.reduction == reduction
+    assert pair.left.shape == (h // reduction, w // reduction, 3)
+    got = [d.box for d in det.process(pair).detections]
+    want = [d.box for d in det.process(make_pair(img)).detections]
+    assert len(got) == 2
+    np.testing.assert_allclose(got, want, atol=1e-3)
+    raw = decode_pair(det, builders.pair_header(3, w, h, "raw"), img.tobytes(), img.tobytes())
+    assert raw.reduction == 1 and raw.left.shape == img.shape  # raw frames stay whole
+
+
+def test_variant_int8_runs_the_packaged_int8_model() -> None:
+    """`variant: int8` picks the quantized demo model; its metadata gives labels and layout
+    as the fp32 one does (accuracy is checked on held-out scenes in test_synth_models)."""
+    onnx = pytest.importorskip("onnx")
+    det = CrabDetector()
+    det.configure({"variant": "int8", "providers": ["cpu"]}, make_context(pool="mono"))
+    assert det.session.path.name == "crab_detector_int8.onnx"
+    assert det.labels == ["crab", "scallop"] and det.layout == "yolov8"
+    ops = {n.op_type for n in onnx.load(str(det.session.path)).graph.node}
+    assert {"QuantizeLinear", "DequantizeLinear"} <= ops  # QDQ: int8 inside
+
+
+def test_variant_with_a_model_path_is_refused(tmp_path: Path) -> None:
+    det = CrabDetector()
+    with pytest.raises(WorkerError, match=r"params\.variant: 'int8' picks a packaged"):
+        det.configure({"model": str(_model(tmp_path, "yolov8")), "variant": "int8"},
+                      make_context(pool="mono"))

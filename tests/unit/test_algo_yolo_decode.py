@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from trapflow_workers.testkit_onnx import yolo_tensor
@@ -14,7 +15,13 @@ from trapflow_workers.yolo_decode import (
     grid_size,
     nms,
 )
-from trapflow_workers.yolo_preprocess import Placement, Preprocessor, fit, letterbox
+from trapflow_workers.yolo_preprocess import (
+    Placement,
+    Preprocessor,
+    allocate_tensor,
+    fit,
+    letterbox,
+)
 
 from trapflow.errors import WorkerError
 
@@ -117,6 +124,7 @@ def _reference_tensor(
     mean: tuple[float, float, float],
     std: tuple[float, float, float],
 ) -> np.ndarray:
+    """Written here from the toolchains' steps, independently of yolo_preprocess."""
     boxed, _ = letterbox(img, size, 114, placement)
     x = boxed[:, :, ::-1] if rgb else boxed
     x = x.transpose(2, 0, 1).astype(np.float32)
@@ -152,10 +160,45 @@ def test_preprocessor_equals_letterbox_then_conversion(
         ref = _reference_tensor(img, (320, 320), placement, rgb, scale, mean, std)
         got = tensor.transpose(0, 3, 1, 2) if nhwc else tensor
         assert got.dtype == dtype
-        tol = 1e-3 if dtype == np.float16 else 1e-6  # float16: 11 significant bits
-        np.testing.assert_allclose(got, ref, rtol=tol, atol=tol)
+        if dtype == np.float32:  # the same float32 operations in the same order
+            assert np.array_equal(got, ref)
+        else:  # float16: 11 significant bits
+            np.testing.assert_allclose(got, ref, rtol=1e-3, atol=1e-3)
         assert lb == fit(shape[0], shape[1], (320, 320), placement)
     assert pre(img)[0] is tensor  # one buffer, no allocation per frame
+
+
+# YOLOX's preproc (top-left, BGR, pixels 0..255) and Ultralytics' LetterBox (centred, RGB, /255)
+TOOLCHAINS = [("topleft", False, 1.0), ("center", True, 1 / 255)]
+
+
+@pytest.mark.parametrize(("placement", "rgb", "scale"), TOOLCHAINS, ids=["yolox", "ultralytics"])
+@pytest.mark.parametrize("nhwc", [False, True], ids=["nchw", "nhwc"])
+@pytest.mark.parametrize("input_hw", [(320, 320), (640, 640), (384, 640)])
+def test_preallocated_tensor_is_bit_identical_to_the_allocating_path(
+    placement: Placement, rgb: bool, scale: float, nhwc: bool, input_hw: tuple[int, int]
+) -> None:
+    """Preprocessor writes the letterbox into one preallocated input (cv2.resize into a
+    kept buffer, the conversion with out=): the same bits as allocate_tensor, which makes a
+    new array at every step, on frames smaller, larger, taller and wider than the input,
+    one size after another through the same buffer (the padding is rebuilt on a change)."""
+    rng = np.random.default_rng(11)
+    pre = Preprocessor(input_hw, placement, 114, rgb, scale, nhwc=nhwc)
+    first = None
+    for shape in [(720, 1280), (1080, 1920), (480, 640), (1280, 720), (321, 479), (720, 1280),
+                  (200, 150), input_hw]:
+        img = cv2.GaussianBlur(rng.integers(0, 256, (*shape, 3), np.uint8), (5, 5), 2)
+        tensor, lb = pre(img)
+        want, want_lb = allocate_tensor(img, input_hw, placement, 114, rgb, scale, nhwc=nhwc)
+        assert tensor.shape == want.shape and tensor.dtype == want.dtype == np.float32
+        assert np.array_equal(tensor, want), f"{shape} into {input_hw}"
+        assert lb == want_lb
+        first = tensor if first is None else first
+        assert tensor is first  # the one buffer, written in place every time
+    # And the reference itself agrees with the steps written out in this test.
+    if not nhwc:
+        assert np.array_equal(want, _reference_tensor(img, input_hw, placement, rgb, scale,
+                                                      (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)))
 
 
 def test_preprocessor_divides_by_255_bit_for_bit() -> None:

@@ -33,7 +33,7 @@ from trapflow.normalize import dumps, normalize
 from trapflow.plugin import Context, Pair, Worker
 from trapflow.rig import describe, mismatch
 from trapflow.sources import SkipPair, Source, open_source
-from trapflow.worker import STAMPED, decode_image
+from trapflow.worker import STAMPED, decode_pair
 
 log = logging.getLogger(__name__)
 
@@ -265,17 +265,13 @@ def run_chunk(task: ChunkTask) -> dict[str, Any]:
                 t_left_ns=frames.t_left_ns, t_right_ns=frames.t_right_ns,
                 skew_ns=frames.right_minus_left_ns(), encoding=cfg.source.encoding,
                 width=w, height=h, source=cfg.source.kind)
-            images: tuple[np.ndarray, np.ndarray] | None = None
+            # Decoded as a worker decodes its job (colour, DCT reduction), once per need.
+            pairs: dict[tuple[bool, str, tuple[int, int] | None], Pair] = {}
             for pool, (plugin, calib) in plugins.items():
                 try:
-                    if plugin.needs_images:
-                        if images is None:  # decoded once, as a worker decodes its job
-                            images = (decode_image(left_buf, header, "left"),
-                                      decode_image(right_buf, header, "right"))
-                        pair = Pair(header=header, left=images[0], right=images[1])
-                    else:
-                        pair = Pair(header=header, left=left_buf.reshape(-1),
-                                    right=right_buf.reshape(-1))
+                    need = (plugin.needs_images, plugin.colour, plugin.max_size)
+                    pair = pairs.get(need) or pairs.setdefault(
+                        need, decode_pair(plugin, header, left_buf, right_buf))
                     t_proc = time.monotonic_ns()
                     body = plugin.process(pair)
                     proc_ns = time.monotonic_ns() - t_proc

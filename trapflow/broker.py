@@ -76,7 +76,7 @@ class BrokerNode(Node):
         self.wanted: dict[bytes, bool] = {}
         self._jobs: dict[tuple[str, int], bytes] = {}
         pools = {  # a remote pool exists with no local worker: remote workers add to count
-            name: PoolSpec(p.parsed_policy, p.timeout_s)
+            name: PoolSpec(p.parsed_policy, p.timeout_s, p.max_pending_age_s)
             for name, p in self.cfg.pools.items()
             if p.count > 0 or p.remote
         }
@@ -335,7 +335,9 @@ class BrokerNode(Node):
                              "only the supervisor or that worker may send it",
                              wire(msg.worker), wire(ident))
                 return
-            self._apply(self.state.worker_gone(gone, msg.reason, now))
+            self._apply(self.state.worker_gone(gone, msg.reason, now,
+                                               requeue=msg.reason.startswith(
+                                                   messages.GONE_RECYCLED)))
         elif isinstance(msg, messages.PoolSwitch):
             self._on_pool_switch(ident, msg, now)
         elif isinstance(msg, messages.Failed):
@@ -419,7 +421,9 @@ class BrokerNode(Node):
                                      "supervisor may send it", wire(msg.worker),
                                      wire(ident.decode("utf-8", "replace")))
                         continue
-                    self._apply(self.state.worker_gone(target, msg.reason, time.monotonic()))
+                    self._apply(self.state.worker_gone(
+                        target, msg.reason, time.monotonic(),
+                        requeue=msg.reason.startswith(messages.GONE_RECYCLED)))
                 elif self.remotes.pool_of(ident) != msg.pool:
                     self._refuse("remote_not_joined", "refused a message from remote '%s' "
                                  "for pool '%s': expected a hello for that pool first",
@@ -543,8 +547,9 @@ class BrokerNode(Node):
                     wire(action.pool), action.seq, action.reason)
             elif isinstance(action, Evicted):
                 self.remotes.evicted(action.worker, action.reason)
-                # A worker told to stop leaves on purpose; anything else is news.
-                level = logging.INFO if action.reason == messages.GONE_STOPPING else logging.WARNING
+                # A worker told to stop, or recycled, leaves on purpose; anything else is news.
+                level = (logging.INFO if messages.is_planned_goodbye(action.reason)
+                         else logging.WARNING)
                 self.ratelog.log(
                     level, f"evicted:{level}", "evicted worker %s of pool %s (%s); pairs lost: %s",
                     wire(action.worker), action.pool, wire(action.reason),

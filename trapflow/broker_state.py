@@ -2,9 +2,13 @@
 actions out (dispatch, release). No sockets, no clocks: callers pass `now` in seconds.
 
 Every pair that reaches a pool ends in exactly one counter (the loss ledger): processed,
-failed (by kind), dropped (by the pool's policy), inactive (the pool was deactivated,
-`trapflow pool NAME --deactivate`), timed out (its worker held it too long) or lost (its
-worker died, or the run ended first).
+failed (by kind), dropped (by the pool's policy), stale (it waited longer than the pool's
+max_pending_age_s), inactive (the pool was deactivated, `trapflow pool NAME --deactivate`),
+timed out (its worker held it too long) or lost (its worker died, or the run ended first).
+
+A worker that leaves on purpose to be recycled (worker_gone with requeue) answered its last
+pair first; what was dispatched to it after that answer it never started, so those pairs go
+back to the front of the queue instead of being lost.
 """
 
 from __future__ import annotations
@@ -76,6 +80,7 @@ class PoolSpec:
 
     policy: Policy
     timeout_s: float
+    max_pending_age_s: float = 0.0  # 0: pending pairs never go stale
 
 
 @dataclass
@@ -102,6 +107,7 @@ class _Pool:
     timed_out: int = 0
     lost: int = 0
     inactive: int = 0
+    stale: int = 0
     active: bool = True
     failures: dict[str, int] = field(default_factory=dict)
     rr: int = 0
@@ -113,6 +119,7 @@ class BrokerState:
     def __init__(self, pools: Mapping[str, PoolSpec], idle_liveness_s: float = IDLE_LIVENESS_S):
         self._pools = {n: _Pool(n, s, Pending(s.policy)) for n, s in pools.items()}
         self._holders: dict[int, int] = {}  # seq -> number of pools holding it
+        self._arrived: dict[int, float] = {}  # seq -> when it arrived (while held)
         self._idle_liveness = idle_liveness_s
         # Evicted worker -> the pairs it held: its late answer is genuine (counted as late).
         self._late: dict[bytes, dict[int, str]] = {}
@@ -129,13 +136,14 @@ class BrokerState:
         if not self._pools:
             return [Release(seq)]
         self._holders[seq] = len(self._pools)
+        self._arrived[seq] = now
         for pool in self._pools.values():
             pool.received += 1
             if not pool.active:
                 pool.inactive += 1
                 actions.extend(self._unhold(seq))
                 continue
-            for old in pool.pending.push(seq):
+            for old in pool.pending.push(seq, now):
                 pool.dropped += 1
                 actions.extend(self._unhold(old))
             actions.extend(self._dispatch(pool, now))
@@ -206,9 +214,15 @@ class BrokerState:
         return actions
 
     def tick(self, now: float) -> list[Action]:
-        """Evict workers whose job timed out or who went silent while idle."""
+        """Evict workers whose job timed out or who went silent while idle; drop pending
+        pairs older than their pool's max_pending_age_s (counted as stale)."""
         actions: list[Action] = []
         for pool in self._pools.values():
+            max_age = pool.spec.max_pending_age_s
+            if max_age > 0:
+                for seq in pool.pending.expire(now - max_age):
+                    pool.stale += 1
+                    actions.extend(self._unhold(seq))
             for w in list(pool.workers.values()):
                 if w.in_flight and now - min(w.in_flight.values()) > pool.spec.timeout_s:
                     reason = f"job older than timeout_s={pool.spec.timeout_s:g}"
@@ -218,12 +232,29 @@ class BrokerState:
                     actions.extend(self._evict(pool, w, reason, late=True))
         return actions
 
-    def worker_gone(self, ident: bytes, reason: str, now: float) -> list[Action]:
-        """The supervisor saw this worker exit: forget it now rather than at timeout."""
+    def worker_gone(self, ident: bytes, reason: str, now: float,
+                    requeue: bool = False) -> list[Action]:
+        """The supervisor saw this worker exit, or the worker said goodbye: forget it now
+        rather than at timeout. With `requeue` (a recycled worker, which answered its last
+        pair before leaving) the pairs it still held were never started: they are queued
+        again, at the front, under the pool's policy, instead of being lost."""
         for pool in self._pools.values():
             w = pool.workers.get(ident)
             if w is not None:
-                return self._evict(pool, w, reason) + self._dispatch(pool, now)
+                if not requeue:
+                    return self._evict(pool, w, reason) + self._dispatch(pool, now)
+                held = [(seq, self._arrived.get(seq, t)) for seq, t in sorted(w.in_flight.items())]
+                w.in_flight.clear()
+                actions = self._evict(pool, w, reason)
+                if not pool.active:  # deactivated meanwhile: nothing of it is queued now
+                    for seq, _ in held:
+                        pool.inactive += 1
+                        actions.extend(self._unhold(seq))
+                    return actions
+                for seq in pool.pending.requeue(held):
+                    pool.dropped += 1
+                    actions.extend(self._unhold(seq))
+                return actions + self._dispatch(pool, now)
         return []
 
     def set_active(self, pool_name: str, active: bool, now: float) -> list[Action]:
@@ -233,7 +264,7 @@ class BrokerState:
         pool.active = active
         actions: list[Action] = []
         if not active:
-            for seq in pool.pending.clear():
+            for seq, _ in pool.pending.clear():
                 pool.inactive += 1
                 actions.extend(self._unhold(seq))
         return actions
@@ -243,11 +274,11 @@ class BrokerState:
         ValueError for an unknown pool or a policy that does not parse."""
         pool = self._known(pool_name)
         parsed = parse_policy(policy)
-        pool.spec = PoolSpec(parsed, pool.spec.timeout_s)
+        pool.spec = PoolSpec(parsed, pool.spec.timeout_s, pool.spec.max_pending_age_s)
         old, pool.pending = pool.pending.clear(), Pending(parsed)
         actions: list[Action] = []
-        for seq in old:
-            for dropped in pool.pending.push(seq):
+        for seq, born in old:
+            for dropped in pool.pending.push(seq, born):
                 pool.dropped += 1
                 actions.extend(self._unhold(dropped))
         return actions + self._dispatch(pool, now)
@@ -256,7 +287,7 @@ class BrokerState:
         """The run ends: what is pending or in flight is lost; every pair is accounted for."""
         actions: list[Action] = []
         for pool in self._pools.values():
-            for seq in pool.pending.clear():
+            for seq, _ in pool.pending.clear():
                 pool.lost += 1
                 actions.extend(self._unhold(seq))
             for w in list(pool.workers.values()):
@@ -288,6 +319,7 @@ class BrokerState:
                 timed_out=p.timed_out,
                 lost=p.lost,
                 inactive=p.inactive,
+                stale=p.stale,
                 failures=dict(p.failures),
                 active=p.active,
             )
@@ -332,6 +364,7 @@ class BrokerState:
             self._holders[seq] = n
             return []
         self._holders.pop(seq, None)
+        self._arrived.pop(seq, None)
         return [Release(seq)]
 
     def _pick(self, pool: _Pool) -> _Worker | None:

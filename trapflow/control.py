@@ -20,7 +20,8 @@ from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
 # The pool table's columns and their units: counts are pairs since the run started (over
 # broker restarts), workers are processes, rate is results per second lately.
 POOL_UNITS = {"workers": "procs", "received": "pairs", "processed": "pairs",
-              "dropped": "pairs", "inactive": "pairs", "in_flight": "pairs", "pending": "pairs",
+              "dropped": "pairs", "inactive": "pairs", "stale": "pairs", "in_flight": "pairs",
+              "pending": "pairs",
               "errors": "pairs",
               "timed_out": "pairs", "lost": "pairs", "rate": "pairs/s"}
 # Give-ups and retries `trapflow status` lists (the newest); the JSON has them all.
@@ -86,6 +87,9 @@ def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
         lines.append(f"supervision: {sup['gave_up']} give-ups, {sup['retries']} retries, "
                      f"{sup['capped']} capped restarts of essential nodes, "
                      f"{sup.get('control', 0)} runtime changes")
+        for name, by in sup.get("recycled", {}).items():
+            why = ", ".join(f"{k} {n}" for k, n in sorted(by.items()))
+            lines.append(f"  pool {name:<10} workers recycled: {why}")
         for name, p in sup.get("pools", {}).items():
             params = ", ".join(f"{k}={v!r}" for k, v in p["params"].items()) or "defaults"
             lines.append(f"  pool {name:<10} {p['state']:<9} {p['count']} workers, policy "

@@ -239,6 +239,20 @@ class Gone(Msg, frozen=True, tag="gone"):
 
 
 GONE_STOPPING = "stopping"  # Gone.reason of a worker that leaves on a stop request
+# Gone.reason of a worker recycled (pool max_rss_mb or max_jobs): "recycled:rss ...". It
+# answered its last pair before saying so; what was sent to it after that goes to another.
+GONE_RECYCLED = "recycled:"
+
+
+def recycled_reason(why: str, detail: str = "") -> str:
+    """The Gone.reason of a recycled worker (`why`: rss or jobs)."""
+    return f"{GONE_RECYCLED}{why}{f' ({detail})' if detail else ''}"
+
+
+def is_planned_goodbye(reason: str) -> bool:
+    """Whether a Gone.reason tells of a worker leaving on purpose (stop, recycle): its
+    departure is news for the debug log only."""
+    return reason == GONE_STOPPING or reason.startswith(GONE_RECYCLED)
 
 
 class ResultsAck(Msg, frozen=True, tag="ack"):
@@ -359,6 +373,7 @@ class PoolStats(Msg, frozen=True):
     timed_out: int = 0  # a worker held the pair longer than the pool's timeout_s
     lost: int = 0  # the worker holding it died, or the run stopped before it finished
     inactive: int = 0  # dropped because the pool was deactivated (trapflow pool --deactivate)
+    stale: int = 0  # dropped after waiting longer than the pool's max_pending_age_s
     failures: dict[str, int] = {}
     rate: float = 0.0  # processed per second over the last interval
     active: bool = True

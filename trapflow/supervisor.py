@@ -445,7 +445,10 @@ class Supervisor:
         for a in actions:
             if isinstance(a, Spawn):
                 c = self._named(a.name)
-                log.warning("restarting %s (restart %d)", c.name, a.restart)
+                if a.recycled:  # planned: its pool's max_rss_mb or max_jobs
+                    log.info("replacing %s, recycled (%s)", c.name, a.recycled)
+                else:
+                    log.warning("restarting %s (restart %d)", c.name, a.restart)
                 self._respawn(c, now)
             elif isinstance(a, Kill):
                 log.error("%s %s; killing it", a.name, a.reason)
@@ -454,7 +457,8 @@ class Supervisor:
                     c.proc.kill()
             elif isinstance(a, WorkerGone):
                 c = self._named(a.name)
-                self._tell_broker_gone(c, a.reason)
+                self._tell_broker_gone(c, messages.recycled_reason(a.recycled) if a.recycled
+                                       else a.reason)
             elif isinstance(a, GiveUp):
                 log.error("%s: %s", a.name, a.reason)
             elif isinstance(a, Retry):
@@ -567,7 +571,8 @@ class Supervisor:
             n = self.core.node(c.name)
             nodes.append({"name": c.name, "pid": c.proc.pid if c.proc else None,
                           "state": str(n.state), "reason": n.reason,
-                          "restarts": n.restart_total, "gave_up": n.gave_up,
+                          "restarts": n.restart_total, "recycled": n.recycled,
+                          "gave_up": n.gave_up,
                           "retries": n.retried, "last_beat_s": round(now - n.last_beat, 1),
                           "counters": c.counters})
         return {
@@ -584,10 +589,12 @@ class Supervisor:
         }
 
     def supervision(self) -> dict[str, Any]:
-        """Give-ups and retries over the run, and their timeline (seconds since start)."""
+        """Give-ups, retries and recycles over the run, and their timeline (seconds since
+        start); `recycled` per pool, by why (rss, jobs)."""
         counts = self.core.counts()
         return {"gave_up": counts["gave_up"], "retries": counts["retry"],
                 "capped": counts["capped"], "control": counts["control"],
+                "recycled": {p: dict(by) for p, by in self.core.recycled.items()},
                 "pools": self.core.pool_view(),
                 "timeline": [{"t_s": round(e.t - self.t0, 1), "node": e.node, "kind": e.kind,
                               "reason": e.reason} for e in self.core.timeline]}

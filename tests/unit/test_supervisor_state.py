@@ -134,11 +134,13 @@ def test_budget_spent_gives_up_only_ordinary_nodes(role: str, gives_up: bool) ->
         assert node.state == Lifecycle.FINALIZED
         assert node.reason.startswith("gave up after 2 restarts in 60 s (last exit status 1)")
         assert s.tick(t + 20) == []  # cooling down
-        assert s.counts() == {"gave_up": 1, "retry": 0, "capped": 0, "control": 0}
+        assert s.counts() == {"gave_up": 1, "retry": 0, "capped": 0, "control": 0,
+                                "recycled": 0}
     else:
         assert node.restart_at == t + 1 + BUDGET.backoff_max_s  # capped back-off
         assert node.state == Lifecycle.INACTIVE
-        assert s.counts() == {"gave_up": 0, "retry": 0, "capped": 1, "control": 0}
+        assert s.counts() == {"gave_up": 0, "retry": 0, "capped": 1, "control": 0,
+                                "recycled": 0}
         # ...and it never stops trying: ten more crashes, ten more spawns.
         t += 1
         for pid in range(4, 14):

@@ -54,6 +54,7 @@ TICK_INTERVAL_S = 0.1
 RESULTS_BATCH_BYTES = 64 << 10  # results leave in datagrams of about this size, or less
 MAX_WAITING_RESULTS = 100_000  # kept while no normalizer listens; beyond, the oldest go
 SUPERVISOR_IDENT = b"supervisor"  # the supervisor's DEALER identity on the workers socket
+MAX_GOODBYES = 256  # workers that left on purpose, remembered for the log's level
 
 
 class BrokerNode(Node):
@@ -118,6 +119,10 @@ class BrokerNode(Node):
         self.malformed = 0
         self.unroutable = 0
         self.ratelog = RateLimitedLog(log)
+        # A planned stop began (the supervisor said so): workers leave, none of it is news.
+        self.winding_down = False
+        # Workers that said a planned goodbye (stop, recycle), newest last (bounded).
+        self._goodbyes: collections.OrderedDict[bytes, str] = collections.OrderedDict()
         self.started = time.monotonic()
         self._last_in = 0
         self._last_processed: dict[str, int] = {}
@@ -253,10 +258,10 @@ class BrokerNode(Node):
                 msg = _local_msg(messages.decode_worker_msg(frames[0]))
                 ident = self.link_ident.get(link)
                 if ident is None:  # a worker names itself in its first message
-                    if isinstance(msg, messages.PoolSwitch):
-                        raise ProtocolError("worker link: expected a worker message first, "
-                                            "got a pool switch (only the supervisor sends "
-                                            "those, on the workers socket)")
+                    if isinstance(msg, (messages.PoolSwitch, messages.Stopping)):
+                        raise ProtocolError(f"worker link: expected a worker message first, "
+                                            f"got {type(msg).__name__} (only the supervisor "
+                                            f"sends those, on the workers socket)")
                     ident = msg.worker.encode()
                     if ident in self.worker_links:  # that name is another live link's
                         self._refuse("duplicate_worker",
@@ -335,9 +340,17 @@ class BrokerNode(Node):
                              "only the supervisor or that worker may send it",
                              wire(msg.worker), wire(ident))
                 return
+            self._goodbye(gone, msg.reason)
             self._apply(self.state.worker_gone(gone, msg.reason, now,
                                                requeue=msg.reason.startswith(
                                                    messages.GONE_RECYCLED)))
+        elif isinstance(msg, messages.Stopping):
+            if ident != SUPERVISOR_IDENT:
+                self._refuse("forged_stopping", "refused a stopping notice from '%s': only "
+                             "the supervisor may send it", wire(ident))
+                return
+            self.winding_down = True
+            log.debug("planned stop: workers leave from now on")
         elif isinstance(msg, messages.PoolSwitch):
             self._on_pool_switch(ident, msg, now)
         elif isinstance(msg, messages.Failed):
@@ -421,9 +434,14 @@ class BrokerNode(Node):
                                      "supervisor may send it", wire(msg.worker),
                                      wire(ident.decode("utf-8", "replace")))
                         continue
+                    self._goodbye(target, msg.reason)
                     self._apply(self.state.worker_gone(
                         target, msg.reason, time.monotonic(),
                         requeue=msg.reason.startswith(messages.GONE_RECYCLED)))
+                elif isinstance(msg, messages.Stopping):
+                    self._refuse("forged_stopping", "refused a stopping notice from remote "
+                                 "'%s': only the supervisor may send it",
+                                 wire(ident.decode("utf-8", "replace")))
                 elif self.remotes.pool_of(ident) != msg.pool:
                     self._refuse("remote_not_joined", "refused a message from remote '%s' "
                                  "for pool '%s': expected a hello for that pool first",
@@ -494,7 +512,7 @@ class BrokerNode(Node):
                 else:
                     self.router.send_multipart([ident, frame])
             except (zmq.ZMQError, LinkClosed) as exc:  # it is gone: its successor starts
-                self.ratelog.warning("configure", "cannot reach worker %r: %s", ident, exc)
+                self._unreachable("configure", ident, link, exc)
         log.info("pool %s: new parameters sent to its workers", pool)
 
     # --- actions --------------------------------------------------------------------
@@ -527,7 +545,7 @@ class BrokerNode(Node):
                         self.router.send_multipart([action.worker, job, *payload], copy=False)
                 except (zmq.ZMQError, LinkClosed) as exc:  # EHOSTUNREACH: the worker vanished
                     self.unroutable += 1
-                    self.ratelog.warning("route", "cannot reach worker %r: %s", action.worker, exc)
+                    self._unreachable("route", action.worker, link, exc)
                     if link is not None:
                         self._drop_link(link, "unreachable")
                     else:
@@ -555,6 +573,27 @@ class BrokerNode(Node):
                     wire(action.worker), action.pool, wire(action.reason),
                     list(action.lost) or "none",
                 )
+
+    def _goodbye(self, ident: bytes, reason: str) -> None:
+        """Remember a worker that left on purpose: a send to it afterwards is no news."""
+        if messages.is_planned_goodbye(reason):
+            self._goodbyes[ident] = reason
+            while len(self._goodbyes) > MAX_GOODBYES:
+                self._goodbyes.popitem(last=False)
+
+    def _unreachable(self, what: str, ident: bytes, link: Link | None,
+                     exc: Exception) -> None:
+        """A send to a worker failed. On a local link, what the worker sent last is read
+        first: its goodbye may wait there, unread, behind the answer that gave it the credit
+        (it answered, said goodbye and closed its end before the broker read the answer).
+        A worker that left on purpose, or any during a planned stop, is debug; anything
+        else is a real failure mid-run (a warning)."""
+        if link is not None:
+            self._drain_link(link)  # its Gone (and EOF) settle it as it meant to leave
+        if self.winding_down or ident in self._goodbyes:
+            log.debug("cannot reach worker %r, which is leaving: %s", ident, exc)
+        else:
+            self.ratelog.warning(what, "cannot reach worker %r: %s", ident, exc)
 
     def _flush_results(self) -> None:
         """Results leave in few datagrams: one wake-up of the normalizer per pass, not one each.
@@ -669,7 +708,7 @@ class BrokerNode(Node):
 
 
 def _local_msg(msg: messages.AnyWorkerMsg) -> messages.Ready | messages.Alive | messages.Done \
-        | messages.Failed | messages.Gone | messages.PoolSwitch:
+        | messages.Failed | messages.Gone | messages.PoolSwitch | messages.Stopping:
     """Hello, JoinRequest and HostAlive belong to the remote socket; on a local path they
     are refused."""
     if isinstance(msg, (messages.Hello, messages.JoinRequest, messages.HostAlive)):

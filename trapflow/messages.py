@@ -345,6 +345,11 @@ class PoolSwitch(Msg, frozen=True, tag="pool_switch"):
     params: Params | None = None
 
 
+class Stopping(Msg, frozen=True, tag="stopping"):
+    """Supervisor -> broker: a planned stop begins (duration, stop request, signal, drained
+    source); workers leave from now on, so a send to one that already left is no news."""
+
+
 class Configure(Msg, frozen=True, tag="configure"):
     """Broker -> each worker of a pool (one frame): configure the plugin again with these
     parameters, between pairs."""
@@ -353,7 +358,8 @@ class Configure(Msg, frozen=True, tag="configure"):
     params: Params
 
 
-WorkerMsg = Union[Ready, Alive, Done, Failed, Gone, Hello, JoinRequest, HostAlive, PoolSwitch]
+WorkerMsg = Union[Ready, Alive, Done, Failed, Gone, Hello, JoinRequest, HostAlive, PoolSwitch,
+                  Stopping]
 
 
 # --- stats and control ----------------------------------------------------------
@@ -533,7 +539,8 @@ def decode_configure(data: Buffer) -> Configure:
     return msg
 
 
-AnyWorkerMsg = Ready | Alive | Done | Failed | Gone | Hello | JoinRequest | HostAlive | PoolSwitch
+AnyWorkerMsg = Ready | Alive | Done | Failed | Gone | Hello | JoinRequest | HostAlive | PoolSwitch \
+    | Stopping
 
 
 def decode_worker_msg(data: Buffer) -> AnyWorkerMsg:

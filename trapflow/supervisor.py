@@ -714,6 +714,10 @@ class Supervisor:
         self.core.stop("stop ladder")
         if self.planned_stop:
             self.ledger_model.stopping()  # pairs on their way from here are not lost
+            try:  # workers leave from now on: a send to one that left is no news
+                self.to_broker.send(messages.encode(messages.Stopping()), zmq.NOBLOCK)
+            except zmq.Again:
+                pass  # the broker is busy; a departure is then logged as a warning
         timeout = self.cfg.supervisor.stop_timeout_s
         for role in STOP_ORDER:
             group = [c for c in self.children if c.spec.role == role and c.alive()]

@@ -340,6 +340,11 @@ class BrokerNode(Node):
                              "only the supervisor or that worker may send it",
                              wire(msg.worker), wire(ident))
                 return
+            link = self.worker_links.get(gone)
+            if ident == SUPERVISOR_IDENT and link is not None:
+                # Read what the worker sent before it exited first (its last answer and
+                # goodbye): the supervisor's notice must not overtake them.
+                self._drain_link(link)
             self._goodbye(gone, msg.reason)
             self._apply(self.state.worker_gone(gone, msg.reason, now,
                                                requeue=msg.reason.startswith(

@@ -37,6 +37,7 @@ from trapflow.node import NodeSpec, node_main
 from trapflow.ratelog import ConsoleOnce, RateLimitedLog, wire
 from trapflow.run_ledger import RunLedger
 from trapflow.supervisor_state import (
+    RECYCLE_EXITS,
     Action,
     AddWorker,
     Budget,
@@ -321,6 +322,10 @@ class Supervisor:
                 if not c.alive() and node.running:
                     if c.spec.role == "capture" and c.proc.exitcode == 0:
                         self.core.finish(c.name)  # a tiny finite source may end during start-up
+                        continue
+                    if c.spec.role == "worker" and c.proc.exitcode in RECYCLE_EXITS:
+                        # Its first pairs already reached a limit: replaced, not a failure.
+                        self._act(self.core.exited(c.name, c.proc.exitcode, now), now)
                         continue
                     self._poll(0.2)  # the dying node's last heartbeat carries its reason
                     why = node.reason or f"exited with status {c.proc.exitcode}"

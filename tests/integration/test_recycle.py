@@ -83,6 +83,49 @@ def test_broker_reads_a_recycled_workers_goodbye_before_it_calls_a_send_news(
 
 
 @pytest.mark.timeout(60)
+def test_the_supervisors_notice_of_a_recycle_does_not_overtake_the_workers_answer(
+        run_dir: Path, prefix: str, caplog: pytest.LogCaptureFixture) -> None:
+    """The supervisor tells the broker of a recycled worker's exit on the workers socket,
+    which the broker reads before the local links: under load its notice came first, the
+    goodbye pair went back to the queue and the worker's answer, read next, was refused as
+    from an unknown worker (a warning, the result dropped, the pair computed twice). The
+    broker now reads that worker's link before it applies the notice."""
+    make_private(run_dir)
+    cfg = Config(pools={"noop": PoolConfig(plugin="noop", policy="fifo:8")})
+    ring = FrameRing.create(8, 64 * 48 * 3 * 2, prefix=prefix)
+    broker = BrokerNode(NodeSpec("broker", "broker", cfg, run_dir, ring=ring.name))
+    client = LinkClient(broker.endpoints.workers_link)
+    try:
+        link = client.get()
+        assert link is not None
+        listener = next(lst for lst, role in broker.listeners.items() if role == "worker")
+        broker._accept(listener)
+        (served,) = broker.link_role
+        ident = messages.worker_identity("noop", 0, 4343)
+        link.send([messages.encode(messages.Ready(worker=ident, pool="noop", credit=1))])
+        broker._drain_link(served)
+        broker._on_capture(builders.pair_frames(0))
+        assert link.recv() is not None
+        result = builders.result(messages.Extra(name="noop", fields={}), seq=0)
+        link.send([messages.encode(messages.Done(worker=ident, pool="noop", seq=0)),
+                   messages.encode(result)])
+        link.send([messages.encode(messages.Gone(
+            worker=ident, reason=messages.recycled_reason("rss")))])
+        client.drop()
+        notice = messages.Gone(worker=ident, reason=messages.recycled_reason("rss"))
+        with caplog.at_level(logging.INFO, logger="trapflow.broker"):
+            broker._on_worker_msg(b"supervisor", notice, [])
+        st = broker.state.pool_stats()["noop"]
+        assert (st.processed, st.lost, st.pending, st.in_flight) == (1, 0, 0, 0)
+        assert broker.state.rejected == {} and len(broker._out) == 1
+        assert [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING] == []
+    finally:
+        client.drop()
+        broker.close()
+        ring.close()
+
+
+@pytest.mark.timeout(60)
 def test_forged_stopping_notice_is_refused(run_dir: Path, prefix: str) -> None:
     """Only the supervisor may tell the broker a planned stop began (it quiets warnings)."""
     make_private(run_dir)

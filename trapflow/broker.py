@@ -517,7 +517,8 @@ class BrokerNode(Node):
                 else:
                     self.router.send_multipart([ident, frame])
             except (zmq.ZMQError, LinkClosed) as exc:  # it is gone: its successor starts
-                self._unreachable("configure", ident, link, exc)
+                self._unreachable("configure", ident, link, exc,
+                                  remote=ident in self.remotes.known)
         log.info("pool %s: new parameters sent to its workers", pool)
 
     # --- actions --------------------------------------------------------------------
@@ -550,7 +551,8 @@ class BrokerNode(Node):
                         self.router.send_multipart([action.worker, job, *payload], copy=False)
                 except (zmq.ZMQError, LinkClosed) as exc:  # EHOSTUNREACH: the worker vanished
                     self.unroutable += 1
-                    self._unreachable("route", action.worker, link, exc)
+                    self._unreachable("route", action.worker, link, exc,
+                                      remote=action.worker in self.remotes.known)
                     if link is not None:
                         self._drop_link(link, "unreachable")
                     else:
@@ -586,15 +588,19 @@ class BrokerNode(Node):
             while len(self._goodbyes) > MAX_GOODBYES:
                 self._goodbyes.popitem(last=False)
 
-    def _unreachable(self, what: str, ident: bytes, link: Link | None,
-                     exc: Exception) -> None:
-        """A send to a worker failed. On a local link, what the worker sent last is read
-        first: its goodbye may wait there, unread, behind the answer that gave it the credit
-        (it answered, said goodbye and closed its end before the broker read the answer).
-        A worker that left on purpose, or any during a planned stop, is debug; anything
-        else is a real failure mid-run (a warning)."""
+    def _unreachable(self, what: str, ident: bytes, link: Link | None, exc: Exception,
+                     remote: bool = False) -> None:
+        """A send to a worker failed. What the worker sent last is read first (its local
+        link, or the socket it used): its goodbye may wait there, unread, behind the answer
+        that gave it the credit (it answered, said goodbye and left before the broker read
+        the answer). A worker that left on purpose, or any during a planned stop, is debug;
+        anything else is a real failure mid-run (a warning)."""
         if link is not None:
             self._drain_link(link)  # its Gone (and EOF) settle it as it meant to leave
+        elif remote:
+            self._drain_remote()
+        else:
+            self._drain_workers()
         if self.winding_down or ident in self._goodbyes:
             log.debug("cannot reach worker %r, which is leaving: %s", ident, exc)
         else:

@@ -196,3 +196,4 @@ def test_max_jobs_recycles_and_a_normal_run_logs_no_warning(spawn, run_dir: Path
     assert "recycled" in out  # the totals say so
     assert not _warnings(err), err
     assert not _warnings((run_dir / "trapflow.log").read_text())
+

@@ -174,12 +174,16 @@ def test_a_worker_growing_past_max_rss_mb_is_recycled_without_loss(
 
 
 @pytest.mark.timeout(120)
-def test_max_jobs_recycles_and_a_normal_run_logs_no_warning(spawn, run_dir: Path) -> None:
+@pytest.mark.parametrize("transport", ["shm", "zmq"])
+def test_max_jobs_recycles_and_a_normal_run_logs_no_warning(
+        spawn, run_dir: Path, transport: str) -> None:
     """max_jobs: every worker of the pool is replaced after that many pairs, the pool goes
-    on, nothing is lost. Also pins the broker's "cannot reach worker: Broken pipe" warning
-    at a normal --duration stop: a short normal run's console and log have no WARNING."""
+    on, nothing is lost, over local links (shm) and over the workers' ROUTER (zmq). Also
+    pins the broker's "cannot reach worker: Broken pipe" warning at a normal --duration
+    stop: a short normal run's console and log have no WARNING."""
     cfg = write_config(run_dir.parent / "jobs.yaml", {
-        "source": {**SMALL, "rate_hz": 20.0}, "pools": only_pools({
+        "source": {**SMALL, "rate_hz": 20.0}, "frames": {"transport": transport},
+        "pools": only_pools({
             "noop": {"plugin": "noop", "count": 2, "policy": "fifo:8", "max_jobs": 4},
             "slow": {"plugin": "slow", "count": 2, "policy": "latest",
                      "params": {"delay_s": 0.05}},

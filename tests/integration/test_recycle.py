@@ -178,7 +178,8 @@ def test_a_worker_growing_past_max_rss_mb_is_recycled_without_loss(
 def test_max_jobs_recycles_and_a_normal_run_logs_no_warning(
         spawn, run_dir: Path, transport: str) -> None:
     """max_jobs: every worker of the pool is replaced after that many pairs, the pool goes
-    on, nothing is lost, over local links (shm) and over the workers' ROUTER (zmq). Also
+    on, nothing is lost, over local links (shm) and over the workers' ROUTER (zmq); a pool
+    with max_pending_age_s drops the pairs that waited too long, counted as stale. Also
     pins the broker's "cannot reach worker: Broken pipe" warning at a normal --duration
     stop: a short normal run's console and log have no WARNING."""
     cfg = write_config(run_dir.parent / "jobs.yaml", {
@@ -187,6 +188,9 @@ def test_max_jobs_recycles_and_a_normal_run_logs_no_warning(
             "noop": {"plugin": "noop", "count": 2, "policy": "fifo:8", "max_jobs": 4},
             "slow": {"plugin": "slow", "count": 2, "policy": "latest",
                      "params": {"delay_s": 0.05}},
+            # Pairs wait longer than 0.5 s for its one worker: dropped as stale.
+            "aged": {"plugin": "slow", "policy": "fifo:32", "max_pending_age_s": 0.5,
+                     "params": {"delay_s": 0.3}},
         })})
     p: Pipeline = spawn(["--config", str(cfg), "--duration", "4"], run_dir)
     code, out, err = p.wait(100)
@@ -197,6 +201,13 @@ def test_max_jobs_recycles_and_a_normal_run_logs_no_warning(
     assert noop["lost"] == 0 and slow["lost"] == 0, ledger["pools"]
     assert noop["processed"] >= 8 and slow["processed"] > 0, ledger["pools"]
     assert slow["recycled"] == {}
+    aged = ledger["pools"]["aged"]
+    assert aged["dropped_stale"] > 0 and aged["lost"] == 0, aged
+    for name, pool in ledger["pools"].items():  # every pair in exactly one state
+        states = (pool["processed"] + pool["dropped_by_policy"] + pool["dropped_stale"]
+                  + pool["timed_out"] + pool["failed"] + pool["lost"]
+                  + pool.get("unfinished_at_stop", 0))
+        assert states == ledger["produced"], (name, pool, ledger["produced"])
     assert "recycled" in out  # the totals say so
     assert not _warnings(err), err
     assert not _warnings((run_dir / "trapflow.log").read_text())

@@ -74,6 +74,8 @@ echo "[bench] live viewer (30 s against the default pipeline)" >&2
 "$PY" scripts/bench_viewer.py --out "$OUT" > /dev/null
 echo "[bench] modem link" >&2
 "$PY" scripts/bench_modem.py --out "$OUT/modem.json" > "$OUT/modem.txt"
+echo "[bench] worker recycling (health check per pair, replacement time)" >&2
+"$PY" scripts/bench_recycle.py --out "$OUT/recycle.json" > "$OUT/recycle.txt"
 {
   echo "# trapflow benchmark, $(date -u '+%Y-%m-%d %H:%M UTC'), $(nproc) cores"
   echo
@@ -85,6 +87,12 @@ echo "[bench] modem link" >&2
   echo
   echo '```'
   cat "$OUT/modem.txt"
+  echo '```'
+  echo
+  echo "## Worker recycling"
+  echo
+  echo '```'
+  cat "$OUT/recycle.txt"
   echo '```'
 } > "$OUT/bench.md"
 echo "[bench] wrote $OUT/bench.md" >&2

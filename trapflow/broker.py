@@ -740,7 +740,7 @@ class BrokerNode(Node):
 
 
 def _local_msg(msg: messages.AnyWorkerMsg) -> messages.Ready | messages.Alive | messages.Done \
-        | messages.Failed | messages.Gone | messages.PoolSwitch | messages.LadderLevel
+        | messages.Failed | messages.Gone | messages.PoolSwitch | messages.LadderLevel \
         | messages.Stopping:
     """Hello, JoinRequest and HostAlive belong to the remote socket; on a local path they
     are refused."""

@@ -430,7 +430,7 @@ class BrokerState:
                 # One pair per interval: the rest waiting now would be due only later,
                 # older than what will have arrived by then.
                 pool.next_at = now + pool.min_interval_s
-                for old in pool.pending.clear():
+                for old, _born in pool.pending.clear():
                     pool.throttled += 1
                     actions.extend(self._unhold(old))
         return actions

@@ -561,8 +561,7 @@ def decode_configure(data: Buffer) -> Configure:
 
 
 AnyWorkerMsg = Ready | Alive | Done | Failed | Gone | Hello | JoinRequest | HostAlive | PoolSwitch \
-    | LadderLevel
-    | Stopping
+    | LadderLevel | Stopping
 
 
 def decode_worker_msg(data: Buffer) -> AnyWorkerMsg:

@@ -464,7 +464,8 @@ def run_baseline(kind: str, seconds: float, tmp: Path) -> dict[str, Any]:
 
 def run_trapflow(kind: str, seconds: float, tmp: Path, frames: str) -> dict[str, Any]:
     r = bt.trapflow_path(kind, seconds, None, 1, tmp, frames=frames)
-    return {"version": metadata.version("trapflow"), "pairs": r["pairs"], "pairs_s": r["pairs_s"], "cpu_us_per_pair": r["cpu_us_per_pair"],
+    return {"version": metadata.version("trapflow"), "pairs": r["pairs"], "pairs_s": r["pairs_s"],
+            "cpu_us_per_pair": r["cpu_us_per_pair"],
             "cpu_us_per_pair_by_process": r["cpu_us_per_pair_by_process"],
             "lost": r["lost"], "reordered": 0}
 

@@ -86,6 +86,13 @@ def payloads(kind: str, n: int = 2 * WINDOW + 1) -> list[bytearray]:
     return [bytearray(PREFIX.size) + left + right for _ in range(n)]
 
 
+def _note(path: Path, text: str) -> None:
+    """Write a file the parent polls for in one step: it never reads a half-written one."""
+    tmp = path.with_name(path.name + ".part")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
 class Consumer:
     """Counts pairs, checks their order and touches every page of each."""
 
@@ -132,7 +139,7 @@ def run_source(send: Callable[[bytes | bytearray], None], acks: Callable[[float]
         now = time.monotonic()
         if first < 0 and now - t0 >= WARMUP_S:
             first, t0 = seq, now
-            (out / "go").write_text(str(seq))
+            _note(out / "go", str(seq))
         elif first >= 0 and now - t0 >= seconds:
             break
         if seq - acked >= WINDOW:
@@ -149,7 +156,7 @@ def run_source(send: Callable[[bytes | bytearray], None], acks: Callable[[float]
         acked = max([acked, *[s + 1 for s in got]])
     dt = time.monotonic() - t0
     send(PREFIX.pack(END, 0))
-    (out / "source.json").write_text(json.dumps(
+    _note(out / "source.json", json.dumps(
         {"first": first, "sent": seq, "acked": acked, "window_s": dt}))
 
 
@@ -165,7 +172,7 @@ def run_consumer(recv: Callable[[float], Any], ack: Callable[[int], None], out: 
         if seq == END:
             break
         ack(seq)
-    (out / "consumer.json").write_text(json.dumps(c.result()))
+    _note(out / "consumer.json", json.dumps(c.result()))
 
 
 # --- the peers' nodes (run as `bench_peers.py --node PEER-ROLE`) ------------------------------
@@ -206,7 +213,7 @@ def zenoh_node(role: str, kind: str, seconds: float, out: Path, port: int) -> No
 
             run_source(pub.put, acks, kind, seconds, out)
         else:
-            (out / "ready").write_text("")
+            _note(out / "ready", "")
             run_consumer(recv, lambda seq: pub.put(PREFIX.pack(seq, 0)), out)
     finally:
         sub.undeclare()
@@ -279,7 +286,7 @@ def cyclonedds_node(role: str, kind: str, seconds: float, out: Path, domain: int
                 pending.extend(take(timeout))
             return pending.pop(0) if pending else None
 
-        (out / "ready").write_text("")
+        _note(out / "ready", "")
         run_consumer(recv, lambda seq: w.write(ack_t(data=PREFIX.pack(seq, 0))), out)
 
 
@@ -327,7 +334,7 @@ def dora_node(role: str, kind: str, seconds: float, out: Path) -> None:
             held.append(event)
             return event["value"].to_numpy(zero_copy_only=True)
 
-        (out / "ready").write_text("")
+        _note(out / "ready", "")
         run_consumer(recv, lambda seq: node.send_output("ack", pa.array([seq], pa.int64())), out)
 
 

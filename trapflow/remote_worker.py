@@ -114,7 +114,7 @@ class RemoteWorkerNode(WorkerNode):
         ask(sock, self._hello(), self.join.endpoint)
         return sock
 
-    def beat(self, due: bool = False) -> None:
+    def beat(self, due: bool = False, fresh_s: float = 0.0) -> None:
         """No supervisor on this host reads node heartbeats: the broker hears Alive."""
 
     def _send(self, msgs: list[Any]) -> None:

@@ -34,6 +34,8 @@ log = logging.getLogger(__name__)
 
 # With a pool's `save: true`, one input pair and its result are kept per this interval.
 SAVE_INTERVAL_S = 1.0
+# A worker taking a pair beats at once unless its last heartbeat is younger than this.
+TAKE_BEAT_S = 0.05
 SEND_WAIT_MS = 1000  # how long a Done may wait for room in a busy broker's queue
 # Result bodies that depend on the stereo geometry, stamped with the rig's id.
 STAMPED = (messages.StereoIR, messages.StereoVO, messages.Tags)
@@ -119,6 +121,7 @@ class WorkerNode(Node):
         self.proc_cpu_us = 0  # CPU time (all threads) inside process(), summed (for the bench)
         self.failed = 0
         self.free = self.pcfg.credit
+        self._take_beat_s = min(TAKE_BEAT_S, self.pcfg.timeout_s / 20)
         self.ratelog = RateLimitedLog(log)
         self._proc = psutil.Process()
         self.recycle: tuple[int, str] | None = None  # (exit status, Gone reason) once due
@@ -188,7 +191,11 @@ class WorkerNode(Node):
             if frames is not None:
                 # Taking work: the supervisor times this pair from here (its pool's timeout_s
                 # bounds the process) and knows the worker active, even on its first pair.
-                self.beat(due=True)
+                # Not one heartbeat per pair: encoding and sending it cost a worker about 60
+                # us a pair (a third of its CPU on the raw ring path) and the supervisor a
+                # decode each; a pair is timed at most TAKE_BEAT_S (or a twentieth of
+                # timeout_s) early.
+                self.beat(due=True, fresh_s=self._take_beat_s)
                 self.free -= 1
                 self._handle(frames)
                 self.free += 1

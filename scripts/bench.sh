@@ -10,6 +10,10 @@ Usage: scripts/bench.sh [--quick] [--help] [OUT_DIR]   (default OUT_DIR: bench-r
 
 Parts, in order, with their run time on a 2-core machine (full / --quick):
   transport   broker path vs raw pyzmq, JPEG and raw pairs        ~3 min  / skipped
+  peers       raw pyzmq, trapflow, dora-rs, Eclipse Zenoh, Cyclone
+              DDS: 1 -> 1 lossless, 4 in flight, JPEG and raw pairs
+              (pip install -e .[peers]; a peer that does not import
+              or start is a row saying why)                       ~2 min  / skipped
   remote      remote pools over tcp, with CURVE, vs raw pyzmq     ~1 min  / skipped
   shm, synth  shared-memory ring; synthetic world rendering       ~1 min  / skipped
   cpu         CPU per captured pair by process role at 10 and 15
@@ -54,6 +58,8 @@ if [ "$QUICK" = 1 ]; then
 fi
 echo "[bench] transport (broker path vs raw pyzmq)" >&2
 "$PY" scripts/bench_transport.py --out "$OUT" > /dev/null
+echo "[bench] peers (raw pyzmq, trapflow, dora-rs, Zenoh, Cyclone DDS)" >&2
+"$PY" scripts/bench_peers.py --out "$OUT" > /dev/null
 echo "[bench] remote pools (tcp with CURVE vs raw pyzmq over tcp)" >&2
 "$PY" scripts/bench_remote.py --out "$OUT" > /dev/null
 for part in bench_shm bench_synth; do
@@ -74,10 +80,12 @@ echo "[bench] live viewer (30 s against the default pipeline)" >&2
 "$PY" scripts/bench_viewer.py --out "$OUT" > /dev/null
 echo "[bench] modem link" >&2
 "$PY" scripts/bench_modem.py --out "$OUT/modem.json" > "$OUT/modem.txt"
+echo "[bench] worker recycling (health check per pair, replacement time)" >&2
+"$PY" scripts/bench_recycle.py --out "$OUT/recycle.json" > "$OUT/recycle.txt"
 {
   echo "# trapflow benchmark, $(date -u '+%Y-%m-%d %H:%M UTC'), $(nproc) cores"
   echo
-  for md in "$OUT"/transport.md "$OUT"/remote.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/cpu.md \
+  for md in "$OUT"/transport.md "$OUT"/peers.md "$OUT"/remote.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/cpu.md \
             "$OUT"/decode.md "$OUT"/bench_algorithms.md "$OUT"/process.md "$OUT"/viewer.md; do
     [ -f "$md" ] && cat "$md" && echo
   done
@@ -85,6 +93,12 @@ echo "[bench] modem link" >&2
   echo
   echo '```'
   cat "$OUT/modem.txt"
+  echo '```'
+  echo
+  echo "## Worker recycling"
+  echo
+  echo '```'
+  cat "$OUT/recycle.txt"
   echo '```'
 } > "$OUT/bench.md"
 echo "[bench] wrote $OUT/bench.md" >&2

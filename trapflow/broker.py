@@ -54,6 +54,7 @@ TICK_INTERVAL_S = 0.1
 RESULTS_BATCH_BYTES = 64 << 10  # results leave in datagrams of about this size, or less
 MAX_WAITING_RESULTS = 100_000  # kept while no normalizer listens; beyond, the oldest go
 SUPERVISOR_IDENT = b"supervisor"  # the supervisor's DEALER identity on the workers socket
+MAX_GOODBYES = 256  # workers that left on purpose, remembered for the log's level
 
 
 class BrokerNode(Node):
@@ -76,7 +77,7 @@ class BrokerNode(Node):
         self.wanted: dict[bytes, bool] = {}
         self._jobs: dict[tuple[str, int], bytes] = {}
         pools = {  # a remote pool exists with no local worker: remote workers add to count
-            name: PoolSpec(p.parsed_policy, p.timeout_s)
+            name: PoolSpec(p.parsed_policy, p.timeout_s, p.max_pending_age_s)
             for name, p in self.cfg.pools.items()
             if p.count > 0 or p.remote
         }
@@ -118,6 +119,10 @@ class BrokerNode(Node):
         self.malformed = 0
         self.unroutable = 0
         self.ratelog = RateLimitedLog(log)
+        # A planned stop began (the supervisor said so): workers leave, none of it is news.
+        self.winding_down = False
+        # Workers that said a planned goodbye (stop, recycle), newest last (bounded).
+        self._goodbyes: collections.OrderedDict[bytes, str] = collections.OrderedDict()
         self.started = time.monotonic()
         self._last_in = 0
         self._last_processed: dict[str, int] = {}
@@ -258,7 +263,8 @@ class BrokerNode(Node):
                 msg = _local_msg(messages.decode_worker_msg(frames[0]))
                 ident = self.link_ident.get(link)
                 if ident is None:  # a worker names itself in its first message
-                    if isinstance(msg, (messages.PoolSwitch, messages.LadderLevel)):
+                    if isinstance(msg, (messages.PoolSwitch, messages.LadderLevel,
+                                        messages.Stopping)):
                         raise ProtocolError("worker link: expected a worker message first, "
                                             f"got a {msg.__struct_config__.tag} (only the "
                                             "supervisor sends those, on the workers socket)")
@@ -340,7 +346,22 @@ class BrokerNode(Node):
                              "only the supervisor or that worker may send it",
                              wire(msg.worker), wire(ident))
                 return
-            self._apply(self.state.worker_gone(gone, msg.reason, now))
+            link = self.worker_links.get(gone)
+            if ident == SUPERVISOR_IDENT and link is not None:
+                # Read what the worker sent before it exited first (its last answer and
+                # goodbye): the supervisor's notice must not overtake them.
+                self._drain_link(link)
+            self._goodbye(gone, msg.reason)
+            self._apply(self.state.worker_gone(gone, msg.reason, now,
+                                               requeue=msg.reason.startswith(
+                                                   messages.GONE_RECYCLED)))
+        elif isinstance(msg, messages.Stopping):
+            if ident != SUPERVISOR_IDENT:
+                self._refuse("forged_stopping", "refused a stopping notice from '%s': only "
+                             "the supervisor may send it", wire(ident))
+                return
+            self.winding_down = True
+            log.debug("planned stop: workers leave from now on")
         elif isinstance(msg, messages.PoolSwitch):
             self._on_pool_switch(ident, msg, now)
         elif isinstance(msg, messages.LadderLevel):
@@ -430,10 +451,17 @@ class BrokerNode(Node):
                                      "supervisor may send it", wire(msg.worker),
                                      wire(ident.decode("utf-8", "replace")))
                         continue
-                    self._apply(self.state.worker_gone(target, msg.reason, time.monotonic()))
+                    self._goodbye(target, msg.reason)
+                    self._apply(self.state.worker_gone(
+                        target, msg.reason, time.monotonic(),
+                        requeue=msg.reason.startswith(messages.GONE_RECYCLED)))
                 elif isinstance(msg, messages.LadderLevel):
                     self._refuse("forged_level", "refused a ladder level from remote '%s': "
                                  "only the supervisor may send it",
+                                 wire(ident.decode("utf-8", "replace")))
+                elif isinstance(msg, messages.Stopping):
+                    self._refuse("forged_stopping", "refused a stopping notice from remote "
+                                 "'%s': only the supervisor may send it",
                                  wire(ident.decode("utf-8", "replace")))
                 elif self.remotes.pool_of(ident) != msg.pool:
                     self._refuse("remote_not_joined", "refused a message from remote '%s' "
@@ -508,7 +536,8 @@ class BrokerNode(Node):
                 else:
                     self.router.send_multipart([ident, frame])
             except (zmq.ZMQError, LinkClosed) as exc:  # it is gone: its successor starts
-                self.ratelog.warning("configure", "cannot reach worker %r: %s", ident, exc)
+                self._unreachable("configure", ident, link, exc,
+                                  remote=ident in self.remotes.known)
         log.info("pool %s: new parameters sent to its workers", pool)
 
     # --- actions --------------------------------------------------------------------
@@ -541,7 +570,8 @@ class BrokerNode(Node):
                         self.router.send_multipart([action.worker, job, *payload], copy=False)
                 except (zmq.ZMQError, LinkClosed) as exc:  # EHOSTUNREACH: the worker vanished
                     self.unroutable += 1
-                    self.ratelog.warning("route", "cannot reach worker %r: %s", action.worker, exc)
+                    self._unreachable("route", action.worker, link, exc,
+                                      remote=action.worker in self.remotes.known)
                     if link is not None:
                         self._drop_link(link, "unreachable")
                     else:
@@ -561,13 +591,39 @@ class BrokerNode(Node):
                     wire(action.pool), action.seq, action.reason)
             elif isinstance(action, Evicted):
                 self.remotes.evicted(action.worker, action.reason)
-                # A worker told to stop leaves on purpose; anything else is news.
-                level = logging.INFO if action.reason == messages.GONE_STOPPING else logging.WARNING
+                # A worker told to stop, or recycled, leaves on purpose; anything else is news.
+                level = (logging.INFO if messages.is_planned_goodbye(action.reason)
+                         else logging.WARNING)
                 self.ratelog.log(
                     level, f"evicted:{level}", "evicted worker %s of pool %s (%s); pairs lost: %s",
                     wire(action.worker), action.pool, wire(action.reason),
                     list(action.lost) or "none",
                 )
+
+    def _goodbye(self, ident: bytes, reason: str) -> None:
+        """Remember a worker that left on purpose: a send to it afterwards is no news."""
+        if messages.is_planned_goodbye(reason):
+            self._goodbyes[ident] = reason
+            while len(self._goodbyes) > MAX_GOODBYES:
+                self._goodbyes.popitem(last=False)
+
+    def _unreachable(self, what: str, ident: bytes, link: Link | None, exc: Exception,
+                     remote: bool = False) -> None:
+        """A send to a worker failed. What the worker sent last is read first (its local
+        link, or the socket it used): its goodbye may wait there, unread, behind the answer
+        that gave it the credit (it answered, said goodbye and left before the broker read
+        the answer). A worker that left on purpose, or any during a planned stop, is debug;
+        anything else is a real failure mid-run (a warning)."""
+        if link is not None:
+            self._drain_link(link)  # its Gone (and EOF) settle it as it meant to leave
+        elif remote:
+            self._drain_remote()
+        else:
+            self._drain_workers()
+        if self.winding_down or ident in self._goodbyes:
+            log.debug("cannot reach worker %r, which is leaving: %s", ident, exc)
+        else:
+            self.ratelog.warning(what, "cannot reach worker %r: %s", ident, exc)
 
     def _flush_results(self) -> None:
         """Results leave in few datagrams: one wake-up of the normalizer per pass, not one each.
@@ -684,7 +740,8 @@ class BrokerNode(Node):
 
 
 def _local_msg(msg: messages.AnyWorkerMsg) -> messages.Ready | messages.Alive | messages.Done \
-        | messages.Failed | messages.Gone | messages.PoolSwitch | messages.LadderLevel:
+        | messages.Failed | messages.Gone | messages.PoolSwitch | messages.LadderLevel \
+        | messages.Stopping:
     """Hello, JoinRequest and HostAlive belong to the remote socket; on a local path they
     are refused."""
     if isinstance(msg, (messages.Hello, messages.JoinRequest, messages.HostAlive)):

@@ -2,10 +2,14 @@
 actions out (dispatch, release). No sockets, no clocks: callers pass `now` in seconds.
 
 Every pair that reaches a pool ends in exactly one counter (the loss ledger): processed,
-failed (by kind), dropped (by the pool's policy), inactive (the pool was deactivated,
-`trapflow pool NAME --deactivate`), throttled (the degradation ladder gives the pool at most
-one pair per minimum interval), timed out (its worker held it too long) or lost (its worker
-died, or the run ended first).
+failed (by kind), dropped (by the pool's policy), stale (it waited longer than the pool's
+max_pending_age_s), inactive (the pool was deactivated, `trapflow pool NAME --deactivate`),
+throttled (the degradation ladder gives the pool at most one pair per minimum interval),
+timed out (its worker held it too long) or lost (its worker died, or the run ended first).
+
+A worker that leaves on purpose to be recycled (worker_gone with requeue) answered its last
+pair first; what was dispatched to it after that answer it never started, so those pairs go
+back to the front of the queue instead of being lost.
 """
 
 from __future__ import annotations
@@ -79,6 +83,7 @@ class PoolSpec:
 
     policy: Policy
     timeout_s: float
+    max_pending_age_s: float = 0.0  # 0: pending pairs never go stale
 
 
 @dataclass
@@ -106,6 +111,7 @@ class _Pool:
     lost: int = 0
     inactive: int = 0
     throttled: int = 0
+    stale: int = 0
     active: bool = True
     min_interval_s: float = 0.0  # at most one dispatch per interval (0: no limit)
     next_at: float = 0.0  # earliest next dispatch under min_interval_s
@@ -148,7 +154,7 @@ class BrokerState:
                 pool.throttled += 1  # the level's doing, not the policy's
                 actions.extend(self._unhold(seq))
                 continue
-            for old in pool.pending.push(seq):
+            for old in pool.pending.push(seq, now):
                 pool.dropped += 1
                 actions.extend(self._unhold(old))
             actions.extend(self._dispatch(pool, now))
@@ -224,9 +230,15 @@ class BrokerState:
         return actions
 
     def tick(self, now: float) -> list[Action]:
-        """Evict workers whose job timed out or who went silent while idle."""
+        """Evict workers whose job timed out or who went silent while idle; drop pending
+        pairs older than their pool's max_pending_age_s (counted as stale)."""
         actions: list[Action] = []
         for pool in self._pools.values():
+            max_age = pool.spec.max_pending_age_s
+            if max_age > 0:
+                for seq in pool.pending.expire(now - max_age):
+                    pool.stale += 1
+                    actions.extend(self._unhold(seq))
             for w in list(pool.workers.values()):
                 if w.in_flight and now - min(w.in_flight.values()) > pool.spec.timeout_s:
                     reason = f"job older than timeout_s={pool.spec.timeout_s:g}"
@@ -236,12 +248,29 @@ class BrokerState:
                     actions.extend(self._evict(pool, w, reason, late=True))
         return actions
 
-    def worker_gone(self, ident: bytes, reason: str, now: float) -> list[Action]:
-        """The supervisor saw this worker exit: forget it now rather than at timeout."""
+    def worker_gone(self, ident: bytes, reason: str, now: float,
+                    requeue: bool = False) -> list[Action]:
+        """The supervisor saw this worker exit, or the worker said goodbye: forget it now
+        rather than at timeout. With `requeue` (a recycled worker, which answered its last
+        pair before leaving) the pairs it still held were never started: they are queued
+        again, at the front, under the pool's policy, instead of being lost."""
         for pool in self._pools.values():
             w = pool.workers.get(ident)
             if w is not None:
-                return self._evict(pool, w, reason) + self._dispatch(pool, now)
+                if not requeue:
+                    return self._evict(pool, w, reason) + self._dispatch(pool, now)
+                held = [(seq, self._arrived.get(seq, t)) for seq, t in sorted(w.in_flight.items())]
+                w.in_flight.clear()
+                actions = self._evict(pool, w, reason)
+                if not pool.active:  # deactivated meanwhile: nothing of it is queued now
+                    for seq, _ in held:
+                        pool.inactive += 1
+                        actions.extend(self._unhold(seq))
+                    return actions
+                for seq in pool.pending.requeue(held):
+                    pool.dropped += 1
+                    actions.extend(self._unhold(seq))
+                return actions + self._dispatch(pool, now)
         return []
 
     def set_active(self, pool_name: str, active: bool, now: float) -> list[Action]:
@@ -251,7 +280,7 @@ class BrokerState:
         pool.active = active
         actions: list[Action] = []
         if not active:
-            for seq in pool.pending.clear():
+            for seq, _ in pool.pending.clear():
                 pool.inactive += 1
                 actions.extend(self._unhold(seq))
         return actions
@@ -275,11 +304,11 @@ class BrokerState:
         ValueError for an unknown pool or a policy that does not parse."""
         pool = self._known(pool_name)
         parsed = parse_policy(policy)
-        pool.spec = PoolSpec(parsed, pool.spec.timeout_s)
+        pool.spec = PoolSpec(parsed, pool.spec.timeout_s, pool.spec.max_pending_age_s)
         old, pool.pending = pool.pending.clear(), Pending(parsed)
         actions: list[Action] = []
-        for seq in old:
-            for dropped in pool.pending.push(seq):
+        for seq, born in old:
+            for dropped in pool.pending.push(seq, born):
                 pool.dropped += 1
                 actions.extend(self._unhold(dropped))
         return actions + self._dispatch(pool, now)
@@ -288,7 +317,7 @@ class BrokerState:
         """The run ends: what is pending or in flight is lost; every pair is accounted for."""
         actions: list[Action] = []
         for pool in self._pools.values():
-            for seq in pool.pending.clear():
+            for seq, _ in pool.pending.clear():
                 pool.lost += 1
                 actions.extend(self._unhold(seq))
             for w in list(pool.workers.values()):
@@ -321,6 +350,7 @@ class BrokerState:
                 lost=p.lost,
                 inactive=p.inactive,
                 throttled=p.throttled,
+                stale=p.stale,
                 failures=dict(p.failures),
                 active=p.active,
                 min_interval_s=p.min_interval_s,
@@ -400,7 +430,7 @@ class BrokerState:
                 # One pair per interval: the rest waiting now would be due only later,
                 # older than what will have arrived by then.
                 pool.next_at = now + pool.min_interval_s
-                for old in pool.pending.clear():
+                for old, _born in pool.pending.clear():
                     pool.throttled += 1
                     actions.extend(self._unhold(old))
         return actions

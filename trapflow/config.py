@@ -136,6 +136,13 @@ class PoolConfig(_Section):
     affinity: list[Annotated[int, msgspec.Meta(ge=0)]] = []
     credit: Annotated[int, msgspec.Meta(ge=1, le=64)] = 1
     timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 10.0  # per pair; kills a hung worker
+    max_rss_mb: Annotated[int, msgspec.Meta(ge=0, le=1 << 20)] = 0
+    """A worker whose resident memory (MiB) is past this after a pair is recycled: it
+    finishes the pair, says goodbye and is replaced at once (0: no limit)."""
+    max_jobs: Annotated[int, msgspec.Meta(ge=0)] = 0
+    """A worker is recycled after this many pairs (processed or failed; 0: no limit)."""
+    max_pending_age_s: Annotated[float, msgspec.Meta(ge=0, le=86400)] = 0.0
+    """Pairs waiting in the pool's queue longer than this are dropped as stale (0: kept)."""
     params: dict[str, Any] = {}
     remote: bool = False  # workers on another host: the broker sends them the bytes
     debug: bool = False

@@ -20,7 +20,8 @@ from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
 # The pool table's columns and their units: counts are pairs since the run started (over
 # broker restarts), workers are processes, rate is results per second lately.
 POOL_UNITS = {"workers": "procs", "received": "pairs", "processed": "pairs",
-              "dropped": "pairs", "inactive": "pairs", "throttled": "pairs", "in_flight": "pairs",
+              "dropped": "pairs", "inactive": "pairs", "throttled": "pairs", "stale": "pairs",
+              "in_flight": "pairs",
               "pending": "pairs",
               "errors": "pairs",
               "timed_out": "pairs", "lost": "pairs", "rate": "pairs/s"}
@@ -144,6 +145,9 @@ def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
             lines.append(f"ladder: level {lad['level']} ({lad['index']} of "
                          f"{len(lad['levels']) - 1}, {how}), {lad['changes']} changes; "
                          f"{lad['reason']}")
+        for name, by in sup.get("recycled", {}).items():
+            why = ", ".join(f"{k} {n}" for k, n in sorted(by.items()))
+            lines.append(f"  pool {name:<10} workers recycled: {why}")
         for name, p in sup.get("pools", {}).items():
             params = ", ".join(f"{k}={v!r}" for k, v in p["params"].items()) or "defaults"
             off = f" (by the {p['off_by']})" if p.get("off_by") else ""

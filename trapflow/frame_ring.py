@@ -2,7 +2,8 @@
 segment, written once by capture and read in place (zero-copy numpy views) by workers.
 Owns no sockets; only FrameRef descriptors (trapflow/messages.py) travel over ZeroMQ.
 
-Segment layout (Linux, a file under /dev/shm named `trapflow-<owner pid>-<token>`):
+Segment layout (Linux, a file under /dev/shm named
+`trapflow-<owner pid>-<owner pid namespace>-<boot id>-<token>`):
     [segment header | one state byte per slot | pad to a page] [slot 0] [slot 1] ...
     slot = [generation u64 | left length u64 | right length u64 | pad to 64] [left | right]
 
@@ -23,8 +24,11 @@ and release ordering in every CPython build, which orders loads and stores on AR
 needs none). Generations are aligned 8-byte words, loaded and stored in one access.
 
 Cleanup: the creator unlinks the segment at close(). A creator killed with SIGKILL cannot;
-its segment stays until the next start calls cleanup_stale(), which removes every segment
-whose owner process is gone (its pid dead, a zombie, or reused by a newer process).
+its segment stays until the next start calls cleanup_stale(), which removes a segment only
+when its owner is provably gone (stale_verdict): created before this boot, or in this pid
+namespace and this boot with its pid dead, a zombie, or reused by a newer process. A pid
+means nothing across pid namespaces (containers sharing /dev/shm): a segment of another
+namespace, or of a name that does not say its namespace, is left alone (logged once).
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ import secrets
 import struct
 import threading
 from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -87,9 +92,72 @@ def ring_slots(pools: Iterable[PoolConfig], preroll: int = 0,
     return held + preroll + spare
 
 
+@dataclass(frozen=True)
+class SegmentOwner:
+    """Who created a segment, as its name says: pid, pid namespace (inode) and boot id."""
+
+    pid: int
+    pidns: int
+    boot: str
+
+
+def own_pidns() -> int:
+    """The inode of this process's pid namespace (0 where /proc does not say)."""
+    try:
+        link = os.readlink("/proc/self/ns/pid")  # "pid:[4026531836]"
+        return int(link[link.index("[") + 1:link.index("]")])
+    except (OSError, ValueError):
+        return 0
+
+
+def boot_id() -> str:
+    """This boot of the kernel (the first 16 hex digits of its boot id; "0" if unknown).
+    Every pid namespace of one kernel reads the same."""
+    try:
+        with open("/proc/sys/kernel/random/boot_id") as f:
+            return f.read().strip().replace("-", "")[:16] or "0"
+    except OSError:
+        return "0"
+
+
 def segment_name(owner_pid: int | None = None, prefix: str = PREFIX) -> str:
-    """A new segment name that embeds the owning process, so stale ones can be found."""
-    return f"{prefix}{owner_pid if owner_pid is not None else os.getpid()}-{secrets.token_hex(4)}"
+    """A new segment name that embeds the owning process, its pid namespace and the boot,
+    so stale ones can be told apart from live ones of other containers."""
+    pid = owner_pid if owner_pid is not None else os.getpid()
+    return f"{prefix}{pid}-{own_pidns()}-{boot_id()}-{secrets.token_hex(4)}"
+
+
+def owner_of(name: str, prefix: str = PREFIX) -> SegmentOwner | None:
+    """The owner a segment's name records; None for a name without pid, namespace and
+    boot (another program's, or one named before segments recorded them)."""
+    parts = name[len(prefix):].split("-")
+    if not name.startswith(prefix) or len(parts) != 4:
+        return None
+    pid, ns, boot, _token = parts
+    if not (pid.isdigit() and ns.isdigit() and boot.isalnum()):
+        return None
+    return SegmentOwner(int(pid), int(ns), boot)
+
+
+def stale_verdict(owner: SegmentOwner | None, pidns: int, boot: str, live_start: int | None,
+                  header_start: int | None) -> tuple[bool, str]:
+    """Whether a segment may be removed, and why (pure). `pidns` and `boot` are this
+    process's; `live_start` the start time of a live process with the owner's pid here
+    (None: no such process, or a zombie); `header_start` the owner's start time the header
+    records (None: no header yet, 0: not recorded). Removed only when provably stale."""
+    if owner is None:
+        return False, "its name does not say its owner's pid namespace and boot"
+    if owner.boot != boot:
+        return True, "created before this boot"
+    if owner.pidns != pidns:
+        return False, "owned in another pid namespace, where its pid means another process"
+    if live_start is None:
+        return True, f"its owner (pid {owner.pid}) is gone"
+    if header_start is None:
+        return False, "being created (no header yet)"
+    if header_start and header_start != live_start:
+        return True, f"pid {owner.pid} now belongs to a newer process"
+    return False, f"its owner (pid {owner.pid}) is alive"
 
 
 def _round_up(n: int, to: int) -> int:
@@ -409,26 +477,35 @@ def list_segments(prefix: str = PREFIX, shm_dir: str = SHM_DIR) -> list[str]:
         return []
 
 
-def _is_stale(name: str, prefix: str, shm_dir: str) -> bool:
-    pid_text = name[len(prefix):].split("-", 1)[0]
-    if not pid_text.isdigit():
-        return False  # not named by us: leave it alone
-    start = _proc_start_ticks(int(pid_text))
-    if start is None:
-        return True
+def _header_start(name: str, shm_dir: str) -> int | None:
+    """The owner start time a segment's header records; None while it has no header."""
     try:
         fd = os.open(os.path.join(shm_dir, name), os.O_RDONLY)
     except OSError:
-        return False
+        return None
     try:
         head = os.pread(fd, _HEADER.size, 0)
     finally:
         os.close(fd)
     if len(head) < _HEADER.size:
-        return False  # being created right now (header not written yet)
+        return None  # being created right now (header not written yet)
     magic, *_, owner_start, _ = _HEADER.unpack(head)
-    # A live process with another start time reused the pid of the dead owner.
-    return bool(magic == _MAGIC and owner_start and owner_start != start)
+    return int(owner_start) if magic == _MAGIC else 0
+
+
+# Segments already said to be left alone (said once per process, not at every start).
+_TOLD: set[str] = set()
+
+
+def _is_stale(name: str, prefix: str, shm_dir: str) -> bool:
+    owner = owner_of(name, prefix)
+    live = _proc_start_ticks(owner.pid) if owner is not None else None
+    header = _header_start(name, shm_dir) if owner is not None and live is not None else None
+    remove, why = stale_verdict(owner, own_pidns(), boot_id(), live, header)
+    if not remove and name not in _TOLD and (owner is None or "namespace" in why):
+        _TOLD.add(name)
+        log.info("left shared-memory segment %s alone: %s", name, why)
+    return remove
 
 
 def cleanup_stale(prefix: str = PREFIX, shm_dir: str = SHM_DIR) -> list[str]:

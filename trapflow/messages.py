@@ -239,6 +239,20 @@ class Gone(Msg, frozen=True, tag="gone"):
 
 
 GONE_STOPPING = "stopping"  # Gone.reason of a worker that leaves on a stop request
+# Gone.reason of a worker recycled (pool max_rss_mb or max_jobs): "recycled:rss ...". It
+# answered its last pair before saying so; what was sent to it after that goes to another.
+GONE_RECYCLED = "recycled:"
+
+
+def recycled_reason(why: str, detail: str = "") -> str:
+    """The Gone.reason of a recycled worker (`why`: rss or jobs)."""
+    return f"{GONE_RECYCLED}{why}{f' ({detail})' if detail else ''}"
+
+
+def is_planned_goodbye(reason: str) -> bool:
+    """Whether a Gone.reason tells of a worker leaving on purpose (stop, recycle): its
+    departure is news for the debug log only."""
+    return reason == GONE_STOPPING or reason.startswith(GONE_RECYCLED)
 
 
 class ResultsAck(Msg, frozen=True, tag="ack"):
@@ -341,6 +355,11 @@ class LadderLevel(Msg, frozen=True, tag="ladder_level"):
     reason: Annotated[str, msgspec.Meta(max_length=256)] = ""
 
 
+class Stopping(Msg, frozen=True, tag="stopping"):
+    """Supervisor -> broker: a planned stop begins (duration, stop request, signal, drained
+    source); workers leave from now on, so a send to one that already left is no news."""
+
+
 class Configure(Msg, frozen=True, tag="configure"):
     """Broker -> each worker of a pool (one frame): configure the plugin again with these
     parameters, between pairs."""
@@ -350,7 +369,7 @@ class Configure(Msg, frozen=True, tag="configure"):
 
 
 WorkerMsg = Union[Ready, Alive, Done, Failed, Gone, Hello, JoinRequest, HostAlive, PoolSwitch,
-                  LadderLevel]
+                  LadderLevel, Stopping]
 
 
 # --- stats and control ----------------------------------------------------------
@@ -371,6 +390,7 @@ class PoolStats(Msg, frozen=True):
     lost: int = 0  # the worker holding it died, or the run stopped before it finished
     inactive: int = 0  # dropped because the pool was deactivated (trapflow pool --deactivate)
     throttled: int = 0  # dropped by the ladder's level: inside the pool's minimum interval
+    stale: int = 0  # dropped after waiting longer than the pool's max_pending_age_s
     failures: dict[str, int] = {}
     rate: float = 0.0  # processed per second over the last interval
     active: bool = True
@@ -541,7 +561,7 @@ def decode_configure(data: Buffer) -> Configure:
 
 
 AnyWorkerMsg = Ready | Alive | Done | Failed | Gone | Hello | JoinRequest | HostAlive | PoolSwitch \
-    | LadderLevel
+    | LadderLevel | Stopping
 
 
 def decode_worker_msg(data: Buffer) -> AnyWorkerMsg:

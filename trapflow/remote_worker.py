@@ -28,6 +28,7 @@ from trapflow.camera import StereoRig
 from trapflow.errors import ConfigError, ProtocolError, StartupError
 from trapflow.logchannel import LogListener
 from trapflow.node import JoinSpec, NodeSpec, node_main
+from trapflow.supervisor_state import RECYCLE_EXITS
 from trapflow.transport import SocketSpec, client_keys, log_endpoint, new_context, open_socket
 from trapflow.worker import WorkerNode
 
@@ -113,7 +114,7 @@ class RemoteWorkerNode(WorkerNode):
         ask(sock, self._hello(), self.join.endpoint)
         return sock
 
-    def beat(self, due: bool = False) -> None:
+    def beat(self, due: bool = False, fresh_s: float = 0.0) -> None:
         """No supervisor on this host reads node heartbeats: the broker hears Alive."""
 
     def _send(self, msgs: list[Any]) -> None:
@@ -219,6 +220,13 @@ class RemotePool:
         """Tell the broker at once (its pairs are lost, not timed out), restart later."""
         ident = messages.remote_identity(self.pool, self.join.host, p.index, p.proc.pid)
         code = p.proc.exitcode
+        why = RECYCLE_EXITS.get(code, "") if code is not None else ""
+        if why:  # recycled on purpose (max_rss_mb, max_jobs): replaced at once
+            self._send(messages.Gone(worker=ident, reason=messages.recycled_reason(why)))
+            log.info("worker %s recycled (%s); replacing it", ident, why)
+            p.proc.join(0)
+            p.proc, p.restart_at = None, now
+            return
         reason = f"exited with status {code}" if code is not None and code >= 0 else (
             f"killed by signal {-(code or 0)}")
         self._send(messages.Gone(worker=ident, reason=reason))

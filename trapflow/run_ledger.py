@@ -99,7 +99,7 @@ def routes_of(counters: dict[str, int]) -> dict[str, str]:
             out[kind] = pool
     return out
 _SUMMED = ("received", "dispatched", "dropped", "processed", "errors", "timed_out", "lost",
-           "inactive", "throttled")
+           "inactive", "throttled", "stale")
 
 
 def retire(last: Stats) -> Stats:
@@ -230,7 +230,7 @@ class RunLedger:
             return self.capture().produced
         delivered = self.delivered.by_pool(self.routes)
         accounted = [delivered.get(n, p.processed) + p.dropped + p.timed_out + p.errors
-                     + p.inactive + p.throttled for n, p in s.pools.items()]
+                     + p.inactive + p.throttled + p.stale for n, p in s.pools.items()]
         return max(self.capture().produced, s.pairs_in, *accounted)
 
     def drained(self) -> bool:
@@ -268,7 +268,8 @@ class RunLedger:
             # Processed: the results written for this pool (known once its results are
             # routed); lost: whatever else is not in a state, as the brokers counted them.
             processed = delivered.get(name, p.processed)
-            ended = processed + p.dropped + p.timed_out + p.errors + p.inactive + p.throttled
+            ended = (processed + p.dropped + p.timed_out + p.errors + p.inactive + p.throttled
+                     + p.stale)
             rest = max(0, produced - ended)
             if not final:
                 in_progress = min(rest, p.pending + p.in_flight)
@@ -281,10 +282,12 @@ class RunLedger:
                 "processed": processed, "dropped_by_policy": p.dropped,
                 "policy": policies.get(name, ""), "dropped_inactive": p.inactive,
                 "dropped_by_level": p.throttled,
-                "timed_out": p.timed_out,
+                "dropped_stale": p.stale, "timed_out": p.timed_out,
                 "failed": p.errors, "failures": p.failures,
                 "lost": rest - in_progress,
                 "restarts": restarts.get(name, 0),
+                # Replaced on purpose (max_rss_mb, max_jobs), by why; not restarts.
+                "recycled": dict((supervision or {}).get("recycled", {}).get(name, {})),
             }
             if not final:
                 out["pools"][name]["in_progress"] = in_progress
@@ -315,7 +318,7 @@ class RunLedger:
         pools = []
         for name, p in sorted(s.pools.items(), key=lambda kv: (-kv[1].workers, kv[0])):
             flags = "".join(f" {k} {n}" for k, n in (
-                ("drop", p.dropped + p.inactive + p.throttled), ("err", p.errors),
+                ("drop", p.dropped + p.inactive + p.throttled + p.stale), ("err", p.errors),
                 ("lost", p.lost),
                 ("rst", restarts.get(name, 0))) if n)
             state = "" if p.active else " (inactive)"
@@ -348,11 +351,14 @@ def totals_text(ledger: dict[str, Any]) -> str:
         inactive = f", inactive {p['dropped_inactive']}" if p.get("dropped_inactive") else ""
         if p.get("dropped_by_level"):
             inactive += f", by level {p['dropped_by_level']}"
+        if p.get("dropped_stale"):
+            inactive += f", stale {p['dropped_stale']}"
+        recycled = sum(p.get("recycled", {}).values())
         lines.append(
             f"  {name}: processed {p['processed']}, dropped {p['dropped_by_policy']} "
             f"({p['policy']}){inactive}, timed out {p['timed_out']}, failed {p['failed']}"
             f"{f' ({kinds})' if kinds else ''}, lost {p['lost']}, {going}"
-            f"restarts {p['restarts']}")
+            f"restarts {p['restarts']}{f', recycled {recycled}' if recycled else ''}")
     sup = ledger.get("supervision")
     if sup and (sup["gave_up"] or sup["retries"]):
         lines.append(f"  supervision: {sup['gave_up']} give-ups, {sup['retries']} retries")

@@ -39,6 +39,7 @@ from trapflow.ratelog import ConsoleOnce, RateLimitedLog, wire
 from trapflow.run_ledger import RunLedger
 from trapflow.sensors import Sensors
 from trapflow.supervisor_state import (
+    RECYCLE_EXITS,
     Action,
     AddWorker,
     Budget,
@@ -338,6 +339,10 @@ class Supervisor:
                     if c.spec.role == "capture" and c.proc.exitcode == 0:
                         self.core.finish(c.name)  # a tiny finite source may end during start-up
                         continue
+                    if c.spec.role == "worker" and c.proc.exitcode in RECYCLE_EXITS:
+                        # Its first pairs already reached a limit: replaced, not a failure.
+                        self._act(self.core.exited(c.name, c.proc.exitcode, now), now)
+                        continue
                     self._poll(0.2)  # the dying node's last heartbeat carries its reason
                     why = node.reason or f"exited with status {c.proc.exitcode}"
                     raise StartupError(f"{c.name} cannot start: {why}")
@@ -473,7 +478,10 @@ class Supervisor:
         for a in actions:
             if isinstance(a, Spawn):
                 c = self._named(a.name)
-                log.warning("restarting %s (restart %d)", c.name, a.restart)
+                if a.recycled:  # planned: its pool's max_rss_mb or max_jobs
+                    log.info("replacing %s, recycled (%s)", c.name, a.recycled)
+                else:
+                    log.warning("restarting %s (restart %d)", c.name, a.restart)
                 self._respawn(c, now)
             elif isinstance(a, Kill):
                 log.error("%s %s; killing it", a.name, a.reason)
@@ -482,7 +490,8 @@ class Supervisor:
                     c.proc.kill()
             elif isinstance(a, WorkerGone):
                 c = self._named(a.name)
-                self._tell_broker_gone(c, a.reason)
+                self._tell_broker_gone(c, messages.recycled_reason(a.recycled) if a.recycled
+                                       else a.reason)
             elif isinstance(a, GiveUp):
                 log.error("%s: %s", a.name, a.reason)
             elif isinstance(a, Retry):
@@ -622,7 +631,8 @@ class Supervisor:
             n = self.core.node(c.name)
             nodes.append({"name": c.name, "pid": c.proc.pid if c.proc else None,
                           "state": str(n.state), "reason": n.reason,
-                          "restarts": n.restart_total, "gave_up": n.gave_up,
+                          "restarts": n.restart_total, "recycled": n.recycled,
+                          "gave_up": n.gave_up,
                           "retries": n.retried, "last_beat_s": round(now - n.last_beat, 1),
                           "counters": c.counters})
         return {
@@ -639,10 +649,12 @@ class Supervisor:
         }
 
     def supervision(self) -> dict[str, Any]:
-        """Give-ups and retries over the run, and their timeline (seconds since start)."""
+        """Give-ups, retries and recycles over the run, and their timeline (seconds since
+        start); `recycled` per pool, by why (rss, jobs)."""
         counts = self.core.counts()
         return {"gave_up": counts["gave_up"], "retries": counts["retry"],
                 "capped": counts["capped"], "control": counts["control"],
+                "recycled": {p: dict(by) for p, by in self.core.recycled.items()},
                 "pools": self.core.pool_view(), "ladder": self.core.ladder_view(),
                 "timeline": [{"t_s": round(e.t - self.t0, 1), "node": e.node, "kind": e.kind,
                               "reason": e.reason} for e in self.core.timeline]}
@@ -783,6 +795,10 @@ class Supervisor:
         self.core.stop("stop ladder")
         if self.planned_stop:
             self.ledger_model.stopping()  # pairs on their way from here are not lost
+            try:  # workers leave from now on: a send to one that left is no news
+                self.to_broker.send(messages.encode(messages.Stopping()), zmq.NOBLOCK)
+            except zmq.Again:
+                pass  # the broker is busy; a departure is then logged as a warning
         timeout = self.cfg.supervisor.stop_timeout_s
         for role in STOP_ORDER:
             group = [c for c in self.children if c.spec.role == role and c.alive()]

@@ -2,6 +2,9 @@
 actions out (spawn, kill, tell the broker a worker is gone, give up, retry, stop).
 No processes, sockets or clocks: callers pass `now` in seconds (monotonic).
 
+A worker that exits with a recycle status (EXIT_RECYCLED_RSS, EXIT_RECYCLED_JOBS) left on
+purpose: it is replaced at once, outside the restart budget, and counted per pool and why.
+
 Per node: its lifecycle state as last reported, liveness (silence longer than the node's
 limit gets it killed: its pool's timeout_s for a worker that took work, the start-up
 deadline while it is still configuring), a restart budget per window with doubling
@@ -45,6 +48,12 @@ STARTUP_TIMEOUT_S = 60.0
 MAX_TIMELINE = 1000
 # Workers one pool may have (config's PoolConfig.count bound).
 MAX_POOL_COUNT = 64
+# Exit statuses of a worker recycled on purpose: past its pool's max_rss_mb, or done with
+# its max_jobs. It answered its last pair and said goodbye to the broker; it is replaced at
+# once, without back-off and outside the restart budget (sysexits' EX_TEMPFAIL and next).
+EXIT_RECYCLED_RSS = 75
+EXIT_RECYCLED_JOBS = 76
+RECYCLE_EXITS = {EXIT_RECYCLED_RSS: "rss", EXIT_RECYCLED_JOBS: "jobs"}
 
 
 class Lifecycle(str, enum.Enum):
@@ -98,10 +107,12 @@ class NodePlan:
 
 @dataclass(frozen=True)
 class Spawn:
-    """Start the node's process; `restart` counts its restarts so far (0: the first)."""
+    """Start the node's process; `restart` counts its restarts so far (0: the first);
+    `recycled` says why a worker recycled on purpose is replaced (rss, jobs), else ""."""
 
     name: str
     restart: int
+    recycled: str = ""
 
 
 @dataclass(frozen=True)
@@ -114,10 +125,12 @@ class Kill:
 
 @dataclass(frozen=True)
 class WorkerGone:
-    """Tell the broker at once that this worker process died: its pairs are lost."""
+    """Tell the broker at once that this worker process died: its pairs are lost, unless
+    it was `recycled` (rss, jobs): then what it held it never started, and is queued again."""
 
     name: str
     reason: str
+    recycled: str = ""
 
 
 @dataclass(frozen=True)
@@ -209,7 +222,7 @@ class Event:
 
     t: float
     node: str
-    kind: str  # "gave_up", "retry", "capped", "control", "level"
+    kind: str  # "gave_up", "retry", "capped", "control", "level", "recycled"
     reason: str
 
 
@@ -236,6 +249,7 @@ class NodeState:
     finished: bool = False  # ended on purpose (a finite source exhausted)
     retired: bool = False  # its pool shrank: stopped on purpose, never restarted
     reconfiguring: bool = False  # restarted on purpose with new parameters
+    recycled: int = 0  # replaced on purpose (max_rss_mb, max_jobs), outside the budget
 
     @property
     def pool(self) -> str:
@@ -278,10 +292,13 @@ class SupervisorState:
         self.nodes = {p.name: NodeState(p) for p in plans}
         self.budget = budget
         self.timeline: deque[Event] = deque(maxlen=MAX_TIMELINE)
-        self._counts = {"gave_up": 0, "retry": 0, "capped": 0, "control": 0, "level": 0}
+        self._counts = {"gave_up": 0, "retry": 0, "capped": 0, "control": 0, "level": 0,
+                        "recycled": 0}
         self.stopping = False
         self.pools: dict[str, PoolState] = {}
         self.ladder: Ladder | None = None  # set by the shell when the ladder is enabled
+        # Workers recycled per pool, by why (rss, jobs).
+        self.recycled: dict[str, dict[str, int]] = {}
 
     def add(self, plan: NodePlan) -> None:
         """One more node to supervise (not spawned yet)."""
@@ -319,6 +336,16 @@ class SupervisorState:
         if self.stopping:
             return []
         actions: list[Action] = []
+        why = RECYCLE_EXITS.get(code, "") if code is not None else ""
+        if n.plan.role == "worker" and why and not n.retired:
+            # Planned: replaced at once, no back-off, the restart budget untouched.
+            n.recycled += 1
+            per_pool = self.recycled.setdefault(n.pool, {})
+            per_pool[why] = per_pool.get(why, 0) + 1
+            n.state, n.reason, n.reconfiguring = Lifecycle.INACTIVE, f"recycled ({why})", False
+            self._note(now, name, "recycled", f"recycled ({why}): exit status {code}")
+            return [WorkerGone(name, f"recycled ({why})", recycled=why),
+                    Spawn(name, n.restart_total, recycled=why)]
         if n.plan.role == "worker":
             actions.append(WorkerGone(name, f"process exited with status {code}"))
         if n.retired:
@@ -594,7 +621,8 @@ class SupervisorState:
         self._counts[kind] += 1
 
     def counts(self) -> dict[str, int]:
-        """Give-ups, retries and capped restarts over the run (the timeline keeps the last)."""
+        """Give-ups, retries, capped restarts, control changes and recycles over the run
+        (the timeline keeps the last)."""
         return dict(self._counts)
 
 

@@ -425,15 +425,22 @@ class Link:
 
     def recv(self) -> list[memoryview] | None:
         """The next message's frames, or None if none is waiting; LinkClosed at EOF."""
-        try:
-            n = self.sock.recv_into(self._buf)
-        except BlockingIOError:
-            return None
-        except OSError as exc:
-            raise LinkClosed(f"local link closed: {exc}") from None
-        if n == 0:
-            raise LinkClosed("local link closed by its peer")
-        return messages.unpack_frames(bytes(self._view[:n]))
+        for _ in range(2):
+            try:
+                n = self.sock.recv_into(self._buf)
+            except BlockingIOError:
+                return None
+            except ConnectionResetError:
+                # The peer closed with messages of ours unread (a job sent to a worker that
+                # was leaving). Linux reports that once, ahead of what the peer sent before
+                # closing, which is still queued (its last answer, its goodbye): read on.
+                continue
+            except OSError as exc:
+                raise LinkClosed(f"local link closed: {exc}") from None
+            if n == 0:
+                raise LinkClosed("local link closed by its peer")
+            return messages.unpack_frames(bytes(self._view[:n]))
+        raise LinkClosed("local link closed: reset by its peer")
 
     def wait(self, timeout_ms: int) -> bool:
         """True when a message (or EOF) is waiting, within timeout_ms."""

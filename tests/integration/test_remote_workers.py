@@ -5,6 +5,7 @@ machine lets a test make a network namespace) the link is a real non-loopback on
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -401,3 +402,39 @@ def test_a_worker_in_another_network_namespace_joins_over_a_real_link(
     assert code == 0, err
     code, _, err = p.stop(signal.SIGINT, timeout=20)
     assert code == 0, err
+
+
+@pytest.mark.timeout(150)
+def test_a_remote_hosts_recycled_workers_are_replaced_at_once_without_loss(
+        spawn: Callable[..., Pipeline], remote: Callable[..., RemoteWorker], run_dir: Path,
+        keys: dict[str, Path]) -> None:
+    """`trapflow worker` on another host: its workers take max_jobs from the pipeline's
+    pool config, say goodbye when they reach it, and its small supervisor replaces them at
+    once (no back-off, no warning); the broker loses none of their pairs. Pins a loss: the
+    broker's answer to a worker's last Done went to a DEALER already gone (EHOSTUNREACH)
+    before it read that worker's goodbye, queued behind the Done; the pair was counted lost
+    ("unreachable") with a warning. It now reads the socket before it judges the send."""
+    bind = f"tcp://127.0.0.1:{free_port()}"
+    cfg = remote_config(run_dir.parent / "far.yaml", bind, keys, {
+        "far": {"plugin": "noop", "policy": "fifo:8", "count": 0, "remote": True,
+                "max_jobs": 3},
+    }, {"width": 320, "height": 240, "rate_hz": 10.0})
+    p: Pipeline = spawn(["--config", str(cfg)], run_dir)
+    p.wait_active()
+    w = remote("--connect", bind, "--pool", "far", "--keys", str(keys["worker"]))
+
+    def recycled_twice() -> list[dict[str, Any]] | None:
+        rows = remote_rows(p, "far")
+        gone = [r for r in rows if r["state"] == "evicted"]
+        ok = len(gone) >= 2 and all(r["reason"].startswith("recycled:jobs") for r in gone)
+        return rows if ok else None
+
+    poll_for(recycled_twice, 60, interval=0.5, what="two remote workers recycled")
+    code, out, werr = w.stop()
+    assert code == 0, werr
+    code, _, err = p.stop(signal.SIGINT, timeout=20)
+    assert code == 0, err
+    pool = json.loads((run_dir / "ledger.json").read_text())["pools"]["far"]
+    assert pool["lost"] == 0 and pool["processed"] >= 6, pool
+    assert "restarting in" not in werr, werr  # replaced at once, not after a back-off
+    assert "WARNING" not in werr, werr

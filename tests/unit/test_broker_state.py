@@ -143,11 +143,14 @@ def test_no_pools_releases_at_once() -> None:
 
 @pytest.mark.parametrize("seed", range(20))
 def test_every_pair_ends_in_exactly_one_counter(seed: int) -> None:
-    """Random event sequences: received = processed + errors + dropped + lost + pending + in flight,
-    and every seq released exactly once, once no pool holds it."""
+    """Random event sequences: received = processed + errors + dropped + stale + lost +
+    pending + in flight, and every seq released exactly once, once no pool holds it (also
+    with recycled workers' pairs queued again and stale pairs dropped)."""
     rng = random.Random(seed)
     pools = {"a": "latest", "b": "fifo:3", "c": "ordered:4"}
-    s = state(**pools)
+    s = BrokerState({n: PoolSpec(parse_policy(p), timeout_s=10.0,
+                                 max_pending_age_s=1.0 if n == "b" else 0.0)
+                     for n, p in pools.items()}, idle_liveness_s=5.0)
     workers = {"a": [b"a1", b"a2"], "b": [b"b1"], "c": [b"c1"]}
     in_flight: dict[bytes, list[int]] = {w: [] for ws in workers.values() for w in ws}
     pool_of = {w: p for p, ws in workers.items() for w in ws}
@@ -181,11 +184,11 @@ def test_every_pair_ends_in_exactly_one_counter(seed: int) -> None:
             take(s.tick(now + rng.choice([0.0, 20.0])))
         else:
             w = rng.choice(list(in_flight))
-            take(s.worker_gone(w, "test", now))
+            take(s.worker_gone(w, "test", now, requeue=rng.random() < 0.5))
             take(s.worker_ready(w, pool_of[w], 1, now))
     for name, st in s.pool_stats().items():
         total = (st.processed + st.errors + st.dropped + st.timed_out + st.lost + st.pending
-                 + st.in_flight)
+                 + st.in_flight + st.stale)
         assert st.received == seq, name
         assert total == st.received, (name, st)
         assert sum(st.failures.values()) == st.errors
@@ -194,7 +197,7 @@ def test_every_pair_ends_in_exactly_one_counter(seed: int) -> None:
     take(s.finish())  # the run ends: nothing pending or in flight remains unaccounted
     for st in s.pool_stats().values():
         assert st.pending == st.in_flight == 0
-        assert st.processed + st.errors + st.dropped + st.timed_out + st.lost == seq
+        assert st.processed + st.errors + st.dropped + st.timed_out + st.lost + st.stale == seq
     assert sorted(released_seqs) == list(range(seq)) and s.drained()
 
 

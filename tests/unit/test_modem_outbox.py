@@ -155,3 +155,29 @@ def test_retention_keeps_recent_and_unresolved(tmp_path: Path) -> None:
     assert [s.seq for s in queue.read()] == [2, 3, 4]
     box.close()
     queue.close()
+
+
+@pytest.mark.parametrize("umask", [0o000, 0o022, 0o077])
+def test_outbox_files_have_the_run_directorys_modes_whatever_the_umask(
+        tmp_path: Path, umask: int) -> None:
+    """Pins the outbox following the umask (0666 under umask 0: anyone could read the
+    results waiting for the modem, or rewrite them): the file, SQLite's -wal and -shm get
+    the run directory's file mode (0640, as results.jsonl) and a folder it creates 0700."""
+    import os
+    import stat
+
+    from trapflow.transport import FILE_MODE, RUN_DIR_MODE
+
+    old = os.umask(umask)
+    try:
+        box = Outbox(tmp_path / "new" / "outbox.sqlite")
+        box.append(crab(1))
+    finally:
+        os.umask(old)
+    try:
+        mode = {p.name: stat.S_IMODE(p.stat().st_mode) for p in (tmp_path / "new").iterdir()}
+        assert mode == {"outbox.sqlite": FILE_MODE, "outbox.sqlite-wal": FILE_MODE,
+                        "outbox.sqlite-shm": FILE_MODE}, {k: oct(v) for k, v in mode.items()}
+        assert stat.S_IMODE((tmp_path / "new").stat().st_mode) == RUN_DIR_MODE
+    finally:
+        box.close()

@@ -350,3 +350,65 @@ def test_frames_config(data: dict[str, object], error: str | None) -> None:
     else:
         with pytest.raises(msgspec.ValidationError, match=error):
             msgspec.convert(data, fr.FramesConfig)
+
+
+# --- cleanup across pid namespaces (issue 14 leftovers) ------------------------------------
+
+NS, BOOT = 4026531836, "0123456789abcdef"
+OWNER = fr.SegmentOwner(pid=1234, pidns=NS, boot=BOOT)
+
+
+@pytest.mark.parametrize(("owner", "live_start", "header_start", "remove", "why"), [
+    (OWNER, None, None, True, "is gone"),  # pid dead here: ours and dead
+    (OWNER, None, 77, True, "is gone"),
+    (OWNER, 77, 77, False, "is alive"),
+    (OWNER, 78, 77, True, "newer process"),  # pid reused by another process
+    (OWNER, 78, 0, False, "is alive"),  # no start time recorded: cannot tell reuse
+    (OWNER, 77, None, False, "being created"),
+    # Another container sharing /dev/shm: its pid says nothing here, dead or alive.
+    (fr.SegmentOwner(1234, NS + 1, BOOT), None, 77, False, "another pid namespace"),
+    (fr.SegmentOwner(1234, NS + 1, BOOT), 77, 77, False, "another pid namespace"),
+    # A previous boot: nothing of it runs now, whatever the namespace.
+    (fr.SegmentOwner(1234, NS + 1, "feedfacefeedface"), 77, 77, True, "before this boot"),
+    (fr.SegmentOwner(1234, NS, "feedfacefeedface"), None, None, True, "before this boot"),
+    (None, None, None, False, "does not say"),  # legacy or foreign name
+])
+def test_stale_verdict_removes_only_provably_ours_and_dead(
+        owner: fr.SegmentOwner | None, live_start: int | None, header_start: int | None,
+        remove: bool, why: str) -> None:
+    """Pins cleanup_stale deciding by pid alone: across pid namespaces (containers sharing
+    /dev/shm) a live owner's segment was removed under it, as its pid is dead here."""
+    got, reason = fr.stale_verdict(owner, NS, BOOT, live_start, header_start)
+    assert got is remove and why in reason
+
+
+@pytest.mark.parametrize(("name", "owner"), [
+    ("trapflow-12-4026531836-0123456789abcdef-a1b2c3d4",
+     fr.SegmentOwner(12, 4026531836, "0123456789abcdef")),
+    ("trapflow-12-a1b2c3d4", None),  # named before segments said their namespace
+    ("trapflow-x-4026531836-0123-a1b2", None),
+    ("trapflow-12-ns-0123-a1b2", None),
+    ("other-12-4026531836-0123-a1b2", None),
+])
+def test_owner_of_reads_the_name(name: str, owner: fr.SegmentOwner | None) -> None:
+    assert fr.owner_of(name) == owner
+
+
+def test_new_segments_name_this_namespace_and_boot(prefix: str) -> None:
+    ring = fr.FrameRing.create(1, 16, prefix=prefix)
+    try:
+        assert fr.owner_of(ring.name, prefix) == fr.SegmentOwner(
+            os.getpid(), fr.own_pidns(), fr.boot_id())
+        assert fr.own_pidns() > 0 and len(fr.boot_id()) == 16
+    finally:
+        ring.close()
+
+
+def test_cleanup_leaves_other_namespaces_and_removes_previous_boots(prefix: str) -> None:
+    other_ns = f"{prefix}{dead_pid()}-{fr.own_pidns() + 1}-{fr.boot_id()}-aaaa0001"
+    old_boot = f"{prefix}{os.getpid()}-{fr.own_pidns()}-feedfacefeedface-aaaa0002"
+    legacy = f"{prefix}{dead_pid()}-aaaa0003"
+    for name in (other_ns, old_boot, legacy):
+        open(os.path.join(fr.SHM_DIR, name), "wb").close()
+    assert fr.cleanup_stale(prefix) == [old_boot]
+    assert fr.list_segments(prefix) == sorted([other_ns, legacy])

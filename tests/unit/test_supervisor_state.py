@@ -6,6 +6,8 @@ from __future__ import annotations
 import pytest
 
 from trapflow.supervisor_state import (
+    EXIT_RECYCLED_JOBS,
+    EXIT_RECYCLED_RSS,
     Budget,
     GiveUp,
     Kill,
@@ -134,11 +136,13 @@ def test_budget_spent_gives_up_only_ordinary_nodes(role: str, gives_up: bool) ->
         assert node.state == Lifecycle.FINALIZED
         assert node.reason.startswith("gave up after 2 restarts in 60 s (last exit status 1)")
         assert s.tick(t + 20) == []  # cooling down
-        assert s.counts() == {"gave_up": 1, "retry": 0, "capped": 0, "control": 0, "level": 0}
+        assert s.counts() == {"gave_up": 1, "retry": 0, "capped": 0, "control": 0, "level": 0,
+                                "recycled": 0}
     else:
         assert node.restart_at == t + 1 + BUDGET.backoff_max_s  # capped back-off
         assert node.state == Lifecycle.INACTIVE
-        assert s.counts() == {"gave_up": 0, "retry": 0, "capped": 1, "control": 0, "level": 0}
+        assert s.counts() == {"gave_up": 0, "retry": 0, "capped": 1, "control": 0, "level": 0,
+                                "recycled": 0}
         # ...and it never stops trying: ten more crashes, ten more spawns.
         t += 1
         for pid in range(4, 14):
@@ -230,3 +234,49 @@ def test_a_workers_liveness_is_its_pools_timeout(timeout_s: float, heartbeat_s: 
     from trapflow.supervisor import worker_liveness
 
     assert worker_liveness(timeout_s, heartbeat_s) == limit
+
+
+# --- recycling (issue 14 part 6) --------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("code", "why"), [(EXIT_RECYCLED_RSS, "rss"),
+                                           (EXIT_RECYCLED_JOBS, "jobs")])
+def test_a_recycled_worker_is_replaced_at_once_outside_the_budget(code: int, why: str) -> None:
+    """Recycling is planned: no back-off, no restart counted, the budget untouched, even
+    many times in a row; counted per pool and why, and in the timeline."""
+    s = core(NodePlan("worker:mono:0", "worker", 3.0, pool="mono"))
+    t = 0.0
+    for i in range(BUDGET.max_restarts * 3):
+        up(s, "worker:mono:0", 10 + i, t)
+        acts = s.exited("worker:mono:0", code, t + 0.1)
+        assert acts == [WorkerGone("worker:mono:0", f"recycled ({why})", recycled=why),
+                        Spawn("worker:mono:0", 0, recycled=why)]
+        t += 0.2
+    n = s.node("worker:mono:0")
+    assert (n.restart_total, len(n.restarts), n.gave_up, n.restart_at) == (0, 0, 0, None)
+    assert n.recycled == BUDGET.max_restarts * 3
+    assert s.recycled == {"mono": {why: BUDGET.max_restarts * 3}}
+    assert s.counts()["recycled"] == BUDGET.max_restarts * 3
+    assert [e.kind for e in s.timeline] == ["recycled"] * (BUDGET.max_restarts * 3)
+    # A real crash afterwards still meets a whole budget.
+    up(s, "worker:mono:0", 99, t)
+    acts = s.exited("worker:mono:0", 1, t + 0.1)
+    assert kinds(acts) == ["WorkerGone"] and n.restart_at == pytest.approx(t + 0.1 + 0.5)
+
+
+@pytest.mark.parametrize(("role", "code", "retired", "stopping", "expect"), [
+    ("capture", EXIT_RECYCLED_RSS, False, False, []),  # not a worker: an ordinary exit
+    ("worker", EXIT_RECYCLED_JOBS, True, False, ["WorkerGone"]),  # its pool shrank meanwhile
+    ("worker", EXIT_RECYCLED_RSS, False, True, []),  # the pipeline is stopping
+    ("worker", 0, False, False, ["WorkerGone"]),  # status 0 is no recycle
+])
+def test_recycle_status_only_recycles_a_live_pools_worker(
+        role: str, code: int, retired: bool, stopping: bool, expect: list[str]) -> None:
+    name = "worker:mono:0" if role == "worker" else role
+    s = core(NodePlan(name, role, 3.0, pool="mono" if role == "worker" else ""))
+    up(s, name, 10, 0.0)
+    s.node(name).retired = retired
+    if stopping:
+        s.stop("test")
+    assert kinds(s.exited(name, code, 0.1)) == expect
+    assert s.recycled == {}

@@ -69,3 +69,24 @@ def test_a_garbled_datagram_is_a_protocol_error_not_a_crash(link_path: str) -> N
     assert client.send([b"fine"]) and server.wait(1000)
     assert [bytes(f) for f in server.recv() or []] == [b"fine"]
     listener.close()
+
+
+def test_messages_sent_before_a_reset_are_still_read(link_path: str) -> None:
+    """Pins a loss at a worker's exit: a worker answered its last pair, said goodbye and
+    exited with a job of the broker's unread. Linux then reports ECONNRESET once, ahead of
+    the answer and the goodbye still queued; the broker took it for the end of the link,
+    never read them, and counted the pair lost ("disconnected")."""
+    listener = listen_link(link_path)
+    client = connect_link(link_path)
+    server = accept_link(listener)
+    assert server is not None
+    assert server.send([b"job"])  # never read by the client
+    assert client.send([b"done", b"result"]) and client.send([b"gone"])
+    client.close()
+    assert server.wait(1000)
+    assert [bytes(f) for f in server.recv() or []] == [b"done", b"result"]
+    assert [bytes(f) for f in server.recv() or []] == [b"gone"]
+    with pytest.raises(LinkClosed, match="closed by its peer"):
+        server.recv()
+    server.close()
+    listener.close()

@@ -114,9 +114,24 @@ def record_crc(seq: int, t_ns: int, cls: str, body: bytes) -> int:
 
 
 def _connect(path: Path) -> sqlite3.Connection:
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Open (or create) the outbox file with the run directory's modes, whatever the umask:
+    a folder it creates is its owner's alone, the file (and SQLite's -wal and -shm, which
+    SQLite creates with the file's own mode) read-write for the owner, readable by the group,
+    as results.jsonl is."""
+    from trapflow.transport import FILE_MODE, RUN_DIR_MODE  # config imports this module
+
+    if not path.parent.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        os.chmod(path.parent, RUN_DIR_MODE)
+    with contextlib.suppress(FileExistsError):  # the sender and the normalizer race here
+        os.close(os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, FILE_MODE))
     db = sqlite3.connect(str(path), isolation_level=None, timeout=10.0, check_same_thread=False)
     db.execute("PRAGMA journal_mode=WAL")
+    for suffix in ("", "-wal", "-shm"):  # also those left under another umask
+        name = f"{path}{suffix}"
+        with contextlib.suppress(FileNotFoundError):
+            if os.stat(name).st_uid == os.geteuid():  # another user's file stays as it is
+                os.chmod(name, FILE_MODE)
     # NORMAL in WAL mode: a commit is written (survives a process crash) but not fsynced;
     # the outbox fsyncs the WAL itself on a bounded interval, and checkpoints stay safe.
     db.execute("PRAGMA synchronous=NORMAL")

@@ -34,6 +34,7 @@ POOL_COUNTERS = {
     "processed": "processed", "errors": "failed", "timed_out": "timed_out", "lost": "lost",
     "inactive": "inactive",  # dropped while the pool was deactivated (trapflow pool)
     "throttled": "throttled",  # dropped by the ladder's level (its minimum interval)
+    "stale": "stale",  # dropped after waiting longer than the pool's max_pending_age_s
 }
 POOL_GAUGES = {"workers": "workers", "pending": "pending_pairs", "in_flight": "in_flight_pairs"}
 

@@ -51,7 +51,7 @@ import numpy as np
 import psutil
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import bench_transport as bt  # noqa: E402  (a sibling script: its payload and its paths)
+import bench_transport as bt  # a sibling script: its payload and its paths
 
 PAGE = bt.PAGE
 WINDOW = bt.WINDOW
@@ -422,7 +422,7 @@ def run_peer(peer: str, kind: str, seconds: float, tmp: Path) -> dict[str, Any]:
     try:
         version = metadata.version(PACKAGES[peer])
         __import__(MODULES[peer])
-    except Exception as exc:  # not installed, or does not import here
+    except Exception as exc:  # noqa: BLE001 - not installed, or does not import here
         return {"error": f"does not import: {type(exc).__name__}: {exc} "
                          "(pip install -e .[peers])"}
     d = Path(tempfile.mkdtemp(prefix=f"{peer}-{kind}-", dir=tmp))
@@ -570,7 +570,7 @@ def main() -> None:
                     out[kind][row] = run_trapflow(kind, args.seconds, tmp, row.split("-")[1])
                 else:
                     out[kind][row] = run_peer(row, kind, args.seconds, tmp)
-            except Exception as exc:  # a row that fails says why; the table goes on
+            except Exception as exc:  # noqa: BLE001 - a failed row says why; table goes on
                 out[kind][row] = {"error": f"{type(exc).__name__}: {exc}"}
     shutil.rmtree(tmp, ignore_errors=True)
     out["machine"]["load_after"] = " ".join(f"{x:.1f}" for x in os.getloadavg())

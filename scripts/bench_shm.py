@@ -25,7 +25,7 @@ import msgspec
 import zmq
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_transport import (  # noqa: E402  (a sibling script, not a package)
+from bench_transport import (
     PAGE,
     WINDOW,
     _pcts,
@@ -36,8 +36,8 @@ from bench_transport import (  # noqa: E402  (a sibling script, not a package)
     raw_pyzmq,
 )
 
-from trapflow import frame_ring, messages  # noqa: E402
-from trapflow.transport import accept_link, connect_link, listen_link  # noqa: E402
+from trapflow import frame_ring, messages
+from trapflow.transport import accept_link, connect_link, listen_link
 
 
 def _shm_consumer(name: str, path: str, conn: Any) -> None:

@@ -40,18 +40,18 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import synth_demo_data as sd  # noqa: E402
-from trapflow_workers.common import MODELS_DIR  # noqa: E402
-from trapflow_workers.crab_detector import CrabDetector  # noqa: E402
-from trapflow_workers.onnx_session import SessionSettings, open_session  # noqa: E402
-from trapflow_workers.testkit import make_context  # noqa: E402
-from trapflow_workers.yolo_preprocess import Preprocessor  # noqa: E402
+import synth_demo_data as sd
+from trapflow_workers.common import MODELS_DIR
+from trapflow_workers.crab_detector import CrabDetector
+from trapflow_workers.onnx_session import SessionSettings, open_session
+from trapflow_workers.testkit import make_context
+from trapflow_workers.yolo_preprocess import Preprocessor
 
-from trapflow import jpeg  # noqa: E402
-from trapflow.camera import StereoRig  # noqa: E402
-from trapflow.messages import StereoPair  # noqa: E402
-from trapflow.plugin import Pair  # noqa: E402
-from trapflow.worker import decode_pair  # noqa: E402
+from trapflow import jpeg
+from trapflow.camera import StereoRig
+from trapflow.messages import StereoPair
+from trapflow.plugin import Pair
+from trapflow.worker import decode_pair
 
 FP32 = MODELS_DIR / "crab_detector.onnx"
 INT8 = MODELS_DIR / "crab_detector_int8.onnx"

@@ -23,7 +23,7 @@ import torch
 from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import synth_demo_data as sd  # noqa: E402
+import synth_demo_data as sd
 
 STRIDE = 8
 GRID = sd.DET_SIZE // STRIDE

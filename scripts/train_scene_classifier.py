@@ -31,7 +31,7 @@ import torch
 from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import synth_demo_data as sd  # noqa: E402
+import synth_demo_data as sd
 
 # A classifier trained on few worlds learns their floors (0.98 on them, 0.51 on unseen ones):
 # what generalises is many distinct worlds with few pairs each. World set-up (painting the

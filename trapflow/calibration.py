@@ -30,16 +30,16 @@ class StereoCalibration(msgspec.Struct, kw_only=True, forbid_unknown_fields=True
     model: Model = "pinhole"  # lens: pinhole (k1 k2 p1 p2 [k3..k6]) or fisheye (equidistant k1..k4)
     image_width: Annotated[int, msgspec.Meta(gt=0)]
     image_height: Annotated[int, msgspec.Meta(gt=0)]
-    K1: Matrix  # noqa: N815 - OpenCV names
-    D1: Vector  # noqa: N815
-    K2: Matrix  # noqa: N815
-    D2: Vector  # noqa: N815
+    K1: Matrix  # OpenCV's names (stereoCalibrate, stereoRectify)
+    D1: Vector
+    K2: Matrix
+    D2: Vector
     R: Matrix
     T: Vector
-    R1: Matrix  # noqa: N815
-    R2: Matrix  # noqa: N815
-    P1: Matrix  # noqa: N815
-    P2: Matrix  # noqa: N815
+    R1: Matrix
+    R2: Matrix
+    P1: Matrix
+    P2: Matrix
     Q: Matrix
     baseline_m: Annotated[float, msgspec.Meta(gt=0)]
     E: Matrix | None = None

@@ -2,12 +2,14 @@
 
 Errors name the YAML path (`$.pools.vo.policy`) and what was expected. The
 defaults here are the defaults; configs/default.yaml documents every key and a
-test keeps the two equal.
+test keeps the two equal. A leaf: it imports only config-struct modules (modem/config.py,
+ladder_config.py), never a module of the runtime; those import their sections from here.
 """
 
 from __future__ import annotations
 
 import ipaddress
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -15,12 +17,8 @@ import msgspec
 import yaml
 
 from trapflow.errors import ConfigError
-from trapflow.events import EventsConfig
-from trapflow.ladder import LadderConfig
-from trapflow.modem.config import ModemConfig
-from trapflow.modem.health import HealthConfig
-from trapflow.modem.outbox import OutboxConfig
-from trapflow.policy import Policy, parse_policy
+from trapflow.ladder_config import LadderConfig
+from trapflow.modem.config import HealthConfig, ModemConfig, OutboxConfig
 
 
 class _Section(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
@@ -28,6 +26,78 @@ class _Section(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
 
 
 Positive = Annotated[float, msgspec.Meta(gt=0)]
+
+
+# --- queueing policies: the grammar (the broker's policy module applies them) -------------
+
+DEFAULT_ORDERED_BOUND = 16
+
+
+@dataclass(frozen=True)
+class Policy:
+    """A parsed policy string."""
+
+    kind: str  # "latest" | "fifo" | "ordered"
+    bound: int
+
+    def __str__(self) -> str:
+        return "latest" if self.kind == "latest" else f"{self.kind}:{self.bound}"
+
+
+def parse_policy(text: str) -> Policy:
+    """Parse `latest`, `fifo:N` or `ordered[:N]`; ValueError says what was expected."""
+    expected = f"expected latest, fifo:N or ordered[:N] with N >= 1, got {text!r}"
+    kind, sep, num = text.strip().partition(":")
+    if kind == "latest" and not sep:
+        return Policy("latest", 1)
+    if kind == "ordered" and not sep:
+        return Policy("ordered", DEFAULT_ORDERED_BOUND)
+    if kind in ("fifo", "ordered") and sep:
+        try:
+            bound = int(num)
+        except ValueError:
+            raise ValueError(expected) from None
+        if bound >= 1:
+            return Policy(kind, bound)
+    raise ValueError(expected)
+
+
+# --- sections ------------------------------------------------------------------------------
+
+
+class TriggerRule(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """A result that starts or extends an event."""
+
+    algorithm: str
+    """Top-level key of the normalized result, e.g. mono_ir."""
+    label: str | None = None
+    """Fire only on this label (None: any label)."""
+    not_label: str | None = None
+    """Never fire on this label (e.g. 'none' for stereo_ir)."""
+    min_confidence: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.0
+    """Lowest confidence that fires."""
+
+
+class EventsConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """Photo-trap event capture."""
+
+    enabled: bool = False
+    """Run event capture at all."""
+    triggers: list[TriggerRule] = []
+    """Rules; any one firing starts or extends an event."""
+    pre_s: Annotated[float, msgspec.Meta(ge=0, le=600)] = 2.0
+    """Seconds of pairs kept from before the trigger."""
+    post_s: Annotated[float, msgspec.Meta(ge=0, le=3600)] = 3.0
+    """Seconds of pairs kept after the last trigger."""
+    max_ring_pairs: Annotated[int, msgspec.Meta(ge=1, le=100_000)] = 300
+    """Bound on the pre-roll ring in pairs (memory cap)."""
+    quota_bytes: Annotated[int, msgspec.Meta(gt=0)] = 2 << 30
+    """Most bytes all events may take; oldest deleted first."""
+    min_free_bytes: Annotated[int, msgspec.Meta(ge=0)] = 512 << 20
+    """Free disk space kept; oldest events deleted to keep it."""
+    folder: str = "events"
+    """Where event folders are written (relative to the run directory)."""
+
 
 
 class SourceConfig(_Section):

@@ -12,48 +12,15 @@ import shutil
 import time
 from collections import deque
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Any
 
-import msgspec
 import psutil
 
+from trapflow.config import EventsConfig as EventsConfig
+from trapflow.config import TriggerRule as TriggerRule
 from trapflow.messages import StereoPair
 
 log = logging.getLogger(__name__)
-
-
-class TriggerRule(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
-    """A result that starts or extends an event."""
-
-    algorithm: str
-    """Top-level key of the normalized result, e.g. mono_ir."""
-    label: str | None = None
-    """Fire only on this label (None: any label)."""
-    not_label: str | None = None
-    """Never fire on this label (e.g. 'none' for stereo_ir)."""
-    min_confidence: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.0
-    """Lowest confidence that fires."""
-
-
-class EventsConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
-    """Photo-trap event capture."""
-
-    enabled: bool = False
-    """Run event capture at all."""
-    triggers: list[TriggerRule] = []
-    """Rules; any one firing starts or extends an event."""
-    pre_s: Annotated[float, msgspec.Meta(ge=0, le=600)] = 2.0
-    """Seconds of pairs kept from before the trigger."""
-    post_s: Annotated[float, msgspec.Meta(ge=0, le=3600)] = 3.0
-    """Seconds of pairs kept after the last trigger."""
-    max_ring_pairs: Annotated[int, msgspec.Meta(ge=1, le=100_000)] = 300
-    """Bound on the pre-roll ring in pairs (memory cap)."""
-    quota_bytes: Annotated[int, msgspec.Meta(gt=0)] = 2 << 30
-    """Most bytes all events may take; oldest deleted first."""
-    min_free_bytes: Annotated[int, msgspec.Meta(ge=0)] = 512 << 20
-    """Free disk space kept; oldest events deleted to keep it."""
-    folder: str = "events"
-    """Where event folders are written (relative to the run directory)."""
 
 
 def fires(rule: TriggerRule, obj: dict[str, Any]) -> dict[str, Any] | None:

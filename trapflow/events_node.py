@@ -7,7 +7,6 @@ messages here, not pairs upstream.
 
 from __future__ import annotations
 
-import json
 import logging
 
 import zmq
@@ -54,13 +53,12 @@ class EventsNode(Node):
         return 0
 
     def _handle(self, frames: list[zmq.Frame]) -> None:
-        topic = frames[0].bytes
-        if topic == messages.TOPIC_IMAGE:
-            header = messages.check_pair_frames(frames[1:])
+        msg = messages.decode_tap(frames)
+        if isinstance(msg, messages.TapPair):
             # Raw pairs (the default ring) become JPEG here, once: the pre-roll holds
             # hundreds of pairs and an event folder keeps photos, not 2.7 MB frames.
-            header, left, right = jpeg.to_jpeg_pair(header, frames[2].buffer, frames[3].buffer,
+            header, left, right = jpeg.to_jpeg_pair(msg.header, msg.left, msg.right,
                                                     self.cfg.source.jpeg_quality)
             self.capture.on_pair(header, left, right)
-        elif topic == messages.TOPIC_RESULT and len(frames) == 2:
-            self.capture.on_result(json.loads(frames[1].bytes))
+        elif isinstance(msg, messages.TapResult):
+            self.capture.on_result({msg.kind: msg.fields})

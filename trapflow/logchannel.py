@@ -63,7 +63,7 @@ class LogSender(logging.Handler):
                 self._sock.send(messages.encode(entry), zmq.NOBLOCK)
         except zmq.Again:
             self.dropped += 1
-        except Exception:
+        except Exception:  # noqa: BLE001 - a log handler reports through handleError
             self.handleError(record)
 
     def close(self) -> None:

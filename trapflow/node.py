@@ -195,7 +195,7 @@ def _report_death(spec: NodeSpec, node: Node | None, reason: str) -> None:
         sock.send(messages.encode(hb), zmq.NOBLOCK)
         sock.close(linger=500)  # give the one message a moment to leave
         ctx.term()
-    except Exception:  # best effort on the way out
+    except Exception:  # noqa: BLE001 - best effort on the way out
         pass
 
 

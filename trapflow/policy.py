@@ -1,4 +1,5 @@
-"""The only place that decides what to drop: per-pool pending buffers.
+"""The only place that decides what to drop: per-pool pending buffers (the policy grammar,
+Policy and parse_policy, lives with the config in trapflow.config).
 
 latest     keep only the newest pair (slow recognisers always see fresh frames)
 fifo:N     bounded queue, oldest dropped when full
@@ -12,38 +13,10 @@ Whatever the policy, a pool's max_pending_age_s drops pairs that waited longer (
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
 
-DEFAULT_ORDERED_BOUND = 16
-
-
-@dataclass(frozen=True)
-class Policy:
-    """A parsed policy string."""
-
-    kind: str  # "latest" | "fifo" | "ordered"
-    bound: int
-
-    def __str__(self) -> str:
-        return "latest" if self.kind == "latest" else f"{self.kind}:{self.bound}"
-
-
-def parse_policy(text: str) -> Policy:
-    """Parse `latest`, `fifo:N` or `ordered[:N]`; ValueError says what was expected."""
-    expected = f"expected latest, fifo:N or ordered[:N] with N >= 1, got {text!r}"
-    kind, sep, num = text.strip().partition(":")
-    if kind == "latest" and not sep:
-        return Policy("latest", 1)
-    if kind == "ordered" and not sep:
-        return Policy("ordered", DEFAULT_ORDERED_BOUND)
-    if kind in ("fifo", "ordered") and sep:
-        try:
-            bound = int(num)
-        except ValueError:
-            raise ValueError(expected) from None
-        if bound >= 1:
-            return Policy(kind, bound)
-    raise ValueError(expected)
+from trapflow.config import DEFAULT_ORDERED_BOUND as DEFAULT_ORDERED_BOUND
+from trapflow.config import Policy as Policy
+from trapflow.config import parse_policy as parse_policy
 
 
 class Pending:

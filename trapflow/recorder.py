@@ -5,13 +5,13 @@ sensor_msgs/msg/CameraInfo and the left-to-right transform on /tf_static (when t
 known); pair headers and results are std_msgs/msg/String JSON (one results topic per
 algorithm); VO poses are nav_msgs/msg/Odometry, and the trajectory one nav_msgs/msg/Path at
 the end; detections and tags are foxglove_msgs/msg/ImageAnnotations on the left image, one
-message per pair (with foxglove-schemas-protobuf installed). vision_msgs is not in the
-rosbags typestore, so there is no Detection2DArray. Every message is stamped with its pair's
-capture time; definitions come from recording_msgs. The file is written as OUT.part and
-renamed on close, so an interrupted recording never leaves a half-written OUT behind. Every
-second the chunk in progress is closed and the file synced, so a recorder killed by a crash
-or a power cut loses at most that second: recover() copies every complete message of the
-.part into a valid MCAP. record() owns one SUB socket."""
+message per pair (with foxglove-schemas-protobuf installed). No installable package
+carries vision_msgs (docs/recordings.md), so there is no Detection2DArray. Every message is
+stamped with its pair's capture time; definitions come from recording_msgs. The file is
+written as OUT.part and renamed on close, so an interrupted recording never leaves a
+half-written OUT behind. Every second the chunk in progress is closed and the file synced,
+so a recorder killed by a crash or a power cut loses at most that second: recover() copies
+every complete message of the .part into a valid MCAP. record() owns one SUB socket."""
 
 from __future__ import annotations
 
@@ -38,13 +38,15 @@ from trapflow import recording_msgs as msgs
 from trapflow.camera import StereoRig
 from trapflow.errors import ProtocolError, TrapflowError
 from trapflow.messages import (
-    MAX_RESULT_BYTES,
     TOPIC_IMAGE,
     TOPIC_RESULT,
     StereoPair,
-    check_pair_frames,
+    TapPair,
+    TapResult,
+    decode_tap,
     to_builtins,
 )
+from trapflow.transport import SocketSpec, open_socket
 
 log = logging.getLogger(__name__)
 
@@ -298,30 +300,25 @@ def record(endpoint: str | Sequence[str], out: str | Path, stop: threading.Event
     if counts is not None:
         rec.counts = counts
     ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context.instance()
-    sub = ctx.socket(zmq.SUB)
-    sub.setsockopt(zmq.LINGER, 0)
-    sub.setsockopt(zmq.RCVHWM, 1000)
+    first, *more = [endpoint] if isinstance(endpoint, str) else endpoint
     try:
-        sub.setsockopt(zmq.SUBSCRIBE, TOPIC_IMAGE)
-        sub.setsockopt(zmq.SUBSCRIBE, TOPIC_RESULT)
-        for ep in ([endpoint] if isinstance(endpoint, str) else endpoint):
-            sub.connect(ep)
+        sub = open_socket(ctx, SocketSpec(zmq.SUB, first, rcvhwm=1000, also_connect=tuple(more),
+                                          subscribe=(TOPIC_IMAGE, TOPIC_RESULT)))
+    except BaseException:
+        rec.close()
+        raise
+    try:
         while not stop.is_set():
             if not sub.poll(poll_ms):
                 rec.maybe_flush()  # a quiet pipeline: what came last is on disk all the same
                 continue
             frames = sub.recv_multipart(copy=False)
-            topic = frames[0].bytes
             try:
-                if topic == TOPIC_IMAGE:
-                    header = check_pair_frames(frames[1:])
-                    rec.add_pair(header, frames[2].buffer, frames[3].buffer)
-                elif topic == TOPIC_RESULT:
-                    if len(frames) != 2 or len(frames[1]) > MAX_RESULT_BYTES:
-                        raise ProtocolError(
-                            f"result: expected [topic, JSON line], got {len(frames)} frames"
-                        )
-                    rec.add_result(frames[1].bytes)
+                msg = decode_tap(frames)
+                if isinstance(msg, TapPair):
+                    rec.add_pair(msg.header, msg.left, msg.right)
+                elif isinstance(msg, TapResult):
+                    rec.add_result(msg.line)
             except (ProtocolError, RecorderError) as exc:
                 if rec.counts.malformed == 0:
                     log.warning("record: skipping malformed tap message: %s", exc)
@@ -392,7 +389,7 @@ def _copy_complete(part: Path, src: IO[bytes], tmp: Path) -> int:
                     copied += 1
         except RecorderError:
             raise
-        except Exception as exc:  # the cut: a short read, a half chunk, a CRC that fails
+        except Exception as exc:  # noqa: BLE001 - the cut: short read, half chunk, bad CRC
             log.info("recover: %s ends after %d complete messages (%s: %s)",
                      part, copied, type(exc).__name__, exc)
         if not started:

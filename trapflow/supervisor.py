@@ -418,12 +418,14 @@ class Supervisor:
         if self.stats_sub in events:
             while True:
                 try:
-                    _topic, data = self.stats_sub.recv_multipart(zmq.NOBLOCK)
-                    self.ledger_model.on_stats(messages.decode_stats(data))
+                    msg = messages.decode_tap(self.stats_sub.recv_multipart(zmq.NOBLOCK))
                 except zmq.Again:
                     break
-                except (ValueError, ProtocolError) as exc:
+                except ProtocolError as exc:
                     self.ratelog.warning("stats", "bad stats message: %s", wire(str(exc)))
+                    continue
+                if isinstance(msg, messages.TapStats):
+                    self.ledger_model.on_stats(msg.stats)
         if self.control in events:
             self._on_control(self.control.recv())
 
@@ -606,7 +608,7 @@ class Supervisor:
         """Whether the pool's plugin takes new parameters in place (its class says so)."""
         try:
             return bool(registry.resolve(self.cfg.plugin_of(pool)).reconfigurable)
-        except Exception as exc:  # the workers report a plugin that cannot load
+        except Exception as exc:  # noqa: BLE001 - the workers report a plugin that cannot load
             log.warning("pool %s: cannot tell whether its plugin reconfigures in place (%s); "
                         "restarting its workers instead", pool, exc)
             return False

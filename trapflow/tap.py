@@ -31,26 +31,24 @@ TOPICS = {
 }
 
 
-def describe(frames: list[bytes]) -> str:
+def describe(msg: messages.TapMessage, frames: list[bytes]) -> str:
     """One printable line for a tap message."""
-    topic = frames[0]
-    if topic == messages.TOPIC_RESULT:
-        return "result " + frames[1].decode("utf-8", "replace")
-    if topic in (messages.TOPIC_META, messages.TOPIC_IMAGE):
-        p = messages.decode_pair_header(frames[1])
+    if isinstance(msg, messages.TapResult):
+        return "result " + msg.line.decode("utf-8", "replace")
+    if isinstance(msg, (messages.TapMeta, messages.TapPair)):
+        p = msg.header
         lat_ms = (time.monotonic_ns() - p.t_mono_ns) / 1e6
-        sizes = f" {len(frames[2])}+{len(frames[3])} B" if len(frames) == 4 else ""
+        sizes = (f" {len(frames[2])}+{len(frames[3])} B" if isinstance(msg, messages.TapPair)
+                 else "")
         return (f"frame seq={p.seq} {p.width}x{p.height} {p.encoding}{sizes} "
                 f"skew={p.skew_ns / 1e6:.2f}ms age={lat_ms:.1f}ms source={p.source}")
-    if topic == messages.TOPIC_STATS:
-        s = messages.decode_stats(frames[1])
+    if isinstance(msg, messages.TapStats):
+        s = msg.stats
         pools = " ".join(f"{n}:{p.processed}/{p.dropped}d/{p.rate}Hz" for n, p in s.pools.items())
         return f"stats up={s.uptime_s:.0f}s in={s.pairs_in} ({s.rate_in}/s) {pools}"
-    if topic == messages.TOPIC_TRUTH:
-        t = messages.decode_truth(frames[1])
-        objs = ", ".join(f"{o.label}@{[round(v) for v in o.box]}" for o in t.objects)
-        return f"truth seq={t.seq} scene={t.scene_label} [{objs}]"
-    raise ProtocolError(f"unknown tap topic {topic[:20]!r}")
+    t = msg.truth
+    objs = ", ".join(f"{o.label}@{[round(v) for v in o.box]}" for o in t.objects)
+    return f"truth seq={t.seq} scene={t.scene_label} [{objs}]"
 
 
 def run_tap(what: str, run_dir: Path, endpoints: list[str], count: int | None = None,
@@ -77,9 +75,7 @@ def run_tap(what: str, run_dir: Path, endpoints: list[str], count: int | None = 
     waiting_said = notice is None
     try:
         sub = open_socket(ctx, SocketSpec(zmq.SUB, endpoints[0], subscribe=tuple(topics),
-                                          rcvhwm=100))
-        for extra in endpoints[1:]:
-            sub.connect(extra)
+                                          rcvhwm=100, also_connect=tuple(endpoints[1:])))
         while count is None or n < count:
             wait_ms = 200 if deadline is None else int(max(0.0, deadline - time.monotonic()) * 1000)
             if deadline is not None and wait_ms == 0:
@@ -91,14 +87,16 @@ def run_tap(what: str, run_dir: Path, endpoints: list[str], count: int | None = 
                     waiting_said = True
                 continue
             frames = sub.recv_multipart()
+            msg: messages.TapMessage | None = None
             try:
-                line = describe(frames)
+                msg = messages.decode_tap(frames)
+                line = describe(msg, frames)
             except ProtocolError as exc:
                 line = f"malformed tap message: {exc}"
-            if save_frames is not None and frames[0] == messages.TOPIC_IMAGE and len(frames) == 4:
+            if save_frames is not None and isinstance(msg, messages.TapPair):
                 # Photos on disk: a raw pair (the default ring) is encoded here, once.
-                p, left, right = jpeg.to_jpeg_pair(messages.decode_pair_header(frames[1]),
-                                                   frames[2], frames[3], JPEG_QUALITY)
+                p, left, right = jpeg.to_jpeg_pair(msg.header, msg.left, msg.right,
+                                                   JPEG_QUALITY)
                 (save_frames / f"{p.seq:08d}_left.jpg").write_bytes(left)
                 (save_frames / f"{p.seq:08d}_right.jpg").write_bytes(right)
             print(line, flush=True)

@@ -190,6 +190,8 @@ class SocketSpec:
     max_msg_bytes: int | None = None
     xpub_manual: bool = False  # XPUB: the process decides which subscriptions count (TapGate)
     curve: CurveKeys | None = None  # CURVE encryption and authentication
+    # More endpoints a connecting socket connects to (a SUB on two taps).
+    also_connect: tuple[str, ...] = ()
 
 
 def open_socket(ctx: zmq.Context[zmq.Socket[bytes]], spec: SocketSpec) -> zmq.Socket[bytes]:
@@ -225,13 +227,15 @@ def open_socket(ctx: zmq.Context[zmq.Socket[bytes]], spec: SocketSpec) -> zmq.So
                 # The socket file follows the umask; the run directory is 0700 anyway.
                 os.chmod(spec.endpoint[len("ipc://"):], SOCKET_MODE)
         else:
-            sock.connect(spec.endpoint)
+            for endpoint in (spec.endpoint, *spec.also_connect):
+                sock.connect(endpoint)
     except zmq.ZMQError as exc:
         sock.close(linger=0)
         verb = "bind" if spec.bind else "connect to"
+        where = ", ".join((spec.endpoint, *spec.also_connect))
         if exc.errno == errno.EADDRINUSE:
-            raise StartupError(f"cannot {verb} {spec.endpoint}: address already in use") from None
-        raise StartupError(f"cannot {verb} {spec.endpoint}: {exc}") from None
+            raise StartupError(f"cannot {verb} {where}: address already in use") from None
+        raise StartupError(f"cannot {verb} {where}: {exc}") from None
     return sock
 
 

@@ -163,7 +163,7 @@ class WorkerNode(Node):
             plugin.configure(self.pcfg.params, ctx)
             self.set_state(INACTIVE)
             plugin.activate()
-        except Exception as exc:  # any plugin failure keeps the node up, inactive, with a reason
+        except Exception as exc:  # noqa: BLE001 - a plugin failure: up, inactive, why
             why = str(exc) if isinstance(exc, WorkerError) else f"{type(exc).__name__}: {exc}"
             self.set_state(INACTIVE, f"cannot start algorithm: {why}")
             return False
@@ -264,7 +264,7 @@ class WorkerNode(Node):
             self.set_state(INACTIVE)
             self.plugin.configure(self.pcfg.params, ctx)
             self.plugin.activate()
-        except Exception as exc:  # the new parameters do not work: a fresh process reports it
+        except Exception as exc:  # noqa: BLE001 - bad parameters: a fresh process says why
             why = str(exc) if isinstance(exc, WorkerError) else f"{type(exc).__name__}: {exc}"
             log.error("%s: cannot apply new parameters: %s; restarting", self.ident, why)
             self.stopping = True
@@ -370,7 +370,7 @@ class WorkerNode(Node):
             if ref is not None:
                 # The slot must still hold this pair, or the result came from other bytes.
                 self._ring().check(ref)
-        except Exception as exc:  # one bad pair fails, the worker goes on
+        except Exception as exc:  # noqa: BLE001 - one bad pair fails, the worker goes on
             self.failed += 1
             reason = str(exc) if isinstance(exc, (ProtocolError, WorkerError, RingError)) else (
                 f"{type(exc).__name__}: {exc}")

@@ -39,12 +39,13 @@ from typing import Annotated, Any, Literal
 import cv2
 import msgspec
 import numpy as np
-from trapflow_workers.calibration import resolve_rig
-from trapflow_workers.common import Params, check_frame, floats, parse_params, to_grey
 
 from trapflow.errors import WorkerError
 from trapflow.messages import Tag, Tags
 from trapflow.plugin import Context, Pair, Worker
+
+from .calibration import resolve_rig
+from .common import Params, check_frame, floats, parse_params, to_grey
 
 log = logging.getLogger(__name__)
 
@@ -201,11 +202,14 @@ class AprilTags(Worker):
         ]
 
     def process(self, pair: Pair) -> Tags:
-        check_frame(pair, (self.rig.width, self.rig.height), "the calibration's image size",
+        rig = self.rig
+        if rig is None:
+            raise WorkerError("tags: expected configure() before process(), got no rig")
+        check_frame(pair, (rig.width, rig.height), "the calibration's image size",
                     grey_ok=True)
         image = pair.left if self.p.image == "left" else pair.right
         gray = to_grey(image)
-        K = self.rig.K  # noqa: N806 - the usual name of the matrix
+        K = rig.K  # noqa: N806 - the usual name of the matrix
         tags = []
         for tag_id, px in self.detect(gray):
             obj = tag_object_points(self.p.sizes.get(tag_id, self.p.tag_size_m))

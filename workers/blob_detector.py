@@ -40,8 +40,8 @@ class BlobDetector(Worker):
         img = cv2.resize(pair.left, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
         hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
         # Red wraps around hue 0 in OpenCV's 0..180 hue scale.
-        mask = cv2.inRange(hsv, (0, 90, 40), (12, 255, 255)) | cv2.inRange(
-            hsv, (165, 90, 40), (180, 255, 255))
+        mask = cv2.bitwise_or(cv2.inRange(hsv, (0, 90, 40), (12, 255, 255)),
+                              cv2.inRange(hsv, (165, 90, 40), (180, 255, 255)))
         mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
         dets: list[Detection] = []

@@ -17,9 +17,14 @@ from typing import Annotated, Any, Literal, cast
 
 import msgspec
 import numpy as np
-from trapflow_workers.common import check_frame, load_labels, model_path, parse_params
-from trapflow_workers.onnx_session import ModelParams, Session, open_session
-from trapflow_workers.yolo_decode import (
+
+from trapflow.errors import WorkerError
+from trapflow.messages import Detection, MonoIR
+from trapflow.plugin import Context, Pair, Worker
+
+from .common import check_frame, load_labels, model_path, parse_params
+from .onnx_session import ModelParams, Session, open_session
+from .yolo_decode import (
     DEFAULT_STRIDES,
     LAYOUTS,
     Layout,
@@ -28,11 +33,7 @@ from trapflow_workers.yolo_decode import (
     detect_layout,
     nms,
 )
-from trapflow_workers.yolo_preprocess import PAD_VALUE, PLACEMENTS, Placement, Preprocessor, fit
-
-from trapflow.errors import WorkerError
-from trapflow.messages import Detection, MonoIR
-from trapflow.plugin import Context, Pair, Worker
+from .yolo_preprocess import PAD_VALUE, PLACEMENTS, Placement, Preprocessor, fit
 
 log = logging.getLogger(__name__)
 
@@ -142,10 +143,10 @@ def input_spec(
     p: DetectorParams, meta: Mapping[str, str], yolox: bool, model: str, pool: str
 ) -> InputSpec:
     """Each setting from params, else the model's metadata, else the layout's toolchain."""
-    placement = p.letterbox if p.letterbox != "auto" else None
+    placement: str | None = p.letterbox if p.letterbox != "auto" else None
     if placement is None:
         placement = _metadata_choice(meta, "letterbox", PLACEMENTS, model, "letterbox", pool)
-    color = p.color if p.color != "auto" else None
+    color: str | None = p.color if p.color != "auto" else None
     if color is None:
         color = _metadata_choice(meta, "color_order", ("rgb", "bgr"), model, "color", pool)
     scale = p.scale
@@ -248,7 +249,7 @@ class CrabDetector(Worker):
         blank = np.full((1, h, w, 3) if self.nhwc else (1, 3, h, w), PAD_VALUE, dtype)
         out = self.session.run({self.input_name: blank})[0]
         shape = tuple(int(v) for v in out.shape)
-        forced = self.p.layout if self.p.layout != "auto" else None
+        forced: str | None = self.p.layout if self.p.layout != "auto" else None
         if forced is None:
             forced = _metadata_choice(meta, "layout", LAYOUTS, name, "layout", pool)
         nc = len(self.labels) if self.labels else None
@@ -300,4 +301,4 @@ class CrabDetector(Worker):
         return self.labels[cls] if self.labels else f"class{cls}"
 
     def cleanup(self) -> None:
-        self.session = None
+        vars(self).pop("session", None)  # the ONNX session and its memory go now

@@ -11,10 +11,11 @@ from typing import Annotated, Any
 
 import msgspec
 import numpy as np
-from trapflow_workers.common import Params, check_frame, parse_params
 
 from trapflow.messages import Extra
 from trapflow.plugin import Context, Pair, Worker
+
+from .common import Params, check_frame, parse_params
 
 
 class BrightnessParams(Params):

@@ -39,7 +39,7 @@ class FlowOdometry(Worker):
         except msgspec.ValidationError as exc:
             raise WorkerError(f"pools.{ctx.pool}.params: {exc}") from None
         self.fx = ctx.rig.fx
-        self.orb = cv2.ORB_create(self.p.features)
+        self.orb = cv2.ORB.create(self.p.features)
         self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
         self.prev: tuple[Any, Any] | None = None
         self.pose = np.eye(4)
@@ -49,14 +49,13 @@ class FlowOdometry(Worker):
         gray = cv2.cvtColor(cv2.resize(pair.left, None, fx=s, fy=s), cv2.COLOR_BGR2GRAY)
         kp, des = self.orb.detectAndCompute(gray, None)
         prev, self.prev = self.prev, (kp, des)
-        reinit = pair.gap > 0 or prev is None
-        if reinit or des is None or prev[1] is None:
+        if pair.gap > 0 or prev is None or des is None or prev[1] is None:
             return StereoVO(ok=False, reinit=True, pose=self._pose())
         matches = self.matcher.match(prev[1], des)
         if len(matches) < self.p.min_inliers:
             return StereoVO(ok=False, pose=self._pose())
-        a = np.float32([prev[0][m.queryIdx].pt for m in matches])
-        b = np.float32([kp[m.trainIdx].pt for m in matches])
+        a = np.array([prev[0][m.queryIdx].pt for m in matches], dtype=np.float32)
+        b = np.array([kp[m.trainIdx].pt for m in matches], dtype=np.float32)
         m, inl = cv2.estimateAffinePartial2D(a, b, method=cv2.RANSAC, ransacReprojThreshold=2.0)
         n = int(inl.sum()) if inl is not None else 0
         if m is None or n < self.p.min_inliers:

@@ -35,8 +35,8 @@ class HistogramClassifier(Worker):
         small = cv2.resize(img, (self.p.size, max(1, h * self.p.size // w)),
                            interpolation=cv2.INTER_AREA)
         hsv = cv2.cvtColor(small, cv2.COLOR_BGR2HSV)
-        mask = cv2.inRange(hsv, (0, 90, 40), (12, 255, 255)) | cv2.inRange(
-            hsv, (165, 90, 40), (180, 255, 255))
+        mask = cv2.bitwise_or(cv2.inRange(hsv, (0, 90, 40), (12, 255, 255)),
+                              cv2.inRange(hsv, (165, 90, 40), (180, 255, 255)))
         return float(np.count_nonzero(mask)) / mask.size
 
     def process(self, pair: Pair) -> StereoIR:

@@ -19,10 +19,11 @@ from typing import Annotated, Literal
 import msgspec
 import numpy as np
 import onnxruntime as ort
-from trapflow_workers.common import Params
 
 from trapflow.errors import WorkerError
 from trapflow.ratelog import CONSOLE_ONCE
+
+from .common import Params
 
 log = logging.getLogger(__name__)
 
@@ -153,7 +154,7 @@ def open_session(
         session = ort.InferenceSession(str(path), sess_options=opts,
                                        providers=[p for p, _ in usable],
                                        provider_options=[o for _, o in usable])
-    except Exception as exc:  # onnxruntime raises its own unrelated exception types
+    except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own unrelated exception types
         raise WorkerError(f"cannot load ONNX model {path}: {str(exc).strip()[:300]}") from None
     used = session.get_providers()[0]
     if used != (wanted[0][0] if wanted else CPU):

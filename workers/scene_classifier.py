@@ -16,12 +16,13 @@ from typing import Annotated, Any, Literal
 import cv2
 import msgspec
 import numpy as np
-from trapflow_workers.common import check_frame, load_labels, model_path, parse_params
-from trapflow_workers.onnx_session import ModelParams, Session, open_session
 
 from trapflow.errors import WorkerError
 from trapflow.messages import StereoIR
 from trapflow.plugin import Context, Pair, Worker
+
+from .common import check_frame, load_labels, model_path, parse_params
+from .onnx_session import ModelParams, Session, open_session
 
 log = logging.getLogger(__name__)
 

@@ -21,12 +21,13 @@ from typing import Annotated, Any
 import cv2
 import msgspec
 import numpy as np
-from trapflow_workers.calibration import resolve_rig
-from trapflow_workers.common import Params, check_frame, floats, parse_params, to_grey
 
 from trapflow.camera import StereoRig
 from trapflow.messages import StereoVO
 from trapflow.plugin import Context, Pair, Worker
+
+from .calibration import resolve_rig
+from .common import Params, check_frame, floats, parse_params, to_grey
 
 log = logging.getLogger(__name__)
 
@@ -188,7 +189,8 @@ class StereoOdometry(Worker):
         first = np.searchsorted(cell, cell)  # index of each cell's first (strongest) corner
         rank = np.arange(len(cell)) - first
         per_cell = max(1, self.p.features // (cols * rows))
-        return pts[rank < per_cell]
+        kept: np.ndarray = pts[rank < per_cell]
+        return kept
 
     def _keyframe(self, left: np.ndarray, right: np.ndarray, world: np.ndarray) -> Keyframe | None:
         pts = self._corners(left)

@@ -48,7 +48,8 @@ def floor_texture(size_px: int, seed: int = 0) -> np.ndarray:
             ]
         )
     acc -= acc.min()
-    return (acc * (255.0 / acc.max())).astype(np.uint8)
+    out: np.ndarray = (acc * (255.0 / acc.max())).astype(np.uint8)
+    return out
 
 
 @dataclass

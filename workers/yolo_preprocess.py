@@ -92,7 +92,8 @@ def allocate_tensor(
     div = _divisor(scale)
     x = x / np.float32(div) if div is not None else x * np.float32(scale)
     if tuple(mean) != (0.0, 0.0, 0.0) or tuple(std) != (1.0, 1.0, 1.0):
-        x = (x - np.float32(mean).reshape(3, 1, 1)) / np.float32(std).reshape(3, 1, 1)
+        x = ((x - np.asarray(mean, np.float32).reshape(3, 1, 1))
+             / np.asarray(std, np.float32).reshape(3, 1, 1))
     x = x[None]
     return (np.ascontiguousarray(x.transpose(0, 2, 3, 1)) if nhwc else x), lb
 

@@ -3,7 +3,8 @@ data package whose rows say what the run's event folders and results say.
 
 Validation against the official Camtrap DP table schemas runs when they are in the
 real-data kit (camtrap-dp/<version>/, as the Camtrap DP repository publishes them); the
-schemas are not vendored into this repository. Frictionless checks the package's structure
+schemas are not vendored into this repository, and no installable package ships them
+(docs/conformance.md lists what was checked). Frictionless checks the package's structure
 in any case (every table well-formed, every declared file there).
 """
 

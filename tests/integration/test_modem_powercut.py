@@ -23,7 +23,7 @@ from tests.conftest import poll_for
 from trapflow.modem.outbox import OutboxConfig, OutboxQueue
 
 sys.path.insert(0, str(Path(__file__).parent))
-from modem_writer import record  # noqa: E402
+from modem_writer import record
 
 SEED = 20250707
 CYCLES = 15

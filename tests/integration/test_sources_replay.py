@@ -55,13 +55,13 @@ def write_trapflow(path: Path, n: int) -> None:
 
 
 def header(t: int, frame: str) -> Any:
-    Time = TS.types["builtin_interfaces/msg/Time"]
-    Header = TS.types["std_msgs/msg/Header"]
+    Time = TS.types["builtin_interfaces/msg/Time"]  # noqa: N806 - a message class
+    Header = TS.types["std_msgs/msg/Header"]  # noqa: N806 - a message class
     return Header(stamp=Time(sec=t // 10**9, nanosec=t % 10**9), frame_id=frame)
 
 
 def raw_image(t: int, im: np.ndarray, encoding: str = "bgr8") -> Any:
-    Image = TS.types["sensor_msgs/msg/Image"]
+    Image = TS.types["sensor_msgs/msg/Image"]  # noqa: N806 - a message class
     data = cv2.cvtColor(im, cv2.COLOR_BGR2RGB) if encoding == "rgb8" else im
     return Image(header=header(t, "cam"), height=H, width=W, encoding=encoding, is_bigendian=0,
                  step=W * 3, data=np.ascontiguousarray(data).reshape(-1))
@@ -72,7 +72,7 @@ def write_bag(path: Path, n: int, plugin: StoragePlugin, drop_right: int = -1) -
         cl = w.add_connection("/cam0/image_raw", "sensor_msgs/msg/Image", typestore=TS)
         cr = w.add_connection("/cam1/image_raw", "sensor_msgs/msg/Image", typestore=TS)
         other = w.add_connection("/imu", "std_msgs/msg/String", typestore=TS)
-        String = TS.types["std_msgs/msg/String"]
+        String = TS.types["std_msgs/msg/String"]  # noqa: N806 - a message class
         for i in range(n):
             t = T0 + i * PERIOD
             left = raw_image(t, img(i, 0), "rgb8")
@@ -127,7 +127,7 @@ def write_stereo_msg_bag(folder: Path, n: int, right_after_ns: int = 0) -> Path:
     (folder / "StereoImage.msg").write_text(msgdef)
     store = get_typestore(Stores.ROS2_HUMBLE)
     store.register(get_types_from_msg(msgdef, "trap_msgs/msg/StereoImage"))
-    Stereo = store.types["trap_msgs/msg/StereoImage"]
+    Stereo = store.types["trap_msgs/msg/StereoImage"]  # noqa: N806 - a message class
     with Writer(folder / "bag", version=8) as w:
         c = w.add_connection("/stereo", "trap_msgs/msg/StereoImage", typestore=store)
         for i in range(n):
@@ -178,7 +178,7 @@ def test_bad_recordings_fail_with_one_clear_reason(
 
 
 def compressed(t: int, data: bytes) -> Any:
-    Compressed = TS.types["sensor_msgs/msg/CompressedImage"]
+    Compressed = TS.types["sensor_msgs/msg/CompressedImage"]  # noqa: N806 - a message class
     return Compressed(header=header(t, "cam"), format="jpeg",
                       data=np.frombuffer(data, np.uint8))
 

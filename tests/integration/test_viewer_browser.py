@@ -93,3 +93,50 @@ def test_stop_button_stops_the_pipeline(spawn, run_dir: Path, page: Any) -> None
     assert code == 0, err
     assert "totals:" in out and (run_dir / "ledger.json").exists()
     assert "stop requested from the viewer" in (run_dir / "trapflow.log").read_text()
+
+
+def _control(page: Any, attr: str, value: str, timeout: int = 30_000) -> None:
+    page.wait_for_function(
+        f"document.querySelector('#pool-mono .ctl')?.dataset.{attr} === '{value}'",
+        timeout=timeout)
+
+
+@pytest.mark.timeout(150)
+def test_pool_buttons_drive_runtime_control(spawn, run_dir: Path, page: Any) -> None:
+    """The pool's buttons change it as `trapflow pool` does: deactivate, activate, one
+    worker more; the page shows the pool's control state, its last change, the ledger's
+    pairs in progress and the degradation ladder's level."""
+    p, url = _start(spawn, run_dir)
+    page.goto(url)
+    ctl = "#pool-mono .ctl"
+    _control(page, "state", "active")
+    count = int(page.get_attribute(ctl, "data-count"))
+    assert "policy" in page.inner_text(f"{ctl} .ctl-text")
+    page.wait_for_function("document.getElementById('ledger').innerText.includes('in progress')",
+                           timeout=10_000)
+    # The default ladder's level (full on a bench, unless this machine's disk or heat moved it).
+    page.wait_for_function("document.getElementById('level').dataset.level", timeout=10_000)
+    assert page.locator("#level").is_visible()
+    status = p.status()
+    assert status is not None
+    assert page.get_attribute("#level", "data-level") in status["supervision"]["ladder"]["levels"]
+
+    page.click(f"{ctl} button.toggle")
+    _control(page, "state", "inactive")
+    assert "deactivated" in page.inner_text(f"{ctl} .ctl-reply")
+    assert page.inner_text(f"{ctl} button.toggle") == "Activate"
+    page.wait_for_function("document.querySelector('#pool-mono .ctl-text').textContent"
+                           ".includes('last change at')", timeout=10_000)
+    page.click(f"{ctl} button.toggle")
+    _control(page, "state", "active")
+    page.click(f"{ctl} button.more")
+    _control(page, "count", str(count + 1))
+    assert f"count {count} -> {count + 1}" in page.inner_text(f"{ctl} .ctl-reply")
+
+    st = p.status()
+    assert st is not None
+    sup = st["supervision"]
+    assert sup["control"] == 3
+    assert sup["pools"]["mono"]["state"] == "active"
+    assert sup["pools"]["mono"]["count"] == count + 1
+    assert "pool change requested" in (run_dir / "trapflow.log").read_text()

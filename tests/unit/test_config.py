@@ -177,3 +177,17 @@ def test_workers_still_choose_which_pools_run_after_a_merge() -> None:
         "mono": 0, "stereo": 0, "vo": 1, "tags": 2}
     assert cfg.pools["vo"].policy == "ordered:16"
     assert cfg.pools["vo"].params == {"x": 1}
+
+
+def test_config_is_a_leaf_that_imports_no_runtime_module() -> None:
+    """Pins the slip where config.py imported the events, outbox, health and policy modules
+    (and through them messages, the modem codec and frames) for their section Structs."""
+    import subprocess
+    import sys
+
+    code = ("import sys, trapflow.config; "
+            "print(' '.join(sorted(m for m in sys.modules if m.startswith('trapflow'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, timeout=60).stdout.split()
+    assert out == ["trapflow", "trapflow.config", "trapflow.errors", "trapflow.ladder_config",
+                   "trapflow.modem", "trapflow.modem.config"]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import msgspec
 import numpy as np
 import pytest
@@ -115,3 +117,49 @@ def test_link_frames_reject_malformed(data: bytes, error: str) -> None:
 def test_link_frames_refuse_to_pack_a_wrong_count(count: int) -> None:
     with pytest.raises(ProtocolError, match="frames"):
         messages.pack_frames([b"x"] * count)
+
+
+def _stats() -> messages.Stats:
+    return messages.Stats(t_wall_ns=1, uptime_s=2.0, pairs_in=3, rate_in=1.5, malformed=0,
+                          pools={})
+
+
+def test_every_tap_topic_is_decoded_by_one_function() -> None:
+    header, left, right = builders.pair_frames(seq=4)
+    pair = messages.decode_tap([messages.TOPIC_IMAGE, header, left, right])
+    assert isinstance(pair, messages.TapPair) and pair.header.seq == 4
+    assert bytes(pair.left) == left and bytes(pair.right) == right
+    meta = messages.decode_tap([messages.TOPIC_META, header])
+    assert isinstance(meta, messages.TapMeta) and meta.header == pair.header
+    stats = messages.decode_tap([messages.TOPIC_STATS, messages.encode(_stats())])
+    assert isinstance(stats, messages.TapStats) and stats.stats == _stats()
+    line = b'{"mono_ir": {"seq": 4, "label": "crab"}}'
+    res = messages.decode_tap([messages.TOPIC_RESULT, line])
+    assert res == messages.TapResult("mono_ir", {"seq": 4, "label": "crab"}, line)
+    truth = messages.Truth(seq=4, pose=(1.0,) * 12)
+    got = messages.decode_tap([messages.TOPIC_TRUTH, messages.encode(truth)])
+    assert isinstance(got, messages.TapTruth) and got.truth == truth
+
+
+def test_tap_frames_received_without_copy_are_decoded_in_place() -> None:
+    zmq = pytest.importorskip("zmq")
+    header, left, right = builders.pair_frames(seq=2)
+    msg = messages.decode_tap([zmq.Frame(f) for f in (messages.TOPIC_IMAGE, header, left,
+                                                      right)])
+    assert isinstance(msg, messages.TapPair) and isinstance(msg.left, memoryview)
+    assert bytes(msg.left) == left
+
+
+@pytest.mark.parametrize(("frames", "error"), [
+    ([], "got an empty message"),
+    ([b"image", b"x"], "expected image [topic, header, left, right]"),
+    ([b"result", b"{}", b"{}"], "with 3 frames"),
+    ([b"bogus", b"x"], "got topic b'bogus'"),
+    ([b"result", b'{"a": {}, "b": {}}'], "expected one key"),
+    ([b"result", b"x" * (messages.MAX_RESULT_BYTES + 1)], "at most"),
+    ([b"stats", b"\x01"], "stats"),
+    ([b"image", *builders.pair_frames()[:2], b""], "JPEG expected 1.."),
+])
+def test_malformed_tap_messages_say_what_was_expected(frames: list[bytes], error: str) -> None:
+    with pytest.raises(ProtocolError, match=re.escape(error)):
+        messages.decode_tap(frames)

@@ -15,7 +15,7 @@ from tests.conftest import poll_for, recv
 from trapflow import messages
 from trapflow.control import ControlClient
 from trapflow.errors import ConfigError, ProtocolError
-from trapflow.modem import command as C
+from trapflow.modem import command as C  # noqa: N812 - short: named on most lines
 from trapflow.modem.frame import (
     CMD_HEALTH,
     CMD_LEVEL,

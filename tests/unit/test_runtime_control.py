@@ -367,3 +367,27 @@ def test_control_commands_refuse_bad_usage(tmp_path: Any, args: list[str], code:
     res = CliRunner().invoke(cli.main, [*args, "--run-dir", str(tmp_path / "none")])
     assert res.exit_code == code, res.output
     assert match in res.output
+
+
+@pytest.mark.parametrize(("body", "expected", "match"), [
+    (b'{"pool": "mono", "count": 2}', messages.PoolRequest(pool="mono", count=2), None),
+    (b'{"pool": "mono", "active": false}', messages.PoolRequest(pool="mono", active=False),
+     None),
+    (b'{"pool": "mono", "policy": "fifo:4"}',
+     messages.PoolRequest(pool="mono", policy="fifo:4"), None),
+    (b'{"pool": "mono"}', None, "exactly one of count, policy, active"),
+    (b'{"pool": "mono", "count": 2, "active": true}', None, "exactly one"),
+    (b'{"pool": "mono", "count": 0}', None, ">= 1"),
+    (b'{"pool": "mo no", "count": 1}', None, "matching regex"),
+    (b'{"count": 1}', None, "missing required field `pool`"),
+    (b"not json", None, "pool change: JSON is malformed"),
+    (b" " * 5000, None, "at most 4096 bytes"),
+])
+def test_viewer_pool_changes_are_decoded_with_bounds(
+        body: bytes, expected: messages.PoolRequest | None, match: str | None) -> None:
+    """The viewer's page sends a pool change as JSON: the same bounds as the control socket."""
+    if match is None:
+        assert messages.decode_pool_change(body) == expected
+    else:
+        with pytest.raises(ProtocolError, match=match):
+            messages.decode_pool_change(body)

@@ -240,3 +240,52 @@ def test_event_images_only_from_the_events_folder(tmp_path: Path, rel: str, serv
                                       "thumb": "ev1/left/00000001.jpg"}]
     finally:
         taps.close()
+
+
+def _status(**extra: object) -> dict[str, object]:
+    return {"nodes": [], "ledger": None, **extra, "supervision": {
+        "pools": {"mono": {"state": "inactive", "count": 2, "policy": "latest", "params": {},
+                           "changes": 2},
+                  "vo": {"state": "active", "count": 1, "policy": "fifo:4", "params": {},
+                         "changes": 0}},
+        "timeline": [{"t_s": 3.0, "node": "pool:mono", "kind": "control",
+                      "reason": "count 1 -> 2"},
+                     {"t_s": 4.0, "node": "worker:vo:0", "kind": "retry", "reason": "x"},
+                     {"t_s": 5.5, "node": "pool:mono", "kind": "control",
+                      "reason": "deactivated (was active)"}]}}
+
+
+def test_pool_control_state_with_its_last_change() -> None:
+    v = ViewState()
+    v.on_status(_status())
+    snap = v.snapshot(0.0)
+    assert snap["control"]["mono"]["state"] == "inactive"
+    assert snap["control"]["mono"]["count"] == 2
+    assert snap["control"]["mono"]["last_change"] == {"t_s": 5.5,
+                                                      "change": "deactivated (was active)"}
+    assert snap["control"]["vo"]["last_change"] is None
+    # No ladder in this status: the page hides the level.
+    assert snap["level"] is None and snap["level_reason"] is None
+
+
+def test_ladder_level_from_the_supervision_status() -> None:
+    v = ViewState()
+    st = _status()
+    st["supervision"]["ladder"] = {  # type: ignore[index]
+        "level": "mono_vo", "index": 2, "levels": ["full", "ir_slowed", "mono_vo"],
+        "reason": "cpu_temp_c 86 C >= 85 C for 30 s", "forced": False, "changes": 2}
+    v.on_status(st)
+    snap = v.snapshot(0.0)
+    assert (snap["level"], snap["level_reason"], snap["level_forced"]) == \
+        ("mono_vo", "cpu_temp_c 86 C >= 85 C for 30 s", False)
+
+
+def test_ladder_level_as_top_level_fields() -> None:
+    v = ViewState()
+    v.on_status(_status(level="mono_vo", level_reason="cpu 82 C > 80 C"))
+    snap = v.snapshot(0.0)
+    assert (snap["level"], snap["level_reason"]) == ("mono_vo", "cpu 82 C > 80 C")
+
+
+def test_no_status_yet_has_no_control() -> None:
+    assert ViewState().snapshot(0.0)["control"] == {}

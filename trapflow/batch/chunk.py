@@ -275,7 +275,7 @@ def run_chunk(task: ChunkTask) -> dict[str, Any]:
                     t_proc = time.monotonic_ns()
                     body = plugin.process(pair)
                     proc_ns = time.monotonic_ns() - t_proc
-                except Exception as exc:  # one bad pair fails, the chunk goes on (as live)
+                except Exception as exc:  # noqa: BLE001 - one bad pair fails, the chunk goes on
                     reason = str(exc) if isinstance(exc, WorkerError) else (
                         f"{type(exc).__name__}: {exc}")
                     if own:

@@ -202,7 +202,7 @@ def process(cfg: Config, inputs: list[Input], out: Path, opts: Options, echo: Ec
             report = reports[inp.name]
             try:
                 report.positions = int(counts[inp.name].result())
-            except Exception as exc:  # the input cannot be opened: reported, others go on
+            except Exception as exc:  # noqa: BLE001 - an unreadable input is reported, others go on
                 report.error = f"cannot read the input: {exc}"
                 continue
             key = _plan_key(cfg_data, inp, opts)

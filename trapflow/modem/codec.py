@@ -18,12 +18,9 @@ import msgspec
 import numpy as np
 
 from trapflow.errors import ProtocolError
+from trapflow.modem.config import DEFAULT_LABELS as DEFAULT_LABELS
 from trapflow.modem.frame import Reader, put_svarint, put_uvarint
 
-DEFAULT_LABELS = (
-    "crab", "scallop", "fish", "starfish", "lobster", "urchin", "octopus", "shrimp",
-    "jellyfish", "ray", "background",
-)  # fmt: skip
 GENERIC = 0x7F
 _EPOCH_S = calendar.timegm((2020, 1, 1, 0, 0, 0, 0, 0, 0))
 

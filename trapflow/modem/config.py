@@ -1,4 +1,7 @@
-"""Configuration of the modem link: port, rates, budget, priorities, TTL and aggregation."""
+"""Configuration of the modem link (port, rates, budget, priorities, TTL and aggregation),
+its outbox and its health records: config structs only, imported by trapflow.config, so this
+module imports nothing of the runtime (the frame and codec modules take their limits from
+here)."""
 
 from __future__ import annotations
 
@@ -7,10 +10,13 @@ from typing import Annotated
 
 import msgspec
 
-from trapflow.modem.codec import DEFAULT_LABELS
-from trapflow.modem.frame import MAX_PAYLOAD
-
 BITS_PER_BYTE = 10  # 8N1 on the serial side: start, 8 data bits, stop
+MAX_PAYLOAD = 255  # largest payload a link frame can carry (its length is one byte)
+# The link encoding's label table (an index per label); the surface must use the same one.
+DEFAULT_LABELS = (
+    "crab", "scallop", "fish", "starfish", "lobster", "urchin", "octopus", "shrimp",
+    "jellyfish", "ray", "background",
+)  # fmt: skip
 
 
 def _priorities() -> list[str]:
@@ -90,3 +96,33 @@ class ModemConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     def aggregates(self, cls: str) -> bool:
         """Whether this class is summarised when behind."""
         return any(fnmatch.fnmatchcase(cls, p) for p in self.aggregate)
+
+
+class HealthConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """The periodic health message."""
+
+    enabled: bool = True
+    """Send health records."""
+    interval_s: Annotated[float, msgspec.Meta(ge=1, le=86400)] = 600.0
+    """Seconds between two health records."""
+
+
+class OutboxConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """The durable outbox between the normalizer and the modem sender."""
+
+    path: str = "outbox.sqlite"
+    """SQLite file, relative to the run directory."""
+    fsync_interval_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 1.0
+    """At most this long between an append and its fsync (what survives a power cut)."""
+    retention_s: Annotated[float, msgspec.Meta(ge=0)] = 7 * 86400.0
+    """Resolved (acknowledged, expired, aggregated) records are deleted this long after."""
+    quota_bytes: Annotated[int, msgspec.Meta(ge=1 << 16)] = 256 << 20
+    """The outbox never grows past this; resolved records go first, then appends are refused."""
+    min_free_bytes: Annotated[int, msgspec.Meta(ge=0)] = 64 << 20
+    """Appends are refused when the disk has less free space than this."""
+    max_record_bytes: Annotated[int, msgspec.Meta(ge=64, le=1 << 20)] = 16384
+    """A record whose JSON is larger is refused."""
+    class_fields: dict[str, str] = msgspec.field(
+        default_factory=lambda: {"mono_ir": "label", "stereo_ir": "label"}
+    )
+    """Message class = the record's key, plus '/' and this field's value for these keys."""

@@ -25,11 +25,11 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 
 from trapflow.errors import ProtocolError
+from trapflow.modem.config import MAX_PAYLOAD as MAX_PAYLOAD
 
 SYNC = b"\xa5\x5a"
 HEADER = len(SYNC) + 2  # sync, len, type
 OVERHEAD = HEADER + 2  # plus the CRC
-MAX_PAYLOAD = 255
 
 LEGACY_DATA = 0x01  # link protocol 1, no session: refused and counted, never acknowledged
 LEGACY_ACK = 0x02  # link protocol 1, no session: ignored by the sender

@@ -11,21 +11,13 @@ import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Any
 
-import msgspec
 import psutil
 
+from trapflow.modem.config import HealthConfig as HealthConfig
+
 PoolRates = dict[str, tuple[float, int]]  # pool -> (results per second, drops so far)
-
-
-class HealthConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
-    """The periodic health message."""
-
-    enabled: bool = True
-    """Send health records."""
-    interval_s: Annotated[float, msgspec.Meta(ge=1, le=86400)] = 600.0
-    """Seconds between two health records."""
 
 
 def _timestamp(t: float) -> str:

@@ -184,15 +184,16 @@ class ModemNode(Node):
     def _read_stats(self) -> None:
         while True:
             try:
-                _topic, data = self.stats_sub.recv_multipart(zmq.NOBLOCK)
+                frames = self.stats_sub.recv_multipart(zmq.NOBLOCK)
             except zmq.Again:
                 return
-            except ValueError:
-                continue
             try:
-                stats = messages.decode_stats(data)
+                msg = messages.decode_tap(frames)
             except ProtocolError:
                 continue
+            if not isinstance(msg, messages.TapStats):
+                continue
+            stats = msg.stats
             self.pools = {n: (p.rate, p.dropped) for n, p in stats.pools.items()}
             if self.health is not None:
                 self.health.set_level(stats.level)

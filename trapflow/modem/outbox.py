@@ -21,11 +21,12 @@ import time
 import zlib
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Any
 
 import msgspec
 
 from trapflow.errors import TrapflowError
+from trapflow.modem.config import OutboxConfig as OutboxConfig
 from trapflow.modem.frame import SESSION_BYTES
 
 log = logging.getLogger(__name__)
@@ -65,27 +66,6 @@ CREATE TABLE IF NOT EXISTS sent(            -- link ledger for the hourly byte b
 """
 
 _PACK = struct.Struct("<qq")
-
-
-class OutboxConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
-    """The durable outbox between the normalizer and the modem sender."""
-
-    path: str = "outbox.sqlite"
-    """SQLite file, relative to the run directory."""
-    fsync_interval_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 1.0
-    """At most this long between an append and its fsync (what survives a power cut)."""
-    retention_s: Annotated[float, msgspec.Meta(ge=0)] = 7 * 86400.0
-    """Resolved (acknowledged, expired, aggregated) records are deleted this long after."""
-    quota_bytes: Annotated[int, msgspec.Meta(ge=1 << 16)] = 256 << 20
-    """The outbox never grows past this; resolved records go first, then appends are refused."""
-    min_free_bytes: Annotated[int, msgspec.Meta(ge=0)] = 64 << 20
-    """Appends are refused when the disk has less free space than this."""
-    max_record_bytes: Annotated[int, msgspec.Meta(ge=64, le=1 << 20)] = 16384
-    """A record whose JSON is larger is refused."""
-    class_fields: dict[str, str] = msgspec.field(
-        default_factory=lambda: {"mono_ir": "label", "stereo_ir": "label"}
-    )
-    """Message class = the record's key, plus '/' and this field's value for these keys."""
 
 
 class OutboxFull(TrapflowError):

@@ -130,7 +130,7 @@ class LiveStereoSource(Source):
         for release in self._releases:
             try:
                 release()
-            except Exception:  # noqa: BLE001 - a dead device may fail to release; nothing to do
+            except Exception:
                 log.debug("%s: release failed", self.kind, exc_info=True)
         for th in self._threads:
             th.join(timeout=2.0)

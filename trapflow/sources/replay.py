@@ -328,7 +328,7 @@ class ReplaySource(Source):
             for item in self._reader.messages(connections=conns):
                 yield item
                 index += 1
-        except Exception as exc:  # rosbags raises many types for a damaged file
+        except Exception as exc:  # noqa: BLE001 - rosbags raises many types for a damaged file
             raise SourceError(f"replay: {self.path} is damaged after message {index}: "
                               f"{type(exc).__name__}: {exc}") from None
 
@@ -337,7 +337,7 @@ class ReplaySource(Source):
         assert self._reader is not None
         try:
             return self._reader.deserialize(raw, conn.msgtype)
-        except Exception as exc:  # rosbags raises many types for bad bytes
+        except Exception as exc:  # noqa: BLE001 - rosbags raises many types for bad bytes
             return Undecodable(f"message {index} on {conn.topic} ({conn.msgtype}, "
                                f"{len(raw)} bytes) does not decode: {type(exc).__name__}: {exc}")
 

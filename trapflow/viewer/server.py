@@ -19,7 +19,9 @@ import cv2
 import numpy as np
 from aiohttp import web
 
+from trapflow import messages
 from trapflow.config import Config
+from trapflow.errors import ProtocolError
 from trapflow.viewer import metrics
 from trapflow.viewer.state import Frame, ViewState
 from trapflow.viewer.taps import PipelineTaps
@@ -29,6 +31,7 @@ log = logging.getLogger(__name__)
 PUMP_S = 0.05  # tap drain period: 20 wake-ups a second
 STATUS_S = 1.0
 EVENTS_S = 2.0
+CONTROL_WAIT_S = 10.0  # a queued change waits for the status request out, then its own
 STATIC = ("index.html", "viewer.js", "viewer.css")
 _TYPES = {".html": "text/html", ".js": "text/javascript", ".css": "text/css"}
 # A POST that changes the pipeline must carry this header: a page of another site cannot
@@ -69,6 +72,7 @@ class Viewer:
             web.get("/events/{rel:.+}", self._event_image),
             web.get("/metrics", self._metrics),
             web.post("/api/stop", self._stop),
+            web.post("/api/pool", self._pool),
         ])
 
     # --- the loop -----------------------------------------------------------------------
@@ -84,7 +88,7 @@ class Viewer:
                 self._jpeg_cache.clear()
             if now >= next_status:
                 self.taps.poll_status(now)
-                next_status = now + (0.05 if self.taps._req_sent else STATUS_S)
+                next_status = now + (PUMP_S if self.taps.busy() else STATUS_S)
             if now >= next_events:
                 self.taps.scan_events()
                 next_events = now + EVENTS_S
@@ -146,17 +150,35 @@ class Viewer:
         return web.Response(body=body, headers={
             "Content-Type": "text/plain; version=0.0.4; charset=utf-8"})
 
-    async def _stop(self, request: web.Request) -> web.Response:
-        if request.headers.get(CONTROL_HEADER) != "stop":
-            raise web.HTTPForbidden(text=f"expected header {CONTROL_HEADER}: stop "
+    def _check_control(self, request: web.Request, what: str) -> None:
+        if request.headers.get(CONTROL_HEADER) != what:
+            raise web.HTTPForbidden(text=f"expected header {CONTROL_HEADER}: {what} "
                                          "(sent by the viewer's own page)")
         host = (request.url.host or "").strip("[]")
         if self.loopback_only and host not in LOOPBACK_NAMES:
             raise web.HTTPForbidden(text=f"expected a request to 127.0.0.1 or localhost, "
                                          f"got Host {request.host!r}")
+
+    async def _stop(self, request: web.Request) -> web.Response:
+        self._check_control(request, "stop")
         self.taps.request_stop()
         log.warning("stop requested from the viewer")
         return web.json_response({"stopping": True})
+
+    async def _pool(self, request: web.Request) -> web.Response:
+        """A runtime change of one pool (count, policy, activate/deactivate), as `trapflow
+        pool` makes it: 200 with the supervisor's reply, 409 when it refused the change."""
+        self._check_control(request, "pool")
+        try:
+            req = messages.decode_pool_change(await request.read())
+        except ProtocolError as exc:
+            raise web.HTTPBadRequest(text=str(exc)) from None
+        log.info("viewer: pool change requested: %s", messages.to_builtins(req))
+        try:
+            reply = await asyncio.wait_for(self.taps.request(req), CONTROL_WAIT_S)
+        except asyncio.TimeoutError:
+            reply = {"error": f"no answer from the supervisor within {CONTROL_WAIT_S:g} s"}
+        return web.json_response(reply, status=409 if "error" in reply else 200)
 
 
 async def serve(cfg: Config, run_dir: Path, host: str, port: int,

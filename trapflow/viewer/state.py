@@ -220,6 +220,7 @@ class ViewState:
                      "detections": ann.get("detections", []), "tags": ann.get("tags", [])}
         st = self.status or {}
         modem = next((n for n in st.get("nodes", []) if n["name"] == "modem"), None)
+        sup = st.get("supervision") or {}
         return {
             "uptime_s": self.stats.uptime_s if self.stats else 0.0,
             "pairs_in": self.stats.pairs_in if self.stats else 0,
@@ -247,4 +248,28 @@ class ViewState:
                       if modem else None),
             "events": self.events,
             "results": dict(self.results_in),
+            "control": control_view(sup),
+            **ladder_view(st),
         }
+
+
+def ladder_view(status: dict[str, Any]) -> dict[str, Any]:
+    """The degradation ladder's level, why, and whether an operator forced it, where the
+    status has a ladder (supervision.ladder; a top-level level/level_reason also counts);
+    None for each where it has none."""
+    lad = (status.get("supervision") or {}).get("ladder") or {}
+    return {"level": lad.get("level", status.get("level")),
+            "level_reason": lad.get("reason", status.get("level_reason")),
+            "level_forced": lad.get("forced")}
+
+
+def control_view(supervision: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Each pool's runtime control state (lifecycle, count, policy, parameters) with its
+    last change from the supervision timeline (seconds since start, what changed)."""
+    last: dict[str, dict[str, Any]] = {}
+    for e in supervision.get("timeline") or ():
+        node = str(e.get("node", ""))
+        if e.get("kind") == "control" and node.startswith("pool:"):
+            last[node[len("pool:"):]] = {"t_s": e.get("t_s"), "change": e.get("reason")}
+    return {name: {**p, "last_change": last.get(name)}
+            for name, p in (supervision.get("pools") or {}).items()}

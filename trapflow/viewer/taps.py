@@ -9,9 +9,11 @@ mark drops old pairs here, not upstream.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import time
+from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -52,7 +54,13 @@ class PipelineTaps:
         ]
         self.req: zmq.Socket[bytes] | None = None
         self._req_sent = 0.0
-        self._pending_stop = False
+        # Control requests from the page, sent one at a time between status requests; the
+        # future (if any) gets the supervisor's reply.
+        self._queued: deque[tuple[messages.AnyControl, asyncio.Future[dict[str, Any]] | None]]
+        self._queued = deque()
+        self._waiting: asyncio.Future[dict[str, Any]] | None = None
+        self._refresh = False  # a change was answered: ask for status at once
+        self._control_out = False  # the request out is a queued one (its reply is no status)
         self.ratelog = RateLimitedLog(log)
 
     # --- taps ------------------------------------------------------------------------
@@ -76,18 +84,15 @@ class PipelineTaps:
         return n
 
     def _feed(self, frames: list[bytes], now: float) -> None:
-        topic = frames[0]
-        if topic == messages.TOPIC_RESULT and len(frames) == 2:
-            kind, fields = messages.decode_result_line(frames[1])
-            self.state.on_result(kind, fields, time.time())
-        elif topic == messages.TOPIC_IMAGE and len(frames) == 4:
-            header = messages.decode_pair_header(frames[1])
-            self.state.on_image(header, frames[2], frames[3])
-        elif topic == messages.TOPIC_STATS and len(frames) == 2:
-            self.state.on_stats(messages.decode_stats(frames[1]), now)
+        msg = messages.decode_tap(frames)
+        if isinstance(msg, messages.TapResult):
+            self.state.on_result(msg.kind, msg.fields, time.time())
+        elif isinstance(msg, messages.TapPair):
+            self.state.on_image(msg.header, bytes(msg.left), bytes(msg.right))
+        elif isinstance(msg, messages.TapStats):
+            self.state.on_stats(msg.stats, now)
         else:
-            raise ProtocolError(f"tap: expected image (4 frames), stats or result (2 frames), "
-                                f"got topic {topic[:20]!r} with {len(frames)} frames")
+            raise ProtocolError(f"tap: expected image, stats or result, got {msg!r:.60}")
 
     # --- control ---------------------------------------------------------------------
 
@@ -97,7 +102,8 @@ class PipelineTaps:
         return self.req
 
     def poll_status(self, now: float) -> None:
-        """Ask for status when no request is out; take the reply when it came.
+        """Send the next request when none is out (a queued control request, else status);
+        take the reply when it came.
 
         A REQ that got no answer in time is closed and opened afresh (a REQ cannot send
         twice in a row), and the state says the supervisor does not answer.
@@ -110,23 +116,49 @@ class PipelineTaps:
                 try:
                     reply: dict[str, Any] = json.loads(data)
                 except ValueError as exc:
+                    self._answer({"error": f"reply is not JSON: {exc}"})
                     self.state.on_status(None, f"status reply is not JSON: {exc}")
                     return
-                self.state.on_status(reply)
+                if self._control_out:  # the answer to a change or a stop, not status
+                    self._answer(reply)
+                    self._refresh = True
+                else:
+                    self.state.on_status(reply)
             elif now - self._req_sent > STATUS_TIMEOUT_S:
                 req.close(linger=0)
                 self.req, self._req_sent = None, 0.0
-                self.state.on_status(None, f"no answer from {self.endpoints.control} within "
-                                           f"{STATUS_TIMEOUT_S:g} s")
+                error = f"no answer from {self.endpoints.control} within {STATUS_TIMEOUT_S:g} s"
+                self._answer({"error": error})
+                self.state.on_status(None, error)
             return
-        what = messages.StopRequest() if self._pending_stop else messages.StatusRequest()
-        self._pending_stop = False
+        what: messages.AnyControl = messages.StatusRequest()
+        self._control_out = bool(self._queued)
+        if self._queued:
+            what, self._waiting = self._queued.popleft()
+        else:
+            self._refresh = False
         req.send(messages.encode(what))
         self._req_sent = now
 
+    def busy(self) -> bool:
+        """A request is out or waiting to go: poll again soon, not in a second."""
+        return bool(self._req_sent or self._queued or self._refresh)
+
+    def _answer(self, reply: dict[str, Any]) -> None:
+        fut, self._waiting = self._waiting, None
+        if fut is not None and not fut.done():
+            fut.set_result(reply)
+
     def request_stop(self) -> None:
         """The next control request is a stop (sent by poll_status, never blocking)."""
-        self._pending_stop = True
+        self._queued.append((messages.StopRequest(), None))
+
+    def request(self, what: messages.PoolRequest | messages.ParamRequest
+                ) -> asyncio.Future[dict[str, Any]]:
+        """Queue a runtime change; the future gets the supervisor's reply (or an error)."""
+        fut: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
+        self._queued.append((what, fut))
+        return fut
 
     # --- event folders -----------------------------------------------------------------
 

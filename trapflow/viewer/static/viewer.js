@@ -75,7 +75,7 @@ function sparkline(canvas, values, color, label, unit) {
   canvas.dataset.points = values.length;
 }
 
-function drawPools(pools) {
+function drawPools(pools, control) {
   const box = $("pools");
   for (const [name, p] of Object.entries(pools)) {
     let el = $(`pool-${name}`);
@@ -90,11 +90,76 @@ function drawPools(pools) {
     const l = p.last || {};
     el.querySelector(".txt").textContent =
       `processed ${l.processed || 0}, dropped ${l.dropped || 0}, failed ${l.errors || 0}, lost ${l.lost || 0}`;
+    drawControl(el, name, (control || {})[name]);
     sparkline(el.querySelector(".rate"), p.rate, "#7fdc8a", "rate", "/s");
     sparkline(el.querySelector(".drops"), p.drops, "#ff7b6b", "drops", "/s");
     sparkline(el.querySelector(".latency"), p.latency_ms, "#e8c35a", "latency", " ms");
     sparkline(el.querySelector(".workers"), p.workers, "#8fc3d8", "workers", "");
   }
+}
+
+// Runtime control of one pool (as `trapflow pool` does it): its lifecycle, worker count,
+// policy and last change, with buttons that send one change each.
+function drawControl(el, name, c) {
+  let box = el.querySelector(".ctl");
+  if (!c) { if (box) box.hidden = true; return; }
+  if (!box) {
+    box = document.createElement("div");
+    box.className = "ctl";
+    box.innerHTML = `<span class="ctl-state"></span> <span class="ctl-text"></span><br>` +
+      `<button type="button" class="toggle"></button> ` +
+      `<button type="button" class="less" title="One worker less">&minus;</button> ` +
+      `<button type="button" class="more" title="One worker more">+</button> ` +
+      `<span class="ctl-reply"></span>`;
+    el.insertBefore(box, el.querySelector("canvas"));
+    box.querySelector(".toggle").addEventListener("click", () =>
+      changePool(box, { pool: name, active: box.dataset.state !== "active" }));
+    box.querySelector(".less").addEventListener("click", () =>
+      changePool(box, { pool: name, count: Number(box.dataset.count) - 1 }));
+    box.querySelector(".more").addEventListener("click", () =>
+      changePool(box, { pool: name, count: Number(box.dataset.count) + 1 }));
+  }
+  box.hidden = false;
+  box.dataset.state = c.state;
+  box.dataset.count = c.count;
+  const st = box.querySelector(".ctl-state");
+  st.textContent = c.state;
+  st.className = `ctl-state ${c.state}`;
+  const last = c.last_change ? `; last change at ${c.last_change.t_s} s: ${c.last_change.change}` : "";
+  const off = c.off_by ? ` (off by ${c.off_by})` : "";
+  const slow = c.min_interval_s ? `, at most one pair every ${c.min_interval_s} s` : "";
+  box.querySelector(".ctl-text").textContent = `${c.count} workers, policy ${c.policy}${off}${slow}${last}`;
+  box.querySelector(".toggle").textContent = c.state === "active" ? "Deactivate" : "Activate";
+  box.querySelector(".less").disabled = c.count <= 1;
+}
+
+async function changePool(box, change) {
+  const reply = box.querySelector(".ctl-reply");
+  reply.textContent = "asking…";
+  try {
+    const r = await fetch("/api/pool", {
+      method: "POST", body: JSON.stringify(change),
+      headers: { "X-Trapflow-Control": "pool", "Content-Type": "application/json" },
+    });
+    const body = await r.text();
+    let msg = body;
+    try { const j = JSON.parse(body); msg = j.error || j.change || body; } catch (e) { /* plain text */ }
+    reply.textContent = msg;
+    reply.className = `ctl-reply ${r.ok ? "good" : "bad"}`;
+  } catch (e) {
+    reply.textContent = "viewer not answering";
+    reply.className = "ctl-reply bad";
+  }
+}
+
+// The degradation ladder's level, shown only where the status model has one.
+function drawLevel(level, reason, forced) {
+  const el = $("level");
+  if (level === undefined || level === null) { el.hidden = true; return; }
+  el.hidden = false;
+  const why = [forced ? "forced" : "", reason || ""].filter((x) => x).join(": ");
+  el.textContent = `level ${level}${why ? ` (${why})` : ""}`;
+  el.dataset.level = level;
 }
 
 function drawVO(vo) {
@@ -128,7 +193,10 @@ function drawTables(s) {
     rows.push(["captured", s.ledger.produced], ["reached broker", s.ledger.reached_broker],
       ["dropped at capture", s.ledger.dropped_at_capture], ["failed at capture", s.ledger.failed_at_capture]);
     for (const [name, p] of Object.entries(s.ledger.pools)) {
-      rows.push([name, `processed ${p.processed}, dropped ${p.dropped_by_policy} (${p.policy}), failed ${p.failed}, timed out ${p.timed_out}, lost ${p.lost}`]);
+      const going = p.unfinished_at_stop !== undefined ? `, unfinished at stop ${p.unfinished_at_stop}`
+        : p.in_progress !== undefined ? `, in progress ${p.in_progress}` : "";
+      const inactive = p.dropped_inactive ? `, inactive ${p.dropped_inactive}` : "";
+      rows.push([name, `processed ${p.processed}, dropped ${p.dropped_by_policy} (${p.policy})${inactive}, failed ${p.failed}, timed out ${p.timed_out}, lost ${p.lost}${going}`]);
     }
   }
   $("ledger").tBodies[0].innerHTML = rows.map(([k, v]) => `<tr><td>${esc(k)}</td><td>${esc(v)}</td></tr>`).join("");
@@ -151,7 +219,8 @@ async function poll() {
     $("summary").textContent = `up ${s.uptime_s.toFixed(0)} s, ${s.pairs_in} pairs in (${s.rate_in}/s), shown ${s.frames.shown} of ${s.frames.received} tapped`;
     $("stereo").textContent = s.stereo ? `stereo: ${s.stereo.label} ${(s.stereo.confidence * 100).toFixed(0)}%` : "";
     if (s.frame) drawPair(s.frame);
-    drawPools(s.pools);
+    drawPools(s.pools, s.control);
+    drawLevel(s.level, s.level_reason, s.level_forced);
     drawVO(s.vo);
     drawTables(s);
   } catch (e) {

@@ -15,6 +15,7 @@ every complete message of the .part into a valid MCAP. record() owns one SUB soc
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 import logging
 import os
@@ -58,6 +59,7 @@ FRAME_LEFT = "trapflow_left"
 FRAME_RIGHT = "trapflow_right"
 RAW_JPEG_QUALITY = 90
 _SEQ_MEMORY = 4096  # pairs whose capture time a late result can still find
+_EARLY_MAX = 4096  # result lines held for a pair not yet received
 # A chunk is closed (and the file fsynced) at least this often: what a kill -9 can lose.
 # Each closed chunk costs a few hundred bytes of index and one fsync; at 1 s, nothing.
 FLUSH_INTERVAL_S = 1.0
@@ -120,6 +122,9 @@ class Recorder:
             self._annotations_type = None
         self._seq_time: OrderedDict[int, int] = OrderedDict()
         self._pending: dict[str, tuple[int, list[dict[str, Any]]]] = {}  # algo -> seq, items
+        self._early: dict[int, list[tuple[str, str, Any]]] = {}  # results ahead of their pair
+        self._early_lines = 0
+        self._last_pair = -1  # the highest pair seq recorded
         self._poses: list[tuple[int, list[list[float]]]] = []  # the VO trajectory so far
         self._tf_written = False
         self.counts = RecordCounts()
@@ -170,7 +175,10 @@ class Recorder:
         self._seq_time[header.seq] = t_left
         if len(self._seq_time) > _SEQ_MEMORY:
             self._seq_time.popitem(last=False)
+        self._last_pair = max(self._last_pair, header.seq)
         self.counts.pairs += 1
+        if self._early:
+            self._release_early(header.seq)
         self.maybe_flush()
 
     def maybe_flush(self) -> None:
@@ -225,13 +233,33 @@ class Recorder:
             raise RecorderError(f"result: expected an algorithm name as key, got {algo!r}")
         seq = body.get("seq") if isinstance(body, dict) else None
         seq = seq if isinstance(seq, int) and seq >= 0 else -1
-        t = self._seq_time.get(seq, time.time_ns())
+        if seq > self._last_pair and seq not in self._seq_time:
+            # Its pair is still on the way: the big image frames come through their own
+            # tap connection and fall behind the results under load. The result waits for
+            # its pair's capture time (Foxglove draws annotations on the image with the
+            # same stamp; a receive time would also sort it after later results).
+            self._early.setdefault(seq, []).append((text, algo, body))
+            self._early_lines += 1
+            if self._early_lines > _EARLY_MAX:
+                self._release_early(min(self._early))
+            return
+        self._emit(text, algo, body, seq, self._seq_time.get(seq) or _stamp_of(body))
+
+    def _emit(self, text: str, algo: str, body: Any, seq: int, t: int) -> None:
         self._write(RESULTS_PREFIX + algo, "std_msgs/msg/String", {"data": text.strip()},
                     t, seq)
         self.counts.results[algo] = self.counts.results.get(algo, 0) + 1
         if isinstance(body, dict):
             self._derived(algo, body, seq, t)
         self.maybe_flush()
+
+    def _release_early(self, upto: int) -> None:
+        """Write the held results of every pair up to seq `upto`, in order: with their
+        pair's capture time, or the time in the result when the tap dropped the pair."""
+        for seq in sorted(s for s in self._early if s <= upto):
+            for text, algo, body in self._early.pop(seq):
+                self._early_lines -= 1
+                self._emit(text, algo, body, seq, self._seq_time.get(seq) or _stamp_of(body))
 
     def _derived(self, algo: str, body: dict[str, Any], seq: int, t: int) -> None:
         """The typed messages a result line adds: VO odometry, and image annotations (one
@@ -250,7 +278,7 @@ class Recorder:
     def _annotate(self, algo: str) -> None:
         seq, items = self._pending.pop(algo)
         assert self._annotations_type is not None
-        t = self._seq_time.get(seq, time.time_ns())
+        t = self._seq_time.get(seq) or _stamp_of(items[0])
         self._write(ANNOTATIONS_PREFIX + algo, self._annotations_type,
                     msgs.image_annotations(algo, items, t), t, seq)
         self.counts.annotations[algo] = self.counts.annotations.get(algo, 0) + 1
@@ -261,6 +289,8 @@ class Recorder:
             return
         self.closed = True
         try:
+            if self._early:
+                self._release_early(max(self._early))
             for algo in list(self._pending):
                 self._annotate(algo)
             if self._poses:  # the whole trajectory once, stamped with its last pose
@@ -276,6 +306,20 @@ class Recorder:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _stamp_of(body: Any) -> int:
+    """A result's own capture time (its `timestamp`, UTC to the millisecond) in ns, for a
+    result whose pair the recording does not have; the receive time if it has none."""
+    stamp = body.get("timestamp") if isinstance(body, dict) else None
+    if isinstance(stamp, str):
+        try:
+            when = dt.datetime.strptime(stamp, "%Y-%m-%d %H:%M:%S.%f")
+        except ValueError:
+            pass
+        else:
+            return int(when.replace(tzinfo=dt.timezone.utc).timestamp() * 1000) * 1_000_000
+    return time.time_ns()
 
 
 def _is_pose(value: object) -> bool:

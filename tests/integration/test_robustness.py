@@ -245,7 +245,10 @@ def test_ledger_accounts_for_every_pair(spawn, run_dir: Path) -> None:
     assert pools["flaky"]["failed"] > 0 and pools["flaky"]["failures"] == {
         "WorkerError": pools["flaky"]["failed"]}
     assert pools["stuck"]["timed_out"] > 0
-    assert pools["fast"]["processed"] >= produced - 5
+    # The fast pool keeps up: nothing dropped or lost (how many are still in flight at the
+    # stop depends on the machine's load; a count of processed pairs failed on a loaded one).
+    assert pools["fast"]["dropped_by_policy"] == 0 and pools["fast"]["lost"] == 0, pools["fast"]
+    assert pools["fast"]["processed"] > produced // 2
     assert "failed" in out and "timed out" in out
 
 

@@ -36,8 +36,9 @@ def scene_frames(pytestconfig: pytest.Config, tmp_path_factory: pytest.TempPathF
     hash of the renderer's source (rendering takes about a minute on two cores); in a
     temporary folder when the cache is switched off."""
     key = hashlib.sha256(Path(vo_scene.__file__).read_bytes()).hexdigest()[:16]
-    if pytestconfig.cache is not None:
-        cache = pytestconfig.cache.mkdir(f"vo_scene_{key}")
+    store = getattr(pytestconfig, "cache", None)  # absent with -p no:cacheprovider
+    if store is not None:
+        cache = store.mkdir(f"vo_scene_{key}")
     else:
         cache = tmp_path_factory.mktemp("vo_scene")
     return {name: vo_scene.sequence(name, cache) for name in vo_scene.SEQUENCES}

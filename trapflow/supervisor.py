@@ -34,6 +34,23 @@ from trapflow.node import NodeSpec, node_main
 from trapflow.ratelog import RateLimitedLog, wire
 from trapflow.run_ledger import RunLedger
 from trapflow.sensors import Sensors
+from trapflow.supervisor_actions import (
+    RECYCLE_EXITS,
+    Action,
+    AddWorker,
+    Budget,
+    GiveUp,
+    Kill,
+    LevelChanged,
+    NodePlan,
+    Reconfigure,
+    Retire,
+    Retry,
+    Spawn,
+    Stop,
+    SwitchPool,
+    WorkerGone,
+)
 from trapflow.supervisor_control import BrokerLink, Control
 from trapflow.supervisor_report import Report
 from trapflow.supervisor_setup import (
@@ -44,25 +61,7 @@ from trapflow.supervisor_setup import (
     lock_run_dir,
     preflight,
 )
-from trapflow.supervisor_state import (
-    RECYCLE_EXITS,
-    Action,
-    AddWorker,
-    Budget,
-    DurationClock,
-    GiveUp,
-    Kill,
-    LevelChanged,
-    NodePlan,
-    Reconfigure,
-    Retire,
-    Retry,
-    Spawn,
-    Stop,
-    SupervisorState,
-    SwitchPool,
-    WorkerGone,
-)
+from trapflow.supervisor_state import DurationClock, SupervisorState
 from trapflow.transport import (
     Endpoints,
     SocketSpec,

@@ -18,7 +18,8 @@ import zmq
 from trapflow import messages
 from trapflow.errors import ProtocolError
 from trapflow.ratelog import RateLimitedLog, wire
-from trapflow.supervisor_state import Action, Lifecycle, Refused, SupervisorState
+from trapflow.supervisor_actions import Action, Lifecycle, Refused
+from trapflow.supervisor_state import SupervisorState
 
 log = logging.getLogger(__name__)
 

@@ -1,8 +1,9 @@
 """The broker process: translates sockets to BrokerState events and actions to sends.
 
 Owns: PULL from capture, ROUTER to workers, a local link of results to the
-normalizer (in batches), PUB tap (frame metadata, images, stats once a second), and
-with network.remote.bind a second ROUTER for workers on other hosts (CURVE, ZAP).
+normalizer (in batches), PUB tap (frame metadata, images, stats once a second: read and
+published by its base trapflow.broker_tap.TapSide), and with network.remote.bind a second
+ROUTER for workers on other hosts (CURVE, ZAP: trapflow.broker_remote_socket.RemoteSide).
 Image frames are forwarded as received (zero-copy); only the small header is
 decoded. With the shared-memory ring, capture and local workers talk to it over
 local links instead (descriptors only).
@@ -15,15 +16,14 @@ import contextlib
 import logging
 import os
 import time
-from pathlib import Path
 from typing import Any
 
-import msgspec
 import zmq
 
-from trapflow import jpeg, messages
-from trapflow.broker_remote import RemoteWorkers
+from trapflow import messages
+from trapflow.broker_remote_socket import RemoteSide, frame_bytes
 from trapflow.broker_state import BrokerState, Dispatch, Evicted, PoolSpec, Rejected, Release
+from trapflow.broker_tap import TapSide
 from trapflow.errors import ProtocolError
 from trapflow.frame_ring import HELD, FrameRing
 from trapflow.node import ACTIVE, Node, NodeSpec
@@ -38,18 +38,13 @@ from trapflow.transport import (
     TapGate,
     accept_link,
     listen_link,
-    open_monitor,
     open_socket,
-    read_monitor,
-    server_keys,
-    start_authenticator,
     zmq_readable,
 )
 
 log = logging.getLogger(__name__)
 
 STATS_INTERVAL_S = 1.0
-_NOBLOCK = int(zmq.NOBLOCK)  # a plain int: zmq's enum flags cost a conversion per call
 TICK_INTERVAL_S = 0.1
 RESULTS_BATCH_BYTES = 64 << 10  # results leave in datagrams of about this size, or less
 MAX_WAITING_RESULTS = 100_000  # kept while no normalizer listens; beyond, the oldest go
@@ -57,7 +52,7 @@ SUPERVISOR_IDENT = b"supervisor"  # the supervisor's DEALER identity on the work
 MAX_GOODBYES = 256  # workers that left on purpose, remembered for the log's level
 
 
-class BrokerNode(Node):
+class BrokerNode(RemoteSide, TapSide, Node):
     """Distributes pairs to worker pools with back-pressure and per-pool policies."""
 
     def __init__(self, spec: NodeSpec) -> None:
@@ -195,7 +190,7 @@ class BrokerNode(Node):
             self._on_capture(self.pull.recv_multipart(copy=False))
 
     def _on_capture(self, frames: list[Any]) -> None:
-        if len(frames) == 2 and _bytes(frames[0]) == messages.TOPIC_TRUTH:
+        if len(frames) == 2 and frame_bytes(frames[0]) == messages.TOPIC_TRUTH:
             self._publish(messages.TOPIC_TRUTH, frames[1])  # out of band, for the tap only
             return
         ref: messages.FrameRef | None = None
@@ -379,126 +374,6 @@ class BrokerNode(Node):
 
     # --- remote workers (another host) ----------------------------------------------
 
-    def _open_remote(self) -> None:
-        """The ROUTER remote workers reach (network.remote.bind), with CURVE and ZAP when
-        keys are configured, and a monitor that counts the handshakes it refused."""
-        rc = self.cfg.network.remote
-        self.remotes = RemoteWorkers()
-        self.remote_router: zmq.Socket[bytes] | None = None
-        self.monitor: zmq.Socket[bytes] | None = None
-        self.auth: Any = None
-        if not rc.bind:
-            return
-        curve = None
-        if rc.curve:
-            curve = server_keys(Path(rc.server_key))
-            self.auth = start_authenticator(self.ctx, Path(rc.authorized_keys))
-        self.remote_router = open_socket(self.ctx, SocketSpec(
-            zmq.ROUTER, rc.bind, bind=True, router_mandatory=True, curve=curve))
-        self.monitor = open_monitor(self.remote_router)
-        self.poller.register(self.remote_router)
-        self.poller.register(self.monitor)
-        log.info("remote workers: %s (%s)", rc.bind,
-                 "CURVE, authorised keys in " + rc.authorized_keys if rc.curve else "loopback, "
-                 "no keys")
-
-    def _evict_silent_hosts(self, now: float) -> None:
-        """Workers whose host's supervisor went silent are gone with it: their pairs lost."""
-        liveness = self.cfg.supervisor.liveness_s
-        for ident in self.remotes.silent(now, liveness, self.state.worker_pools()):
-            self._apply(self.state.worker_gone(
-                ident, f"its host's supervisor silent for more than {liveness:g} s", now))
-
-    def _on_handshakes(self) -> None:
-        assert self.monitor is not None
-        self.poller.touch(self.monitor)
-        for reason in read_monitor(self.monitor):
-            self._refuse(reason, "refused a remote worker's connection (%s): only clients "
-                         "whose public key is in network.remote.authorized_keys may connect",
-                         reason)
-
-    def _drain_remote(self) -> None:
-        """Remote workers: JoinRequest and Hello first, then the local workers' messages."""
-        sock = self.remote_router
-        assert sock is not None
-        self.poller.touch(sock)
-        for _ in range(256):
-            if not zmq_readable(sock):
-                return
-            frames = sock.recv_multipart(copy=False)
-            ident = frames[0].bytes
-            try:
-                if len(frames) < 2:
-                    raise ProtocolError(
-                        f"remote worker message: expected 2 or 3 frames, got {len(frames)}")
-                msg = messages.decode_worker_msg(frames[1])
-                if isinstance(msg, (messages.JoinRequest, messages.Hello)):
-                    welcome, why = self._welcome(ident, msg)
-                    if why:
-                        self._refuse(why, "refused remote %s '%s': %s", type(msg).__name__,
-                                     wire(ident.decode("utf-8", "replace")), welcome.error)
-                    elif isinstance(msg, messages.Hello) and not self.remotes.joined(
-                            ident, msg.host, msg.pool, msg.owner.encode(), time.monotonic()):
-                        continue  # the hello of every heartbeat: known, nothing to answer
-                    sock.send_multipart([ident, messages.encode(welcome)])
-                elif isinstance(msg, messages.HostAlive):
-                    self.remotes.owner_seen(ident, time.monotonic())
-                elif isinstance(msg, messages.Gone):
-                    target = msg.worker.encode()
-                    if not self.remotes.may_report(ident, target):
-                        self._refuse("forged_gone", "refused a gone message for worker '%s' "
-                                     "from remote '%s': only that worker or its own "
-                                     "supervisor may send it", wire(msg.worker),
-                                     wire(ident.decode("utf-8", "replace")))
-                        continue
-                    self._goodbye(target, msg.reason)
-                    self._apply(self.state.worker_gone(
-                        target, msg.reason, time.monotonic(),
-                        requeue=msg.reason.startswith(messages.GONE_RECYCLED)))
-                elif isinstance(msg, messages.LadderLevel):
-                    self._refuse("forged_level", "refused a ladder level from remote '%s': "
-                                 "only the supervisor may send it",
-                                 wire(ident.decode("utf-8", "replace")))
-                elif isinstance(msg, messages.Stopping):
-                    self._refuse("forged_stopping", "refused a stopping notice from remote "
-                                 "'%s': only the supervisor may send it",
-                                 wire(ident.decode("utf-8", "replace")))
-                elif self.remotes.pool_of(ident) != msg.pool:
-                    self._refuse("remote_not_joined", "refused a message from remote '%s' "
-                                 "for pool '%s': expected a hello for that pool first",
-                                 wire(ident.decode("utf-8", "replace")), wire(msg.pool))
-                else:
-                    self._on_worker_msg(ident, msg, frames)
-            except ProtocolError as exc:
-                self.malformed += 1
-                self.ratelog.warning("remote", "dropped malformed remote message: %s", exc)
-            except zmq.ZMQError as exc:  # EHOSTUNREACH: it left before its answer
-                self.unroutable += 1
-                self.ratelog.warning("route", "cannot answer remote %r: %s", ident, exc)
-
-    def _welcome(self, ident: bytes, msg: messages.JoinRequest | messages.Hello
-                 ) -> tuple[messages.Welcome, str]:
-        """The pool's configuration for a remote worker, or the reason it may not join."""
-        pcfg = self.cfg.pools.get(msg.pool)
-        remote = sorted(n for n, p in self.cfg.pools.items() if p.remote)
-        error, why = "", ""
-        if pcfg is None or not pcfg.remote:
-            why = "remote_unknown_pool"
-            error = (f"pool {msg.pool!r} takes no remote workers: expected one of "
-                     f"{remote or 'none'} (pools with remote: true in the pipeline's config)")
-        elif isinstance(msg, messages.Hello) and (
-                msg.worker.encode() != ident or "@" not in msg.worker):
-            why = "remote_bad_identity"
-            error = (f"expected a worker identity POOL@HOST:INDEX:PID equal to the socket's, "
-                     f"got {msg.worker!r} on a socket named {ident!r}")
-        if error or pcfg is None:
-            return messages.Welcome(pool=msg.pool, error=error), why
-        rig = self.spec.the_rig()
-        return messages.Welcome(
-            pool=msg.pool, plugin=self.cfg.plugin_of(msg.pool),
-            pool_config=msgspec.to_builtins(pcfg), rig=msgspec.to_builtins(rig),
-            heartbeat_interval_s=self.cfg.supervisor.heartbeat_interval_s), ""
-
     def close(self) -> None:
         if self.auth is not None:
             self.auth.stop()
@@ -680,22 +555,6 @@ class BrokerNode(Node):
         row = self.ring.payload(ref)
         return [frames[0], bytes(row[0]), bytes(row[1])]
 
-    def _remote_payload(self, seq: int) -> list[Any]:
-        """[header, left, right] as JPEG for a remote pool: a raw pair (the default on one
-        host) is encoded once, whichever remote pools take it; a JPEG pair goes as it came."""
-        cached = self._jpeg.get(seq)
-        if cached is not None:
-            return cached
-        frames = self._payload(seq, copy=True)
-        header = messages.decode_pair_header(_bytes(frames[0]))
-        if header.encoding != "raw":
-            return frames
-        header, left, right = jpeg.to_jpeg_pair(header, _bytes(frames[1]), _bytes(frames[2]),
-                                                self.cfg.source.jpeg_quality)
-        out = [messages.encode(header), left, right]
-        self._jpeg[seq] = out
-        return out
-
     def _reclaim_held(self) -> None:
         """A new broker knows of no pair: slots a previous broker held are free again."""
         assert self.ring is not None
@@ -703,41 +562,6 @@ class BrokerNode(Node):
                 for slot in range(self.ring.slots) if self.ring.state(slot) == HELD)
         if n:
             log.warning("freed %d ring slots held by a previous broker", n)
-
-    def _on_subscriptions(self) -> None:
-        self.poller.touch(self.tap)
-        if self.gate.drain():
-            self.wanted = {t: self.gate.wanted(t) for t in messages.TAP_TOPICS}
-
-    def _publish(self, topic: bytes, *frames: Any) -> None:
-        self.poller.touch(self.tap)
-        try:
-            self.tap.send_multipart([topic, *frames], _NOBLOCK, copy=False)
-        except zmq.Again:
-            pass  # a slow subscriber loses tap messages; the pipeline never waits
-
-    def _publish_stats(self, now: float) -> None:
-        dt = now - self._last_stats
-        self._last_stats = now
-        pools = self.state.pool_stats()
-        for name, ps in pools.items():
-            prev = self._last_processed.get(name, 0)
-            self._last_processed[name] = ps.processed
-            pools[name] = msgspec.structs.replace(ps, rate=round((ps.processed - prev) / dt, 2))
-        stats = messages.Stats(
-            t_wall_ns=time.time_ns(),
-            uptime_s=round(now - self.started, 3),
-            pairs_in=self.state.pairs_in,
-            rate_in=round((self.state.pairs_in - self._last_in) / dt, 2),
-            malformed=self.malformed,
-            pools=pools,
-            remote=self.remotes.stats(dt, self.state.worker_pools()),
-            level=self.level,
-            level_reason=self.level_reason,
-        )
-        self._last_in = self.state.pairs_in
-        self._publish(messages.TOPIC_STATS, messages.encode(stats))  # cheap: once a second
-
 
 def _local_msg(msg: messages.AnyWorkerMsg) -> messages.Ready | messages.Alive | messages.Done \
         | messages.Failed | messages.Gone | messages.PoolSwitch | messages.LadderLevel \
@@ -749,7 +573,3 @@ def _local_msg(msg: messages.AnyWorkerMsg) -> messages.Ready | messages.Alive | 
                             f"a local path, got {type(msg).__name__} (remote workers connect "
                             f"to network.remote.bind)")
     return msg
-
-
-def _bytes(frame: Any) -> bytes:
-    return frame.bytes if isinstance(frame, zmq.Frame) else bytes(frame)

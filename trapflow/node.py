@@ -26,7 +26,7 @@ from trapflow import messages
 from trapflow.camera import StereoRig
 from trapflow.config import Config
 from trapflow.logchannel import LogSender
-from trapflow.supervisor_state import Lifecycle
+from trapflow.supervisor_actions import Lifecycle
 from trapflow.transport import Endpoints, SocketSpec, log_endpoint, new_context, open_socket
 
 log = logging.getLogger(__name__)

@@ -20,8 +20,8 @@ from trapflow import messages
 from trapflow.errors import ProtocolError
 from trapflow.modem.outbox import Outbox, OutboxFull
 from trapflow.node import ACTIVE, FINALIZED, Node, NodeSpec
-from trapflow.normalize import dumps, normalize
 from trapflow.ratelog import RateLimitedLog
+from trapflow.result_json import dumps, normalize
 from trapflow.transport import (
     LINK_RETRY_S,
     TAP_RCVHWM,

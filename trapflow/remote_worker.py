@@ -28,7 +28,7 @@ from trapflow.camera import StereoRig
 from trapflow.errors import ConfigError, ProtocolError, StartupError
 from trapflow.logchannel import LogListener
 from trapflow.node import JoinSpec, NodeSpec, node_main
-from trapflow.supervisor_state import RECYCLE_EXITS
+from trapflow.supervisor_actions import RECYCLE_EXITS
 from trapflow.transport import SocketSpec, client_keys, log_endpoint, new_context, open_socket
 from trapflow.worker import WorkerNode
 

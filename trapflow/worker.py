@@ -27,7 +27,7 @@ from trapflow.frame_ring import RingError, RingReader
 from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec, freeze_heap
 from trapflow.plugin import Context, Pair, Worker
 from trapflow.ratelog import RateLimitedLog
-from trapflow.supervisor_state import EXIT_RECYCLED_JOBS, EXIT_RECYCLED_RSS
+from trapflow.supervisor_actions import EXIT_RECYCLED_JOBS, EXIT_RECYCLED_RSS
 from trapflow.transport import LINK_RETRY_S, Link, LinkClient, LinkClosed, SocketSpec, open_socket
 
 log = logging.getLogger(__name__)

@@ -18,14 +18,8 @@ from trapflow.ladder import AUTO, Ladder, LadderConfig, Readings, SensorsConfig,
 from trapflow.policy import parse_policy
 from trapflow.run_ledger import RunLedger
 from trapflow.sensors import Sensors
-from trapflow.supervisor_state import (
-    Budget,
-    LevelChanged,
-    Lifecycle,
-    Refused,
-    SupervisorState,
-    SwitchPool,
-)
+from trapflow.supervisor_actions import Budget, LevelChanged, Lifecycle, Refused, SwitchPool
+from trapflow.supervisor_state import SupervisorState
 
 HOT = TriggerConfig(sensor="cpu_temp_c", dwell_s=0.0,
                     enter={"ir_slowed": 75, "mono_vo": 80, "vo_health": 85},

@@ -1,4 +1,4 @@
-"""The README's results.jsonl table and trapflow.normalize agree, key by key.
+"""The README's results.jsonl table and trapflow.result_json agree, key by key.
 
 Regression (issue 15): docs/plugins.md described VO lines as `rotation`/`translation` while
 results.jsonl writes `Rt`, and no document listed `calib`, `model` or `v`. Every body type a
@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from trapflow import messages
-from trapflow.normalize import normalize
+from trapflow.result_json import normalize
 
 README = Path(__file__).resolve().parents[2] / "README.md"
 PLUGIN_ROW = "*plugin name*"

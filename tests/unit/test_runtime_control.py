@@ -14,7 +14,8 @@ from trapflow.broker_state import BrokerState, Dispatch, PoolSpec, Release
 from trapflow.control import parse_assignment
 from trapflow.errors import ProtocolError
 from trapflow.policy import parse_policy
-from trapflow.supervisor_state import (
+from trapflow.pool_control_state import worker_name
+from trapflow.supervisor_actions import (
     AddWorker,
     Budget,
     Lifecycle,
@@ -23,11 +24,10 @@ from trapflow.supervisor_state import (
     Refused,
     Retire,
     Spawn,
-    SupervisorState,
     SwitchPool,
     WorkerGone,
-    worker_name,
 )
+from trapflow.supervisor_state import SupervisorState
 
 
 def core(count: int = 2, params: dict[str, Any] | None = None) -> SupervisorState:

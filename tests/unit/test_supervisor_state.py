@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from trapflow.supervisor_state import (
+from trapflow.supervisor_actions import (
     EXIT_RECYCLED_JOBS,
     EXIT_RECYCLED_RSS,
     Budget,
@@ -16,9 +16,9 @@ from trapflow.supervisor_state import (
     Retry,
     Spawn,
     Stop,
-    SupervisorState,
     WorkerGone,
 )
+from trapflow.supervisor_state import SupervisorState
 
 BUDGET = Budget(max_restarts=2, window_s=60.0, backoff_s=0.5, backoff_max_s=4.0,
                 cooldown_s=30.0)

@@ -11,7 +11,7 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from trapflow import messages
 from trapflow.errors import ProtocolError
-from trapflow.normalize import dumps, normalize
+from trapflow.result_json import dumps, normalize
 from trapflow.viewer import metrics
 from trapflow.viewer.params import parse_view
 from trapflow.viewer.state import Histogram, ViewState, parse_timestamp

@@ -29,8 +29,8 @@ from trapflow.batch.plan import SEQUENTIAL_POOLS, Chunk, Input, fingerprint
 from trapflow.camera import StereoRig
 from trapflow.config import Config
 from trapflow.errors import WorkerError
-from trapflow.normalize import dumps, normalize
 from trapflow.plugin import Context, Pair, Worker
+from trapflow.result_json import dumps, normalize
 from trapflow.rig import describe, mismatch
 from trapflow.sources import SkipPair, Source, open_source
 from trapflow.worker import STAMPED, decode_pair

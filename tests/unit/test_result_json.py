@@ -10,7 +10,7 @@ import pytest
 
 from tests import builders
 from trapflow import messages
-from trapflow.normalize import SCHEMA_VERSION, dumps, normalize, timestamp
+from trapflow.result_json import SCHEMA_VERSION, dumps, normalize, timestamp
 
 T = 1751892763120000000  # 2025-07-07 12:52:43.120 UTC
 

@@ -4,9 +4,12 @@ worker that leaves on purpose is no warning in the broker's log."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -35,14 +38,11 @@ def _ledger(run_dir: Path) -> dict:
     return data
 
 
-@pytest.mark.timeout(60)
-def test_broker_reads_a_recycled_workers_goodbye_before_it_calls_a_send_news(
-        run_dir: Path, prefix: str, caplog: pytest.LogCaptureFixture) -> None:
-    """Pins the broker's "cannot reach worker ...: Broken pipe" warning at a normal stop: a
-    worker answered its last pair, said goodbye and closed its link before the broker read
-    the answer; the answer gave it a credit back, the broker sent it the next pair into the
-    closed link, warned and counted that pair lost. Now the broker reads the goodbye waiting
-    on the link first: the pair is queued again (not lost) and the log says it at debug."""
+@contextlib.contextmanager
+def _broker_with_link(run_dir: Path, prefix: str
+                      ) -> Iterator[tuple[BrokerNode, LinkClient, Any, Any]]:
+    """A broker of one `noop` pool (fifo:8) over a real ring, and one worker link it has
+    accepted: (broker, client, the worker's end of the link, the broker's end)."""
     make_private(run_dir)
     cfg = Config(pools={"noop": PoolConfig(plugin="noop", policy="fifo:8")})
     ring = FrameRing.create(8, 64 * 48 * 3 * 2, prefix=prefix)
@@ -54,6 +54,22 @@ def test_broker_reads_a_recycled_workers_goodbye_before_it_calls_a_send_news(
         listener = next(lst for lst, role in broker.listeners.items() if role == "worker")
         broker._accept(listener)
         (served,) = broker.link_role
+        yield broker, client, link, served
+    finally:
+        client.drop()
+        broker.close()
+        ring.close()
+
+
+@pytest.mark.timeout(60)
+def test_broker_reads_a_recycled_workers_goodbye_before_it_calls_a_send_news(
+        run_dir: Path, prefix: str, caplog: pytest.LogCaptureFixture) -> None:
+    """Pins the broker's "cannot reach worker ...: Broken pipe" warning at a normal stop: a
+    worker answered its last pair, said goodbye and closed its link before the broker read
+    the answer; the answer gave it a credit back, the broker sent it the next pair into the
+    closed link, warned and counted that pair lost. Now the broker reads the goodbye waiting
+    on the link first: the pair is queued again (not lost) and the log says it at debug."""
+    with _broker_with_link(run_dir, prefix) as (broker, client, link, served):
         ident = messages.worker_identity("noop", 0, 4242)
         link.send([messages.encode(messages.Ready(worker=ident, pool="noop", credit=1))])
         broker._drain_link(served)
@@ -76,10 +92,6 @@ def test_broker_reads_a_recycled_workers_goodbye_before_it_calls_a_send_news(
         assert warned == []
         assert any("which is leaving" in r.getMessage() for r in caplog.records)
         assert broker.unroutable == 1  # the send did fail: this is the path pinned
-    finally:
-        client.drop()
-        broker.close()
-        ring.close()
 
 
 @pytest.mark.timeout(60)
@@ -90,17 +102,7 @@ def test_the_supervisors_notice_of_a_recycle_does_not_overtake_the_workers_answe
     goodbye pair went back to the queue and the worker's answer, read next, was refused as
     from an unknown worker (a warning, the result dropped, the pair computed twice). The
     broker now reads that worker's link before it applies the notice."""
-    make_private(run_dir)
-    cfg = Config(pools={"noop": PoolConfig(plugin="noop", policy="fifo:8")})
-    ring = FrameRing.create(8, 64 * 48 * 3 * 2, prefix=prefix)
-    broker = BrokerNode(NodeSpec("broker", "broker", cfg, run_dir, ring=ring.name))
-    client = LinkClient(broker.endpoints.workers_link)
-    try:
-        link = client.get()
-        assert link is not None
-        listener = next(lst for lst, role in broker.listeners.items() if role == "worker")
-        broker._accept(listener)
-        (served,) = broker.link_role
+    with _broker_with_link(run_dir, prefix) as (broker, client, link, served):
         ident = messages.worker_identity("noop", 0, 4343)
         link.send([messages.encode(messages.Ready(worker=ident, pool="noop", credit=1))])
         broker._drain_link(served)
@@ -119,10 +121,6 @@ def test_the_supervisors_notice_of_a_recycle_does_not_overtake_the_workers_answe
         assert (st.processed, st.lost, st.pending, st.in_flight) == (1, 0, 0, 0)
         assert broker.state.rejected == {} and len(broker._out) == 1
         assert [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING] == []
-    finally:
-        client.drop()
-        broker.close()
-        ring.close()
 
 
 @pytest.mark.timeout(60)

@@ -11,7 +11,6 @@ its control request, and the surface's grammar (`trapflow surface --command`).
 
 from __future__ import annotations
 
-import contextlib
 import hmac
 import os
 import shlex
@@ -25,6 +24,7 @@ import msgspec
 
 from trapflow import messages
 from trapflow.errors import ConfigError, ProtocolError
+from trapflow.modem import surface_state
 from trapflow.modem.codec import LinkCodec
 from trapflow.modem.frame import (
     CMD_HEALTH,
@@ -106,23 +106,8 @@ def verify(key: bytes, frame: SignedFrame) -> bool:
 
 
 def write_durably(path: Path, data: bytes) -> None:
-    """Replace path with data atomically and durably (tmp file, fsync, rename, fsync dir)."""
-    tmp = path.with_name(path.name + ".tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    try:
-        view = memoryview(data)
-        while view:
-            view = view[os.write(fd, view) :]
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    os.replace(tmp, path)
-    with contextlib.suppress(OSError):  # some filesystems refuse to sync a directory
-        dfd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
+    """Replace path with data atomically and durably, readable by its owner only."""
+    surface_state.write_durably(path, data, mode=0o600)
 
 
 # --- the box's memory of commands ----------------------------------------------------------

@@ -125,11 +125,10 @@ def load_state(path: Path) -> SurfaceState:
     return state
 
 
-def save_state(path: Path, state: SurfaceState) -> None:
-    """Write state to path atomically and durably (tmp file, fsync, replace, fsync dir)."""
+def write_durably(path: Path, data: bytes, mode: int = 0o644) -> None:
+    """Replace path with data atomically and durably (tmp file, fsync, replace, fsync dir)."""
     tmp = path.with_name(path.name + ".tmp")
-    data = msgspec.json.encode(state) + b"\n"
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
     try:
         view = memoryview(data)
         while view:
@@ -145,3 +144,8 @@ def save_state(path: Path, state: SurfaceState) -> None:
             os.fsync(dfd)
         finally:
             os.close(dfd)
+
+
+def save_state(path: Path, state: SurfaceState) -> None:
+    """Write state to path atomically and durably."""
+    write_durably(path, msgspec.json.encode(state) + b"\n")

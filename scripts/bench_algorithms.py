@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -23,10 +24,12 @@ from trapflow_workers.common import MODELS_DIR
 from trapflow_workers.crab_detector import VARIANTS, CrabDetector
 from trapflow_workers.scene_classifier import SceneClassifier
 from trapflow_workers.stereo_vo import StereoOdometry
-from trapflow_workers.testkit import make_context, make_pair
-from trapflow_workers.testkit_scenes import FloorWorld, circle_path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.kits
 from trapflow_workers.vo_metrics import as_4x4, drift_percent, end_drift_percent, path_length
 
+from tests.kits.context import make_context, make_pair
+from tests.kits.scenes import FloorWorld, circle_path
 from trapflow.camera import StereoRig
 from trapflow.plugin import Worker
 from trapflow.synth import SynthOptions, World
@@ -43,7 +46,7 @@ PLUGINS: dict[str, type[Worker]] = {
 
 def _models(tmp: Path) -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
     """Params per pool and where each model came from."""
-    from trapflow_workers.testkit_onnx import colour_classifier, constant_detector, yolo_tensor
+    from tests.kits.onnx_models import colour_classifier, constant_detector, yolo_tensor
 
     params: dict[str, dict[str, Any]] = {"mono": {}, "stereo": {}, "vo": {}, "tags": {}}
     origin = {"mono": "demo model", "stereo": "demo model", "vo": "-", "tags": "-"}

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import io
 import json
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -19,8 +20,9 @@ from typing import Any
 
 import cv2
 import msgspec
-from trapflow_workers.testkit_scenes import FloorWorld, looking_down
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.kits
+from tests.kits.scenes import FloorWorld, looking_down
 from trapflow.batch.chunk import ChunkTask, run_chunk
 from trapflow.batch.plan import Chunk, Input, find_inputs
 from trapflow.batch.run import Options, dask_client, process

@@ -40,13 +40,14 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.kits
 import synth_demo_data as sd
 from trapflow_workers.common import MODELS_DIR
 from trapflow_workers.crab_detector import CrabDetector
 from trapflow_workers.onnx_session import SessionSettings, open_session
-from trapflow_workers.testkit import make_context
 from trapflow_workers.yolo_preprocess import Preprocessor
 
+from tests.kits.context import make_context
 from trapflow import jpeg
 from trapflow.camera import StereoRig
 from trapflow.messages import StereoPair

@@ -31,6 +31,7 @@ import torch
 from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.kits
 import synth_demo_data as sd
 
 # A classifier trained on few worlds learns their floors (0.98 on them, 0.51 on unseen ones):
@@ -246,7 +247,8 @@ def export(model: Classifier, path: Path, x: np.ndarray) -> float:
 def evaluate(path: Path, seeds: list[int], per_seed: int) -> dict[str, object]:
     """Accuracy and time per pair through the runtime plugin itself, on full-size frames."""
     from trapflow_workers.scene_classifier import SceneClassifier
-    from trapflow_workers.testkit import make_context, make_pair
+
+    from tests.kits.context import make_context, make_pair
 
     clf = SceneClassifier()
     clf.configure({"model": str(path), "providers": ["cpu"], "threshold": 0.0}, make_context())

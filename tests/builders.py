@@ -56,10 +56,10 @@ def floor_scene(rig: StereoRig, n: int, step_m: float = 0.02, height_m: float = 
     """n rectified pairs of a textured floor with an AprilTag at the world origin, the rig
     looking straight down and translating step_m per pair along world x; and the poses.
 
-    Rendered through exact homographies with the rig's own K and baseline (testkit_scenes),
+    Rendered through exact homographies with the rig's own K and baseline (tests/kits/scenes.py),
     independently of trapflow's synthetic world.
     """
-    from trapflow_workers.testkit_scenes import FloorWorld, looking_down
+    from tests.kits.scenes import FloorWorld, looking_down
 
     world = FloorWorld.square(rig, 4.0, res_m=0.003, seed=seed)
     side = int(round(tag_m / world.res_m))

@@ -23,11 +23,11 @@ from pathlib import Path
 
 import pytest
 from trapflow_workers.crab_detector import CrabDetector
-from trapflow_workers.testkit import make_context
 
 from tests import builders
 from tests.conformance.conftest import kit_path
 from tests.conformance.detections import Det, assert_same
+from tests.kits.context import make_context
 from trapflow import jpeg
 from trapflow.camera import StereoRig
 from trapflow.plugin import Pair

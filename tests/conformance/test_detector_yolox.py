@@ -22,9 +22,9 @@ from tests.conformance.detections import Det, assert_same, differ, trapflow_dete
 onnx = pytest.importorskip("onnx", reason="building the tiny YOLOX models needs onnx")
 import onnxruntime as ort  # noqa: E402
 from trapflow_workers.crab_detector import CrabDetector  # noqa: E402
-from trapflow_workers.testkit import make_context  # noqa: E402
 
 from tests.conformance.tiny_yolo import STRIDES, yolox_model  # noqa: E402
+from tests.kits.context import make_context  # noqa: E402
 
 KIT = "04_onnx_detectors"
 IMAGES = ["bus.jpg", "zidane.jpg"]

@@ -16,9 +16,9 @@ import cv2
 import numpy as np
 import pytest
 from trapflow_workers.apriltags import C_PIXEL_CENTRE, AprilTags, c_library_detector
-from trapflow_workers.testkit import make_context, make_pair
 
 from tests.conformance.conftest import kit_path
+from tests.kits.context import make_context, make_pair
 from trapflow.camera import StereoRig
 
 # The reference: pupil-apriltags, the AprilTag C library (its detectors are made through

@@ -16,9 +16,9 @@ import cv2
 import numpy as np
 import pytest
 from trapflow_workers.stereo_vo import StereoOdometry
-from trapflow_workers.testkit import make_context, make_pair
 
 from tests.conformance.conftest import kit_path
+from tests.kits.context import make_context, make_pair
 from trapflow.camera import StereoRig
 
 KIT = "01_stereo_checkerboard_opencv"

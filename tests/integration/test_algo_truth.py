@@ -16,9 +16,9 @@ import pytest
 from trapflow_workers.apriltags import AprilTags
 from trapflow_workers.crab_detector import CrabDetector
 from trapflow_workers.stereo_vo import StereoOdometry
-from trapflow_workers.testkit import make_context, make_pair
 from trapflow_workers.vo_metrics import as_4x4, drift_percent, end_drift_percent, path_length
 
+from tests.kits.context import make_context, make_pair
 from trapflow.camera import StereoRig
 from trapflow.synth import SynthOptions, World
 from trapflow.synth.dataset import labelled

@@ -7,9 +7,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from trapflow_workers.testkit_scenes import pose, rot_x, tag_image
 
 from tests.conftest import Pipeline, write_config
+from tests.kits.scenes import pose, rot_x, tag_image
 from trapflow.camera import StereoRig
 
 TAGGED = {1: 5, 4: 17}  # pair index -> tag id; the other pairs show no tag

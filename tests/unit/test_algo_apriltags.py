@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from trapflow_workers import apriltags
 from trapflow_workers.apriltags import AprilTags, tag_object_points
-from trapflow_workers.testkit import make_context, make_pair
-from trapflow_workers.testkit_scenes import pose, rot_x, rot_z, tag_image
 
+from tests.kits.context import make_context, make_pair
+from tests.kits.scenes import pose, rot_x, rot_z, tag_image
 from trapflow.camera import StereoRig
 from trapflow.errors import WorkerError
 
@@ -154,7 +154,7 @@ def test_a_process_that_used_the_c_library_exits_cleanly() -> None:
         "from trapflow.synth.options import SynthOptions\n"
         "from trapflow.synth.render import World\n"
         "from trapflow_workers.apriltags import AprilTags\n"
-        "from trapflow_workers.testkit import make_context, make_pair\n"
+        "from tests.kits.context import make_context, make_pair\n"
         "from tests.unit.test_algo_apriltags import RIG\n"
         "world = World(RIG, seed=2, moving=True, rate_hz=15.0,\n"
         "              options=SynthOptions(tags=8, tag_size_m=0.12))\n"

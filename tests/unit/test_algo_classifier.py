@@ -8,9 +8,9 @@ from typing import Any
 import numpy as np
 import pytest
 from trapflow_workers.scene_classifier import SceneClassifier
-from trapflow_workers.testkit import make_context, make_pair
-from trapflow_workers.testkit_onnx import colour_classifier, constant_detector
 
+from tests.kits.context import make_context, make_pair
+from tests.kits.onnx_models import colour_classifier, constant_detector
 from trapflow.errors import WorkerError
 
 LABELS = "blue\ngreen\nred\n"

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from trapflow_workers.crab_detector import CrabDetector
 from trapflow_workers.onnx_session import open_session
-from trapflow_workers.testkit import make_context, make_pair
-from trapflow_workers.testkit_onnx import constant_detector, yolo_tensor
 
+from tests.kits.context import make_context, make_pair
+from tests.kits.onnx_models import constant_detector, yolo_tensor
 from trapflow.errors import WorkerError
 
 HW = (320, 320)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from trapflow_workers.testkit import make_context, make_pair
 
+from tests.kits.context import make_context, make_pair
 from trapflow import registry
 from trapflow.errors import WorkerError
 from trapflow.messages import Extra, Result, decode_result, encode

@@ -10,10 +10,10 @@ import cv2
 import numpy as np
 import pytest
 from trapflow_workers.stereo_vo import StereoOdometry
-from trapflow_workers.testkit import make_context, make_pair
-from trapflow_workers.testkit_scenes import FloorWorld, circle_path
 from trapflow_workers.vo_metrics import as_4x4, drift_percent
 
+from tests.kits.context import make_context, make_pair
+from tests.kits.scenes import FloorWorld, circle_path
 from trapflow.camera import StereoRig
 from trapflow.errors import WorkerError
 

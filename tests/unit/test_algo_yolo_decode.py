@@ -5,7 +5,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from trapflow_workers.testkit_onnx import yolo_tensor
 from trapflow_workers.yolo_decode import (
     DEFAULT_STRIDES,
     _yolox_grid,
@@ -23,6 +22,7 @@ from trapflow_workers.yolo_preprocess import (
     letterbox,
 )
 
+from tests.kits.onnx_models import yolo_tensor
 from trapflow.errors import WorkerError
 
 BOXES = [(40.0, 60.0, 120.0, 140.0), (200.0, 30.0, 260.0, 90.0)]

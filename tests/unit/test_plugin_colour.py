@@ -11,10 +11,10 @@ from trapflow_workers.apriltags import AprilTags
 from trapflow_workers.common import check_frame
 from trapflow_workers.crab_detector import CrabDetector
 from trapflow_workers.stereo_vo import StereoOdometry
-from trapflow_workers.testkit import make_pair
 from trapflow_workers.vo_metrics import as_4x4, drift_percent
 
 from tests import builders
+from tests.kits.context import make_pair
 from tests.unit.test_algo_stereo_vo import _frames, _vo
 from trapflow.errors import WorkerError
 from trapflow.worker import decode_image
@@ -76,8 +76,8 @@ def test_burn_spends_cpu_not_wall_time() -> None:
     import time
 
     from trapflow_workers.testing import Burn
-    from trapflow_workers.testkit import make_context
 
+    from tests.kits.context import make_context
     from trapflow.camera import StereoRig
 
     burn = Burn()

@@ -13,8 +13,7 @@ from pathlib import Path
 import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
-
-from .yolo_decode import DEFAULT_STRIDES, Layout
+from trapflow_workers.yolo_decode import DEFAULT_STRIDES, Layout
 
 OPSET = 17
 IR_VERSION = 8

@@ -1,0 +1,1 @@
+"""Builders the tests and benchmarks share: plugin contexts, tiny ONNX models, exact scenes."""

@@ -30,7 +30,7 @@ from trapflow_workers.vo_metrics import as_4x4, drift_percent, end_drift_percent
 
 from tests.kits.context import make_context, make_pair
 from tests.kits.scenes import FloorWorld, circle_path
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 from trapflow.plugin import Worker
 from trapflow.synth import SynthOptions, World
 
@@ -100,9 +100,9 @@ def _detector_variants(rig: StereoRig, params: dict[str, Any], n: int,
     arrays at every step); a JPEG pair decoded whole and at the detector's DCT reduction."""
     from trapflow_workers.yolo_preprocess import allocate_tensor
 
-    from trapflow import jpeg
-    from trapflow.messages import StereoPair
-    from trapflow.worker import decode_pair
+    from trapflow.stages.worker import decode_pair
+    from trapflow.wire import jpeg
+    from trapflow.wire.messages import StereoPair
 
     cv2.setNumThreads(1)
     frames = [left for left, _ in _frames("mono", rig, n)]

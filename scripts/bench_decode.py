@@ -17,9 +17,9 @@ from typing import Any
 
 import cv2
 
-from trapflow import jpeg
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 from trapflow.synth import SynthOptions, World
+from trapflow.wire import jpeg
 
 SIZES = ((1280, 720), (1920, 1080))
 
@@ -44,14 +44,14 @@ def bench(width: int, height: int, repeats: int) -> dict[str, float]:
     out = {
         "encode cv2": _cpu_ms(lambda: cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 90]),
                               repeats),
-        "encode trapflow.jpeg": _cpu_ms(lambda: jpeg.encode(img, 90), repeats),
+        "encode trapflow.wire.jpeg": _cpu_ms(lambda: jpeg.encode(img, 90), repeats),
         "cv2 colour": _cpu_ms(lambda: cv2.imdecode(data, cv2.IMREAD_COLOR), repeats),
         "cv2 grey": _cpu_ms(lambda: cv2.imdecode(data, cv2.IMREAD_GRAYSCALE), repeats),
         "cv2 colour 1/2": _cpu_ms(lambda: cv2.imdecode(data, cv2.IMREAD_REDUCED_COLOR_2),
                                   repeats),
-        "trapflow.jpeg colour": _cpu_ms(lambda: jpeg.decode(raw), repeats),
-        "trapflow.jpeg grey": _cpu_ms(lambda: jpeg.decode(raw, grey=True), repeats),
-        "trapflow.jpeg colour 1/2": _cpu_ms(lambda: jpeg.decode(raw, reduce=2), repeats),
+        "trapflow.wire.jpeg colour": _cpu_ms(lambda: jpeg.decode(raw), repeats),
+        "trapflow.wire.jpeg grey": _cpu_ms(lambda: jpeg.decode(raw, grey=True), repeats),
+        "trapflow.wire.jpeg colour 1/2": _cpu_ms(lambda: jpeg.decode(raw, reduce=2), repeats),
     }
     return out
 
@@ -73,7 +73,7 @@ def main() -> None:
     rows = [f"| {k} | " + " | ".join(f"{r[f'{w}x{h}'][k]:.1f}" for w, h in SIZES) + " |"
             for k in keys]
     (out / "decode.md").write_text(
-        f"## JPEG of one image, CPU ms, one thread (trapflow.jpeg uses {r['decoder']})\n\n"
+        f"## JPEG of one image, CPU ms, one thread (trapflow.wire.jpeg uses {r['decoder']})\n\n"
         "| operation | " + " | ".join(f"{w}x{h}" for w, h in SIZES) + " |\n|---|"
         + "---:|" * len(SIZES) + "\n" + "\n".join(rows) + "\n")
     print(json.dumps(r))

@@ -16,8 +16,8 @@ from typing import Any
 
 import msgspec
 
+from trapflow.config.modem import BITS_PER_BYTE, ModemConfig
 from trapflow.modem.codec import LinkCodec
-from trapflow.modem.config import BITS_PER_BYTE, ModemConfig
 from trapflow.modem.frame import OVERHEAD, message_cost
 from trapflow.modem.outbox import Outbox, OutboxConfig
 

@@ -26,8 +26,8 @@ from tests.kits.scenes import FloorWorld, looking_down
 from trapflow.batch.chunk import ChunkTask, run_chunk
 from trapflow.batch.plan import Chunk, Input, find_inputs
 from trapflow.batch.run import Options, dask_client, process
-from trapflow.camera import StereoRig
-from trapflow.config import Config
+from trapflow.calibration.camera import StereoRig
+from trapflow.config.schema import Config
 
 
 def write_folder(root: Path, n: int, width: int, height: int) -> None:

@@ -22,9 +22,9 @@ from typing import Any
 
 import zmq
 
-from trapflow import messages
-from trapflow.keys import generate
-from trapflow.transport import (
+from trapflow.wire import messages
+from trapflow.wire.keys import generate
+from trapflow.wire.transport import (
     SocketSpec,
     client_keys,
     new_context,

@@ -36,8 +36,8 @@ from bench_transport import (
     raw_pyzmq,
 )
 
-from trapflow import frame_ring, messages
-from trapflow.transport import accept_link, connect_link, listen_link
+from trapflow.wire import frame_ring, messages
+from trapflow.wire.transport import accept_link, connect_link, listen_link
 
 
 def _shm_consumer(name: str, path: str, conn: Any) -> None:

@@ -17,7 +17,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import cv2  # noqa: E402
 
-from trapflow.camera import StereoRig  # noqa: E402
+from trapflow.calibration.camera import StereoRig  # noqa: E402
 from trapflow.synth import SynthOptions, World  # noqa: E402
 
 

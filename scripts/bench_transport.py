@@ -26,11 +26,11 @@ import numpy as np
 import psutil
 import zmq
 
-from trapflow import config as configmod
-from trapflow import messages
-from trapflow.frame_ring import FrameRing, RingWriter, ring_slots, slot_capacity
-from trapflow.node import NodeSpec, node_main
-from trapflow.transport import Endpoints, Link, LinkClosed, connect_link
+from trapflow.config import schema as configmod
+from trapflow.runtime.node import NodeSpec, node_main
+from trapflow.wire import messages
+from trapflow.wire.frame_ring import FrameRing, RingWriter, ring_slots, slot_capacity
+from trapflow.wire.transport import Endpoints, Link, LinkClosed, connect_link
 
 PAGE = 4096
 WINDOW = 4  # pairs in flight per consumer, as in the peer measurements

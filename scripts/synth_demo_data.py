@@ -8,7 +8,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 from trapflow.synth import SynthOptions, World
 from trapflow.synth.dataset import labelled
 

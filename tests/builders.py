@@ -8,10 +8,10 @@ import time
 import cv2
 import numpy as np
 
-from trapflow import messages
-from trapflow.calibration import StereoCalibration
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
+from trapflow.calibration.model import StereoCalibration
 from trapflow.sources.base import Frames, SkipPair, Source
+from trapflow.wire import messages
 
 
 def pair_header(seq: int = 0, width: int = 64, height: int = 48,

@@ -45,7 +45,7 @@ def recv(sock: zmq.Socket[bytes], timeout: float = 2.0) -> list[bytes]:
 
 def modem_cli(*args: str) -> subprocess.Popen[bytes]:
     """A modem command (`modem-sim`, `surface`) as a real process; its stderr is kept."""
-    cmd = [sys.executable, "-m", "trapflow.modem.cli", *args]
+    cmd = [sys.executable, "-m", "trapflow.cli.modem", *args]
     return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
 
@@ -266,7 +266,7 @@ def spawn() -> Iterator[Callable[..., Pipeline]]:
 @pytest.fixture
 def prefix() -> Iterator[str]:
     """A shared-memory segment prefix of this test's own; its segments are removed after."""
-    from trapflow import frame_ring as fr
+    from trapflow.wire import frame_ring as fr
 
     p = f"tftest{secrets.token_hex(3)}-"
     yield p
@@ -277,6 +277,6 @@ def prefix() -> Iterator[str]:
 def only_pools(pools: dict[str, Any]) -> dict[str, Any]:
     """A `pools:` section that runs exactly these pools: a user's pools merge over the default
     pools, so the defaults it does not name are switched off here."""
-    from trapflow.config import Config
+    from trapflow.config.schema import Config
 
     return {**{name: {"count": 0} for name in Config().pools if name not in pools}, **pools}

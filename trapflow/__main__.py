@@ -1,5 +1,5 @@
 """`python -m trapflow` runs the command line."""
 
-from trapflow.cli import main
+from trapflow.cli.main import main
 
 main()

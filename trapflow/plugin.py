@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from trapflow.camera import StereoRig
-from trapflow.messages import Body, StereoPair
+from trapflow.calibration.camera import StereoRig
+from trapflow.wire.messages import Body, StereoPair
 
 
 @dataclass(frozen=True)
@@ -69,7 +69,7 @@ class Worker:
     #: that shrinks each image to at most this size in both directions (a detector's
     #: letterbox, a classifier's resize) sets it, from its model's input, in configure():
     #: a JPEG pair is then decoded at the largest DCT reduction (1/2, 1/4, 1/8) that still
-    #: covers it (trapflow.jpeg.scale_for), which costs a fraction of a full decode, and
+    #: covers it (trapflow.wire.jpeg.scale_for), which costs a fraction of a full decode, and
     #: Pair.reduction says by how much. Raw frames come at full size whatever it says
     max_size: tuple[int, int] | None = None
     #: the rig a geometric plugin computes with when it is not the run's (its own

@@ -41,8 +41,8 @@ import msgspec
 import numpy as np
 
 from trapflow.errors import WorkerError
-from trapflow.messages import Tag, Tags
 from trapflow.plugin import Context, Pair, Worker
+from trapflow.wire.messages import Tag, Tags
 
 from .calibration import resolve_rig
 from .common import Params, check_frame, floats, parse_params, to_grey

@@ -13,8 +13,8 @@ import msgspec
 import numpy as np
 
 from trapflow.errors import WorkerError
-from trapflow.messages import Detection, MonoIR
 from trapflow.plugin import Context, Pair, Worker
+from trapflow.wire.messages import Detection, MonoIR
 
 
 class BlobParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):

@@ -1,9 +1,10 @@
 """The rig a geometric plugin computes with: its own `calibration` param, params, or the run's.
 
-The run's rig comes from the source (trapflow.rig decides it, once, for every node); a
+The run's rig comes from the source (trapflow.sources.rig decides it, once, for every node); a
 plugin's explicit `calibration` file wins. The file may be a KITTI `calib.txt`, a YAML
 mapping of fx, fy, cx, cy, baseline_m (metres) and optionally width, height (pixels), or
-any stereo calibration trapflow.calibration reads; trapflow.rig.read_rig_file parses it.
+any stereo calibration trapflow.calibration.model reads; trapflow.sources.rig.read_rig_file
+parses it.
 """
 
 from __future__ import annotations
@@ -12,9 +13,9 @@ from pathlib import Path
 
 import msgspec
 
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 from trapflow.errors import ConfigError, WorkerError
-from trapflow.rig import YAML_FIELDS, read_rig_file
+from trapflow.sources.rig import YAML_FIELDS, read_rig_file
 
 __all__ = ["YAML_FIELDS", "load_calibration", "resolve_rig"]
 

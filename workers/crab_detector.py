@@ -19,8 +19,8 @@ import msgspec
 import numpy as np
 
 from trapflow.errors import WorkerError
-from trapflow.messages import Detection, MonoIR
 from trapflow.plugin import Context, Pair, Worker
+from trapflow.wire.messages import Detection, MonoIR
 
 from .common import check_frame, load_labels, model_path, parse_params
 from .onnx_session import ModelParams, Session, open_session

@@ -12,8 +12,8 @@ from typing import Annotated, Any
 import msgspec
 import numpy as np
 
-from trapflow.messages import Extra
 from trapflow.plugin import Context, Pair, Worker
+from trapflow.wire.messages import Extra
 
 from .common import Params, check_frame, parse_params
 

@@ -15,8 +15,8 @@ import msgspec
 import numpy as np
 
 from trapflow.errors import WorkerError
-from trapflow.messages import StereoVO
 from trapflow.plugin import Context, Pair, Worker
+from trapflow.wire.messages import StereoVO
 
 _I = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 

@@ -10,8 +10,8 @@ import msgspec
 import numpy as np
 
 from trapflow.errors import WorkerError
-from trapflow.messages import StereoIR
 from trapflow.plugin import Context, Pair, Worker
+from trapflow.wire.messages import StereoIR
 
 
 class HistogramParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):

@@ -21,7 +21,7 @@ import numpy as np
 import onnxruntime as ort
 
 from trapflow.errors import WorkerError
-from trapflow.ratelog import CONSOLE_ONCE
+from trapflow.runtime.ratelog import CONSOLE_ONCE
 
 from .common import Params
 

@@ -22,9 +22,9 @@ import cv2
 import msgspec
 import numpy as np
 
-from trapflow.camera import StereoRig
-from trapflow.messages import StereoVO
+from trapflow.calibration.camera import StereoRig
 from trapflow.plugin import Context, Pair, Worker
+from trapflow.wire.messages import StereoVO
 
 from .calibration import resolve_rig
 from .common import Params, check_frame, floats, parse_params, to_grey

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import yaml
 
-from trapflow.calibration import StereoCalibration, load_calibration
+from trapflow.calibration.model import StereoCalibration, load_calibration
 from trapflow.errors import ConfigError
 
 from .conftest import kit_path

@@ -18,8 +18,8 @@ import msgspec
 import numpy as np
 import pytest
 
-from trapflow.calibrate import calibrate_stereo, expand
-from trapflow.calibration import StereoCalibration, load_calibration
+from trapflow.calibration.calibrate import calibrate_stereo, expand
+from trapflow.calibration.model import StereoCalibration, load_calibration
 from trapflow.sources.rectify import Rectifier
 
 from .conftest import kit_path, realdata_root

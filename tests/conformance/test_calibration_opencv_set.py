@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 import pytest
 
-from trapflow.calibrate import calibrate_stereo, expand
-from trapflow.calibration import StereoCalibration
+from trapflow.calibration.calibrate import calibrate_stereo, expand
+from trapflow.calibration.model import StereoCalibration
 
 from .conftest import kit_path
 

@@ -1,7 +1,7 @@
 """A JPEG decoded at a reduced DCT scale gives the detector the detections of a full decode.
 
 The kit's YOLOv8n (640x640 input) on its real photos, decoded as a worker decodes a JPEG
-pair for the detector (trapflow.worker.decode_pair: the largest DCT reduction that still
+pair for the detector (trapflow.stages.worker.decode_pair: the largest DCT reduction that still
 covers the letterboxed image) against the full decode of the same bytes. zidane.jpg
 (1280x720, letterboxed to 640x360) is decoded at 1/2; bus.jpg (810x1080, letterboxed to
 480x640) is less than twice that and is decoded whole, so its detections are identical.
@@ -28,10 +28,10 @@ from tests import builders
 from tests.conformance.conftest import kit_path
 from tests.conformance.detections import Det, assert_same
 from tests.kits.context import make_context
-from trapflow import jpeg
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 from trapflow.plugin import Pair
-from trapflow.worker import decode_pair
+from trapflow.stages.worker import decode_pair
+from trapflow.wire import jpeg
 
 KIT = "04_onnx_detectors"
 PARAMS = {"confidence": 0.25, "iou": 0.7, "max_detections": 300, "providers": ["cpu"]}

@@ -19,7 +19,7 @@ from trapflow_workers.apriltags import C_PIXEL_CENTRE, AprilTags, c_library_dete
 
 from tests.conformance.conftest import kit_path
 from tests.kits.context import make_context, make_pair
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 
 # The reference: pupil-apriltags, the AprilTag C library (its detectors are made through
 # c_library_detector only so that none is freed: its free crashes, see workers/apriltags.py).

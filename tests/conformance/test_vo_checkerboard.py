@@ -19,7 +19,7 @@ from trapflow_workers.stereo_vo import StereoOdometry
 
 from tests.conformance.conftest import kit_path
 from tests.kits.context import make_context, make_pair
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 
 KIT = "01_stereo_checkerboard_opencv"
 BOARD = (9, 6)  # inner corners

@@ -19,7 +19,7 @@ from trapflow_workers.stereo_vo import StereoOdometry
 
 from tests.conformance import vo_scene
 from tests.kits.context import make_context, make_pair
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 
 pytestmark = pytest.mark.timeout(240)
 

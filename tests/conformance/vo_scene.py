@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 
 # 752x480, about 70 degrees across, principal point off the centre, 11 cm baseline.
 RIG = StereoRig(width=752, height=480, fx=540.0, fy=540.0, cx=371.3, cy=243.7, baseline_m=0.11)

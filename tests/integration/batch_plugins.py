@@ -7,8 +7,8 @@ from pathlib import Path
 from typing import Any
 
 from trapflow.errors import WorkerError
-from trapflow.messages import Extra
 from trapflow.plugin import Context, Pair, Worker
+from trapflow.wire.messages import Extra
 
 
 class FailChunk(Worker):

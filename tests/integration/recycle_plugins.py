@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 import psutil
 
-from trapflow.messages import Extra
 from trapflow.plugin import Context, Pair, Worker
+from trapflow.wire.messages import Extra
 
 
 class Grow(Worker):

@@ -9,8 +9,8 @@ from typing import Any
 
 from trapflow_workers.crab_detector import CrabDetector
 
-from trapflow.messages import Extra, MonoIR
 from trapflow.plugin import Context, Pair, Worker
+from trapflow.wire.messages import Extra, MonoIR
 
 
 class PooledDetector(Worker):

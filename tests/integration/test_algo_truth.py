@@ -19,7 +19,7 @@ from trapflow_workers.stereo_vo import StereoOdometry
 from trapflow_workers.vo_metrics import as_4x4, drift_percent, end_drift_percent, path_length
 
 from tests.kits.context import make_context, make_pair
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 from trapflow.synth import SynthOptions, World
 from trapflow.synth.dataset import labelled
 

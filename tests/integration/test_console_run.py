@@ -12,8 +12,8 @@ import pytest
 
 from tests.conftest import Pipeline, write_config
 from tests.integration.test_finite_faults import H, W, write_recording
-from trapflow.recorder import TOPIC_LEFT, TOPIC_RIGHT
-from trapflow.run_ledger import STATUS_WIDTH, UNFINISHED
+from trapflow.recording.recorder import TOPIC_LEFT, TOPIC_RIGHT
+from trapflow.supervisor.ledger import STATUS_WIDTH, UNFINISHED
 
 STATUS_LINE = re.compile(r"^ *\d+\.\ds \| ")
 

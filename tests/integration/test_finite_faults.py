@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from tests.conftest import REPO, Pipeline, write_config
-from trapflow.messages import StereoPair
-from trapflow.recorder import Recorder
+from trapflow.recording.recorder import Recorder
+from trapflow.wire.messages import StereoPair
 
 W, H = 96, 64
 

@@ -24,10 +24,10 @@ from rosbags.typesys import Stores, get_typestore
 
 from tests.builders import floor_scene, kitti_calib, rectified_calibration
 from tests.conftest import REPO, Pipeline, record_until, write_config
-from trapflow.calibration import save_calibration
-from trapflow.camera import StereoRig
-from trapflow.config import from_data
-from trapflow.rig import describe
+from trapflow.calibration.camera import StereoRig
+from trapflow.calibration.model import save_calibration
+from trapflow.config.schema import from_data
+from trapflow.sources.rig import describe
 
 pytestmark = pytest.mark.timeout(180)
 

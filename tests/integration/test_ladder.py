@@ -16,7 +16,8 @@ from typing import Any
 import pytest
 
 from tests.conftest import REPO, Pipeline, only_pools, poll_for, write_config
-from trapflow import control, messages
+from trapflow.wire import control_client as control
+from trapflow.wire import messages
 
 K = 1.0  # the stereo pool's minimum interval at ir_slowed, seconds
 WINDOW = 2.5  # seconds the pool's rate is measured over at each level

@@ -17,7 +17,6 @@ from typing import Any
 import pytest
 
 from tests.conftest import REPO, Pipeline, modem_cli, only_pools, poll_for, write_config
-from trapflow.control import request
 from trapflow.modem.command import parse_reply_body, sign, verify
 from trapflow.modem.frame import (
     CMD_HEALTH,
@@ -34,6 +33,7 @@ from trapflow.modem.frame import (
 )
 from trapflow.modem.surface import SurfaceReceiver
 from trapflow.modem.surface_command import CommandClient
+from trapflow.wire.control_client import request
 
 
 def status(p: Pipeline) -> dict[str, Any]:

@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 
 from tests.conftest import modem_cli, poll_for
-from trapflow.modem.config import ModemConfig
+from trapflow.config.modem import ModemConfig
 from trapflow.modem.outbox import Outbox, OutboxConfig
 from trapflow.modem.sender import ModemSender
 

@@ -32,7 +32,7 @@ HERE = Path(__file__).parent
 
 
 def cli(*args: str, **kw: object) -> subprocess.Popen[bytes]:
-    return subprocess.Popen([sys.executable, "-m", "trapflow.modem.cli", *args], **kw)  # type: ignore[call-overload]
+    return subprocess.Popen([sys.executable, "-m", "trapflow.cli.modem", *args], **kw)  # type: ignore[call-overload]
 
 
 def start_box(tmp: Path, run: int) -> subprocess.Popen[bytes]:
@@ -41,7 +41,7 @@ def start_box(tmp: Path, run: int) -> subprocess.Popen[bytes]:
         "import subprocess, sys\n"
         f"w = subprocess.Popen([sys.executable, {str(HERE / 'modem_writer.py')!r}, "
         f"{str(tmp / 'outbox.sqlite')!r}, {str(tmp / 'acks.log')!r}, '{run}'])\n"
-        "s = subprocess.Popen([sys.executable, '-m', 'trapflow.modem.cli', 'modem-send', "
+        "s = subprocess.Popen([sys.executable, '-m', 'trapflow.cli.modem', 'modem-send', "
         f"{str(tmp / 'outbox.sqlite')!r}, {str(tmp / 'a')!r}, '--bit-rate', '19200', "
         "'--ack-timeout', '0.4', '--no-aggregate', '--no-ttl'], stderr=subprocess.DEVNULL)\n"
         "w.wait(); s.wait()\n"

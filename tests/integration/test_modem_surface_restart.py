@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import modem_cli, modem_link, poll_for
-from trapflow.modem.config import ModemConfig
+from trapflow.config.modem import ModemConfig
 from trapflow.modem.outbox import Outbox, OutboxConfig
 from trapflow.modem.sender import ModemSender
 

@@ -19,7 +19,7 @@ import pytest
 
 from tests.builders import floor_scene
 from tests.conftest import REPO, Pipeline, only_pools, write_config
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 
 PLUGIN = "tests.integration.batch_plugins:FailChunk"
 N = 10

@@ -15,12 +15,12 @@ import pytest
 
 from tests import builders
 from tests.conftest import Pipeline, only_pools, write_config
-from trapflow import messages
-from trapflow.broker import BrokerNode
-from trapflow.config import Config, PoolConfig
-from trapflow.frame_ring import FrameRing
-from trapflow.node import NodeSpec
-from trapflow.transport import LinkClient, make_private
+from trapflow.broker.node import BrokerNode
+from trapflow.config.schema import Config, PoolConfig
+from trapflow.runtime.node import NodeSpec
+from trapflow.wire import messages
+from trapflow.wire.frame_ring import FrameRing
+from trapflow.wire.transport import LinkClient, make_private
 
 SMALL = {"width": 320, "height": 240, "rate_hz": 15.0}
 GROW = "tests.integration.recycle_plugins:Grow"
@@ -83,7 +83,7 @@ def test_broker_reads_a_recycled_workers_goodbye_before_it_calls_a_send_news(
         link.send([messages.encode(messages.Gone(
             worker=ident, reason=messages.recycled_reason("jobs")))])
         client.drop()  # the worker exits before the broker reads any of it
-        with caplog.at_level(logging.DEBUG, logger="trapflow.broker"):
+        with caplog.at_level(logging.DEBUG, logger="trapflow.broker.node"):
             broker._drain_link(served)
         st = broker.state.pool_stats()["noop"]
         assert (st.processed, st.lost, st.pending, st.in_flight) == (1, 0, 1, 0)
@@ -115,7 +115,7 @@ def test_the_supervisors_notice_of_a_recycle_does_not_overtake_the_workers_answe
             worker=ident, reason=messages.recycled_reason("rss")))])
         client.drop()
         notice = messages.Gone(worker=ident, reason=messages.recycled_reason("rss"))
-        with caplog.at_level(logging.INFO, logger="trapflow.broker"):
+        with caplog.at_level(logging.INFO, logger="trapflow.broker.node"):
             broker._on_worker_msg(b"supervisor", notice, [])
         st = broker.state.pool_stats()["noop"]
         assert (st.processed, st.lost, st.pending, st.in_flight) == (1, 0, 0, 0)

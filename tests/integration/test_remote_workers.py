@@ -21,7 +21,7 @@ import psutil
 import pytest
 
 from tests.conftest import Pipeline, TrapflowProcess, only_pools, poll_for, write_config
-from trapflow.keys import generate
+from trapflow.wire.keys import generate
 
 SMALL = {"width": 320, "height": 240, "seed": 3}
 DETECTOR = "tests.integration.remote_plugins:PooledDetector"

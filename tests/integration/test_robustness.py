@@ -16,7 +16,7 @@ import zmq
 
 from tests import builders
 from tests.conftest import Pipeline, only_pools, poll_for, recv, write_config
-from trapflow import messages
+from trapflow.wire import messages
 
 SMALL = {"width": 320, "height": 240, "rate_hz": 15.0}
 

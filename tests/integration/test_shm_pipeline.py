@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 
 from tests.conftest import Pipeline, only_pools, poll_for, write_config
-from trapflow.frame_ring import PREFIX, list_segments
+from trapflow.wire.frame_ring import PREFIX, list_segments
 
 SMALL = {"width": 320, "height": 240, "rate_hz": 15.0}
 

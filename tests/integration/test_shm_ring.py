@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from tests import builders
-from trapflow import frame_ring as fr
-from trapflow import messages
+from trapflow.wire import frame_ring as fr
+from trapflow.wire import messages
 
 SPAWN = mp.get_context("spawn")
 

@@ -10,11 +10,11 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from trapflow.calibrate import CalibrationError, calibrate_stereo, expand, parse_pattern
-from trapflow.calibration import load_calibration, save_calibration
-from trapflow.camera import StereoRig
-from trapflow.checkerboard import render_pair
-from trapflow.cli_sources import calibrate
+from trapflow.calibration.calibrate import CalibrationError, calibrate_stereo, expand, parse_pattern
+from trapflow.calibration.camera import StereoRig
+from trapflow.calibration.checkerboard import render_pair
+from trapflow.calibration.model import load_calibration, save_calibration
+from trapflow.cli.sources import calibrate
 from trapflow.errors import ConfigError
 from trapflow.sources.rectify import Rectifier
 

@@ -14,10 +14,10 @@ import zmq
 from click.testing import CliRunner
 from rosbags.highlevel import AnyReader
 
-from trapflow.camera import StereoRig
-from trapflow.checkerboard import render_pair
-from trapflow.cli_sources import calibrate, lossless_problems, replay
-from trapflow.messages import TOPIC_IMAGE, TOPIC_RESULT, PoolStats, Stats, StereoPair, encode
+from trapflow.calibration.camera import StereoRig
+from trapflow.calibration.checkerboard import render_pair
+from trapflow.cli.sources import calibrate, lossless_problems, replay
+from trapflow.wire.messages import TOPIC_IMAGE, TOPIC_RESULT, PoolStats, Stats, StereoPair, encode
 
 
 def test_calibrate_command_writes_yaml(tmp_path: Path) -> None:
@@ -106,7 +106,7 @@ def test_record_command_closes_cleanly_on_ctrl_c(tmp_path: Path) -> None:
     endpoint = f"ipc://{tmp_path}/tap.sock"
     pub.bind(endpoint)
     out = tmp_path / "rec.mcap"
-    code = ("import sys; from trapflow.cli_sources import record; "
+    code = ("import sys; from trapflow.cli.sources import record; "
             "record(sys.argv[1:], standalone_mode=True)")
     proc = subprocess.Popen([sys.executable, "-c", code, "--endpoint", endpoint, "-o", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)

@@ -10,8 +10,8 @@ import msgspec
 import numpy as np
 import pytest
 
-from trapflow.events import EventCapture, EventsConfig, TriggerRule, fires
-from trapflow.messages import StereoPair
+from trapflow.stages.events import EventCapture, EventsConfig, TriggerRule, fires
+from trapflow.wire.messages import StereoPair
 
 PERIOD = 100_000_000  # 10 Hz
 

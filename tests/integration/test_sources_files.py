@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from tests.builders import drain, drain_skipping
-from trapflow.camera import StereoRig
-from trapflow.config import SourceConfig
+from trapflow.calibration.camera import StereoRig
+from trapflow.config.schema import SourceConfig
 from trapflow.sources import SourceError, open_source
 from trapflow.sources.base import SkipPair, Source
 

@@ -10,8 +10,8 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from trapflow.camera import StereoRig
-from trapflow.config import SourceConfig
+from trapflow.calibration.camera import StereoRig
+from trapflow.config.schema import SourceConfig
 from trapflow.sources import SourceError, open_source
 from trapflow.sources.gst import opencv_has_gstreamer
 from trapflow.sources.live import Grab, LiveStereoSource

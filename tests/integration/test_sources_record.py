@@ -14,8 +14,7 @@ import pytest
 import zmq
 from rosbags.highlevel import AnyReader
 
-from trapflow.messages import TOPIC_IMAGE, TOPIC_RESULT, StereoPair, encode
-from trapflow.recorder import (
+from trapflow.recording.recorder import (
     TOPIC_LEFT,
     TOPIC_PAIRS,
     TOPIC_RIGHT,
@@ -24,6 +23,7 @@ from trapflow.recorder import (
     RecorderError,
     record,
 )
+from trapflow.wire.messages import TOPIC_IMAGE, TOPIC_RESULT, StereoPair, encode
 
 W, H = 96, 64
 T_WALL0 = 1_751_892_763_000_000_000

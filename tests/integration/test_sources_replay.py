@@ -12,13 +12,13 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from tests.builders import drain, drain_skipping
-from trapflow.camera import StereoRig
-from trapflow.config import SourceConfig
-from trapflow.messages import StereoPair
-from trapflow.recorder import Recorder
+from trapflow.calibration.camera import StereoRig
+from trapflow.config.schema import SourceConfig
+from trapflow.recording.recorder import Recorder
 from trapflow.sources import SkipPair, SourceError, open_source
 from trapflow.sources.base import Source
 from trapflow.sources.replay import ReplaySource
+from trapflow.wire.messages import StereoPair
 
 W, H = 64, 48
 RIG = StereoRig.from_fov(W, H, 70.0, 0.12)

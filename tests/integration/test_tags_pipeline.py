@@ -10,7 +10,7 @@ import pytest
 
 from tests.conftest import Pipeline, write_config
 from tests.kits.scenes import pose, rot_x, tag_image
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 
 TAGGED = {1: 5, 4: 17}  # pair index -> tag id; the other pairs show no tag
 

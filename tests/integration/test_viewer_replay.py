@@ -12,10 +12,10 @@ import pytest
 
 from tests.conftest import Pipeline, poll_for
 from tests.integration.viewer_util import free_port, get, get_json
-from trapflow.camera import StereoRig
-from trapflow.messages import StereoPair
-from trapflow.recorder import Recorder
+from trapflow.calibration.camera import StereoRig
+from trapflow.recording.recorder import Recorder
 from trapflow.synth import World
+from trapflow.wire.messages import StereoPair
 
 W, H, N, RATE = 320, 240, 40, 10.0
 

@@ -8,9 +8,9 @@ from typing import Any
 
 import numpy as np
 
-from trapflow.camera import StereoRig
-from trapflow.messages import StereoPair
+from trapflow.calibration.camera import StereoRig
 from trapflow.plugin import Context, Pair
+from trapflow.wire.messages import StereoPair
 
 
 def make_pair(

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 
 
 def rot_x(a: float) -> np.ndarray:

@@ -20,8 +20,8 @@ import zmq
 from tests import builders
 from tests.conftest import Pipeline, only_pools, poll_for, recv, write_config
 from tests.reliability import figures, scaled
-from trapflow import messages
-from trapflow.transport import LinkClosed, connect_link
+from trapflow.wire import messages
+from trapflow.wire.transport import LinkClosed, connect_link
 
 SMALL = {"width": 320, "height": 240, "rate_hz": 15.0}
 FORGED = "forged"  # a field no real noop result has
@@ -203,7 +203,8 @@ def test_heartbeat_flood_writes_few_lines_and_wire_names_cannot_forge_a_line(
     for i in range(FLOOD):
         hb.send(b"\x93" + rng.randbytes(i % 40) + b"\n\x1b[31mERROR fake\n")
     forger = connect_link(str(run_dir / "workers.link"))
-    evil = "evil\n2026-01-01 00:00:00,000 MainProcess trapflow.supervisor ERROR FAKE LINE\x1b[2J"
+    evil = ("evil\n2026-01-01 00:00:00,000 MainProcess trapflow.supervisor.shell ERROR FAKE LINE"
+            "\x1b[2J")
     for seq in range(200):
         forger.send([messages.encode(messages.Done(worker=evil, pool="fast", seq=10**6 + seq)),
                      _forged_result(10**6 + seq)])

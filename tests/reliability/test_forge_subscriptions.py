@@ -15,7 +15,7 @@ import pytest
 import zmq
 
 from tests.conftest import Pipeline, only_pools, poll_for, write_config
-from trapflow import messages
+from trapflow.wire import messages
 
 # Measured without the caps (issue 16): 20 subscriptions of 64 KB added 63 MB to the broker
 # and to the normalizer, 10,000 small random ones 10-19 MB. With them, a 64 KB subscription

@@ -23,8 +23,8 @@ import zmq
 from tests import builders
 from tests.conftest import Pipeline, only_pools, poll_for, write_config
 from tests.reliability import figures, scaled
-from trapflow import messages
-from trapflow.transport import Link, LinkClosed, connect_link
+from trapflow.wire import messages
+from trapflow.wire.transport import Link, LinkClosed, connect_link
 
 FUZZ_S = scaled("TRAPFLOW_CHAOS_FUZZ_S", 20.0)  # scripts/chaos.sh runs it longer
 SEED = 1616

@@ -14,7 +14,7 @@ import pytest
 from tests.conftest import Pipeline, only_pools, write_config
 from tests.reliability.test_hygiene_modes import SMALL, _free_base_port
 from trapflow.errors import EXIT_USAGE
-from trapflow.frame_ring import PREFIX, list_segments
+from trapflow.wire.frame_ring import PREFIX, list_segments
 
 
 @pytest.mark.timeout(60)

@@ -18,7 +18,7 @@ import pytest
 
 from tests.conftest import Pipeline, only_pools, write_config
 from tests.reliability import figures, scaled
-from trapflow.frame_ring import PREFIX, SHM_DIR, list_segments
+from trapflow.wire.frame_ring import PREFIX, SHM_DIR, list_segments
 
 CUTS = int(scaled("TRAPFLOW_CHAOS_CUTS", 3))
 SMALL = {"kind": "synthetic", "width": 320, "height": 240, "rate_hz": 10}

@@ -51,7 +51,7 @@ def start_box(outbox_dir: Path, port: Path, run: int) -> subprocess.Popen[bytes]
         "import subprocess, sys\n"
         f"w = subprocess.Popen([sys.executable, {str(WRITER)!r}, {str(outbox)!r}, "
         f"{str(outbox_dir / 'acks.log')!r}, '{run}'])\n"
-        "s = subprocess.Popen([sys.executable, '-m', 'trapflow.modem.cli', 'modem-send', "
+        "s = subprocess.Popen([sys.executable, '-m', 'trapflow.cli.modem', 'modem-send', "
         f"{str(outbox)!r}, {str(port)!r}, *{MODEM_SEND_ARGS!r}], stderr=subprocess.DEVNULL)\n"
         "w.wait(); s.wait()\n"
     )

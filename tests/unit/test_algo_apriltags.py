@@ -16,7 +16,7 @@ from trapflow_workers.apriltags import AprilTags, tag_object_points
 
 from tests.kits.context import make_context, make_pair
 from tests.kits.scenes import pose, rot_x, rot_z, tag_image
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 from trapflow.errors import WorkerError
 
 RIG = StereoRig.from_fov(1280, 720, 70.0, 0.12)

@@ -204,8 +204,8 @@ def test_jpeg_decoded_at_reduced_scale_gives_boxes_in_frame_pixels(
     decoded at 1/2, 1/4 or 1/8 and its boxes mapped back by the reduction. With a model whose
     output ignores the pixels the boxes equal those of the full frame exactly."""
     from tests import builders
-    from trapflow.camera import StereoRig
-    from trapflow.worker import decode_pair
+    from trapflow.calibration.camera import StereoRig
+    from trapflow.stages.worker import decode_pair
 
     w, h = size
     det = CrabDetector()

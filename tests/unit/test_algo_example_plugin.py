@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from tests.kits.context import make_context, make_pair
-from trapflow import registry
 from trapflow.errors import WorkerError
-from trapflow.messages import Extra, Result, decode_result, encode
+from trapflow.runtime import registry
+from trapflow.wire.messages import Extra, Result, decode_result, encode
 
 
 def test_example_plugin_by_import_path() -> None:

@@ -14,7 +14,7 @@ from trapflow_workers.vo_metrics import as_4x4, drift_percent
 
 from tests.kits.context import make_context, make_pair
 from tests.kits.scenes import FloorWorld, circle_path
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 from trapflow.errors import WorkerError
 
 RIG = StereoRig.from_fov(640, 480, 70.0, 0.12)

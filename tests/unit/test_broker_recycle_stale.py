@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import pytest
 
-from trapflow.broker_state import BrokerState, Dispatch, Evicted, PoolSpec, Release
-from trapflow.policy import Pending, parse_policy
+from trapflow.broker.policy import Pending, parse_policy
+from trapflow.broker.state import BrokerState, Dispatch, Evicted, PoolSpec, Release
 
 W1, W2 = b"w1", b"w2"
 

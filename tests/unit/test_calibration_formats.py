@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from trapflow.calibration import StereoCalibration, load_calibration
-from trapflow.calibration_formats import write_camera_info
+from trapflow.calibration.formats import write_camera_info
+from trapflow.calibration.model import StereoCalibration, load_calibration
 from trapflow.errors import ConfigError
 from trapflow.sources.rectify import Rectifier
 

@@ -10,8 +10,9 @@ import click
 import pytest
 from click.testing import CliRunner
 
-from trapflow import cli, supervisor
-from trapflow.config import Config
+from trapflow.cli import main as cli
+from trapflow.config.schema import Config
+from trapflow.supervisor import shell as supervisor
 
 
 @pytest.fixture

@@ -7,9 +7,9 @@ from pathlib import Path
 import msgspec
 import pytest
 
-from trapflow import config
+from trapflow.broker.policy import Policy, parse_policy
+from trapflow.config import schema as config
 from trapflow.errors import ConfigError
-from trapflow.policy import Policy, parse_policy
 
 CONFIGS = sorted((Path(__file__).resolve().parents[2] / "configs").glob("*.yaml"))
 
@@ -185,9 +185,9 @@ def test_config_is_a_leaf_that_imports_no_runtime_module() -> None:
     import subprocess
     import sys
 
-    code = ("import sys, trapflow.config; "
+    code = ("import sys, trapflow.config.schema; "
             "print(' '.join(sorted(m for m in sys.modules if m.startswith('trapflow'))))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, timeout=60).stdout.split()
-    assert out == ["trapflow", "trapflow.config", "trapflow.errors", "trapflow.ladder_config",
-                   "trapflow.modem", "trapflow.modem.config"]
+    assert out == ["trapflow", "trapflow.config", "trapflow.config.ladder",
+                   "trapflow.config.modem", "trapflow.config.schema", "trapflow.errors"]

@@ -17,16 +17,17 @@ import zmq
 from click.testing import CliRunner
 
 from tests.conftest import REPO
-from trapflow import messages, run_summary
-from trapflow.cli import main
-from trapflow.control import POOL_UNITS, format_status
-from trapflow.messages import CaptureCounters, PoolStats, Stats
+from trapflow.cli.main import main
 from trapflow.modem.outbox import ACKED, Outbox, OutboxConfig, OutboxQueue
 from trapflow.modem.port import STOPPED, LinkPort
-from trapflow.node import FINALIZED, Node
-from trapflow.ratelog import CONSOLE_ONCE, ConsoleOnce
-from trapflow.run_ledger import STATUS_WIDTH, UNFINISHED, RunLedger, totals_text
-from trapflow.supervisor_state import DurationClock
+from trapflow.runtime.node import FINALIZED, Node
+from trapflow.runtime.ratelog import CONSOLE_ONCE, ConsoleOnce
+from trapflow.supervisor import summary as run_summary
+from trapflow.supervisor.ledger import STATUS_WIDTH, UNFINISHED, RunLedger, totals_text
+from trapflow.supervisor.state import DurationClock
+from trapflow.wire import messages
+from trapflow.wire.control_client import POOL_UNITS, format_status
+from trapflow.wire.messages import CaptureCounters, PoolStats, Stats
 
 
 def _ledger(pools: dict[str, PoolStats], produced: int, pairs_in: int) -> RunLedger:
@@ -141,7 +142,7 @@ def test_a_planned_end_is_no_warning(caplog: pytest.LogCaptureFixture, reason: s
                                      normal: bool, level: int) -> None:
     """Regression (issue 15): every finite run ended with `WARNING capture: finalized
     (source exhausted)` on the console."""
-    caplog.set_level(logging.INFO, logger="trapflow.node")
+    caplog.set_level(logging.INFO, logger="trapflow.runtime.node")
     Node.set_state(_NodeState(), FINALIZED, reason, normal=normal)  # type: ignore[arg-type]
     assert [r.levelno for r in caplog.records] == [level]
 

@@ -17,7 +17,7 @@ import click
 import pytest
 import yaml
 
-from trapflow import cli
+from trapflow.cli import main as cli
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 UNIT = DEPLOY / "trapflow.service"

@@ -10,10 +10,10 @@ from typing import Any
 import pytest
 from click.testing import CliRunner
 
-from trapflow import run_totals
-from trapflow.cli import TrapflowGroup, main
+from trapflow.cli.main import TrapflowGroup, main
 from trapflow.errors import ConfigError, ProtocolError, StartupError, TrapflowError
-from trapflow.messages import PoolStats, Stats
+from trapflow.supervisor import ledger as run_totals
+from trapflow.wire.messages import PoolStats, Stats
 
 
 def _junk(d: Path) -> str:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from tests import builders
-from trapflow import jpeg
+from trapflow.wire import jpeg
 
 
 def _photo() -> np.ndarray:

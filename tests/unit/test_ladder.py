@@ -9,9 +9,9 @@ from typing import Any
 import msgspec
 import pytest
 
-from trapflow import config
+from trapflow.config import schema as config
 from trapflow.errors import ConfigError
-from trapflow.ladder import (
+from trapflow.supervisor.ladder import (
     AUTO,
     Ladder,
     LadderConfig,

@@ -12,14 +12,21 @@ from typing import Any
 
 import pytest
 
-from trapflow import messages
-from trapflow.broker_state import BrokerState, Dispatch, PoolSpec, Release
-from trapflow.ladder import AUTO, Ladder, LadderConfig, Readings, SensorsConfig, TriggerConfig
-from trapflow.policy import parse_policy
-from trapflow.run_ledger import RunLedger
-from trapflow.sensors import Sensors
-from trapflow.supervisor_actions import Budget, LevelChanged, Lifecycle, Refused, SwitchPool
-from trapflow.supervisor_state import SupervisorState
+from trapflow.broker.policy import parse_policy
+from trapflow.broker.state import BrokerState, Dispatch, PoolSpec, Release
+from trapflow.supervisor.actions import Budget, LevelChanged, Lifecycle, Refused, SwitchPool
+from trapflow.supervisor.ladder import (
+    AUTO,
+    Ladder,
+    LadderConfig,
+    Readings,
+    SensorsConfig,
+    TriggerConfig,
+)
+from trapflow.supervisor.ledger import RunLedger
+from trapflow.supervisor.sensors import Sensors
+from trapflow.supervisor.state import SupervisorState
+from trapflow.wire import messages
 
 HOT = TriggerConfig(sensor="cpu_temp_c", dwell_s=0.0,
                     enter={"ir_slowed": 75, "mono_vo": 80, "vo_health": 85},
@@ -260,7 +267,7 @@ def test_unreadable_sensor_is_missing_and_named_once(tmp_path: Path, content: An
     elif content is not None:
         f.write_text(content)
     s = Sensors(SensorsConfig(temperature_path=str(f)), tmp_path)
-    with caplog.at_level(logging.INFO, logger="trapflow.sensors"):
+    with caplog.at_level(logging.INFO, logger="trapflow.supervisor.sensors"):
         readings = [s.read() for _ in range(3)]
     assert all(r.cpu_temp_c is None for r in readings)
     named = [r for r in caplog.records if "temperature sensor" in r.getMessage()]
@@ -284,7 +291,7 @@ def test_disk_load_and_pools(tmp_path: Path) -> None:
 def test_level_cli_refuses_without_a_pipeline(tmp_path: Path) -> None:
     from click.testing import CliRunner
 
-    from trapflow import cli
+    from trapflow.cli import main as cli
 
     res = CliRunner().invoke(cli.main, ["level", "auto", "--run-dir", str(tmp_path / "none")])
     assert res.exit_code == 2, res.output

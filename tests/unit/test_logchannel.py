@@ -14,12 +14,12 @@ import pytest
 
 from tests.conftest import poll_for
 from tests.reliability import scaled
-from trapflow import messages
-from trapflow.config import NetworkConfig
+from trapflow.config.schema import NetworkConfig
 from trapflow.errors import ProtocolError, StartupError
-from trapflow.logchannel import LogListener, LogSender, PrivateRotatingFile
-from trapflow.ratelog import CONSOLE_ONCE
-from trapflow.transport import Endpoints, check_ports_free, new_context
+from trapflow.runtime.logchannel import LogListener, LogSender, PrivateRotatingFile
+from trapflow.runtime.ratelog import CONSOLE_ONCE
+from trapflow.wire import messages
+from trapflow.wire.transport import Endpoints, check_ports_free, new_context
 
 
 class _Collect(logging.Handler):
@@ -159,7 +159,7 @@ def test_scaled_default_and_value(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def test_a_shared_directory_is_refused_as_run_directory(tmp_path: Path) -> None:
     """make_private would otherwise close /tmp (or any sticky shared folder) to everybody."""
-    from trapflow.transport import make_private
+    from trapflow.wire.transport import make_private
 
     shared = tmp_path / "shared"
     shared.mkdir()

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from tests import builders
-from trapflow import messages
 from trapflow.errors import ProtocolError
+from trapflow.wire import messages
 
 
 def test_pair_roundtrip() -> None:

@@ -12,8 +12,6 @@ import pytest
 import zmq
 
 from tests.conftest import poll_for, recv
-from trapflow import messages
-from trapflow.control import ControlClient
 from trapflow.errors import ConfigError, ProtocolError
 from trapflow.modem import command as C  # noqa: N812 - short: named on most lines
 from trapflow.modem.frame import (
@@ -43,7 +41,9 @@ from trapflow.modem.frame import (
     split_signed,
 )
 from trapflow.modem.surface_command import CommandClient, take_counter
-from trapflow.transport import SocketSpec, open_socket
+from trapflow.wire import messages
+from trapflow.wire.control_client import ControlClient
+from trapflow.wire.transport import SocketSpec, open_socket
 
 KEY = bytes(range(32))
 OTHER_KEY = bytes(range(1, 33))

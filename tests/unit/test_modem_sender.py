@@ -10,8 +10,8 @@ import msgspec
 import pytest
 
 from tests.conftest import poll_for
+from trapflow.config.modem import ModemConfig
 from trapflow.modem.codec import LinkCodec
-from trapflow.modem.config import ModemConfig
 from trapflow.modem.health import HealthConfig, HealthMonitor
 from trapflow.modem.outbox import Outbox, OutboxConfig
 from trapflow.modem.sender import ModemSender

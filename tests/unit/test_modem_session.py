@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from tests.unit.test_modem_surface_state import BytePort, data, receive, scallop, seqs
+from trapflow.config.modem import ModemConfig
 from trapflow.modem.codec import LinkCodec
-from trapflow.modem.config import ModemConfig
 from trapflow.modem.frame import (
     ACK,
     DATA,

@@ -16,10 +16,10 @@ from pathlib import Path
 import zmq
 
 from tests.conftest import poll_for
-from trapflow import messages
-from trapflow.config import Config
-from trapflow.node import ACTIVE, Node, NodeSpec
-from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
+from trapflow.config.schema import Config
+from trapflow.runtime.node import ACTIVE, Node, NodeSpec
+from trapflow.wire import messages
+from trapflow.wire.transport import Endpoints, SocketSpec, new_context, open_socket
 
 
 def _take(pull: zmq.Socket[bytes], got: list[messages.Heartbeat]) -> int:

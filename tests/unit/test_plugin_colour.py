@@ -17,7 +17,7 @@ from tests import builders
 from tests.kits.context import make_pair
 from tests.unit.test_algo_stereo_vo import _frames, _vo
 from trapflow.errors import WorkerError
-from trapflow.worker import decode_image
+from trapflow.stages.worker import decode_image
 
 
 def _jpeg(img: np.ndarray) -> bytes:
@@ -78,7 +78,7 @@ def test_burn_spends_cpu_not_wall_time() -> None:
     from trapflow_workers.testing import Burn
 
     from tests.kits.context import make_context
-    from trapflow.camera import StereoRig
+    from trapflow.calibration.camera import StereoRig
 
     burn = Burn()
     burn.configure({"cpu_s": 0.05}, make_context(StereoRig.from_fov(64, 48, 70.0, 0.12)))

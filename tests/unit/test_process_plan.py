@@ -12,7 +12,7 @@ import pytest
 from click.testing import CliRunner
 
 from trapflow.batch.plan import Chunk, Input, Stitcher, cut, find_inputs, plan_chunks
-from trapflow.cli import main
+from trapflow.cli.main import main
 from trapflow.errors import ConfigError
 
 

@@ -6,8 +6,8 @@ import logging
 
 import pytest
 
-from trapflow import ratelog
-from trapflow.ratelog import RateLimitedLog, wire
+from trapflow.runtime import ratelog
+from trapflow.runtime.ratelog import RateLimitedLog, wire
 
 
 @pytest.mark.parametrize(("raw", "logged"), [

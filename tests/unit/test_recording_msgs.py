@@ -14,7 +14,7 @@ from mcap_ros2.writer import Writer
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from trapflow import recording_msgs as msgs
+from trapflow.recording import msgs
 
 
 def typestore_with_annotations() -> Any:

@@ -11,8 +11,8 @@ import pytest
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
-from trapflow.messages import StereoPair
-from trapflow.recorder import Recorder, RecorderError, recover, recovered_name
+from trapflow.recording.recorder import Recorder, RecorderError, recover, recovered_name
+from trapflow.wire.messages import StereoPair
 
 W, H = 64, 48
 PAIRS, PER_CHUNK = 40, 10  # three messages (left, right, header) per pair

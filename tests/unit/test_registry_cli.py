@@ -7,10 +7,10 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from trapflow import registry
-from trapflow.cli import main
+from trapflow.cli.main import main
 from trapflow.errors import WorkerError
 from trapflow.plugin import Worker
+from trapflow.runtime import registry
 
 
 @pytest.mark.parametrize("name", ["mono", "stereo", "vo", "noop", "slow", "crash"])
@@ -28,7 +28,7 @@ def test_import_path_resolves() -> None:
         ("sonar", "unknown algorithm 'sonar'"),
         ("no_such_module:Thing", "cannot load algorithm"),
         ("trapflow_workers.testing:Nothing", "cannot load algorithm"),
-        ("trapflow.messages:Result", "is not a trapflow.plugin.Worker"),
+        ("trapflow.wire.messages:Result", "is not a trapflow.plugin.Worker"),
     ],
 )
 def test_bad_plugins(name: str, error: str) -> None:

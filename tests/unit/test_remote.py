@@ -13,15 +13,15 @@ import zmq
 import zmq.auth
 from click.testing import CliRunner
 
-from trapflow import config as configmod
-from trapflow import messages
-from trapflow.broker import _local_msg
-from trapflow.broker_remote import MAX_EVICTED_SHOWN, RemoteWorkers
-from trapflow.cli import main
+from trapflow.broker.node import _local_msg
+from trapflow.broker.remote_state import MAX_EVICTED_SHOWN, RemoteWorkers
+from trapflow.cli.main import main
+from trapflow.config import schema as configmod
 from trapflow.errors import ConfigError, ProtocolError, StartupError
-from trapflow.keys import generate
-from trapflow.remote_worker import config_from
-from trapflow.transport import CurveKeys, SocketSpec, client_keys, open_socket, server_keys
+from trapflow.stages.remote_worker import config_from
+from trapflow.wire import messages
+from trapflow.wire.keys import generate
+from trapflow.wire.transport import CurveKeys, SocketSpec, client_keys, open_socket, server_keys
 
 KEYS = {"server_key": "k/server.key_secret", "authorized_keys": "k/auth"}
 
@@ -224,7 +224,7 @@ def test_worker_command_rejects_bad_input(args: list[str], error: str) -> None:
 
 
 def test_status_lists_remote_workers_with_host_state_and_rate() -> None:
-    from trapflow.control import format_status
+    from trapflow.wire.control_client import format_status
 
     stats = messages.Stats(t_wall_ns=1, uptime_s=1.0, pairs_in=3, rate_in=1.0, malformed=0,
                            pools={"far": messages.PoolStats(workers=1)}, remote=[

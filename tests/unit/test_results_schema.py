@@ -1,4 +1,4 @@
-"""The README's results.jsonl table and trapflow.result_json agree, key by key.
+"""The README's results.jsonl table and trapflow.stages.result_json agree, key by key.
 
 Regression (issue 15): docs/plugins.md described VO lines as `rotation`/`translation` while
 results.jsonl writes `Rt`, and no document listed `calib`, `model` or `v`. Every body type a
@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from trapflow import messages
-from trapflow.result_json import normalize
+from trapflow.stages.result_json import normalize
+from trapflow.wire import messages
 
 README = Path(__file__).resolve().parents[2] / "README.md"
 PLUGIN_ROW = "*plugin name*"

@@ -8,11 +8,11 @@ from pathlib import Path
 import pytest
 
 from tests.builders import kitti_calib, rectified_calibration
-from trapflow import config, rig
-from trapflow.calibration import save_calibration
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
+from trapflow.calibration.model import save_calibration
+from trapflow.config import schema as config
 from trapflow.errors import ConfigError
-from trapflow.sources import Geometry
+from trapflow.sources import Geometry, rig
 
 CALIB_TXT = StereoRig(width=752, height=480, fx=436.0, fy=435.0, cx=370.5, cy=235.2,
                       baseline_m=0.11)

@@ -7,9 +7,9 @@ import json
 
 import pytest
 
-from trapflow.control import format_status
-from trapflow.messages import CaptureCounters, PoolStats, Stats
-from trapflow.run_ledger import Delivered, RunLedger, totals_text
+from trapflow.supervisor.ledger import Delivered, RunLedger, totals_text
+from trapflow.wire.control_client import format_status
+from trapflow.wire.messages import CaptureCounters, PoolStats, Stats
 
 
 def _stats(pairs_in: int, **pool: int) -> Stats:

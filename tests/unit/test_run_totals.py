@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from trapflow import run_totals
-from trapflow.messages import PoolStats, Stats
+from trapflow.supervisor import ledger as run_totals
+from trapflow.wire.messages import PoolStats, Stats
 
 
 def _stats(uptime: float, **pool: int) -> Stats:

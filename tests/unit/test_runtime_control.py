@@ -9,13 +9,10 @@ from typing import Any
 import msgspec
 import pytest
 
-from trapflow import messages
-from trapflow.broker_state import BrokerState, Dispatch, PoolSpec, Release
-from trapflow.control import parse_assignment
+from trapflow.broker.policy import parse_policy
+from trapflow.broker.state import BrokerState, Dispatch, PoolSpec, Release
 from trapflow.errors import ProtocolError
-from trapflow.policy import parse_policy
-from trapflow.pool_control_state import worker_name
-from trapflow.supervisor_actions import (
+from trapflow.supervisor.actions import (
     AddWorker,
     Budget,
     Lifecycle,
@@ -27,7 +24,10 @@ from trapflow.supervisor_actions import (
     SwitchPool,
     WorkerGone,
 )
-from trapflow.supervisor_state import SupervisorState
+from trapflow.supervisor.pool_control import worker_name
+from trapflow.supervisor.state import SupervisorState
+from trapflow.wire import messages
+from trapflow.wire.control_client import parse_assignment
 
 
 def core(count: int = 2, params: dict[str, Any] | None = None) -> SupervisorState:
@@ -362,7 +362,7 @@ def test_control_commands_refuse_bad_usage(tmp_path: Any, args: list[str], code:
                                            match: str) -> None:
     from click.testing import CliRunner
 
-    from trapflow import cli
+    from trapflow.cli import main as cli
 
     res = CliRunner().invoke(cli.main, [*args, "--run-dir", str(tmp_path / "none")])
     assert res.exit_code == code, res.output

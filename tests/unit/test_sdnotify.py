@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from trapflow import sdnotify
+from trapflow.runtime import sdnotify
 
 
 @pytest.fixture

@@ -14,10 +14,10 @@ import pytest
 
 from tests import builders
 from tests.conftest import only_pools
-from trapflow import config as configmod
-from trapflow import frame_ring as fr
-from trapflow import messages
+from trapflow.config import schema as configmod
 from trapflow.errors import ProtocolError
+from trapflow.wire import frame_ring as fr
+from trapflow.wire import messages
 
 pytestmark = pytest.mark.timeout(30)
 

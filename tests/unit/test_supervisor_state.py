@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from trapflow.supervisor_actions import (
+from trapflow.supervisor.actions import (
     EXIT_RECYCLED_JOBS,
     EXIT_RECYCLED_RSS,
     Budget,
@@ -18,7 +18,7 @@ from trapflow.supervisor_actions import (
     Stop,
     WorkerGone,
 )
-from trapflow.supervisor_state import SupervisorState
+from trapflow.supervisor.state import SupervisorState
 
 BUDGET = Budget(max_restarts=2, window_s=60.0, backoff_s=0.5, backoff_max_s=4.0,
                 cooldown_s=30.0)
@@ -231,7 +231,7 @@ def test_start_up_deadline_and_reasons(state: Lifecycle, reason: str, at: float,
 def test_a_workers_liveness_is_its_pools_timeout(timeout_s: float, heartbeat_s: float,
                                                  limit: float) -> None:
     """Regression (issue 16, item 9): a hung worker lived until supervisor.liveness_s."""
-    from trapflow.supervisor import worker_liveness
+    from trapflow.supervisor.shell import worker_liveness
 
     assert worker_liveness(timeout_s, heartbeat_s) == limit
 

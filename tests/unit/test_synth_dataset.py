@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from trapflow.cli_dataset import dataset
+from trapflow.cli.dataset import dataset
 
 SMALL = ["--width", "160", "--height", "96"]
 

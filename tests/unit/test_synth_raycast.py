@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 from trapflow.synth import SynthOptions, World
 from trapflow.synth.animals import Placement
 from trapflow.synth.geometry import inv_pose

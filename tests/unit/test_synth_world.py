@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from trapflow.camera import StereoRig
-from trapflow.config import SourceConfig
+from trapflow.calibration.camera import StereoRig
+from trapflow.config.schema import SourceConfig
 from trapflow.errors import ConfigError
 from trapflow.sources.synthetic import SyntheticSource
 from trapflow.synth import SynthOptions, World, parse_options

@@ -10,8 +10,8 @@ import pytest
 import zmq
 
 from tests.conftest import poll_for
-from trapflow import transport
-from trapflow.transport import SocketSpec, TapGate, open_socket
+from trapflow.wire import transport
+from trapflow.wire.transport import SocketSpec, TapGate, open_socket
 
 
 @pytest.mark.parametrize(("kind", "cap"), [

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import zmq
 
-from trapflow.transport import Poller, accept_link, connect_link, listen_link, zmq_readable
+from trapflow.wire.transport import Poller, accept_link, connect_link, listen_link, zmq_readable
 
 Sockets = tuple[zmq.Socket[bytes], zmq.Socket[bytes]]
 

@@ -9,12 +9,12 @@ from pathlib import Path
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from trapflow import messages
+from trapflow.cli.view_params import parse_view
 from trapflow.errors import ProtocolError
-from trapflow.result_json import dumps, normalize
+from trapflow.stages.result_json import dumps, normalize
 from trapflow.viewer import metrics
-from trapflow.viewer.params import parse_view
 from trapflow.viewer.state import Histogram, ViewState, parse_timestamp
+from trapflow.wire import messages
 
 
 @pytest.mark.parametrize(("text", "expected", "error"), [
@@ -221,7 +221,7 @@ def test_raw_pair_is_served_as_jpeg() -> None:
     ("ev1/left/missing.jpg", False),
 ])
 def test_event_images_only_from_the_events_folder(tmp_path: Path, rel: str, served: bool) -> None:
-    from trapflow.config import Config
+    from trapflow.config.schema import Config
     from trapflow.viewer.taps import PipelineTaps
 
     run = tmp_path / "run"

@@ -23,17 +23,18 @@ import cv2
 import msgspec
 import numpy as np
 
-from trapflow import config as configmod
-from trapflow import messages, registry
 from trapflow.batch.plan import SEQUENTIAL_POOLS, Chunk, Input, fingerprint
-from trapflow.camera import StereoRig
-from trapflow.config import Config
+from trapflow.calibration.camera import StereoRig
+from trapflow.config import schema as configmod
+from trapflow.config.schema import Config
 from trapflow.errors import WorkerError
 from trapflow.plugin import Context, Pair, Worker
-from trapflow.result_json import dumps, normalize
-from trapflow.rig import describe, mismatch
+from trapflow.runtime import registry
 from trapflow.sources import SkipPair, Source, open_source
-from trapflow.worker import STAMPED, decode_pair
+from trapflow.sources.rig import describe, mismatch
+from trapflow.stages.result_json import dumps, normalize
+from trapflow.stages.worker import STAMPED, decode_pair
+from trapflow.wire import messages
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +62,7 @@ def input_config(config: dict[str, Any], inp: Input) -> Config:
 
 
 def open_input(cfg: Config) -> Source:
-    """The input's source, opened, with the run's rig (trapflow.rig decides it)."""
+    """The input's source, opened, with the run's rig (trapflow.sources.rig decides it)."""
     resolved = describe(cfg)
     source = open_source(cfg.source, resolved.rig, cfg.rig.calibration)
     source.open()

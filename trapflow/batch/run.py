@@ -33,7 +33,7 @@ from trapflow.batch.plan import (
     fingerprint,
     plan_chunks,
 )
-from trapflow.config import Config
+from trapflow.config.schema import Config
 from trapflow.errors import ConfigError
 
 log = logging.getLogger(__name__)

@@ -22,7 +22,6 @@ from typing import Any
 
 import msgspec
 
-from trapflow import messages
 from trapflow.errors import ConfigError, ProtocolError
 from trapflow.modem import surface_state
 from trapflow.modem.codec import LinkCodec
@@ -52,6 +51,7 @@ from trapflow.modem.frame import (
     signed_payload,
     split_signed,
 )
+from trapflow.wire import messages
 
 MIN_KEY_BYTES = 16
 REFUSAL_REPLY_INTERVAL_S = 5.0
@@ -412,7 +412,7 @@ def parse_command_text(text: str) -> Command:
         return Command(CMD_LEVEL, text=args[0])
     if verb == "param":
         want(2, "param POOL KEY=VALUE")
-        from trapflow.control import parse_assignment
+        from trapflow.wire.control_client import parse_assignment
 
         key, value = parse_assignment(args[1])
         return Command(CMD_PARAM, args[0], text=key, value=value)

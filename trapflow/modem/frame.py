@@ -24,8 +24,8 @@ import struct
 from collections.abc import Iterable
 from dataclasses import dataclass
 
+from trapflow.config.modem import MAX_PAYLOAD as MAX_PAYLOAD
 from trapflow.errors import ProtocolError
-from trapflow.modem.config import MAX_PAYLOAD as MAX_PAYLOAD
 
 SYNC = b"\xa5\x5a"
 HEADER = len(SYNC) + 2  # sync, len, type

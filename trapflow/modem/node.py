@@ -3,7 +3,8 @@ executes the surface's signed commands.
 
 Owns a SUB of the broker's stats (pool rates and the ladder's level for health: a level
 change sends a health record at once) and a REQ to the supervisor's control socket
-(trapflow.control.ControlClient) through which commands run. The serial port is opened and
+(trapflow.wire.control_client.ControlClient)
+through which commands run. The serial port is opened and
 re-opened by the sender; while it is missing the node is inactive with the reason, the
 outbox keeps filling, and sending resumes when the port is back.
 A command is checked by trapflow.modem.command.CommandGuard; its counter is saved (beside
@@ -18,8 +19,6 @@ from typing import Any
 
 import zmq
 
-from trapflow import messages
-from trapflow.control import ControlClient
 from trapflow.errors import ConfigError, ProtocolError
 from trapflow.modem.command import (
     CommandGuard,
@@ -44,9 +43,11 @@ from trapflow.modem.frame import (
 )
 from trapflow.modem.health import HealthMonitor
 from trapflow.modem.sender import ModemSender
-from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
-from trapflow.ratelog import RateLimitedLog, wire
-from trapflow.transport import SocketSpec, open_socket
+from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
+from trapflow.runtime.ratelog import RateLimitedLog, wire
+from trapflow.wire import messages
+from trapflow.wire.control_client import ControlClient
+from trapflow.wire.transport import SocketSpec, open_socket
 
 log = logging.getLogger(__name__)
 

@@ -25,8 +25,8 @@ from typing import Any
 
 import msgspec
 
+from trapflow.config.modem import OutboxConfig as OutboxConfig
 from trapflow.errors import TrapflowError
-from trapflow.modem.config import OutboxConfig as OutboxConfig
 from trapflow.modem.frame import SESSION_BYTES
 
 log = logging.getLogger(__name__)
@@ -118,7 +118,7 @@ def _connect(path: Path) -> sqlite3.Connection:
     a folder it creates is its owner's alone, the file (and SQLite's -wal and -shm, which
     SQLite creates with the file's own mode) read-write for the owner, readable by the group,
     as results.jsonl is."""
-    from trapflow.transport import FILE_MODE, RUN_DIR_MODE  # config imports this module
+    from trapflow.wire.transport import FILE_MODE, RUN_DIR_MODE  # config imports this module
 
     if not path.parent.exists():
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -17,9 +17,9 @@ from typing import Any
 
 import msgspec
 
+from trapflow.config.modem import BITS_PER_BYTE, ModemConfig
 from trapflow.errors import ProtocolError
 from trapflow.modem.codec import LinkCodec
-from trapflow.modem.config import BITS_PER_BYTE, ModemConfig
 from trapflow.modem.frame import (
     ACK,
     COMMAND,

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from trapflow.camera import StereoRig
-from trapflow.config import SourceConfig
+from trapflow.calibration.camera import StereoRig
+from trapflow.config.schema import SourceConfig
 from trapflow.errors import ConfigError
 from trapflow.sources.base import Frames, Geometry, SkipPair, Source, SourceError
 from trapflow.sources.spec import parse_source_spec
@@ -59,12 +59,12 @@ def open_source(cfg: SourceConfig, rig: StereoRig, calibration: str | None = Non
 
     A calibration file (the argument, i.e. rig.calibration, or source.options.rectify)
     makes every pair rectified with maps computed once here; its rig replaces `rig`.
-    `rig` is the run's rig (trapflow.rig.resolve), which the source then delivers.
+    `rig` is the run's rig (trapflow.sources.rig.resolve), which the source then delivers.
     """
     source = build_source(cfg, rig)
     rectify = cfg.options.get("rectify", calibration)
     if rectify:
-        from trapflow.calibration import load_calibration
+        from trapflow.calibration.model import load_calibration
         from trapflow.sources.rectify import RectifiedSource
 
         source = RectifiedSource(source, load_calibration(str(rectify)))

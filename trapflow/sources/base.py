@@ -6,9 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 from trapflow.errors import TrapflowError
-from trapflow.messages import Truth
+from trapflow.wire.messages import Truth
 
 
 class SourceError(TrapflowError):
@@ -44,7 +44,7 @@ class Frames:
 
 @dataclass(frozen=True)
 class Geometry:
-    """What a source knows of its own geometry before it is opened (trapflow.rig decides)."""
+    """What a source knows of its own geometry before it is opened (sources.rig decides)."""
 
     size: tuple[int, int] | None = None  # (width, height) of its real frames
     rig: StereoRig | None = None  # its own calibration: KITTI calib.txt, CameraInfo

@@ -6,8 +6,8 @@ from collections.abc import Callable
 
 import cv2
 
-from trapflow.camera import StereoRig
-from trapflow.config import SourceConfig
+from trapflow.calibration.camera import StereoRig
+from trapflow.config.schema import SourceConfig
 from trapflow.sources.base import SourceError
 from trapflow.sources.live import Grab, LiveStereoSource
 from trapflow.sources.spec import split_gst

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from trapflow.camera import StereoRig
-from trapflow.config import SourceConfig
+from trapflow.calibration.camera import StereoRig
+from trapflow.config.schema import SourceConfig
 from trapflow.errors import ConfigError
 from trapflow.sources.base import Frames, Geometry, SkipPair, Source, SourceError
 from trapflow.sources.decode import decode_bgr, same_size
@@ -44,8 +44,8 @@ def read_times(path: Path) -> list[int]:
 
 
 def read_kitti_calib(path: Path, width: int, height: int) -> StereoRig:
-    """The rig from a KITTI calib.txt (trapflow.rig reads it); SourceError says what is wrong."""
-    from trapflow.rig import read_kitti_calib as read
+    """The rig from a KITTI calib.txt; SourceError says what is wrong."""
+    from trapflow.sources.rig import read_kitti_calib as read
 
     try:
         return read(path, (width, height))

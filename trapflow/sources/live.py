@@ -16,8 +16,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from trapflow.camera import StereoRig
-from trapflow.config import SourceConfig
+from trapflow.calibration.camera import StereoRig
+from trapflow.config.schema import SourceConfig
 from trapflow.sources.base import Frames, Source, SourceError
 from trapflow.sources.sync import StereoSync, default_tolerance_ns
 

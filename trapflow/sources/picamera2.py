@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from trapflow.camera import StereoRig
-from trapflow.config import SourceConfig
+from trapflow.calibration.camera import StereoRig
+from trapflow.config.schema import SourceConfig
 from trapflow.sources.base import SourceError
 from trapflow.sources.live import Grab, LiveStereoSource
 from trapflow.sources.spec import split_pair

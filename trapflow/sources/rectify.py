@@ -8,7 +8,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from trapflow.calibration import StereoCalibration
+from trapflow.calibration.model import StereoCalibration
 from trapflow.sources.base import Frames, SkipPair, Source, SourceError
 
 

@@ -23,8 +23,8 @@ from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from trapflow.camera import StereoRig
-from trapflow.config import SourceConfig
+from trapflow.calibration.camera import StereoRig
+from trapflow.config.schema import SourceConfig
 from trapflow.sources.base import Frames, Geometry, SkipPair, Source, SourceError
 from trapflow.sources.decode import decode_bgr, same_size
 from trapflow.sources.sync import SkewStats, StereoSync

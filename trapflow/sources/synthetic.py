@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import time
 
-from trapflow.camera import StereoRig
-from trapflow.config import SourceConfig
+from trapflow.calibration.camera import StereoRig
+from trapflow.config.schema import SourceConfig
 from trapflow.errors import ConfigError
 from trapflow.sources.base import Frames, Source
 from trapflow.synth import World, parse_options

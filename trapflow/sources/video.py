@@ -9,8 +9,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from trapflow.camera import StereoRig
-from trapflow.config import SourceConfig
+from trapflow.calibration.camera import StereoRig
+from trapflow.config.schema import SourceConfig
 from trapflow.sources.base import Frames, Geometry, Source, SourceError
 from trapflow.sources.decode import same_size
 from trapflow.sources.spec import split_pair

@@ -22,11 +22,11 @@ import cv2
 import msgspec
 import yaml
 
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 from trapflow.errors import ConfigError
-from trapflow.messages import Truth, TruthObject
 from trapflow.synth.options import SynthOptions
 from trapflow.synth.render import World
+from trapflow.wire.messages import Truth, TruthObject
 
 log = logging.getLogger(__name__)
 

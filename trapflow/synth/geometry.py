@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 
 
 def rot_z(a: float) -> np.ndarray:

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 
 
 class RayGrid:

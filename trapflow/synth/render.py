@@ -19,8 +19,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from trapflow.camera import StereoRig
-from trapflow.messages import Truth, TruthObject
+from trapflow.calibration.camera import StereoRig
 from trapflow.synth.animals import Placement, Population
 from trapflow.synth.geometry import Trajectory, floor_points, inv_pose, right_of
 from trapflow.synth.options import SynthOptions
@@ -28,6 +27,7 @@ from trapflow.synth.rays import Frustum, RayGrid
 from trapflow.synth.sprites import boulder, tag_sprite
 from trapflow.synth.texture import Floor
 from trapflow.synth.water import F_SCALE, Light, Noise, Snow, to_u8
+from trapflow.wire.messages import Truth, TruthObject
 
 GRID = 4  # the floor is ray-cast every GRID pixels and resampled
 LIGHT_GRID = 16  # a moving rig computes light and water every 16 pixels: they change slowly

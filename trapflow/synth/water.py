@@ -10,7 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 
 BETA = np.array([0.16, 0.09, 0.45], np.float32)  # attenuation per metre (B, G, R)
 BACKSCATTER = np.array([125.0, 112.0, 50.0], np.float32)  # veiling light (B, G, R), grey levels

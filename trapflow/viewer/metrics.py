@@ -24,7 +24,7 @@ from prometheus_client.core import (
 )
 from prometheus_client.registry import Collector
 
-from trapflow.node import ACTIVE, FINALIZED, INACTIVE, UNCONFIGURED
+from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, UNCONFIGURED
 from trapflow.viewer.state import ViewState
 
 LIFECYCLE = (UNCONFIGURED, INACTIVE, ACTIVE, FINALIZED)

@@ -11,7 +11,7 @@ import asyncio
 import logging
 import time
 
-from trapflow.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
+from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.viewer.server import serve
 
 log = logging.getLogger(__name__)

@@ -19,12 +19,12 @@ import cv2
 import numpy as np
 from aiohttp import web
 
-from trapflow import messages
-from trapflow.config import Config
+from trapflow.config.schema import Config
 from trapflow.errors import ProtocolError
 from trapflow.viewer import metrics
 from trapflow.viewer.state import Frame, ViewState
 from trapflow.viewer.taps import PipelineTaps
+from trapflow.wire import messages
 
 log = logging.getLogger(__name__)
 

@@ -12,7 +12,7 @@ from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 from typing import Any
 
-from trapflow import messages
+from trapflow.wire import messages
 
 HISTORY = 120  # chart points kept per pool (one per stats message: two minutes)
 RING = 48  # recent pairs kept to match a result to the image it was computed on

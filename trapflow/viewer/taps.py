@@ -19,12 +19,12 @@ from typing import Any
 
 import zmq
 
-from trapflow import messages
-from trapflow.config import Config
+from trapflow.config.schema import Config
 from trapflow.errors import ProtocolError
-from trapflow.ratelog import RateLimitedLog
-from trapflow.transport import Endpoints, SocketSpec, new_context, open_socket
+from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.viewer.state import ViewState
+from trapflow.wire import messages
+from trapflow.wire.transport import Endpoints, SocketSpec, new_context, open_socket
 
 log = logging.getLogger(__name__)
 

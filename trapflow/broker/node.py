@@ -1,0 +1,575 @@
+"""The broker process: translates sockets to BrokerState events and actions to sends.
+
+Owns: PULL from capture, ROUTER to workers, a local link of results to the
+normalizer (in batches), PUB tap (frame metadata, images, stats once a second: read and
+published by its base trapflow.broker.tap.TapSide), and with network.remote.bind a second
+ROUTER for workers on other hosts (CURVE, ZAP: trapflow.broker.remote.RemoteSide).
+Image frames are forwarded as received (zero-copy); only the small header is
+decoded. With the shared-memory ring, capture and local workers talk to it over
+local links instead (descriptors only).
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import logging
+import os
+import time
+from typing import Any
+
+import zmq
+
+from trapflow.broker.remote import RemoteSide, frame_bytes
+from trapflow.broker.state import BrokerState, Dispatch, Evicted, PoolSpec, Rejected, Release
+from trapflow.broker.tap import TapSide
+from trapflow.errors import ProtocolError
+from trapflow.runtime.node import ACTIVE, Node, NodeSpec
+from trapflow.runtime.ratelog import RateLimitedLog, wire
+from trapflow.wire import messages
+from trapflow.wire.frame_ring import HELD, FrameRing
+from trapflow.wire.transport import (
+    PAIR_MAX_MSG_BYTES,
+    TAP_RCVHWM,
+    Link,
+    LinkClosed,
+    Poller,
+    SocketSpec,
+    TapGate,
+    accept_link,
+    listen_link,
+    open_socket,
+    zmq_readable,
+)
+
+log = logging.getLogger(__name__)
+
+STATS_INTERVAL_S = 1.0
+TICK_INTERVAL_S = 0.1
+RESULTS_BATCH_BYTES = 64 << 10  # results leave in datagrams of about this size, or less
+MAX_WAITING_RESULTS = 100_000  # kept while no normalizer listens; beyond, the oldest go
+SUPERVISOR_IDENT = b"supervisor"  # the supervisor's DEALER identity on the workers socket
+MAX_GOODBYES = 256  # workers that left on purpose, remembered for the log's level
+
+
+class BrokerNode(RemoteSide, TapSide, Node):
+    """Distributes pairs to worker pools with back-pressure and per-pool policies."""
+
+    def __init__(self, spec: NodeSpec) -> None:
+        super().__init__(spec)
+        ep = self.endpoints
+        self.pull = open_socket(self.ctx, SocketSpec(zmq.PULL, ep.capture, bind=True, rcvhwm=8,
+                                                     max_msg_bytes=PAIR_MAX_MSG_BYTES))
+        self.router = open_socket(
+            self.ctx, SocketSpec(zmq.ROUTER, ep.workers, bind=True, router_mandatory=True)
+        )
+        # XPUB tells us what taps subscribe to, so nothing is published that nobody reads;
+        # a small high-water mark: a slow tap loses messages instead of holding the broker.
+        # Manual: only prefixes of the tap's topics are taken (TapGate), nothing else is kept.
+        self.tap = open_socket(self.ctx, SocketSpec(zmq.XPUB, ep.tap, bind=True, sndhwm=32,
+                                                    rcvhwm=TAP_RCVHWM, xpub_manual=True))
+        self.gate = TapGate(self.tap, messages.TAP_TOPICS)
+        self.wanted: dict[bytes, bool] = {}
+        self._jobs: dict[tuple[str, int], bytes] = {}
+        pools = {  # a remote pool exists with no local worker: remote workers add to count
+            name: PoolSpec(p.parsed_policy, p.timeout_s, p.max_pending_age_s)
+            for name, p in self.cfg.pools.items()
+            if p.count > 0 or p.remote
+        }
+        self.state = BrokerState(pools, idle_liveness_s=self.cfg.supervisor.liveness_s)
+        self.frames: dict[int, list[Any]] = {}
+        # Shared-memory ring: the broker owns slot lifetime (frees a slot on Release).
+        ring_name = spec.ring
+        self.ring = FrameRing(ring_name) if ring_name else None
+        self.refs: dict[int, messages.FrameRef] = {}
+        self.remote = {n for n, p in self.cfg.pools.items() if p.remote}
+        # Remote pools get JPEG: a raw pair is encoded once, on demand, and kept until freed.
+        self._jpeg: dict[int, list[Any]] = {}
+        if self.ring is not None and spec.restarted:
+            self._reclaim_held()
+        # Local links (ring only): listeners, then one Link per connected capture or worker.
+        self.listeners: dict[Any, str] = {listen_link(ep.results_link): "results"}
+        if self.ring is not None:
+            self.listeners[listen_link(ep.capture_link)] = "capture"
+            self.listeners[listen_link(ep.workers_link)] = "worker"
+        self.fds: dict[int, Any] = {}  # file descriptor -> local link or listener
+        self.poller = Poller()
+        for sock in (self.pull, self.router, self.tap):
+            self.poller.register(sock)
+        self._open_remote()
+        for listener in self.listeners:
+            self.poller.register(listener)
+            self.fds[listener.fileno()] = listener
+        self.link_role: dict[Link, str] = {}
+        self.link_ident: dict[Link, bytes] = {}
+        self.worker_links: dict[bytes, Link] = {}
+        self.results_link: Link | None = None  # the normalizer, once it connected
+        self._out: list[Any] = []  # results waiting for this pass's batch (or a normalizer)
+        # Sent but not yet written: sent again to a restarted normalizer (kill -9, OOM).
+        # Bounded: a normalizer that never acknowledges cannot grow the broker without limit.
+        self._unacked: collections.deque[Any] = collections.deque(maxlen=MAX_WAITING_RESULTS)
+        self.results_dropped = 0
+        # Refused from the wire, by reason (forged answers are counted in self.state.rejected).
+        self.refused: dict[str, int] = {}
+        self.malformed = 0
+        self.unroutable = 0
+        self.ratelog = RateLimitedLog(log)
+        # A planned stop began (the supervisor said so): workers leave, none of it is news.
+        self.winding_down = False
+        # Workers that said a planned goodbye (stop, recycle), newest last (bounded).
+        self._goodbyes: collections.OrderedDict[bytes, str] = collections.OrderedDict()
+        self.started = time.monotonic()
+        self._last_in = 0
+        self._last_processed: dict[str, int] = {}
+        self._last_stats = self.started
+        # The ladder's level, as the supervisor last said (for Stats): the first level at
+        # the run's start; unknown after a restart until the supervisor tells it again.
+        ladder = self.cfg.ladder
+        self.level = ladder.levels[0].name if ladder.enabled and not spec.restarted else ""
+        self.level_reason = ""
+
+    def counters(self) -> dict[str, int]:
+        return {"pairs_in": self.state.pairs_in, "malformed": self.malformed,
+                "held": self.state.held(), "results_waiting": len(self._out) + len(self._unacked),
+                "results_dropped": self.results_dropped, "late_answers": self.state.late,
+                "refused_subscriptions": self.gate.refused,
+                **{f"rejected_{k}": n for k, n in self.state.rejected.items()},
+                **{f"refused_{k}": n for k, n in self.refused.items()}}
+
+    def run(self) -> int:
+        self.set_state(ACTIVE)
+        poller = self.poller
+        next_tick = time.monotonic()
+        while not self.stopping:
+            socks, fds = poller.poll(int(TICK_INTERVAL_S * 1000))
+            if self.router in socks:
+                self._drain_workers()
+            if self.remote_router is not None and self.remote_router in socks:
+                self._drain_remote()
+            if self.monitor is not None and self.monitor in socks:
+                self._on_handshakes()
+            for ready in [self.fds[fd] for fd in fds if fd in self.fds]:
+                if ready in self.listeners:
+                    self._accept(ready)
+                else:
+                    self._drain_link(ready)
+            if self.pull in socks:
+                self._drain_capture()
+            if self.tap in socks:
+                self._on_subscriptions()
+            self._flush_results()
+            now = time.monotonic()
+            if now >= next_tick:
+                next_tick = now + TICK_INTERVAL_S
+                self._apply(self.state.tick(now))
+                self._evict_silent_hosts(now)
+                if now - self._last_stats >= STATS_INTERVAL_S:
+                    self._publish_stats(now)
+                self.beat()
+        self.state.finish()  # what is still pending or in flight will never be processed
+        self._flush_results()
+        self._publish_stats(time.monotonic())  # the run's totals, for the supervisor
+        for link in list(self.link_role):
+            link.close()
+        for listener in self.listeners:
+            path = listener.getsockname()
+            listener.close()
+            with contextlib.suppress(OSError):
+                os.unlink(path)  # a successor binds afresh; a finished run leaves no socket
+        return 0
+
+    # --- capture side ---------------------------------------------------------------
+
+    def _drain_capture(self) -> None:
+        # Take what is queued now, then go back to the workers: results never starve.
+        # EVENTS before each recv: an empty socket costs no exception (this is the hot path).
+        self.poller.touch(self.pull)  # read its events again next pass: more may wait
+        for _ in range(64):
+            if not zmq_readable(self.pull):
+                return
+            self._on_capture(self.pull.recv_multipart(copy=False))
+
+    def _on_capture(self, frames: list[Any]) -> None:
+        if len(frames) == 2 and frame_bytes(frames[0]) == messages.TOPIC_TRUTH:
+            self._publish(messages.TOPIC_TRUTH, frames[1])  # out of band, for the tap only
+            return
+        ref: messages.FrameRef | None = None
+        try:
+            if len(frames) == 2:
+                pair, ref = messages.check_pair_ref(frames)
+                if self.ring is None:
+                    raise ProtocolError("pair: got a frame ref, but no shared-memory ring")
+                self.ring.validate(ref)
+            else:
+                pair = messages.check_pair_frames(frames)
+        except ProtocolError as exc:
+            self.malformed += 1
+            self.ratelog.warning("capture", "dropped malformed pair message: %s", exc)
+            return
+        if pair.seq in self.frames:
+            self.malformed += 1
+            self.ratelog.warning("dup", "dropped pair with duplicate seq %d", pair.seq)
+            if ref is not None and self.ring is not None and ref != self.refs.get(pair.seq):
+                self.ring.free_ref(ref)
+            return
+        self.frames[pair.seq] = frames
+        if ref is not None:
+            self.refs[pair.seq] = ref
+        if self.wanted.get(messages.TOPIC_META):
+            self._publish(messages.TOPIC_META, frames[0])
+        if self.wanted.get(messages.TOPIC_IMAGE):
+            self._publish(messages.TOPIC_IMAGE, *self._payload(pair.seq, copy=True))
+        self._apply(self.state.pair_arrived(pair.seq, time.monotonic()))
+
+    # --- local links ----------------------------------------------------------------
+
+    def _accept(self, listener: Any) -> None:
+        while (link := accept_link(listener)) is not None:
+            role = self.listeners[listener]
+            if role == "results":  # a (restarted) normalizer: it gets what waited for it
+                if self.results_link is not None:
+                    self._drain_link(self.results_link)  # a dead predecessor's EOF, if any
+                if self.results_link is not None:  # one normalizer at a time
+                    self._refuse("second_normalizer",
+                                 "refused a second connection to the results link while the "
+                                 "normalizer's is live; only one normalizer may run")
+                    link.close()
+                    continue
+                self.results_link = link
+            self.link_role[link] = role
+            self.fds[link.fileno()] = link
+            self.poller.register(link)
+
+    def _drain_link(self, link: Link) -> None:
+        role = self.link_role.get(link)
+        if role is None:  # dropped earlier in this pass (a failed send to it)
+            return
+        for _ in range(256):
+            try:
+                frames = link.recv()
+                if frames is None:
+                    return
+                if role == "capture":
+                    self._on_capture(frames)
+                    continue
+                if role == "results":
+                    self._on_ack(messages.decode_results_ack(frames[0]))
+                    continue
+                msg = _local_msg(messages.decode_worker_msg(frames[0]))
+                ident = self.link_ident.get(link)
+                if ident is None:  # a worker names itself in its first message
+                    if isinstance(msg, (messages.PoolSwitch, messages.LadderLevel,
+                                        messages.Stopping)):
+                        raise ProtocolError("worker link: expected a worker message first, "
+                                            f"got a {msg.__struct_config__.tag} (only the "
+                                            "supervisor sends those, on the workers socket)")
+                    ident = msg.worker.encode()
+                    if ident in self.worker_links:  # that name is another live link's
+                        self._refuse("duplicate_worker",
+                                     "refused a worker link naming itself '%s': a live link "
+                                     "has that name; every worker process has its own",
+                                     wire(msg.worker))
+                        self._drop_link(link, "duplicate name")
+                        return
+                    self.link_ident[link] = ident
+                    self.worker_links[ident] = link
+                self._on_worker_msg(ident, msg, [ident, *frames])  # as a ROUTER gives them
+            except LinkClosed:
+                self._drop_link(link, "disconnected")
+                return
+            except ProtocolError as exc:
+                self.malformed += 1
+                self.ratelog.warning("link", "dropped malformed %s message: %s", role, exc)
+
+    def _drop_link(self, link: Link, reason: str) -> None:
+        """A local peer went away: a worker's jobs are settled now, not at a timeout."""
+        if link not in self.link_role:
+            return
+        self.poller.unregister(link)
+        self.fds.pop(link.fileno(), None)
+        self.link_role.pop(link, None)
+        ident = self.link_ident.pop(link, None)
+        if link is self.results_link:
+            self.results_link = None
+            # What it was sent but never confirmed goes first to its successor.
+            self._out[:0] = self._unacked
+            self._unacked.clear()
+        link.close()
+        if ident is not None and self.worker_links.get(ident) is link:
+            del self.worker_links[ident]
+            self._apply(self.state.worker_gone(ident, reason, time.monotonic()))
+
+    # --- worker side ----------------------------------------------------------------
+
+    def _drain_workers(self) -> None:
+        self.poller.touch(self.router)
+        for _ in range(256):
+            if not zmq_readable(self.router):
+                return
+            frames = self.router.recv_multipart(copy=False)
+            ident = frames[0].bytes
+            try:
+                if len(frames) < 2:
+                    raise ProtocolError(
+                        f"worker message: expected 2 or 3 frames, got {len(frames)}")
+                msg = _local_msg(messages.decode_worker_msg(frames[1]))
+                self._on_worker_msg(ident, msg, frames)
+            except ProtocolError as exc:
+                self.malformed += 1
+                self.ratelog.warning("worker", "dropped malformed worker message: %s", exc)
+
+    def _on_worker_msg(self, ident: bytes, msg: Any, frames: list[Any]) -> None:
+        now = time.monotonic()
+        if isinstance(msg, messages.Ready):
+            self._apply(self.state.worker_ready(ident, msg.pool, msg.credit, now))
+        elif isinstance(msg, messages.Alive):
+            self._apply(self.state.worker_seen(ident, msg.pool, msg.free, now))
+        elif isinstance(msg, messages.Done):
+            if len(frames) != 3:
+                raise ProtocolError(
+                    f"done: expected 3 frames [id, done, result], got {len(frames)}")
+            actions = self.state.job_done(ident, msg.pool, msg.seq, True, now)
+            if not any(isinstance(a, Rejected) for a in actions):
+                self._out.append(frames[2])  # only an answer to a job this worker was given
+                self.remotes.processed(ident)
+            self._apply(actions)
+        elif isinstance(msg, messages.Gone):
+            # Only the supervisor tells of another worker's death; a worker, of its own.
+            gone = msg.worker.encode()
+            if ident not in (SUPERVISOR_IDENT, gone):
+                self._refuse("forged_gone", "refused a gone message for worker '%s' from '%s': "
+                             "only the supervisor or that worker may send it",
+                             wire(msg.worker), wire(ident))
+                return
+            link = self.worker_links.get(gone)
+            if ident == SUPERVISOR_IDENT and link is not None:
+                # Read what the worker sent before it exited first (its last answer and
+                # goodbye): the supervisor's notice must not overtake them.
+                self._drain_link(link)
+            self._goodbye(gone, msg.reason)
+            self._apply(self.state.worker_gone(gone, msg.reason, now,
+                                               requeue=msg.reason.startswith(
+                                                   messages.GONE_RECYCLED)))
+        elif isinstance(msg, messages.Stopping):
+            if ident != SUPERVISOR_IDENT:
+                self._refuse("forged_stopping", "refused a stopping notice from '%s': only "
+                             "the supervisor may send it", wire(ident))
+                return
+            self.winding_down = True
+            log.debug("planned stop: workers leave from now on")
+        elif isinstance(msg, messages.PoolSwitch):
+            self._on_pool_switch(ident, msg, now)
+        elif isinstance(msg, messages.LadderLevel):
+            if ident != SUPERVISOR_IDENT:
+                self._refuse("forged_level", "refused a ladder level '%s' from '%s': only the "
+                             "supervisor may send it", wire(msg.level), wire(ident))
+                return
+            self.level, self.level_reason = msg.level, msg.reason  # in the next Stats
+        elif isinstance(msg, messages.Failed):
+            actions = self.state.job_done(ident, msg.pool, msg.seq, False, now, msg.kind)
+            if not any(isinstance(a, Rejected) for a in actions):
+                self.ratelog.warning("failed:" + msg.pool, "%s failed pair %d: %s",
+                                     wire(msg.worker), msg.seq, wire(msg.reason))
+            self._apply(actions)
+
+    # --- remote workers (another host) ----------------------------------------------
+
+    def close(self) -> None:
+        if self.auth is not None:
+            self.auth.stop()
+        super().close()
+
+    def _on_pool_switch(self, ident: bytes, msg: messages.PoolSwitch, now: float) -> None:
+        """Runtime control of a pool: only the supervisor may send it."""
+        if ident != SUPERVISOR_IDENT:
+            self._refuse("forged_switch", "refused a pool switch for '%s' from '%s': only "
+                         "the supervisor may send it", wire(msg.pool), wire(ident))
+            return
+        try:
+            if msg.active is not None:
+                self._apply(self.state.set_active(msg.pool, msg.active, now))
+                log.info("pool %s %s", msg.pool, "active" if msg.active else "inactive")
+            if msg.policy is not None:
+                self._apply(self.state.set_policy(msg.pool, msg.policy, now))
+                log.info("pool %s policy %s", msg.pool, msg.policy)
+            if msg.min_interval_s is not None:
+                self._apply(self.state.set_interval(msg.pool, msg.min_interval_s, now))
+                log.info("pool %s minimum interval %g s", msg.pool, msg.min_interval_s)
+            if msg.params is not None:
+                self._configure_workers(msg.pool, msg.params)
+        except ValueError as exc:
+            self.ratelog.warning("switch", "refused a pool switch: %s", wire(str(exc)))
+
+    def _configure_workers(self, pool: str, params: dict[str, Any]) -> None:
+        """New parameters, applied in place by every worker of the pool between pairs."""
+        frame = messages.encode(messages.Configure(pool=pool, params=params))
+        for ident in self.state.pool_workers(pool):
+            link = self.worker_links.get(ident)
+            try:
+                if link is not None:
+                    link.send([frame])
+                else:
+                    self.router.send_multipart([ident, frame])
+            except (zmq.ZMQError, LinkClosed) as exc:  # it is gone: its successor starts
+                self._unreachable("configure", ident, link, exc,
+                                  remote=ident in self.remotes.known)
+        log.info("pool %s: new parameters sent to its workers", pool)
+
+    # --- actions --------------------------------------------------------------------
+
+    def _apply(self, actions: list[Any]) -> None:
+        for action in actions:
+            if isinstance(action, Dispatch):
+                key = (action.pool, action.gap)
+                job = self._jobs.get(key)
+                if job is None:  # almost always gap 0: encode each pool's job frame once
+                    job = messages.encode(messages.Job(pool=action.pool, gap=action.gap))
+                    if action.gap == 0:
+                        self._jobs[key] = job
+                link = self.worker_links.get(action.worker)
+                try:
+                    if action.worker in self.remotes.known:
+                        assert self.remote_router is not None
+                        self.poller.touch(self.remote_router)
+                        self.remote_router.send_multipart(
+                            [action.worker, job, *self._remote_payload(action.seq)],
+                            copy=False)
+                    elif link is not None:
+                        if not link.send([job, *self.frames[action.seq]]):
+                            raise LinkClosed("its queue is full")
+                    else:
+                        remote = action.pool in self.remote
+                        self.poller.touch(self.router)
+                        payload = (self._remote_payload(action.seq) if remote
+                                   else self._payload(action.seq, copy=False))
+                        self.router.send_multipart([action.worker, job, *payload], copy=False)
+                except (zmq.ZMQError, LinkClosed) as exc:  # EHOSTUNREACH: the worker vanished
+                    self.unroutable += 1
+                    self._unreachable("route", action.worker, link, exc,
+                                      remote=action.worker in self.remotes.known)
+                    if link is not None:
+                        self._drop_link(link, "unreachable")
+                    else:
+                        self._apply(self.state.worker_gone(action.worker, "unreachable",
+                                                           time.monotonic()))
+            elif isinstance(action, Release):
+                self.frames.pop(action.seq, None)
+                self._jpeg.pop(action.seq, None)
+                ref = self.refs.pop(action.seq, None)
+                if ref is not None and self.ring is not None:
+                    self.ring.free_ref(ref)
+            elif isinstance(action, Rejected):
+                self.ratelog.warning(
+                    "rejected:" + action.reason,
+                    "dropped an answer from worker '%s' for pool '%s' pair %d (%s): it was not "
+                    "dispatched to that worker or was answered already", wire(action.worker),
+                    wire(action.pool), action.seq, action.reason)
+            elif isinstance(action, Evicted):
+                self.remotes.evicted(action.worker, action.reason)
+                # A worker told to stop, or recycled, leaves on purpose; anything else is news.
+                level = (logging.INFO if messages.is_planned_goodbye(action.reason)
+                         else logging.WARNING)
+                self.ratelog.log(
+                    level, f"evicted:{level}", "evicted worker %s of pool %s (%s); pairs lost: %s",
+                    wire(action.worker), action.pool, wire(action.reason),
+                    list(action.lost) or "none",
+                )
+
+    def _goodbye(self, ident: bytes, reason: str) -> None:
+        """Remember a worker that left on purpose: a send to it afterwards is no news."""
+        if messages.is_planned_goodbye(reason):
+            self._goodbyes[ident] = reason
+            while len(self._goodbyes) > MAX_GOODBYES:
+                self._goodbyes.popitem(last=False)
+
+    def _unreachable(self, what: str, ident: bytes, link: Link | None, exc: Exception,
+                     remote: bool = False) -> None:
+        """A send to a worker failed. What the worker sent last is read first (its local
+        link, or the socket it used): its goodbye may wait there, unread, behind the answer
+        that gave it the credit (it answered, said goodbye and left before the broker read
+        the answer). A worker that left on purpose, or any during a planned stop, is debug;
+        anything else is a real failure mid-run (a warning)."""
+        if link is not None:
+            self._drain_link(link)  # its Gone (and EOF) settle it as it meant to leave
+        elif remote:
+            self._drain_remote()
+        else:
+            self._drain_workers()
+        if self.winding_down or ident in self._goodbyes:
+            log.debug("cannot reach worker %r, which is leaving: %s", ident, exc)
+        else:
+            self.ratelog.warning(what, "cannot reach worker %r: %s", ident, exc)
+
+    def _flush_results(self) -> None:
+        """Results leave in few datagrams: one wake-up of the normalizer per pass, not one each.
+
+        What the normalizer cannot take now (busy, restarting) waits here for the next pass.
+        """
+        if len(self._out) > MAX_WAITING_RESULTS:
+            extra = len(self._out) - MAX_WAITING_RESULTS
+            self.results_dropped += extra
+            self.ratelog.warning("results", "no normalizer: dropped %d oldest results", extra)
+            del self._out[:extra]
+        while self._out and self.results_link is not None:
+            n, size = 0, 0
+            while n < min(len(self._out), messages.MAX_LINK_FRAMES) and (
+                    n == 0 or size + len(self._out[n]) < RESULTS_BATCH_BYTES):
+                size += len(self._out[n])
+                n += 1
+            try:
+                if not self.results_link.send(self._out[:n]):
+                    return
+                self._unacked.extend(self._out[:n])
+            except LinkClosed:
+                self._drop_link(self.results_link, "disconnected")
+                return
+            except ProtocolError as exc:  # one result too big for a datagram
+                self.results_dropped += 1
+                self.ratelog.warning("results", "dropped a result: %s", exc)
+                n = 1
+            del self._out[:n]
+
+    def _on_ack(self, ack: messages.ResultsAck) -> None:
+        """Only the live normalizer's link is read for acks; never more than it was sent."""
+        if not 0 < ack.count <= len(self._unacked):
+            self._refuse("bad_ack", "an acknowledgement of %d results exceeds the %d sent and "
+                         "not yet acknowledged; taking only those", ack.count, len(self._unacked))
+        for _ in range(min(max(ack.count, 0), len(self._unacked))):
+            self._unacked.popleft()
+
+    def _refuse(self, reason: str, msg: str, *args: object) -> None:
+        self.refused[reason] = self.refused.get(reason, 0) + 1
+        self.ratelog.warning("refused:" + reason, msg, *args)
+
+    def _payload(self, seq: int, copy: bool) -> list[Any]:
+        """[header, left, right] bytes, or [header, ref] for local readers of the ring.
+
+        copy=True reads the bytes out of the ring (remote pools, the tap): zmq sends them
+        later from its own thread, after the slot may have been freed and reused.
+        """
+        frames = self.frames[seq]
+        ref = self.refs.get(seq)
+        if ref is None or not copy:
+            return frames
+        assert self.ring is not None
+        row = self.ring.payload(ref)
+        return [frames[0], bytes(row[0]), bytes(row[1])]
+
+    def _reclaim_held(self) -> None:
+        """A new broker knows of no pair: slots a previous broker held are free again."""
+        assert self.ring is not None
+        n = sum(self.ring.free(slot, self.ring.generation(slot))
+                for slot in range(self.ring.slots) if self.ring.state(slot) == HELD)
+        if n:
+            log.warning("freed %d ring slots held by a previous broker", n)
+
+def _local_msg(msg: messages.AnyWorkerMsg) -> messages.Ready | messages.Alive | messages.Done \
+        | messages.Failed | messages.Gone | messages.PoolSwitch | messages.LadderLevel \
+        | messages.Stopping:
+    """Hello, JoinRequest and HostAlive belong to the remote socket; on a local path they
+    are refused."""
+    if isinstance(msg, (messages.Hello, messages.JoinRequest, messages.HostAlive)):
+        raise ProtocolError(f"worker message: expected ready, alive, done, failed or gone on "
+                            f"a local path, got {type(msg).__name__} (remote workers connect "
+                            f"to network.remote.bind)")
+    return msg

@@ -1,0 +1,452 @@
+"""The broker's decisions, pure: events in (pair arrived, worker ready, job done, tick),
+actions out (dispatch, release). No sockets, no clocks: callers pass `now` in seconds.
+
+Every pair that reaches a pool ends in exactly one counter (the loss ledger): processed,
+failed (by kind), dropped (by the pool's policy), stale (it waited longer than the pool's
+max_pending_age_s), inactive (the pool was deactivated, `trapflow pool NAME --deactivate`),
+throttled (the degradation ladder gives the pool at most one pair per minimum interval),
+timed out (its worker held it too long) or lost (its worker died, or the run ended first).
+
+A worker that leaves on purpose to be recycled (worker_gone with requeue) answered its last
+pair first; what was dispatched to it after that answer it never started, so those pairs go
+back to the front of the queue instead of being lost.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+from trapflow.broker.policy import Pending, Policy, parse_policy
+from trapflow.wire.messages import PoolStats
+
+# A worker that has said nothing for this long while idle is presumed dead.
+IDLE_LIVENESS_S = 5.0
+# Distinct failure kinds counted per pool; the rest are counted as "other".
+MAX_FAILURE_KINDS = 16
+# Weight of the newest pair in a pool's latency (an exponential moving average).
+LATENCY_WEIGHT = 0.2
+# Pairs of evicted workers whose late answer is still taken (per worker, oldest forgotten).
+MAX_LATE_PER_WORKER = 64
+MAX_LATE_WORKERS = 256
+
+# Why an answer (Done or Failed) was refused: counted per reason, never applied.
+REJECT_UNKNOWN_POOL = "unknown_pool"
+REJECT_UNKNOWN_WORKER = "unknown_worker"
+REJECT_NOT_DISPATCHED = "not_dispatched"
+
+
+@dataclass(frozen=True)
+class Dispatch:
+    """Send pair `seq` to `worker`; gap = pairs this pool skipped since its last dispatch."""
+
+    worker: bytes
+    pool: str
+    seq: int
+    gap: int
+
+
+@dataclass(frozen=True)
+class Release:
+    """No pool holds `seq` any more: its buffers can go."""
+
+    seq: int
+
+
+@dataclass(frozen=True)
+class Evicted:
+    """A worker was forgotten; `lost` are the pairs it held."""
+
+    worker: bytes
+    pool: str
+    lost: tuple[int, ...]
+    reason: str
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """An answer for a (worker, seq) that was never dispatched to that worker, or was
+    answered already: forged or confused. Nothing of it is applied; its result is dropped."""
+
+    worker: bytes
+    pool: str
+    seq: int
+    reason: str
+
+
+Action = Dispatch | Release | Evicted | Rejected
+
+
+@dataclass(frozen=True)
+class PoolSpec:
+    """What the state machine needs to know about a pool."""
+
+    policy: Policy
+    timeout_s: float
+    max_pending_age_s: float = 0.0  # 0: pending pairs never go stale
+
+
+@dataclass
+class _Worker:
+    ident: bytes
+    pool: str
+    credit: int = 0
+    in_flight: dict[int, float] = field(default_factory=dict)  # seq -> dispatch time
+    last_seen: float = 0.0
+
+
+@dataclass
+class _Pool:
+    name: str
+    spec: PoolSpec
+    pending: Pending
+    workers: dict[bytes, _Worker] = field(default_factory=dict)
+    last_seq: int = -1  # last seq dispatched (ordered pools report gaps from it)
+    received: int = 0
+    dispatched: int = 0
+    dropped: int = 0
+    processed: int = 0
+    errors: int = 0
+    timed_out: int = 0
+    lost: int = 0
+    inactive: int = 0
+    throttled: int = 0
+    stale: int = 0
+    active: bool = True
+    min_interval_s: float = 0.0  # at most one dispatch per interval (0: no limit)
+    next_at: float = 0.0  # earliest next dispatch under min_interval_s
+    latency_s: float | None = None  # pair arrival to answer, moving average
+    failures: dict[str, int] = field(default_factory=dict)
+    rr: int = 0
+
+
+class BrokerState:
+    """Pending buffers, worker credits and pair reference counts for every pool."""
+
+    def __init__(self, pools: Mapping[str, PoolSpec], idle_liveness_s: float = IDLE_LIVENESS_S):
+        self._pools = {n: _Pool(n, s, Pending(s.policy)) for n, s in pools.items()}
+        self._holders: dict[int, int] = {}  # seq -> number of pools holding it
+        self._arrived: dict[int, float] = {}  # seq -> when it reached the broker
+        self._idle_liveness = idle_liveness_s
+        # Evicted worker -> the pairs it held: its late answer is genuine (counted as late).
+        self._late: dict[bytes, dict[int, str]] = {}
+        self.rejected: dict[str, int] = {}
+        self.late = 0
+        self.pairs_in = 0
+
+    # --- events -------------------------------------------------------------------
+
+    def pair_arrived(self, seq: int, now: float) -> list[Action]:
+        """A new pair from capture: queue it in every pool, dispatch what can go."""
+        self.pairs_in += 1
+        actions: list[Action] = []
+        if not self._pools:
+            return [Release(seq)]
+        self._holders[seq] = len(self._pools)
+        self._arrived[seq] = now
+        for pool in self._pools.values():
+            pool.received += 1
+            if not pool.active:
+                pool.inactive += 1
+                actions.extend(self._unhold(seq))
+                continue
+            if pool.min_interval_s and now < pool.next_at:
+                pool.throttled += 1  # the level's doing, not the policy's
+                actions.extend(self._unhold(seq))
+                continue
+            for old in pool.pending.push(seq, now):
+                pool.dropped += 1
+                actions.extend(self._unhold(old))
+            actions.extend(self._dispatch(pool, now))
+        return actions
+
+    def worker_ready(self, ident: bytes, pool_name: str, credit: int, now: float) -> list[Action]:
+        """A worker announces `credit` more free slots."""
+        pool = self._pools.get(pool_name)
+        if pool is None or credit < 1:
+            return []
+        w = pool.workers.setdefault(ident, _Worker(ident, pool_name))
+        w.credit += credit
+        w.last_seen = now
+        return self._dispatch(pool, now)
+
+    def worker_seen(self, ident: bytes, pool_name: str, free: int, now: float) -> list[Action]:
+        """A heartbeat. An unknown worker (evicted while alive) rejoins with its free slots."""
+        pool = self._pools.get(pool_name)
+        if pool is None:
+            return []
+        w = pool.workers.get(ident)
+        if w is not None:
+            w.last_seen = now
+            return []
+        return self.worker_ready(ident, pool_name, free, now) if free > 0 else []
+
+    def job_done(
+        self, ident: bytes, pool_name: str, seq: int, ok: bool, now: float, kind: str = "error"
+    ) -> list[Action]:
+        """A worker finished (ok) or failed (with a kind) a pair; one credit comes back.
+
+        Only an answer for a pair dispatched to this very worker and not answered yet is
+        taken; anything else returns a single Rejected and changes nothing else. A worker
+        evicted while it held the pair (timed out, presumed dead) may still answer it once:
+        it rejoins with the credit, and the answer counts as late.
+        """
+        pool = self._pools.get(pool_name)
+        if pool is None:
+            return self._reject(ident, pool_name, seq, REJECT_UNKNOWN_POOL)
+        w = pool.workers.get(ident)
+        actions: list[Action] = []
+        if w is None or seq not in w.in_flight:
+            late = self._late.get(ident)
+            if late is None or late.get(seq) != pool_name:
+                reason = REJECT_UNKNOWN_WORKER if w is None else REJECT_NOT_DISPATCHED
+                return self._reject(ident, pool_name, seq, reason)
+            del late[seq]  # its pair was counted when it was evicted; now it is answered
+            if not late:
+                del self._late[ident]
+            self.late += 1
+            if w is None:  # evicted earlier; it is alive, so it rejoins
+                w = pool.workers.setdefault(ident, _Worker(ident, pool_name))
+        else:
+            del w.in_flight[seq]
+            arrived = self._arrived.get(seq)
+            if arrived is not None:
+                took = now - arrived
+                pool.latency_s = took if pool.latency_s is None else \
+                    pool.latency_s + LATENCY_WEIGHT * (took - pool.latency_s)
+            if ok:
+                pool.processed += 1
+            else:
+                pool.errors += 1
+                # Bounded: a plugin inventing new kinds cannot grow the stats without limit.
+                if kind in pool.failures or len(pool.failures) < MAX_FAILURE_KINDS:
+                    pool.failures[kind] = pool.failures.get(kind, 0) + 1
+                else:
+                    pool.failures["other"] = pool.failures.get("other", 0) + 1
+            actions.extend(self._unhold(seq))
+        w.credit += 1
+        w.last_seen = now
+        actions.extend(self._dispatch(pool, now))
+        return actions
+
+    def tick(self, now: float) -> list[Action]:
+        """Evict workers whose job timed out or who went silent while idle; drop pending
+        pairs older than their pool's max_pending_age_s (counted as stale)."""
+        actions: list[Action] = []
+        for pool in self._pools.values():
+            max_age = pool.spec.max_pending_age_s
+            if max_age > 0:
+                for seq in pool.pending.expire(now - max_age):
+                    pool.stale += 1
+                    actions.extend(self._unhold(seq))
+            for w in list(pool.workers.values()):
+                if w.in_flight and now - min(w.in_flight.values()) > pool.spec.timeout_s:
+                    reason = f"job older than timeout_s={pool.spec.timeout_s:g}"
+                    actions.extend(self._evict(pool, w, reason, timed_out=True, late=True))
+                elif not w.in_flight and now - w.last_seen > self._idle_liveness:
+                    reason = f"silent for more than {self._idle_liveness:g} s"
+                    actions.extend(self._evict(pool, w, reason, late=True))
+        return actions
+
+    def worker_gone(self, ident: bytes, reason: str, now: float,
+                    requeue: bool = False) -> list[Action]:
+        """The supervisor saw this worker exit, or the worker said goodbye: forget it now
+        rather than at timeout. With `requeue` (a recycled worker, which answered its last
+        pair before leaving) the pairs it still held were never started: they are queued
+        again, at the front, under the pool's policy, instead of being lost."""
+        for pool in self._pools.values():
+            w = pool.workers.get(ident)
+            if w is not None:
+                if not requeue:
+                    return self._evict(pool, w, reason) + self._dispatch(pool, now)
+                held = [(seq, self._arrived.get(seq, t)) for seq, t in sorted(w.in_flight.items())]
+                w.in_flight.clear()
+                actions = self._evict(pool, w, reason)
+                if not pool.active:  # deactivated meanwhile: nothing of it is queued now
+                    for seq, _ in held:
+                        pool.inactive += 1
+                        actions.extend(self._unhold(seq))
+                    return actions
+                for seq in pool.pending.requeue(held):
+                    pool.dropped += 1
+                    actions.extend(self._unhold(seq))
+                return actions + self._dispatch(pool, now)
+        return []
+
+    def set_active(self, pool_name: str, active: bool, now: float) -> list[Action]:
+        """Deactivate a pool (what it holds pending is dropped as inactive; pairs in flight
+        finish) or activate it again. ValueError for a pool this broker does not have."""
+        pool = self._known(pool_name)
+        pool.active = active
+        actions: list[Action] = []
+        if not active:
+            for seq, _ in pool.pending.clear():
+                pool.inactive += 1
+                actions.extend(self._unhold(seq))
+        return actions
+
+    def set_interval(self, pool_name: str, min_interval_s: float, now: float
+                     ) -> list[Action]:
+        """At most one pair dispatched per `min_interval_s` (0: no limit), as the
+        degradation ladder asks: pairs that arrive before the next one is due, and those
+        left pending when one goes, are counted throttled. ValueError for an unknown pool
+        or a negative interval."""
+        pool = self._known(pool_name)
+        if not min_interval_s >= 0:
+            raise ValueError(f"pool {pool_name!r}: expected a minimum interval >= 0 s, got "
+                             f"{min_interval_s}")
+        pool.min_interval_s = min_interval_s
+        pool.next_at = min(pool.next_at, now + min_interval_s) if min_interval_s else 0.0
+        return self._dispatch(pool, now)
+
+    def set_policy(self, pool_name: str, policy: str, now: float) -> list[Action]:
+        """A new policy: what is pending is queued again under it (its drops counted).
+        ValueError for an unknown pool or a policy that does not parse."""
+        pool = self._known(pool_name)
+        parsed = parse_policy(policy)
+        pool.spec = PoolSpec(parsed, pool.spec.timeout_s, pool.spec.max_pending_age_s)
+        old, pool.pending = pool.pending.clear(), Pending(parsed)
+        actions: list[Action] = []
+        for seq, born in old:
+            for dropped in pool.pending.push(seq, born):
+                pool.dropped += 1
+                actions.extend(self._unhold(dropped))
+        return actions + self._dispatch(pool, now)
+
+    def finish(self) -> list[Action]:
+        """The run ends: what is pending or in flight is lost; every pair is accounted for."""
+        actions: list[Action] = []
+        for pool in self._pools.values():
+            for seq, _ in pool.pending.clear():
+                pool.lost += 1
+                actions.extend(self._unhold(seq))
+            for w in list(pool.workers.values()):
+                actions.extend(self._evict(pool, w, "run ended"))
+        return actions
+
+    # --- queries ------------------------------------------------------------------
+
+    def pool_workers(self, pool_name: str) -> list[bytes]:
+        """The workers this pool knows now (ValueError for an unknown pool)."""
+        return list(self._known(pool_name).workers)
+
+    def held(self) -> int:
+        """Pairs still referenced by some pool (pending or in flight)."""
+        return len(self._holders)
+
+    def pool_stats(self) -> dict[str, PoolStats]:
+        """Counters of every pool."""
+        return {
+            p.name: PoolStats(
+                workers=len(p.workers),
+                received=p.received,
+                dispatched=p.dispatched,
+                dropped=p.dropped,
+                in_flight=sum(len(w.in_flight) for w in p.workers.values()),
+                pending=len(p.pending),
+                processed=p.processed,
+                errors=p.errors,
+                timed_out=p.timed_out,
+                lost=p.lost,
+                inactive=p.inactive,
+                throttled=p.throttled,
+                stale=p.stale,
+                failures=dict(p.failures),
+                active=p.active,
+                min_interval_s=p.min_interval_s,
+                latency_ms=round(p.latency_s * 1000, 1) if p.latency_s is not None else 0.0,
+            )
+            for p in self._pools.values()
+        }
+
+    def worker_pools(self) -> dict[bytes, str]:
+        """Every worker the state knows (live), and its pool."""
+        return {w: p.name for p in self._pools.values() for w in p.workers}
+
+    def drained(self) -> bool:
+        """Nothing pending or in flight anywhere."""
+        return not self._holders
+
+    # --- internals ----------------------------------------------------------------
+
+    def _known(self, name: str) -> _Pool:
+        pool = self._pools.get(name)
+        if pool is None:
+            raise ValueError(f"no pool {name!r} in the broker (pools: "
+                             f"{', '.join(sorted(self._pools)) or 'none'})")
+        return pool
+
+    def _reject(self, ident: bytes, pool: str, seq: int, reason: str) -> list[Action]:
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        return [Rejected(ident, pool, seq, reason)]
+
+    def _remember_late(self, ident: bytes, pool: str, lost: tuple[int, ...]) -> None:
+        if not lost:
+            return
+        late = self._late.setdefault(ident, {})
+        for seq in lost:
+            late[seq] = pool
+        while len(late) > MAX_LATE_PER_WORKER:
+            del late[next(iter(late))]
+        while len(self._late) > MAX_LATE_WORKERS:
+            del self._late[next(iter(self._late))]
+
+    def _unhold(self, seq: int) -> list[Action]:
+        n = self._holders.get(seq, 0) - 1
+        if n > 0:
+            self._holders[seq] = n
+            return []
+        self._holders.pop(seq, None)
+        self._arrived.pop(seq, None)
+        return [Release(seq)]
+
+    def _pick(self, pool: _Pool) -> _Worker | None:
+        ready = [w for w in pool.workers.values() if w.credit > 0]
+        if not ready:
+            return None
+        # Least loaded first; round robin among equals so a pool shares work evenly.
+        pool.rr += 1
+        least = min(len(w.in_flight) for w in ready)
+        ties = [w for w in ready if len(w.in_flight) == least]
+        return ties[pool.rr % len(ties)]
+
+    def _dispatch(self, pool: _Pool, now: float) -> list[Action]:
+        actions: list[Action] = []
+        while len(pool.pending):
+            if pool.min_interval_s and now < pool.next_at:
+                break
+            w = self._pick(pool)
+            if w is None:
+                break
+            seq = pool.pending.pop()
+            assert seq is not None
+            gap = seq - pool.last_seq - 1 if pool.last_seq >= 0 else 0
+            pool.last_seq = seq
+            w.credit -= 1
+            w.in_flight[seq] = now
+            pool.dispatched += 1
+            actions.append(Dispatch(w.ident, pool.name, seq, max(gap, 0)))
+            if pool.min_interval_s:
+                # One pair per interval: the rest waiting now would be due only later,
+                # older than what will have arrived by then.
+                pool.next_at = now + pool.min_interval_s
+                for old, _born in pool.pending.clear():
+                    pool.throttled += 1
+                    actions.extend(self._unhold(old))
+        return actions
+
+    def _evict(self, pool: _Pool, w: _Worker, reason: str,
+               timed_out: bool = False, late: bool = False) -> list[Action]:
+        """Forget a worker; late: it may be alive (slow or silent) and answer afterwards."""
+        del pool.workers[w.ident]
+        lost = tuple(sorted(w.in_flight))
+        if late:
+            self._remember_late(w.ident, pool.name, lost)
+        if timed_out:
+            pool.timed_out += len(lost)
+        else:
+            pool.lost += len(lost)
+        actions: list[Action] = [Evicted(w.ident, pool.name, lost, reason)]
+        for seq in lost:
+            actions.extend(self._unhold(seq))
+        return actions

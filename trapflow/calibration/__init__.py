@@ -1,0 +1,2 @@
+"""Stereo calibration: the camera model, calibration files in and out, rectification,
+checkerboard calibration."""

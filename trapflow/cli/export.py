@@ -1,0 +1,109 @@
+"""Click commands for exports of a finished run: report, export camtrapdp."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import click
+import yaml
+
+from trapflow.cli.exit import bad_input
+
+# Metadata file keys (YAML) -> Deployment fields; flags of the same name override them.
+META_KEYS = {"latitude": "latitude", "longitude": "longitude", "deployment_id": "deployment_id",
+             "location_name": "location_name", "location_id": "location_id",
+             "depth": "depth_m", "height": "height_m", "tilt": "tilt_deg",
+             "heading": "heading_deg", "setup_by": "setup_by", "habitat": "habitat",
+             "camera_model": "camera_model", "comments": "comments", "project": "project",
+             "contributor": "contributor", "taxa": "taxa"}
+
+
+@click.command()
+@click.argument("run_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="HTML file to write (default: RUN_DIR/report.html).")
+def report(run_dir: Path, output: Path | None) -> None:
+    """Write one self-contained HTML page of a run: detections per class per hour, VO path,
+    pool rates over time, drops and losses, restarts, events."""
+    from trapflow.export.report import ReportError, write_report
+
+    try:
+        path = write_report(run_dir, output)
+    except ReportError as exc:
+        raise bad_input(exc) from None
+    click.echo(f"written: {path}")
+
+
+@click.group("export")
+def export() -> None:
+    """Export a finished run to the formats camera-trap science uses."""
+
+
+def _metadata(meta: Path | None) -> dict[str, Any]:
+    if meta is None:
+        return {}
+    try:
+        data = yaml.safe_load(meta.read_text(encoding="utf-8")) or {}
+    except (OSError, yaml.YAMLError) as exc:
+        raise bad_input(f"--meta {meta}: expected a readable YAML mapping, got {exc}") from None
+    if not isinstance(data, dict):
+        raise bad_input(f"--meta {meta}: expected a YAML mapping of deployment keys, got "
+                        f"{type(data).__name__}")
+    unknown = sorted(set(data) - set(META_KEYS))
+    if unknown:
+        raise bad_input(f"--meta {meta}: unknown keys {', '.join(map(str, unknown))}; known: "
+                        f"{', '.join(META_KEYS)}")
+    return {META_KEYS[k]: v for k, v in data.items()}
+
+
+@export.command("camtrapdp")
+@click.argument("run_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.argument("out", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--meta", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="YAML file of deployment metadata (latitude, longitude, depth, "
+                   "location_name, setup_by, habitat, taxa: {label: scientific name}, ...).")
+@click.option("--latitude", type=float, default=None, help="Decimal degrees, WGS84.")
+@click.option("--longitude", type=float, default=None, help="Decimal degrees, WGS84.")
+@click.option("--depth", type=float, default=None, help="Camera depth below the surface, m.")
+@click.option("--location-name", default=None)
+@click.option("--deployment-id", default=None, help="Default: the run directory's name.")
+@click.option("--setup-by", default=None, help="Who deployed the trap.")
+@click.option("--habitat", default=None)
+@click.option("--taxon", "taxa", multiple=True, metavar="LABEL=NAME",
+              help="Scientific name of a detector label, repeatable (crab='Cancer pagurus').")
+def camtrapdp(run_dir: Path, out: Path, meta: Path | None, latitude: float | None,
+              longitude: float | None, depth: float | None, location_name: str | None,
+              deployment_id: str | None, setup_by: str | None, habitat: str | None,
+              taxa: tuple[str, ...]) -> None:
+    """Write RUN_DIR's events as a Camtrap DP package in OUT (datapackage.json,
+    deployments.csv, media.csv, observations.csv, media/)."""
+    from trapflow.export.camtrapdp import Deployment, ExportError, write_package
+
+    fields = _metadata(meta)
+    flags = {"latitude": latitude, "longitude": longitude, "depth_m": depth,
+             "location_name": location_name, "deployment_id": deployment_id,
+             "setup_by": setup_by, "habitat": habitat}
+    fields.update({k: v for k, v in flags.items() if v is not None})
+    names = dict(fields.get("taxa") or {})
+    for t in taxa:
+        label, sep, name = t.partition("=")
+        if not sep or not label or not name:
+            raise bad_input(f"--taxon: expected LABEL=NAME (crab='Cancer pagurus'), got {t!r}")
+        names[label] = name
+    fields["taxa"] = names
+    missing = [k for k in ("latitude", "longitude") if fields.get(k) is None]
+    if missing:
+        raise bad_input(f"export camtrapdp: Camtrap DP requires the deployment's "
+                        f"{' and '.join(missing)}; pass --{missing[0]} or put it in --meta")
+    try:
+        rows = write_package(run_dir, out, Deployment(**fields))
+    except ExportError as exc:
+        raise bad_input(exc) from None
+    except TypeError as exc:  # a metadata value of the wrong kind
+        raise bad_input(f"--meta {meta}: {exc}") from None
+    click.echo(f"written: {out} ({len(rows.media)} media, {len(rows.observations)} "
+               "observations)")
+
+
+COMMANDS = (report, export)

@@ -1,0 +1,459 @@
+"""Typed configuration: YAML decoded into Structs, unknown keys rejected, bounds checked.
+
+Errors name the YAML path (`$.pools.vo.policy`) and what was expected. The
+defaults here are the defaults; configs/default.yaml documents every key and a
+test keeps the two equal. A leaf: it imports only config-struct modules (modem/config.py,
+ladder_config.py), never a module of the runtime; those import their sections from here.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import msgspec
+import yaml
+
+from trapflow.config.ladder import LadderConfig
+from trapflow.config.modem import HealthConfig, ModemConfig, OutboxConfig
+from trapflow.errors import ConfigError
+
+
+class _Section(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    pass
+
+
+Positive = Annotated[float, msgspec.Meta(gt=0)]
+
+
+# --- queueing policies: the grammar (the broker's policy module applies them) -------------
+
+DEFAULT_ORDERED_BOUND = 16
+
+
+@dataclass(frozen=True)
+class Policy:
+    """A parsed policy string."""
+
+    kind: str  # "latest" | "fifo" | "ordered"
+    bound: int
+
+    def __str__(self) -> str:
+        return "latest" if self.kind == "latest" else f"{self.kind}:{self.bound}"
+
+
+def parse_policy(text: str) -> Policy:
+    """Parse `latest`, `fifo:N` or `ordered[:N]`; ValueError says what was expected."""
+    expected = f"expected latest, fifo:N or ordered[:N] with N >= 1, got {text!r}"
+    kind, sep, num = text.strip().partition(":")
+    if kind == "latest" and not sep:
+        return Policy("latest", 1)
+    if kind == "ordered" and not sep:
+        return Policy("ordered", DEFAULT_ORDERED_BOUND)
+    if kind in ("fifo", "ordered") and sep:
+        try:
+            bound = int(num)
+        except ValueError:
+            raise ValueError(expected) from None
+        if bound >= 1:
+            return Policy(kind, bound)
+    raise ValueError(expected)
+
+
+# --- sections ------------------------------------------------------------------------------
+
+
+class TriggerRule(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """A result that starts or extends an event."""
+
+    algorithm: str
+    """Top-level key of the normalized result, e.g. mono_ir."""
+    label: str | None = None
+    """Fire only on this label (None: any label)."""
+    not_label: str | None = None
+    """Never fire on this label (e.g. 'none' for stereo_ir)."""
+    min_confidence: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.0
+    """Lowest confidence that fires."""
+
+
+class EventsConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """Photo-trap event capture."""
+
+    enabled: bool = False
+    """Run event capture at all."""
+    triggers: list[TriggerRule] = []
+    """Rules; any one firing starts or extends an event."""
+    pre_s: Annotated[float, msgspec.Meta(ge=0, le=600)] = 2.0
+    """Seconds of pairs kept from before the trigger."""
+    post_s: Annotated[float, msgspec.Meta(ge=0, le=3600)] = 3.0
+    """Seconds of pairs kept after the last trigger."""
+    max_ring_pairs: Annotated[int, msgspec.Meta(ge=1, le=100_000)] = 300
+    """Bound on the pre-roll ring in pairs (memory cap)."""
+    quota_bytes: Annotated[int, msgspec.Meta(gt=0)] = 2 << 30
+    """Most bytes all events may take; oldest deleted first."""
+    min_free_bytes: Annotated[int, msgspec.Meta(ge=0)] = 512 << 20
+    """Free disk space kept; oldest events deleted to keep it."""
+    folder: str = "events"
+    """Where event folders are written (relative to the run directory)."""
+
+
+
+class SourceConfig(_Section):
+    """Where pairs come from and how they are encoded."""
+
+    kind: str = "synthetic"
+    uri: str = ""
+    rate_hz: Annotated[float, msgspec.Meta(gt=0, le=240)] = 15.0
+    width: Annotated[int, msgspec.Meta(ge=16, le=8192)] = 1280
+    height: Annotated[int, msgspec.Meta(ge=16, le=8192)] = 720
+    # raw: the ring holds the decoded frames; every local pool reads them, nothing decodes.
+    # jpeg: capture encodes each side (~3 ms at 1280x720) and every pool decodes it again.
+    encoding: Literal["jpeg", "raw"] = "raw"
+    jpeg_quality: Annotated[int, msgspec.Meta(ge=1, le=100)] = 90
+    seed: int = 1
+    moving: bool = False
+    loop: bool = False
+    options: dict[str, Any] = {}
+
+
+class RigConfig(_Section):
+    """The stereo rig: baseline and field of view (or a calibration file)."""
+
+    baseline_m: Annotated[float, msgspec.Meta(gt=0, le=10)] = 0.12
+    hfov_deg: Annotated[float, msgspec.Meta(gt=1, lt=179)] = 70.0
+    calibration: str | None = None
+
+
+class PoolConfig(_Section):
+    """One pool of identical worker processes running one algorithm."""
+
+    count: Annotated[int, msgspec.Meta(ge=0, le=64)] = 1
+    plugin: str = ""  # registry name or module:Class; empty means the pool's own name
+    policy: str = "latest"
+    nice: Annotated[int, msgspec.Meta(ge=0, le=19)] = 0
+    affinity: list[Annotated[int, msgspec.Meta(ge=0)]] = []
+    credit: Annotated[int, msgspec.Meta(ge=1, le=64)] = 1
+    timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 10.0  # per pair; kills a hung worker
+    max_rss_mb: Annotated[int, msgspec.Meta(ge=0, le=1 << 20)] = 0
+    """A worker whose resident memory (MiB) is past this after a pair is recycled: it
+    finishes the pair, says goodbye and is replaced at once (0: no limit)."""
+    max_jobs: Annotated[int, msgspec.Meta(ge=0)] = 0
+    """A worker is recycled after this many pairs (processed or failed; 0: no limit)."""
+    max_pending_age_s: Annotated[float, msgspec.Meta(ge=0, le=86400)] = 0.0
+    """Pairs waiting in the pool's queue longer than this are dropped as stale (0: kept)."""
+    params: dict[str, Any] = {}
+    remote: bool = False  # workers on another host: the broker sends them the bytes
+    debug: bool = False
+    save: bool = False
+    time: bool = False
+
+    def __post_init__(self) -> None:
+        parse_policy(self.policy)  # raises ValueError, reported with the key path
+
+    @property
+    def parsed_policy(self) -> Policy:
+        """The policy as an object."""
+        return parse_policy(self.policy)
+
+
+class NormalizerConfig(_Section):
+    """The sink that writes one JSON object per result."""
+
+    results_file: str = "results.jsonl"
+    flush_interval_s: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.5
+    fsync_interval_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 5.0
+    decimals: Annotated[int, msgspec.Meta(ge=0, le=9)] = 3
+    """Digits kept in the float fields of plugin-defined results (built-in fields keep theirs)."""
+
+
+class SupervisorConfig(_Section):
+    """Heartbeats, restarts and the stop ladder."""
+
+    heartbeat_interval_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 1.0
+    liveness_s: Annotated[float, msgspec.Meta(gt=0, le=600)] = 5.0
+    restart_backoff_s: Annotated[float, msgspec.Meta(ge=0, le=60)] = 0.5
+    restart_backoff_max_s: Annotated[float, msgspec.Meta(ge=0, le=600)] = 10.0
+    max_restarts: Annotated[int, msgspec.Meta(ge=0)] = 5
+    restart_window_s: Annotated[float, msgspec.Meta(gt=0)] = 60.0
+    retry_cooldown_s: Annotated[float, msgspec.Meta(ge=0, le=86400)] = 60.0
+    """A node given up (its restart budget spent) is retried this long after, with a fresh
+    budget; essential nodes (broker, capture, normalizer) are never given up."""
+    stop_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=4)] = 2.0
+
+
+class LogFileConfig(_Section):
+    """trapflow.log in the run directory: rotated at max_bytes, keeping `backups` old files."""
+
+    max_bytes: Annotated[int, msgspec.Meta(ge=65536)] = 10 << 20
+    backups: Annotated[int, msgspec.Meta(ge=1, le=100)] = 3
+
+
+def _is_loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return host == "localhost"
+
+
+class RemoteConfig(_Section):
+    """Where worker pools on other hosts connect (`trapflow worker --connect`), and the
+    CURVE keys that guard it. Off while `bind` is empty."""
+
+    bind: str = ""
+    """tcp://HOST:PORT the broker binds for remote workers; beyond loopback only with keys."""
+    server_key: str = ""
+    """The pipeline's secret key file (NAME.key_secret from `trapflow keys generate`)."""
+    authorized_keys: str = ""
+    """Folder of the public keys (*.key) of the workers that may connect."""
+
+    def __post_init__(self) -> None:
+        if bool(self.server_key) != bool(self.authorized_keys):
+            raise ValueError(
+                "expected both server_key and authorized_keys (CURVE) or neither, got only "
+                f"{'server_key' if self.server_key else 'authorized_keys'}; "
+                "make keys with `trapflow keys generate DIR`")
+        if not self.bind:
+            return
+        scheme, sep, rest = self.bind.partition("://")
+        host, colon, port = rest.rpartition(":")
+        if scheme != "tcp" or not sep or not colon or not host or not port.isdigit() or not (
+                1024 <= int(port) <= 65535):
+            raise ValueError(f"expected bind as tcp://HOST:PORT with a port in 1024..65535, "
+                             f"got {self.bind!r}")
+        if not _is_loopback(host.strip("[]")) and not self.server_key:
+            raise ValueError(
+                f"binding {self.bind!r} beyond loopback needs CURVE keys: expected "
+                "server_key and authorized_keys, got none; make them with "
+                "`trapflow keys generate DIR` or bind tcp://127.0.0.1:PORT")
+
+    @property
+    def curve(self) -> bool:
+        """Remote workers must prove a key in authorized_keys."""
+        return bool(self.server_key)
+
+
+class NetworkConfig(_Section):
+    """Endpoints: ipc:// in the run directory on one host, or tcp:// on a loopback host;
+    remote workers connect to a port of their own (`remote`)."""
+
+    transport: Literal["ipc", "tcp"] = "ipc"
+    host: str = "127.0.0.1"
+    base_port: Annotated[int, msgspec.Meta(ge=1024, le=65000)] = 5550
+    remote: RemoteConfig = msgspec.field(default_factory=RemoteConfig)
+
+    def __post_init__(self) -> None:
+        if not _is_loopback(self.host):
+            raise ValueError(
+                f"expected a loopback host (127.0.0.1), got {self.host!r}: the pipeline's own "
+                "endpoints never leave this host; workers on other hosts connect to "
+                "network.remote.bind, guarded by CURVE keys"
+            )
+        port = self.remote.bind.rpartition(":")[2]
+        if self.transport == "tcp" and port.isdigit() and (
+                self.base_port <= int(port) <= self.base_port + 6):
+            raise ValueError(
+                f"remote.bind {self.remote.bind!r} takes a port of the pipeline's own "
+                f"endpoints ({self.base_port}..{self.base_port + 6}); expected another port")
+
+
+class FramesConfig(_Section):
+    """How images travel from capture to the workers on one host."""
+
+    transport: Literal["zmq", "shm"] = "shm"
+    """shm: written once into a shared-memory ring, only a descriptor rides on ZeroMQ;
+    zmq: the bytes ride in the messages (what remote pools always get)."""
+    spare_slots: Annotated[int, msgspec.Meta(ge=0, le=1024)] = 9
+    """Ring slots beyond what the pools can hold: pairs between capture and the broker."""
+    preroll_slots: Annotated[int, msgspec.Meta(ge=0, le=1024)] = 0
+    """Ring slots kept for an event pre-roll."""
+
+
+class ViewerConfig(_Section):
+    """The live web viewer and its metrics (`trapflow start --view`, `trapflow view`)."""
+
+    enabled: bool = False
+    """Run the viewer as a node of the pipeline."""
+    host: str = "127.0.0.1"
+    """Address the web page binds to; loopback unless you mean to show it to the network."""
+    port: Annotated[int, msgspec.Meta(ge=1, le=65535)] = 8090
+    """TCP port of the web page and of /metrics."""
+    frame_hz: Annotated[float, msgspec.Meta(gt=0, le=15)] = 2.0
+    """Pairs per second shown in the page (the rest of the tap's images are dropped)."""
+    metrics_file: str = ""
+    """node_exporter textfile written atomically every metrics_interval_s ("" = none)."""
+    metrics_interval_s: Annotated[float, msgspec.Meta(ge=1, le=600)] = 5.0
+    """Seconds between two writes of metrics_file."""
+
+
+def _default_pools() -> dict[str, PoolConfig]:
+    return {
+        # Visual odometry keeps its rate: the recognisers run at a lower CPU priority.
+        "mono": PoolConfig(count=1, policy="latest", nice=5),
+        "stereo": PoolConfig(count=1, policy="latest", nice=10),
+        "vo": PoolConfig(count=1, policy="ordered:16"),
+        "tags": PoolConfig(count=0, policy="latest", nice=5),
+    }
+
+
+class Config(_Section):
+    """The whole pipeline."""
+
+    source: SourceConfig = msgspec.field(default_factory=SourceConfig)
+    rig: RigConfig = msgspec.field(default_factory=RigConfig)
+    pools: dict[str, PoolConfig] = msgspec.field(default_factory=_default_pools)
+    normalizer: NormalizerConfig = msgspec.field(default_factory=NormalizerConfig)
+    supervisor: SupervisorConfig = msgspec.field(default_factory=SupervisorConfig)
+    network: NetworkConfig = msgspec.field(default_factory=NetworkConfig)
+    frames: FramesConfig = msgspec.field(default_factory=FramesConfig)
+    outbox: OutboxConfig = msgspec.field(default_factory=OutboxConfig)
+    modem: ModemConfig = msgspec.field(default_factory=ModemConfig)
+    health: HealthConfig = msgspec.field(default_factory=HealthConfig)
+    events: EventsConfig = msgspec.field(default_factory=EventsConfig)
+    viewer: ViewerConfig = msgspec.field(default_factory=ViewerConfig)
+    ladder: LadderConfig = msgspec.field(default_factory=LadderConfig)
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    log_file: LogFileConfig = msgspec.field(default_factory=LogFileConfig)
+
+    def __post_init__(self) -> None:
+        for name, pool in self.pools.items():
+            if not name.isidentifier():
+                raise ValueError(f"pool name {name!r} must be an identifier")
+            if pool.parsed_policy.kind == "ordered" and pool.count > 1:
+                raise ValueError(
+                    f"pool {name!r}: the ordered policy takes count 0 or 1, got {pool.count}"
+                )
+
+    def validated(self) -> Config:
+        """Re-run validation after programmatic changes."""
+        return from_data(msgspec.to_builtins(self), "config")
+
+    def plugin_of(self, pool: str) -> str:
+        """The plugin name a pool runs."""
+        return self.pools[pool].plugin or pool
+
+
+def _pool_data(name: str, pool: Any) -> Any:
+    """A user's pool merged key by key over that pool's defaults (a new name: PoolConfig's)."""
+    if not isinstance(pool, dict):
+        return pool  # not a mapping: left for msgspec to reject with the path
+    default = _default_pools().get(name)
+    base = msgspec.to_builtins(default) if default is not None else {}
+    return {**base, **pool}
+
+
+def _check_pool(name: str, pool: Any, origin: str) -> None:
+    """Validate one pool so that errors name the pool's leaf key, not `$.pools[...]`."""
+    policy = pool.get("policy") if isinstance(pool, dict) else None
+    if isinstance(policy, str):
+        try:
+            parse_policy(policy)
+        except ValueError as exc:
+            raise ConfigError(f"{origin}: {exc} - at `$.pools.{name}.policy`") from None
+    try:
+        msgspec.convert(pool, PoolConfig, strict=True)
+    except msgspec.ValidationError as exc:
+        msg = str(exc).replace("`$", f"`$.pools.{name}")
+        if "- at `$" not in msg:
+            msg += f" - at `$.pools.{name}`"
+        raise ConfigError(f"{origin}: {msg}") from None
+
+
+def from_data(data: Any, origin: str = "config") -> Config:
+    """Validate plain data (from YAML) into a Config; ConfigError names the bad key.
+
+    A `pools:` section changes only what it names: each pool it gives is merged key by
+    key over that pool's defaults, and the default pools it does not name stay as they are.
+    """
+    if data is None:
+        data = {}
+    pools = data.get("pools") if isinstance(data, dict) else None
+    if isinstance(pools, dict):
+        merged = {name: msgspec.to_builtins(p) for name, p in _default_pools().items()}
+        for name, pool in pools.items():
+            merged[name] = _pool_data(str(name), pool)
+            _check_pool(str(name), merged[name], origin)
+        data = {**data, "pools": merged}
+    try:
+        return msgspec.convert(data, Config, strict=True)
+    except msgspec.ValidationError as exc:
+        raise ConfigError(f"{origin}: {exc}") from None
+
+
+def load(path: str | Path | None = None) -> Config:
+    """Load a YAML config file, or the built-in defaults when path is None."""
+    if path is None:
+        return Config()
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"cannot read config {p}: {exc.strerror}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{p}: not valid YAML: {exc}") from None
+    return from_data(data, str(p))
+
+
+def parse_workers(text: str) -> dict[str, int]:
+    """Parse `NAME=COUNT[,NAME=COUNT...]` into a dict; ConfigError names the bad part."""
+    expected = "expected NAME=COUNT[,NAME=COUNT...]"
+    counts: dict[str, int] = {}
+    if not text.strip():
+        raise ConfigError(f"{expected}, got an empty string")
+    for part in text.split(","):
+        name, sep, num = part.strip().partition("=")
+        if not sep or not name.isidentifier():
+            raise ConfigError(f"{expected}, got {part!r}")
+        try:
+            count = int(num)
+        except ValueError:
+            raise ConfigError(f"{expected} with an integer COUNT, got {part!r}") from None
+        if count < 1:
+            raise ConfigError(f"worker count must be at least 1, got {part!r}")
+        if name in counts:
+            raise ConfigError(f"algorithm {name!r} given twice in {text!r}")
+        counts[name] = count
+    return counts
+
+
+def with_workers(cfg: Config, counts: dict[str, int], known: list[str]) -> Config:
+    """Run exactly the named pools with these counts; others are switched off.
+
+    A name that is not a configured pool but is a known plugin gets a default pool.
+    """
+    pools: dict[str, PoolConfig] = {}
+    for name, pool in cfg.pools.items():
+        pools[name] = msgspec.structs.replace(pool, count=counts.get(name, 0))
+    for name, count in counts.items():
+        if name not in pools:
+            if name not in known:
+                choices = ", ".join(sorted(set(known) | set(cfg.pools)))
+                raise ConfigError(
+                    f"unknown algorithm {name!r} in --workers: expected one of {choices}")
+            pools[name] = PoolConfig(count=count)
+    try:
+        return msgspec.structs.replace(cfg, pools=pools).validated()
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+
+def with_source(cfg: Config, **changes: Any) -> Config:
+    """Override source fields (from command-line flags), re-validated."""
+    if not changes:
+        return cfg
+    return msgspec.structs.replace(
+        cfg, source=msgspec.structs.replace(cfg.source, **changes)
+    ).validated()
+
+
+def with_section(cfg: Config, section: str, **changes: Any) -> Config:
+    """Override fields of one section (from command-line flags), re-validated."""
+    if not changes:
+        return cfg
+    return msgspec.structs.replace(
+        cfg, **{section: msgspec.structs.replace(getattr(cfg, section), **changes)}
+    ).validated()

@@ -1,0 +1,1 @@
+"""Recordings: the MCAP recorder and its ROS 2 / Foxglove message builders."""

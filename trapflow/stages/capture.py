@@ -1,0 +1,246 @@
+"""The capture process: reads stereo frames from a source, encodes them once, pushes them.
+
+Owns a PUSH to the broker (with the shared-memory ring, a local link carrying
+descriptors). Capture never waits for an algorithm: when the broker is not
+reading, the pair is dropped here and counted. A pair it cannot read or place (a bad
+file, an undecodable message, too large for the ring) is counted as failed, by kind,
+and skipped; a finite source that fails otherwise ends the run (live ones are retried).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+import cv2
+import msgspec
+import numpy as np
+import zmq
+
+from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
+from trapflow.runtime.ratelog import RateLimitedLog
+from trapflow.sources import Frames, SkipPair, Source, SourceError, open_source
+from trapflow.sources.rig import mismatch
+from trapflow.wire import messages
+from trapflow.wire.frame_ring import RingError, RingWriter
+from trapflow.wire.transport import LinkClient, LinkClosed, SocketSpec, open_socket
+
+log = logging.getLogger(__name__)
+
+RETRY_BACKOFF_S = (0.5, 1.0, 2.0, 5.0, 10.0)
+
+
+class CaptureNode(Node):
+    """Paces a source, stamps and encodes each pair, and hands it to the broker."""
+
+    def __init__(self, spec: NodeSpec) -> None:
+        super().__init__(spec)
+        self.push = open_socket(
+            self.ctx, SocketSpec(zmq.PUSH, self.endpoints.capture, sndhwm=4)
+        )
+        self.src_cfg = self.cfg.source
+        self.rig = spec.the_rig()  # every pair sent must have its size
+        self.source: Source = open_source(self.src_cfg, self.rig, self.cfg.rig.calibration)
+        # A restarted capture continues past its predecessor's numbers (the supervisor knows).
+        self.seq = spec.first_seq
+        self.produced = 0
+        self.dropped = 0
+        self.failed: dict[str, int] = {}  # pairs skipped at capture, by kind
+        self.source_errors = 0  # a live source lost and reopened
+        self.gave_up = 0  # 1 once a finite source failed for good (the reason is in the state)
+        self.jpeg_params = [int(cv2.IMWRITE_JPEG_QUALITY), self.src_cfg.jpeg_quality]
+        # With a shared-memory ring each pair is written once there; only a descriptor is sent.
+        ring_name = spec.ring
+        self.ring = RingWriter(ring_name) if ring_name else None
+        # With the ring, descriptors go over a local link.
+        self.link = LinkClient(self.endpoints.capture_link)
+        self.ratelog = RateLimitedLog(log)
+
+    def capture_counters(self) -> messages.CaptureCounters:
+        """What the supervisor sums over capture's restarts."""
+        sync: dict[str, int] = {}
+        live = getattr(self.source, "sync", None)  # live cameras paired by timestamp
+        if live is not None:
+            for k, v in live.stats.as_dict().items():
+                key = f"sync_{k[:-3]}_us" if k.endswith("_ms") else f"sync_{k}"
+                sync[key] = int(v * 1000) if k.endswith("_ms") else int(v)
+        return messages.CaptureCounters(
+            produced=self.produced, dropped=self.dropped, failures=dict(self.failed),
+            source_errors=self.source_errors, source_gave_up=self.gave_up,
+            next_seq=self.seq, sync=sync)
+
+    def counters(self) -> dict[str, int]:
+        return self.capture_counters().to_counters()
+
+    def _open(self) -> bool:
+        try:
+            self.source.open()
+        except SourceError as exc:
+            self.set_state(INACTIVE, f"source cannot open: {exc}")
+            return False
+        self.set_state(ACTIVE)
+        return True
+
+    def run(self) -> int:
+        attempt = 0
+        while not self.stopping and not self._open():
+            self._wait(RETRY_BACKOFF_S[min(attempt, len(RETRY_BACKOFF_S) - 1)])
+            attempt += 1
+        period_ns = int(1e9 / self.src_cfg.rate_hz)
+        next_ns = time.monotonic_ns()
+        while not self.stopping:
+            if not self.source.paced:
+                delay = next_ns - time.monotonic_ns()
+                if delay > 0:
+                    self._wait(delay / 1e9)
+                    continue
+                # Behind by more than a period (a slow frame): skip ahead, never burst.
+                next_ns = max(next_ns + period_ns, time.monotonic_ns() - period_ns)
+            try:
+                frames = self.source.read()
+            except SkipPair as exc:  # the source is past it: count, say once, go on
+                self._fail(exc.kind, "skipped a pair: %s", exc)
+                self.beat()
+                next_ns = time.monotonic_ns()  # a pair never sent costs no period
+                continue
+            except SourceError as exc:
+                if self.source.finite:  # a file or recording will not get better by waiting
+                    log.error("source failed; no more pairs: %s", exc)
+                    self.gave_up = 1
+                    self.set_state(FINALIZED, f"source failed: {exc}")
+                    self.source.close()
+                    self.beat()
+                    return 0
+                self.source_errors += 1
+                self.set_state(INACTIVE, f"source failed: {exc}")
+                self.source.close()
+                attempt = 0
+                while not self.stopping and not self._open():
+                    self._wait(RETRY_BACKOFF_S[min(attempt, len(RETRY_BACKOFF_S) - 1)])
+                    attempt += 1
+                continue
+            if frames is None:
+                if self.src_cfg.loop:
+                    self.source.close()
+                    self._open()
+                    continue
+                self.set_state(FINALIZED, "source exhausted", normal=True)
+                self.beat()
+                return 0
+            self._send(frames)
+            self.beat()
+        self.source.close()
+        return 0
+
+    def close(self) -> None:
+        if self.ring is not None:
+            self.ring.close()
+        super().close()
+
+    def _fail(self, kind: str, msg: str, *args: object) -> None:
+        self.failed[kind] = self.failed.get(kind, 0) + 1
+        log.warning(msg, *args)
+
+    def _acquire(self) -> int | None:
+        """A free ring slot; a finite source waits for one (back-pressure), a live one never."""
+        assert self.ring is not None
+        slot = self.ring.acquire()
+        while slot is None and self.source.finite and not self.stopping:
+            self._wait(0.002)
+            slot = self.ring.acquire()
+        return slot
+
+    def _wait(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while not self.stopping and (left := end - time.monotonic()) > 0:
+            time.sleep(min(left, 0.05))
+            self.beat()
+
+    def _encode(self, img: np.ndarray) -> np.ndarray:
+        if self.src_cfg.encoding == "raw":
+            return np.ascontiguousarray(img)
+        ok, buf = cv2.imencode(".jpg", img, self.jpeg_params)
+        if not ok:
+            raise SourceError("JPEG encoding failed")
+        return buf
+
+    def _send(self, f: Frames) -> None:
+        h, w = f.left.shape[:2]
+        if f.right.shape != f.left.shape:
+            self._fail("size", "left %s and right %s differ in shape; pair skipped",
+                       f.left.shape, f.right.shape)
+            return
+        if (w, h) != self.rig.size:  # the workers would fail it: count it here, once
+            self.failed["geometry"] = self.failed.get("geometry", 0) + 1
+            self.ratelog.warning("geometry", "pair skipped: %s", mismatch(
+                (w, h), f"source {self.src_cfg.kind}", self.rig, f"calib {self.rig.id}"))
+            return
+        left, right = self._encode(f.left), self._encode(f.right)
+        slot: int | None = None
+        if self.ring is not None:
+            slot = self._acquire()
+            if slot is None:  # every slot still held by some pool: drop, never wait
+                self.dropped += 1
+                return
+            try:
+                ref = self.ring.write(slot, left, right)
+            except RingError as exc:
+                self.ring.release(slot)
+                self.failed["too_large"] = self.failed.get("too_large", 0) + 1
+                self.ratelog.warning("too_large", "pair does not fit a ring slot; skipped: %s",
+                                     exc)
+                return
+        seq = self.seq
+        self.seq += 1
+        header = messages.StereoPair(
+            seq=seq,
+            t_wall_ns=time.time_ns(),
+            t_mono_ns=time.monotonic_ns(),  # stamped after encoding: transport latency
+            t_left_ns=f.t_left_ns,
+            t_right_ns=f.t_right_ns,
+            skew_ns=f.right_minus_left_ns(),
+            encoding=self.src_cfg.encoding,
+            width=w,
+            height=h,
+            source=self.src_cfg.kind,
+        )
+        payload: list[Any] = [messages.encode(header)]
+        payload += [left, right] if slot is None else [messages.encode(ref)]
+        # A live camera never waits (its next frame is coming); a file or recording has no
+        # clock to keep, so it waits for the broker instead of dropping: lossless replay.
+        while not self._deliver(payload):
+            if self.source.finite and not self.stopping:
+                self._wait(0.002)
+                continue
+            self.dropped += 1
+            if self.ring is not None and slot is not None:
+                self.ring.release(slot)
+            return
+        self.produced += 1
+        if self.produced == 1:
+            self.beat(due=True)  # the supervisor times --duration from the first pair
+        if f.truth is not None:
+            truth = msgspec.structs.replace(f.truth, seq=seq)
+            # Truth is for tests and viewers; never worth a wait.
+            self._deliver([messages.TOPIC_TRUTH, messages.encode(truth)])
+
+    def _deliver(self, frames: list[Any]) -> bool:
+        """Hand one message to the broker without waiting; False if it cannot take it now."""
+        if self.ring is None:
+            try:
+                self.push.send_multipart(frames, zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                return False
+            return True
+        link = self.link.get()
+        if link is None:
+            self.ratelog.warning("link", "broker link: nobody listens at %s", self.link.path)
+            return False
+        try:
+            return link.send(frames)
+        except LinkClosed as exc:  # the broker is restarting: drop, reconnect next time
+            self.ratelog.warning("link", "broker link: %s", exc)
+            self.link.drop()
+            return False
+

@@ -1,0 +1,163 @@
+"""The normalizer process: every result becomes JSON lines in results.jsonl and on its tap.
+
+Owns a local link that brings batches of results from the broker and a PUB of JSON
+lines (`result` topic).
+Each batch is written unbuffered as it arrives; the batches of one pass are then
+acknowledged together (one wake-up of the broker). The file is fsynced every
+fsync_interval_s.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from typing import IO
+
+import zmq
+
+from trapflow.errors import ProtocolError
+from trapflow.modem.outbox import Outbox, OutboxFull
+from trapflow.runtime.node import ACTIVE, FINALIZED, Node, NodeSpec
+from trapflow.runtime.ratelog import RateLimitedLog
+from trapflow.stages.result_json import dumps, normalize
+from trapflow.wire import messages
+from trapflow.wire.transport import (
+    LINK_RETRY_S,
+    TAP_RCVHWM,
+    LinkClient,
+    LinkClosed,
+    SocketSpec,
+    TapGate,
+    open_socket,
+    set_file_mode,
+)
+
+log = logging.getLogger(__name__)
+
+# Distinct (pool, kind) routes reported to the supervisor (the run ledger counts results.jsonl
+# by kind); a plugin inventing result names cannot grow the heartbeat without limit.
+MAX_ROUTES = 64
+
+
+class NormalizerNode(Node):
+    """Turns Result messages into compact JSON lines."""
+
+    def __init__(self, spec: NodeSpec) -> None:
+        super().__init__(spec)
+        ep = self.endpoints
+        self.link = LinkClient(ep.results_link)  # results from the broker
+        # A tap that remembers only prefixes of its one topic (TapGate), whoever subscribes.
+        self.pub = open_socket(self.ctx, SocketSpec(zmq.XPUB, ep.results_tap, bind=True,
+                                                    sndhwm=256, rcvhwm=TAP_RCVHWM,
+                                                    xpub_manual=True))
+        self.gate = TapGate(self.pub, (messages.TOPIC_RESULT,))
+        ncfg = self.cfg.normalizer
+        self.path = spec.run_dir / ncfg.results_file
+        # Unbuffered: a batch is in the kernel (safe from a crash of this process) before it is
+        # acknowledged; fsync (power cuts) follows on its interval.
+        self.file: IO[bytes] = open(self.path, "ab", buffering=0)  # noqa: SIM115
+        set_file_mode(self.path)  # 0640 whatever the umask
+        # With a modem, every result is stored durably before anything tries to send it.
+        self.outbox: Outbox | None = None
+        if self.cfg.modem.enabled:
+            self.outbox = Outbox(spec.run_dir / self.cfg.outbox.path, self.cfg.outbox)
+        self.refused = 0
+        self.lines = 0
+        self.malformed = 0
+        self.routes: set[str] = set()  # route:<pool>:<kind>: a pool's results become these lines
+        self.ratelog = RateLimitedLog(log)
+
+    def counters(self) -> dict[str, int]:
+        out = {"lines": self.lines, "malformed": self.malformed, "outbox_refused": self.refused,
+               "refused_subscriptions": self.gate.refused}
+        out.update(dict.fromkeys(self.routes, 1))
+        return out
+
+    def run(self) -> int:
+        ncfg = self.cfg.normalizer
+        self.set_state(ACTIVE)
+        next_flush = next_sync = time.monotonic()
+        dirty = False
+        while not self.stopping:
+            dirty |= self._receive(100)
+            self.gate.drain()  # subscriptions to the results tap
+            now = time.monotonic()
+            if dirty and now >= next_flush:
+                self.file.flush()
+                next_flush = now + ncfg.flush_interval_s
+                if now >= next_sync:
+                    os.fsync(self.file.fileno())
+                    next_sync = now + ncfg.fsync_interval_s
+                dirty = False
+            self.beat()
+        # Take what the broker already sent before closing the file.
+        while self.link.link is not None and self._receive(0):
+            pass
+        self.file.flush()
+        os.fsync(self.file.fileno())
+        self.file.close()
+        if self.outbox is not None:
+            self.outbox.close()
+        self.set_state(FINALIZED)
+        return 0
+
+    def _receive(self, timeout_ms: int) -> bool:
+        """Handle the batches of results waiting (up to timeout_ms for the first)."""
+        link = self.link.get()
+        if link is None:  # the broker is not listening yet (or restarting)
+            time.sleep(LINK_RETRY_S)
+            return False
+        dirty = False
+        written = 0
+        try:
+            if not link.wait(timeout_ms):
+                return False
+            for _ in range(256):
+                try:
+                    batch = link.recv()
+                except ProtocolError as exc:
+                    self.malformed += 1
+                    self.ratelog.warning("link", "dropped malformed results batch: %s", exc)
+                    continue
+                if batch is None:
+                    break
+                lines: list[bytes] = []
+                for data in batch:  # the broker sends a pass's results together
+                    dirty |= self._handle(data, lines)
+                if lines:
+                    self.file.write(b"".join(lines))
+                written += len(batch)
+            if written:  # one acknowledgement for all the batches written in this pass
+                link.send([messages.encode(messages.ResultsAck(count=written))])
+        except LinkClosed as exc:  # a new broker will listen at the same path
+            self.ratelog.log(logging.INFO, "closed", "results link: %s; reconnecting", exc)
+            self.link.drop()
+        return dirty
+
+    def _handle(self, data: messages.Buffer, lines: list[bytes]) -> bool:
+        """Decode, normalize and store one result; its JSON lines join `lines`."""
+        try:
+            res = messages.decode_result(data)
+            objs = normalize(res, self.cfg.normalizer.decimals)
+        except (ProtocolError, TypeError) as exc:
+            self.malformed += 1
+            self.ratelog.warning("result", "dropped malformed result: %s", exc)
+            return False
+        if self.outbox is not None:
+            try:
+                self.outbox.append_many(objs)
+            except OutboxFull as exc:
+                self.refused += len(objs)
+                self.ratelog.warning("outbox", "outbox refused %d records: %s", len(objs), exc)
+        if objs and len(self.routes) < MAX_ROUTES:
+            self.routes.add(f"route:{res.pool}:{next(iter(objs[0]))}")
+        for obj in objs:
+            line = dumps(obj)
+            lines.append(line + b"\n")
+            self.lines += 1
+            try:
+                self.pub.send_multipart([messages.TOPIC_RESULT, line], zmq.NOBLOCK)
+            except zmq.Again:
+                pass
+        return True

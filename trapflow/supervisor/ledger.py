@@ -1,0 +1,369 @@
+"""The run ledger, pure: where every pair went, across broker and capture restarts, and the
+one model the status line, `trapflow status` and ledger.json render.
+
+Each broker and each capture process counts only what it saw. When a broker dies, its
+last published counters are kept; what it still held (pending or in flight) can never
+finish, so it counts as lost. When a capture dies, its last reported counters are kept and
+its successor numbers pairs past them. verdict() reads the totals at the end: whether the
+run failed (exit status 1) and the line that says why.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgspec
+
+from trapflow.wire.messages import FAILED_PREFIX, CaptureCounters, PoolStats, Stats
+
+__all__ = ["FAILED_PREFIX", "Delivered", "RunLedger", "capture_failures", "combine", "retire",
+           "verdict"]
+
+# The normalizer's heartbeat counters route:<pool>:<kind> say which pool's results become lines
+# of which kind (the first key of a results.jsonl line); results.jsonl itself has no pool.
+ROUTE_PREFIX = "route:"
+# The console's width: the status line never wraps on an 80-column terminal.
+STATUS_WIDTH = 80
+# The ledger's key for pairs a planned stop caught on their way (not lost).
+UNFINISHED = "unfinished_at_stop"
+# Seqs remembered per kind to count a result written twice (resent to a restarted
+# normalizer before it acknowledged) once; resends are never further apart than this.
+RECENT_SEQS = 65536
+
+
+class _Line(msgspec.Struct):
+    seq: int = -1
+
+
+_line_dec = msgspec.json.Decoder(dict[str, _Line])
+
+
+class Delivered:
+    """Distinct results per kind in results.jsonl, fed its bytes as they are appended.
+
+    The results file is what was delivered: counting it (not what a dead broker or
+    normalizer last reported) makes the ledger agree with it pair by pair after kills.
+    A result of several lines (one per detection) counts once; so does one written twice.
+    """
+
+    def __init__(self) -> None:
+        self.counts: dict[str, int] = {}
+        self.offset = 0  # bytes of the file consumed (whole lines only)
+        self.unreadable = 0  # lines that are not a result (a torn write after a power cut)
+        self._recent: dict[str, tuple[set[int], deque[int]]] = {}
+        self._tail = b""
+
+    def feed(self, data: bytes) -> None:
+        """More bytes of the file, from where the last call ended."""
+        data = self._tail + data
+        end = data.rfind(b"\n") + 1
+        self._tail = data[end:]
+        self.offset += end
+        for line in data[:end].splitlines():
+            if line:
+                self._count(line)
+
+    def _count(self, line: bytes) -> None:
+        try:
+            obj = _line_dec.decode(line)
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            self.unreadable += 1
+            return
+        for kind, item in obj.items():
+            seen, order = self._recent.setdefault(kind, (set(), deque()))
+            if item.seq in seen:
+                return
+            seen.add(item.seq)
+            order.append(item.seq)
+            if len(order) > RECENT_SEQS:
+                seen.discard(order.popleft())
+            self.counts[kind] = self.counts.get(kind, 0) + 1
+            return
+
+    def by_pool(self, routes: dict[str, str]) -> dict[str, int]:
+        """Counts per pool, given kind -> pool routes."""
+        out: dict[str, int] = {}
+        for kind, pool in routes.items():
+            out[pool] = out.get(pool, 0) + self.counts.get(kind, 0)
+        return out
+
+
+def routes_of(counters: dict[str, int]) -> dict[str, str]:
+    """kind -> pool from the normalizer's route:<pool>:<kind> counters."""
+    out: dict[str, str] = {}
+    for key in counters:
+        if key.startswith(ROUTE_PREFIX):
+            pool, _, kind = key[len(ROUTE_PREFIX):].partition(":")
+            out[kind] = pool
+    return out
+_SUMMED = ("received", "dispatched", "dropped", "processed", "errors", "timed_out", "lost",
+           "inactive", "throttled", "stale")
+
+
+def retire(last: Stats) -> Stats:
+    """The final counters of a broker that died: what it held is lost."""
+    pools = {name: msgspec.structs.replace(
+        p, lost=p.lost + p.pending + p.in_flight, pending=0, in_flight=0, workers=0, rate=0.0)
+        for name, p in last.pools.items()}
+    return msgspec.structs.replace(last, pools=pools, rate_in=0.0)
+
+
+def combine(base: Stats | None, cur: Stats) -> Stats:
+    """Counters of retired brokers (base) added to the live broker's (cur)."""
+    if base is None:
+        return cur
+    pools: dict[str, PoolStats] = {}
+    for name in {*base.pools, *cur.pools}:
+        a, b = base.pools.get(name, PoolStats()), cur.pools.get(name, PoolStats())
+        summed = {k: getattr(a, k) + getattr(b, k) for k in _SUMMED}
+        failures = dict(a.failures)
+        for kind, n in b.failures.items():
+            failures[kind] = failures.get(kind, 0) + n
+        pools[name] = msgspec.structs.replace(b, failures=failures, **summed)
+    return msgspec.structs.replace(cur, pairs_in=base.pairs_in + cur.pairs_in,
+                                   malformed=base.malformed + cur.malformed, pools=pools)
+
+
+def capture_failures(capture: dict[str, int]) -> dict[str, int]:
+    """Pairs skipped at capture by kind (unreadable, truncated, size, too_large...)."""
+    return {k[len(FAILED_PREFIX):]: n for k, n in sorted(capture.items())
+            if k.startswith(FAILED_PREFIX) and n}
+
+
+def verdict(source: str, capture: dict[str, int], gave_up: str | None, finished: bool,
+            stats: Stats | None) -> list[str]:
+    """Why a run failed, one phrase per cause; empty when it did not.
+
+    A finite source that could not go on (gave_up: its reason), one that ended having read
+    no pair at all, and a pool that failed every pair it was given (and processed none).
+    """
+    problems = []
+    if gave_up is not None:
+        problems.append(f"source {source} could not go on: "
+                        f"{gave_up.removeprefix('source failed: ')}")
+    elif finished and capture.get("produced", 0) == 0 and capture.get("failed", 0) > 0:
+        kinds = ", ".join(f"{k} {n}" for k, n in capture_failures(capture).items())
+        problems.append(f"source {source}: none of its {capture['failed']} pairs could be "
+                        f"read ({kinds}); see trapflow.log")
+    for name, p in sorted(stats.pools.items() if stats else ()):
+        # Failed, not timed out: a pool that only ran out of time is slow, not broken.
+        if p.errors and p.processed == 0:
+            kinds = ", ".join(f"{k} {n}" for k, n in p.failures.items())
+            problems.append(f"pool {name} failed every pair it was given ({p.errors}"
+                            f"{f': {kinds}' if kinds else ''}); see trapflow.log")
+    return problems
+
+
+@dataclass
+class RunLedger:
+    """The run's counters as the supervisor learns them: broker stats and capture counters,
+    with what dead brokers and captures had counted kept."""
+
+    stats: Stats | None = None  # the run's totals, all brokers
+    _broker: Stats | None = None  # the live broker's own
+    _retired: Stats | None = None  # what brokers that died had counted
+    _capture_base: CaptureCounters = field(default_factory=CaptureCounters)
+    _capture: CaptureCounters | None = None  # the live capture's own
+    seen_capture: bool = False
+    delivered: Delivered = field(default_factory=Delivered)  # results.jsonl, as written
+    routes: dict[str, str] = field(default_factory=dict)  # result kind -> pool
+    # Pairs the brokers had counted lost, per pool, when a planned stop began: what they
+    # count lost after it (workers told to leave, a queue never served) is the stop's doing.
+    lost_at_stop: dict[str, int] | None = None
+
+    # --- events ---------------------------------------------------------------------
+
+    def on_stats(self, stats: Stats) -> None:
+        self._broker = stats
+        self.stats = combine(self._retired, stats)
+
+    def on_capture(self, counters: CaptureCounters) -> None:
+        self._capture = counters
+        self.seen_capture = True
+
+    def on_normalizer(self, counters: dict[str, int]) -> None:
+        self.routes.update(routes_of(counters))
+
+    def stopping(self) -> None:
+        """A planned stop begins (before any process is told): keep what was lost so far.
+        The brokers' stats are at most a stats interval old: a pair lost to a crash in that
+        last interval is reported unfinished at stop."""
+        self.lost_at_stop = {n: p.lost for n, p in (self.stats.pools.items()
+                                                     if self.stats else ())}
+
+    def retire_broker(self) -> None:
+        """A restarted broker counts from zero: the run's totals keep what it saw."""
+        if self._broker is not None:
+            self._retired = combine(self._retired, retire(self._broker))
+            self._broker = None
+
+    def retire_capture(self, margin: int) -> int:
+        """A capture died: keep its counters; return the seq its successor starts from,
+        `margin` past the last one it reported (a pool sees a gap, never a repeated seq)."""
+        last = self._capture or CaptureCounters()
+        self._capture_base = self._capture_base + last
+        self._capture = None
+        return self._capture_base.next_seq + margin
+
+    # --- read-outs ------------------------------------------------------------------
+
+    def capture(self) -> CaptureCounters:
+        """Capture's counters over the whole run, across its restarts."""
+        return self._capture_base + (self._capture or CaptureCounters())
+
+    def capture_counts(self) -> dict[str, int]:
+        """The same as flat counters (produced, dropped, failed, failed_<kind>...)."""
+        c = self.capture()
+        out = {"produced": c.produced, "dropped": c.dropped, "failed": c.failed,
+               "source_errors": c.source_errors}
+        out.update({f"{FAILED_PREFIX}{k}": n for k, n in c.failures.items()})
+        return dict(sorted(out.items()))
+
+    def produced(self) -> int:
+        """Pairs capture sent: what it reported, or, when a capture was killed before
+        reporting its last pairs, what demonstrably existed: what reached the brokers, or
+        what one pool accounts for (results written, dropped, timed out, failed)."""
+        s = self.stats
+        if s is None:
+            return self.capture().produced
+        delivered = self.delivered.by_pool(self.routes)
+        accounted = [delivered.get(n, p.processed) + p.dropped + p.timed_out + p.errors
+                     + p.inactive + p.throttled + p.stale for n, p in s.pools.items()]
+        return max(self.capture().produced, s.pairs_in, *accounted)
+
+    def drained(self) -> bool:
+        """Every pair capture produced reached the broker and left every pool."""
+        s = self.stats
+        produced = self.capture().produced if self.seen_capture else -1
+        return (s is not None and s.pairs_in >= produced
+                and all(p.pending == 0 and p.in_flight == 0 for p in s.pools.values()))
+
+    def ledger(self, policies: dict[str, str], restarts: dict[str, int],
+               supervision: dict[str, Any] | None = None, final: bool = True,
+               planned_stop: bool = False) -> dict[str, Any]:
+        """Where every pair went: capture's count, then per pool exactly one state each;
+        restarts per pool and the supervision timeline (give-ups, retries).
+
+        While the run goes on (not final), pairs pending or in flight are in progress, not
+        lost. At its end they can no longer finish: after a planned stop (duration, a stop
+        request, a signal, a drained source) those that no broker counted as lost were
+        merely on their way (capture link, queue, worker, normalizer) and are "unfinished
+        at stop", counted apart; after a failure they are lost."""
+        cap = self.capture()
+        s = self.stats
+        produced = self.produced()
+        out: dict[str, Any] = {
+            "produced": produced,
+            "dropped_at_capture": cap.dropped,  # the broker was not reading
+            # Read but never sent: unreadable, cut short, two sizes, too large for the ring.
+            "failed_at_capture": cap.failed,
+            "capture_failures": {k: n for k, n in sorted(cap.failures.items()) if n},
+            "reached_broker": s.pairs_in if s else 0,
+            "pools": {},
+        }
+        delivered = self.delivered.by_pool(self.routes)
+        for name, p in (s.pools.items() if s else ()):
+            # Processed: the results written for this pool (known once its results are
+            # routed); lost: whatever else is not in a state, as the brokers counted them.
+            processed = delivered.get(name, p.processed)
+            ended = (processed + p.dropped + p.timed_out + p.errors + p.inactive + p.throttled
+                     + p.stale)
+            rest = max(0, produced - ended)
+            if not final:
+                in_progress = min(rest, p.pending + p.in_flight)
+            elif planned_stop:  # what no broker had counted lost when the stop began
+                lost = p.lost if self.lost_at_stop is None else self.lost_at_stop.get(name, 0)
+                in_progress = rest - min(rest, lost)
+            else:
+                in_progress = 0
+            out["pools"][name] = {
+                "processed": processed, "dropped_by_policy": p.dropped,
+                "policy": policies.get(name, ""), "dropped_inactive": p.inactive,
+                "dropped_by_level": p.throttled,
+                "dropped_stale": p.stale, "timed_out": p.timed_out,
+                "failed": p.errors, "failures": p.failures,
+                "lost": rest - in_progress,
+                "restarts": restarts.get(name, 0),
+                # Replaced on purpose (max_rss_mb, max_jobs), by why; not restarts.
+                "recycled": dict((supervision or {}).get("recycled", {}).get(name, {})),
+            }
+            if not final:
+                out["pools"][name]["in_progress"] = in_progress
+            elif planned_stop:
+                out["pools"][name][UNFINISHED] = in_progress
+        if supervision is not None:
+            out["supervision"] = supervision
+        return out
+
+    def status_text(self, up: float, restarts: dict[str, int], width: int = STATUS_WIDTH,
+                    level: str = "") -> str:
+        """One line of at most `width` columns: seconds up, pairs/s in (pairs in), then per
+        pool workers and results/s, with drops, failures, losses and restarts only when
+        there are any. The widest pools (most workers) come first; those that do not fit
+        are counted ("+2 pools"); `trapflow status` shows them all. A degraded ladder
+        `level` is shown after the input rate."""
+        s = self.stats
+        if s is None:
+            return f"{up:6.1f}s | waiting for stats"[:width]
+        cap = self.capture()
+        head = f"{up:6.1f}s | in {s.rate_in:5.1f}/s ({s.pairs_in})"
+        if level:  # the ladder has stepped down: said before the pools
+            head += f" [{level}]"
+        if cap.dropped:
+            head += f" cap-drop {cap.dropped}"
+        if cap.failed:
+            head += f" cap-fail {cap.failed}"
+        pools = []
+        for name, p in sorted(s.pools.items(), key=lambda kv: (-kv[1].workers, kv[0])):
+            flags = "".join(f" {k} {n}" for k, n in (
+                ("drop", p.dropped + p.inactive + p.throttled + p.stale), ("err", p.errors),
+                ("lost", p.lost),
+                ("rst", restarts.get(name, 0))) if n)
+            state = "" if p.active else " (inactive)"
+            pools.append(f"{name}{state} {p.workers}w {p.rate:.1f}/s{flags}")
+        line = " | ".join([head, *pools])
+        if len(line) <= width:
+            return line
+        room = width - len(f" | +{len(pools)} pools")  # kept for counting those left out
+        line, left = head[:room], 0
+        for part in pools:
+            if len(line) + 3 + len(part) <= room:
+                line += " | " + part
+            else:
+                left += 1
+        return f"{line} | +{left} pools"
+
+
+def totals_text(ledger: dict[str, Any]) -> str:
+    """The end-of-run summary of a ledger, one line per pool."""
+    failed = ledger["failed_at_capture"]
+    kinds = ", ".join(f"{k} {v}" for k, v in ledger["capture_failures"].items())
+    lines = [f"totals: {ledger['produced']} pairs captured, "
+             f"{ledger['reached_broker']} reached the broker"
+             f"{f', {failed} failed at capture ({kinds})' if failed else ''}"]
+    for name, p in ledger["pools"].items():
+        kinds = ", ".join(f"{k} {v}" for k, v in p["failures"].items())
+        going = f"in progress {p['in_progress']}, " if "in_progress" in p else ""
+        if UNFINISHED in p:
+            going = f"unfinished at stop {p[UNFINISHED]}, "
+        inactive = f", inactive {p['dropped_inactive']}" if p.get("dropped_inactive") else ""
+        if p.get("dropped_by_level"):
+            inactive += f", by level {p['dropped_by_level']}"
+        if p.get("dropped_stale"):
+            inactive += f", stale {p['dropped_stale']}"
+        recycled = sum(p.get("recycled", {}).values())
+        lines.append(
+            f"  {name}: processed {p['processed']}, dropped {p['dropped_by_policy']} "
+            f"({p['policy']}){inactive}, timed out {p['timed_out']}, failed {p['failed']}"
+            f"{f' ({kinds})' if kinds else ''}, lost {p['lost']}, {going}"
+            f"restarts {p['restarts']}{f', recycled {recycled}' if recycled else ''}")
+    sup = ledger.get("supervision")
+    if sup and (sup["gave_up"] or sup["retries"]):
+        lines.append(f"  supervision: {sup['gave_up']} give-ups, {sup['retries']} retries")
+    ladder = sup.get("ladder") if sup else None
+    if ladder and ladder.get("changes"):
+        lines.append(f"  ladder: {ladder['changes']} level changes, at {ladder['level']} "
+                     f"({ladder['reason']})")
+    return "\n".join(lines) + "\n"

@@ -32,7 +32,8 @@ from tests.kits.context import make_context, make_pair
 from tests.kits.scenes import FloorWorld, circle_path
 from trapflow.calibration.camera import StereoRig
 from trapflow.plugin import Worker
-from trapflow.synth import SynthOptions, World
+from trapflow.synth.options import SynthOptions
+from trapflow.synth.render import World
 
 RATE_HZ = 15.0
 

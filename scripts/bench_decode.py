@@ -18,7 +18,8 @@ from typing import Any
 import cv2
 
 from trapflow.calibration.camera import StereoRig
-from trapflow.synth import SynthOptions, World
+from trapflow.synth.options import SynthOptions
+from trapflow.synth.render import World
 from trapflow.wire import jpeg
 
 SIZES = ((1280, 720), (1920, 1080))

@@ -16,10 +16,10 @@ from typing import Any
 
 import msgspec
 
-from trapflow.config.modem import BITS_PER_BYTE, ModemConfig
+from trapflow.config.modem import BITS_PER_BYTE, ModemConfig, OutboxConfig
 from trapflow.modem.codec import LinkCodec
 from trapflow.modem.frame import OVERHEAD, message_cost
-from trapflow.modem.outbox import Outbox, OutboxConfig
+from trapflow.modem.outbox import Outbox
 
 TS = "2025-07-07 12:52:43.120"
 C, S = round(math.cos(0.05), 4), round(math.sin(0.05), 4)

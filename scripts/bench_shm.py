@@ -36,7 +36,7 @@ from bench_transport import (
     raw_pyzmq,
 )
 
-from trapflow.wire import frame_ring, messages
+from trapflow.wire import frame_msgs, frame_ring, messages
 from trapflow.wire.transport import accept_link, connect_link, listen_link
 
 
@@ -54,7 +54,7 @@ def _shm_consumer(name: str, path: str, conn: Any) -> None:
             continue
         if len(frames) == 1:
             break
-        ref = messages.decode_frame_ref(frames[1])
+        ref = frame_msgs.decode_frame_ref(frames[1])
         try:
             left, right = reader.view(ref)
             t = time.monotonic_ns()

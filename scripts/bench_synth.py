@@ -18,7 +18,8 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import cv2  # noqa: E402
 
 from trapflow.calibration.camera import StereoRig  # noqa: E402
-from trapflow.synth import SynthOptions, World  # noqa: E402
+from trapflow.synth.options import SynthOptions  # noqa: E402
+from trapflow.synth.render import World  # noqa: E402
 
 
 def bench(width: int, height: int, pairs: int, moving: bool) -> dict[str, float]:

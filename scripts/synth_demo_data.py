@@ -9,8 +9,9 @@ import cv2
 import numpy as np
 
 from trapflow.calibration.camera import StereoRig
-from trapflow.synth import SynthOptions, World
 from trapflow.synth.dataset import labelled
+from trapflow.synth.options import SynthOptions
+from trapflow.synth.render import World
 
 DET_SIZE = 320  # detector input, square, letterboxed
 DET_CLASSES = ("crab", "scallop")

@@ -68,7 +68,8 @@ def send_until_drained(outbox: Path, port: Path, procs: list[subprocess.Popen[by
                        what: str) -> None:
     """Run the box's sender (`modem-send`, 19200 bit/s, no aggregation, no TTL) until every
     record of outbox is acknowledged, then cut its power (SIGKILL)."""
-    from trapflow.modem.outbox import OutboxConfig, OutboxQueue
+    from trapflow.config.modem import OutboxConfig
+    from trapflow.modem.outbox import OutboxQueue
 
     sender = modem_cli("modem-send", str(outbox), str(port), *MODEM_SEND_ARGS)
     procs.append(sender)

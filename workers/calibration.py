@@ -3,7 +3,7 @@
 The run's rig comes from the source (trapflow.sources.rig decides it, once, for every node); a
 plugin's explicit `calibration` file wins. The file may be a KITTI `calib.txt`, a YAML
 mapping of fx, fy, cx, cy, baseline_m (metres) and optionally width, height (pixels), or
-any stereo calibration trapflow.calibration.model reads; trapflow.sources.rig.read_rig_file
+any stereo calibration trapflow.calibration.model reads; trapflow.calibration.rig_files
 parses it.
 """
 
@@ -14,8 +14,8 @@ from pathlib import Path
 import msgspec
 
 from trapflow.calibration.camera import StereoRig
+from trapflow.calibration.rig_files import YAML_FIELDS, read_rig_file
 from trapflow.errors import ConfigError, WorkerError
-from trapflow.sources.rig import YAML_FIELDS, read_rig_file
 
 __all__ = ["YAML_FIELDS", "load_calibration", "resolve_rig"]
 

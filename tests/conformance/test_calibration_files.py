@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 import yaml
 
-from trapflow.calibration.model import StereoCalibration, load_calibration
+from trapflow.calibration.formats import load_calibration
+from trapflow.calibration.model import StereoCalibration
 from trapflow.errors import ConfigError
 
 from .conftest import kit_path

@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 
 from trapflow.calibration.calibrate import calibrate_stereo, expand
-from trapflow.calibration.model import StereoCalibration, load_calibration
+from trapflow.calibration.formats import load_calibration
+from trapflow.calibration.model import StereoCalibration
 from trapflow.sources.rectify import Rectifier
 
 from .conftest import kit_path, realdata_root

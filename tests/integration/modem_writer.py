@@ -9,7 +9,8 @@ from __future__ import annotations
 import sys
 import time
 
-from trapflow.modem.outbox import Outbox, OutboxConfig
+from trapflow.config.modem import OutboxConfig
+from trapflow.modem.outbox import Outbox
 
 
 def record(ident: int) -> dict[str, object]:

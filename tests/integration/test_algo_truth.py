@@ -20,8 +20,9 @@ from trapflow_workers.vo_metrics import as_4x4, drift_percent, end_drift_percent
 
 from tests.kits.context import make_context, make_pair
 from trapflow.calibration.camera import StereoRig
-from trapflow.synth import SynthOptions, World
 from trapflow.synth.dataset import labelled
+from trapflow.synth.options import SynthOptions
+from trapflow.synth.render import World
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "scripts"))

@@ -17,7 +17,7 @@ import pytest
 
 from tests.conftest import REPO, Pipeline, only_pools, poll_for, write_config
 from trapflow.wire import control_client as control
-from trapflow.wire import messages
+from trapflow.wire import control_msgs
 
 K = 1.0  # the stereo pool's minimum interval at ir_slowed, seconds
 WINDOW = 2.5  # seconds the pool's rate is measured over at each level
@@ -96,7 +96,7 @@ def test_hot_cpu_slows_stereo_and_it_comes_back(spawn, run_dir: Path) -> None:
     assert res.returncode == 0, res.stderr
     assert res.stdout.startswith("level ir_slowed (forced): full -> ir_slowed: forced")
     assert "unknown level 'warm'" in control.request(
-        run_dir, messages.LevelRequest(level="warm"))["error"]
+        run_dir, control_msgs.LevelRequest(level="warm"))["error"]
     res = tf("level", "auto", "--run-dir", str(run_dir), "--json")
     assert res.returncode == 0, res.stderr
     assert json.loads(res.stdout) == {"level": "ir_slowed", "auto": True,

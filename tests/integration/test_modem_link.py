@@ -18,8 +18,8 @@ from typing import Any
 import pytest
 
 from tests.conftest import modem_cli, poll_for
-from trapflow.config.modem import ModemConfig
-from trapflow.modem.outbox import Outbox, OutboxConfig
+from trapflow.config.modem import ModemConfig, OutboxConfig
+from trapflow.modem.outbox import Outbox
 from trapflow.modem.sender import ModemSender
 
 

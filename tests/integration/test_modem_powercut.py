@@ -20,7 +20,8 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import poll_for
-from trapflow.modem.outbox import OutboxConfig, OutboxQueue
+from trapflow.config.modem import OutboxConfig
+from trapflow.modem.outbox import OutboxQueue
 
 sys.path.insert(0, str(Path(__file__).parent))
 from modem_writer import record

@@ -17,8 +17,8 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import modem_cli, modem_link, poll_for
-from trapflow.config.modem import ModemConfig
-from trapflow.modem.outbox import Outbox, OutboxConfig
+from trapflow.config.modem import ModemConfig, OutboxConfig
+from trapflow.modem.outbox import Outbox
 from trapflow.modem.sender import ModemSender
 
 SEED = 20250708

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from tests import builders
+from trapflow.wire import frame_msgs, messages
 from trapflow.wire import frame_ring as fr
-from trapflow.wire import messages
 
 SPAWN = mp.get_context("spawn")
 
@@ -57,7 +57,7 @@ def _hashing_reader(name: str, conn: Connection) -> None:
     """For each FrameRef: sha256 of left and right read in place, then the reuse check."""
     reader = fr.RingReader(name)
     while data := conn.recv_bytes():
-        ref = messages.decode_frame_ref(data)
+        ref = frame_msgs.decode_frame_ref(data)
         with reader.pair(ref) as (left, right):
             digest = (hashlib.sha256(left).hexdigest() + hashlib.sha256(right).hexdigest())
         conn.send_bytes(digest.encode())
@@ -66,7 +66,7 @@ def _hashing_reader(name: str, conn: Connection) -> None:
 def _slow_reader(name: str, conn: Connection) -> None:
     """Views a pair, says so, waits to be told to go on, then checks (forced slow reader)."""
     reader = fr.RingReader(name)
-    ref = messages.decode_frame_ref(conn.recv_bytes())
+    ref = frame_msgs.decode_frame_ref(conn.recv_bytes())
     left, _right = reader.view(ref)
     seen = left.tobytes()
     conn.send_bytes(b"viewing")
@@ -96,7 +96,7 @@ def _verifying_reader(name: str, conn: Connection) -> None:
         data = conn.recv_bytes()
         if not data:
             break
-        ref = messages.decode_frame_ref(data)
+        ref = frame_msgs.decode_frame_ref(data)
         try:
             left, right = reader.view(ref)
             k = int(left[:8].view(np.uint64)[0])
@@ -114,7 +114,7 @@ def _holding_reader(name: str, conn: Connection) -> None:
     reader = fr.RingReader(name)
     held = []
     while data := conn.recv_bytes():
-        held.append(reader.view(messages.decode_frame_ref(data)))
+        held.append(reader.view(frame_msgs.decode_frame_ref(data)))
     conn.send_bytes(f"holding {len(held)}".encode())
     signal.pause()
 
@@ -194,7 +194,7 @@ def test_racing_writer_never_yields_a_torn_read(prefix: str, procs: Any) -> None
         p, conn = procs(_verifying_reader, ring.name)
         left, right = np.empty(n, np.uint8), np.empty(n, np.uint8)
         k = reads = quiet = 0
-        last: messages.FrameRef | None = None
+        last: frame_msgs.FrameRef | None = None
         t_end = time.monotonic() + 2.0
         while time.monotonic() < t_end or last is None:
             slot = writer.acquire()
@@ -256,7 +256,7 @@ def test_kill9_of_a_writer_mid_write_is_reclaimed_by_the_next(prefix: str,
                                                               procs: Any) -> None:
     with fr.FrameRing.create(4, 4096, prefix=prefix) as ring:
         p, conn = procs(_crashing_writer, ring.name)
-        committed = messages.decode_frame_ref(recv_bytes(conn))
+        committed = frame_msgs.decode_frame_ref(recv_bytes(conn))
         assert recv_bytes(conn) == b"writing"
         os.kill(p.pid, signal.SIGKILL)
         p.join(10)

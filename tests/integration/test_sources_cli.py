@@ -17,7 +17,8 @@ from rosbags.highlevel import AnyReader
 from trapflow.calibration.camera import StereoRig
 from trapflow.calibration.checkerboard import render_pair
 from trapflow.cli.sources import calibrate, lossless_problems, replay
-from trapflow.wire.messages import TOPIC_IMAGE, TOPIC_RESULT, PoolStats, Stats, StereoPair, encode
+from trapflow.wire.messages import PoolStats, Stats, StereoPair, encode
+from trapflow.wire.tap_msgs import TOPIC_IMAGE, TOPIC_RESULT
 
 
 def test_calibrate_command_writes_yaml(tmp_path: Path) -> None:

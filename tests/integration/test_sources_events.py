@@ -10,7 +10,8 @@ import msgspec
 import numpy as np
 import pytest
 
-from trapflow.stages.events import EventCapture, EventsConfig, TriggerRule, fires
+from trapflow.config.schema import EventsConfig, TriggerRule
+from trapflow.stages.events import EventCapture, fires
 from trapflow.wire.messages import StereoPair
 
 PERIOD = 100_000_000  # 10 Hz

@@ -13,8 +13,8 @@ import pytest
 from tests.builders import drain, drain_skipping
 from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import SourceConfig
-from trapflow.sources import SourceError, open_source
-from trapflow.sources.base import SkipPair, Source
+from trapflow.sources.base import SkipPair, Source, SourceError
+from trapflow.sources.factory import open_source
 
 RIG = StereoRig.from_fov(64, 48, 70.0, 0.12)
 W, H = 64, 48

@@ -12,7 +12,8 @@ import pytest
 
 from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import SourceConfig
-from trapflow.sources import SourceError, open_source
+from trapflow.sources.base import SourceError
+from trapflow.sources.factory import open_source
 from trapflow.sources.gst import opencv_has_gstreamer
 from trapflow.sources.live import Grab, LiveStereoSource
 

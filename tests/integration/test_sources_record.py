@@ -23,7 +23,8 @@ from trapflow.recording.recorder import (
     RecorderError,
     record,
 )
-from trapflow.wire.messages import TOPIC_IMAGE, TOPIC_RESULT, StereoPair, encode
+from trapflow.wire.messages import StereoPair, encode
+from trapflow.wire.tap_msgs import TOPIC_IMAGE, TOPIC_RESULT
 
 W, H = 96, 64
 T_WALL0 = 1_751_892_763_000_000_000

@@ -15,8 +15,8 @@ from tests.builders import drain, drain_skipping
 from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import SourceConfig
 from trapflow.recording.recorder import Recorder
-from trapflow.sources import SkipPair, SourceError, open_source
-from trapflow.sources.base import Source
+from trapflow.sources.base import SkipPair, Source, SourceError
+from trapflow.sources.factory import open_source
 from trapflow.sources.replay import ReplaySource
 from trapflow.wire.messages import StereoPair
 

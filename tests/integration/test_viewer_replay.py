@@ -14,7 +14,7 @@ from tests.conftest import Pipeline, poll_for
 from tests.integration.viewer_util import free_port, get, get_json
 from trapflow.calibration.camera import StereoRig
 from trapflow.recording.recorder import Recorder
-from trapflow.synth import World
+from trapflow.synth.render import World
 from trapflow.wire.messages import StereoPair
 
 W, H, N, RATE = 320, 240, 40, 10.0

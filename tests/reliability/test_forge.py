@@ -20,7 +20,7 @@ import zmq
 from tests import builders
 from tests.conftest import Pipeline, only_pools, poll_for, recv, write_config
 from tests.reliability import figures, scaled
-from trapflow.wire import messages
+from trapflow.wire import control_msgs, messages
 from trapflow.wire.transport import LinkClosed, connect_link
 
 SMALL = {"width": 320, "height": 240, "rate_hz": 15.0}
@@ -170,7 +170,7 @@ def test_multi_frame_control_request_gets_an_error_and_the_supervisor_lives(
     it replied after reading only the first frame), and with it the whole pipeline."""
     p: Pipeline = spawn(["--config", str(_config(run_dir.parent / "ctl.yaml"))], run_dir)
     p.wait_active()
-    status = messages.encode(messages.StatusRequest())
+    status = messages.encode(control_msgs.StatusRequest())
     sock = zctx.socket(zmq.REQ if kind == "req" else zmq.DEALER)
     sock.connect(f"ipc://{run_dir.resolve() / 'control.sock'}")
     envelope = [] if kind == "req" else [b""]  # a DEALER writes REQ's empty delimiter itself

@@ -15,7 +15,7 @@ import pytest
 import zmq
 
 from tests.conftest import Pipeline, only_pools, poll_for, write_config
-from trapflow.wire import messages
+from trapflow.wire import tap_msgs
 
 # Measured without the caps (issue 16): 20 subscriptions of 64 KB added 63 MB to the broker
 # and to the normalizer, 10,000 small random ones 10-19 MB. With them, a 64 KB subscription
@@ -84,11 +84,11 @@ def test_huge_and_many_subscriptions_leave_broker_and_normalizer_memory_flat(
         # A real reader still gets its topics from both taps, under attack.
         for ep in taps:
             reader.connect(ep)
-        for topic in (messages.TOPIC_STATS, messages.TOPIC_RESULT):
+        for topic in (tap_msgs.TOPIC_STATS, tap_msgs.TOPIC_RESULT):
             reader.setsockopt(zmq.SUBSCRIBE, topic)
         got: set[bytes] = set()
         deadline = time.monotonic() + 20
-        want = {messages.TOPIC_STATS, messages.TOPIC_RESULT}
+        want = {tap_msgs.TOPIC_STATS, tap_msgs.TOPIC_RESULT}
         while got != want and time.monotonic() < deadline:
             if reader.poll(200):
                 got.add(reader.recv_multipart()[0])

@@ -23,7 +23,7 @@ import zmq
 from tests import builders
 from tests.conftest import Pipeline, only_pools, poll_for, write_config
 from tests.reliability import figures, scaled
-from trapflow.wire import messages
+from trapflow.wire import control_msgs, messages
 from trapflow.wire.transport import Link, LinkClosed, connect_link
 
 FUZZ_S = scaled("TRAPFLOW_CHAOS_FUZZ_S", 20.0)  # scripts/chaos.sh runs it longer
@@ -150,7 +150,7 @@ class Fuzzer:
             lambda: self._send(self.heartbeat, self.frames(), "heartbeat"),
             lambda: self._send(self.heartbeat, [b"\x93" + self.junk() + b"\n"], "heartbeat"),
             lambda: self._send(self.control, self.frames(), "control"),
-            lambda: self._send(self.control, [b"", messages.encode(messages.StatusRequest()),
+            lambda: self._send(self.control, [b"", messages.encode(control_msgs.StatusRequest()),
                                               *self.frames()], "control_multi"),
             lambda: self._send(r.choice(self.xsubs), [b"\x01" + self.junk(16)], "subscription"),
             lambda: self._send(r.choice(self.xsubs), [b"\x01" + b"x" * (64 << 10)],

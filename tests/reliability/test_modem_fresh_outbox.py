@@ -15,7 +15,8 @@ import pytest
 
 from tests.conftest import modem_cli, modem_link, send_until_drained, stop_surface, surface_idents
 from tests.integration.modem_writer import record
-from trapflow.modem.outbox import Outbox, OutboxConfig
+from trapflow.config.modem import OutboxConfig
+from trapflow.modem.outbox import Outbox
 
 SEED = 20261122
 FIRST = 240  # records of the first outbox: more than the fresh one holds

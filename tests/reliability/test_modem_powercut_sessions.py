@@ -30,7 +30,8 @@ from tests.conftest import (
 )
 from tests.integration.modem_writer import record
 from tests.reliability import figures, scaled
-from trapflow.modem.outbox import OutboxConfig, OutboxQueue
+from trapflow.config.modem import OutboxConfig
+from trapflow.modem.outbox import OutboxQueue
 
 SEED = 20261123
 WRITER = Path(__file__).parent.parent / "integration" / "modem_writer.py"

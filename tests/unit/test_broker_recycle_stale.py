@@ -6,8 +6,9 @@ from __future__ import annotations
 
 import pytest
 
-from trapflow.broker.policy import Pending, parse_policy
+from trapflow.broker.policy import Pending
 from trapflow.broker.state import BrokerState, Dispatch, Evicted, PoolSpec, Release
+from trapflow.config.schema import parse_policy
 
 W1, W2 = b"w1", b"w2"
 

@@ -6,8 +6,8 @@ import random
 
 import pytest
 
-from trapflow.broker.policy import parse_policy
 from trapflow.broker.state import BrokerState, Dispatch, Evicted, PoolSpec, Rejected, Release
+from trapflow.config.schema import parse_policy
 
 W1, W2 = b"w1", b"w2"
 

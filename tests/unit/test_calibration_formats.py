@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from trapflow.calibration.formats import write_camera_info
-from trapflow.calibration.model import StereoCalibration, load_calibration
+from trapflow.calibration.formats import load_calibration, write_camera_info
+from trapflow.calibration.model import StereoCalibration
 from trapflow.errors import ConfigError
 from trapflow.sources.rectify import Rectifier
 

@@ -7,8 +7,8 @@ from pathlib import Path
 import msgspec
 import pytest
 
-from trapflow.broker.policy import Policy, parse_policy
 from trapflow.config import schema as config
+from trapflow.config.schema import Policy, parse_policy
 from trapflow.errors import ConfigError
 
 CONFIGS = sorted((Path(__file__).resolve().parents[2] / "configs").glob("*.yaml"))

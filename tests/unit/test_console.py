@@ -18,15 +18,16 @@ from click.testing import CliRunner
 
 from tests.conftest import REPO
 from trapflow.cli.main import main
-from trapflow.modem.outbox import ACKED, Outbox, OutboxConfig, OutboxQueue
+from trapflow.cli.status_text import POOL_UNITS, format_status
+from trapflow.config.modem import OutboxConfig
+from trapflow.modem.outbox import ACKED, Outbox, OutboxQueue
 from trapflow.modem.port import STOPPED, LinkPort
 from trapflow.runtime.node import FINALIZED, Node
 from trapflow.runtime.ratelog import CONSOLE_ONCE, ConsoleOnce
 from trapflow.supervisor import summary as run_summary
 from trapflow.supervisor.ledger import STATUS_WIDTH, UNFINISHED, RunLedger, totals_text
 from trapflow.supervisor.state import DurationClock
-from trapflow.wire import messages
-from trapflow.wire.control_client import POOL_UNITS, format_status
+from trapflow.wire import tap_msgs
 from trapflow.wire.messages import CaptureCounters, PoolStats, Stats
 
 
@@ -236,7 +237,7 @@ def test_tap_with_messages_exits_0_at_its_timeout(tmp_path: Path) -> None:
 
     def publish() -> None:
         while not stop.is_set():
-            pub.send_multipart([messages.TOPIC_RESULT, b'{"mono_ir":{"seq":1}}'])
+            pub.send_multipart([tap_msgs.TOPIC_RESULT, b'{"mono_ir":{"seq":1}}'])
             time.sleep(0.05)
 
     t = threading.Thread(target=publish, daemon=True)

@@ -10,16 +10,9 @@ import msgspec
 import pytest
 
 from trapflow.config import schema as config
+from trapflow.config.ladder import AUTO, LadderConfig, LevelConfig, PoolLevel, TriggerConfig
 from trapflow.errors import ConfigError
-from trapflow.supervisor.ladder import (
-    AUTO,
-    Ladder,
-    LadderConfig,
-    LevelConfig,
-    PoolLevel,
-    Readings,
-    TriggerConfig,
-)
+from trapflow.supervisor.ladder import Ladder, Readings
 
 LEVELS = ("ir_slowed", "mono_vo", "vo_health")
 

@@ -12,21 +12,16 @@ from typing import Any
 
 import pytest
 
-from trapflow.broker.policy import parse_policy
 from trapflow.broker.state import BrokerState, Dispatch, PoolSpec, Release
-from trapflow.supervisor.actions import Budget, LevelChanged, Lifecycle, Refused, SwitchPool
-from trapflow.supervisor.ladder import (
-    AUTO,
-    Ladder,
-    LadderConfig,
-    Readings,
-    SensorsConfig,
-    TriggerConfig,
-)
+from trapflow.config.ladder import AUTO, LadderConfig, SensorsConfig, TriggerConfig
+from trapflow.config.schema import parse_policy
+from trapflow.runtime.lifecycle import Lifecycle
+from trapflow.supervisor.actions import Budget, LevelChanged, Refused, SwitchPool
+from trapflow.supervisor.ladder import Ladder, Readings
 from trapflow.supervisor.ledger import RunLedger
 from trapflow.supervisor.sensors import Sensors
 from trapflow.supervisor.state import SupervisorState
-from trapflow.wire import messages
+from trapflow.wire import control_msgs, messages
 
 HOT = TriggerConfig(sensor="cpu_temp_c", dwell_s=0.0,
                     enter={"ir_slowed": 75, "mono_vo": 80, "vo_health": 85},
@@ -225,8 +220,8 @@ def test_ladder_messages_on_the_worker_socket(msg: messages.Msg) -> None:
 
 
 def test_level_request_round_trips() -> None:
-    req = messages.LevelRequest(level="auto")
-    assert messages.decode_control(messages.encode(req)) == req
+    req = control_msgs.LevelRequest(level="auto")
+    assert control_msgs.decode_control(messages.encode(req)) == req
 
 
 # --- the sensors ----------------------------------------------------------------------------

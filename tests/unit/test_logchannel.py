@@ -18,7 +18,7 @@ from trapflow.config.schema import NetworkConfig
 from trapflow.errors import ProtocolError, StartupError
 from trapflow.runtime.logchannel import LogListener, LogSender, PrivateRotatingFile
 from trapflow.runtime.ratelog import CONSOLE_ONCE
-from trapflow.wire import messages
+from trapflow.wire import control_msgs, messages
 from trapflow.wire.transport import Endpoints, check_ports_free, new_context
 
 
@@ -78,9 +78,9 @@ def test_malformed_log_records_are_counted_not_fatal(run_dir: Path, zctx) -> Non
     listener.start()
     push = zctx.socket(zmq.PUSH)
     push.connect(ep)
-    good = messages.encode(messages.LogEntry(name="x", levelno=20, process="p", pid=1,
+    good = messages.encode(control_msgs.LogEntry(name="x", levelno=20, process="p", pid=1,
                                              created=0.0, message="ok"))
-    for data in (b"", b"\xc1", b"\x93garbage", messages.encode(messages.StatusRequest()), good):
+    for data in (b"", b"\xc1", b"\x93garbage", messages.encode(control_msgs.StatusRequest()), good):
         push.send(data)
     try:
         poll_for(lambda: sink.records, 5, what="the good record")
@@ -100,7 +100,7 @@ def test_malformed_log_records_are_counted_not_fatal(run_dir: Path, zctx) -> Non
 ])
 def test_decode_log_rejects(data: bytes, error: str) -> None:
     with pytest.raises(ProtocolError, match="log record") as exc:
-        messages.decode_log(data)
+        control_msgs.decode_log(data)
     assert error in str(exc.value)
 
 

@@ -10,7 +10,7 @@ import pytest
 
 from tests import builders
 from trapflow.errors import ProtocolError
-from trapflow.wire import messages
+from trapflow.wire import frame_msgs, messages, tap_msgs
 
 
 def test_pair_roundtrip() -> None:
@@ -96,27 +96,27 @@ def test_result_size_limit() -> None:
 
 def test_link_frames_roundtrip() -> None:
     frames = [b"job", b"", memoryview(b"header"), bytearray(b"\x00" * 300)]
-    out = messages.unpack_frames(messages.pack_frames(frames))
+    out = frame_msgs.unpack_frames(frame_msgs.pack_frames(frames))
     assert [bytes(f) for f in out] == [bytes(f) for f in frames]
 
 
 @pytest.mark.parametrize(("data", "error"), [
     (b"", "empty datagram"),
     (b"\x00", "got count 0"),
-    (bytes([messages.MAX_LINK_FRAMES + 1]) + b"\x00" * 400, "got count 65"),
+    (bytes([frame_msgs.MAX_LINK_FRAMES + 1]) + b"\x00" * 400, "got count 65"),
     (b"\x02\x01\x00\x00\x00", "got count 2 in 5 bytes"),
     (b"\x01\x05\x00\x00\x00ab", "add up to 10 bytes, datagram has 7"),
     (b"\x01\x01\x00\x00\x00abc", "add up to 6 bytes, datagram has 8"),
 ])
 def test_link_frames_reject_malformed(data: bytes, error: str) -> None:
     with pytest.raises(ProtocolError, match=error):
-        messages.unpack_frames(data)
+        frame_msgs.unpack_frames(data)
 
 
-@pytest.mark.parametrize("count", [0, messages.MAX_LINK_FRAMES + 1])
+@pytest.mark.parametrize("count", [0, frame_msgs.MAX_LINK_FRAMES + 1])
 def test_link_frames_refuse_to_pack_a_wrong_count(count: int) -> None:
     with pytest.raises(ProtocolError, match="frames"):
-        messages.pack_frames([b"x"] * count)
+        frame_msgs.pack_frames([b"x"] * count)
 
 
 def _stats() -> messages.Stats:
@@ -126,27 +126,27 @@ def _stats() -> messages.Stats:
 
 def test_every_tap_topic_is_decoded_by_one_function() -> None:
     header, left, right = builders.pair_frames(seq=4)
-    pair = messages.decode_tap([messages.TOPIC_IMAGE, header, left, right])
-    assert isinstance(pair, messages.TapPair) and pair.header.seq == 4
+    pair = tap_msgs.decode_tap([tap_msgs.TOPIC_IMAGE, header, left, right])
+    assert isinstance(pair, tap_msgs.TapPair) and pair.header.seq == 4
     assert bytes(pair.left) == left and bytes(pair.right) == right
-    meta = messages.decode_tap([messages.TOPIC_META, header])
-    assert isinstance(meta, messages.TapMeta) and meta.header == pair.header
-    stats = messages.decode_tap([messages.TOPIC_STATS, messages.encode(_stats())])
-    assert isinstance(stats, messages.TapStats) and stats.stats == _stats()
+    meta = tap_msgs.decode_tap([tap_msgs.TOPIC_META, header])
+    assert isinstance(meta, tap_msgs.TapMeta) and meta.header == pair.header
+    stats = tap_msgs.decode_tap([tap_msgs.TOPIC_STATS, messages.encode(_stats())])
+    assert isinstance(stats, tap_msgs.TapStats) and stats.stats == _stats()
     line = b'{"mono_ir": {"seq": 4, "label": "crab"}}'
-    res = messages.decode_tap([messages.TOPIC_RESULT, line])
-    assert res == messages.TapResult("mono_ir", {"seq": 4, "label": "crab"}, line)
+    res = tap_msgs.decode_tap([tap_msgs.TOPIC_RESULT, line])
+    assert res == tap_msgs.TapResult("mono_ir", {"seq": 4, "label": "crab"}, line)
     truth = messages.Truth(seq=4, pose=(1.0,) * 12)
-    got = messages.decode_tap([messages.TOPIC_TRUTH, messages.encode(truth)])
-    assert isinstance(got, messages.TapTruth) and got.truth == truth
+    got = tap_msgs.decode_tap([tap_msgs.TOPIC_TRUTH, messages.encode(truth)])
+    assert isinstance(got, tap_msgs.TapTruth) and got.truth == truth
 
 
 def test_tap_frames_received_without_copy_are_decoded_in_place() -> None:
     zmq = pytest.importorskip("zmq")
     header, left, right = builders.pair_frames(seq=2)
-    msg = messages.decode_tap([zmq.Frame(f) for f in (messages.TOPIC_IMAGE, header, left,
+    msg = tap_msgs.decode_tap([zmq.Frame(f) for f in (tap_msgs.TOPIC_IMAGE, header, left,
                                                       right)])
-    assert isinstance(msg, messages.TapPair) and isinstance(msg.left, memoryview)
+    assert isinstance(msg, tap_msgs.TapPair) and isinstance(msg.left, memoryview)
     assert bytes(msg.left) == left
 
 
@@ -162,4 +162,4 @@ def test_tap_frames_received_without_copy_are_decoded_in_place() -> None:
 ])
 def test_malformed_tap_messages_say_what_was_expected(frames: list[bytes], error: str) -> None:
     with pytest.raises(ProtocolError, match=re.escape(error)):
-        messages.decode_tap(frames)
+        tap_msgs.decode_tap(frames)

@@ -12,6 +12,7 @@ import pytest
 import zmq
 
 from tests.conftest import poll_for, recv
+from trapflow.config.modem import MAX_PAYLOAD
 from trapflow.errors import ConfigError, ProtocolError
 from trapflow.modem import command as C  # noqa: N812 - short: named on most lines
 from trapflow.modem.frame import (
@@ -24,7 +25,6 @@ from trapflow.modem.frame import (
     CMD_POOL_POLICY,
     CMD_STATUS,
     COMMAND,
-    MAX_PAYLOAD,
     REPLY,
     REPLY_BUSY,
     REPLY_ERROR,
@@ -41,7 +41,7 @@ from trapflow.modem.frame import (
     split_signed,
 )
 from trapflow.modem.surface_command import CommandClient, take_counter
-from trapflow.wire import messages
+from trapflow.wire import control_msgs, messages
 from trapflow.wire.control_client import ControlClient
 from trapflow.wire.transport import SocketSpec, open_socket
 
@@ -260,22 +260,22 @@ def test_reply_body_fits_one_frame() -> None:
 
 
 @pytest.mark.parametrize("cmd, expected", [
-    (Command(CMD_LEVEL, text="auto"), messages.LevelRequest(level="auto")),
-    (Command(CMD_POOL_COUNT, "stereo", count=2), messages.PoolRequest(pool="stereo", count=2)),
-    (Command(CMD_POOL_ACTIVATE, "mono"), messages.PoolRequest(pool="mono", active=True)),
-    (Command(CMD_POOL_DEACTIVATE, "mono"), messages.PoolRequest(pool="mono", active=False)),
+    (Command(CMD_LEVEL, text="auto"), control_msgs.LevelRequest(level="auto")),
+    (Command(CMD_POOL_COUNT, "stereo", count=2), control_msgs.PoolRequest(pool="stereo", count=2)),
+    (Command(CMD_POOL_ACTIVATE, "mono"), control_msgs.PoolRequest(pool="mono", active=True)),
+    (Command(CMD_POOL_DEACTIVATE, "mono"), control_msgs.PoolRequest(pool="mono", active=False)),
     (Command(CMD_POOL_POLICY, "vo", text="fifo:8"),
-     messages.PoolRequest(pool="vo", policy="fifo:8")),
+     control_msgs.PoolRequest(pool="vo", policy="fifo:8")),
     (Command(CMD_PARAM, "mono", text="confidence", value=0.5),
-     messages.ParamRequest(pool="mono", key="confidence", value=0.5)),
-    (Command(CMD_STATUS), messages.StatusRequest()),
+     control_msgs.ParamRequest(pool="mono", key="confidence", value=0.5)),
+    (Command(CMD_STATUS), control_msgs.StatusRequest()),
     (Command(CMD_HEALTH), None),
 ])
 def test_each_command_becomes_its_control_request(cmd: Command, expected: object) -> None:
     req = C.control_request(cmd)
     assert req == expected
     if req is not None:  # and the supervisor's decoder takes it
-        assert messages.decode_control(messages.encode(req)) == req
+        assert control_msgs.decode_control(messages.encode(req)) == req
 
 
 # --- key file ------------------------------------------------------------------------------
@@ -385,14 +385,14 @@ def test_control_client_answers_or_gives_up_in_time(tmp_path: Path,
     rep = open_socket(zctx, SocketSpec(zmq.REP, endpoint, bind=True))
     client = ControlClient(zctx, endpoint)
     try:
-        client.send(messages.StatusRequest(), 5.0, now=100.0)
+        client.send(control_msgs.StatusRequest(), 5.0, now=100.0)
         assert client.busy
-        assert messages.decode_control(recv(rep)[0]) == messages.StatusRequest()
+        assert control_msgs.decode_control(recv(rep)[0]) == control_msgs.StatusRequest()
         rep.send(b'{"uptime_s": 3}')
         reply = poll_for(lambda: client.poll(101.0), 5, what="the reply")
         assert reply == {"uptime_s": 3} and not client.busy
         # No answer this time: nothing until the deadline, then an error, not a hang.
-        client.send(messages.LevelRequest(level="auto"), 2.0, now=200.0)
+        client.send(control_msgs.LevelRequest(level="auto"), 2.0, now=200.0)
         recv(rep)
         t0 = time.monotonic()
         assert client.poll(201.0) is None

@@ -7,12 +7,12 @@ from pathlib import Path
 
 import pytest
 
+from trapflow.config.modem import OutboxConfig
 from trapflow.modem.outbox import (
     ACKED,
     AGGREGATED,
     EXPIRED,
     Outbox,
-    OutboxConfig,
     OutboxFull,
     OutboxQueue,
     message_class,

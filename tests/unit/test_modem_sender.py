@@ -10,10 +10,10 @@ import msgspec
 import pytest
 
 from tests.conftest import poll_for
-from trapflow.config.modem import ModemConfig
+from trapflow.config.modem import HealthConfig, ModemConfig, OutboxConfig
 from trapflow.modem.codec import LinkCodec
-from trapflow.modem.health import HealthConfig, HealthMonitor
-from trapflow.modem.outbox import Outbox, OutboxConfig
+from trapflow.modem.health import HealthMonitor
+from trapflow.modem.outbox import Outbox
 from trapflow.modem.sender import ModemSender
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from tests.unit.test_modem_surface_state import BytePort, data, receive, scallop, seqs
-from trapflow.config.modem import ModemConfig
+from trapflow.config.modem import ModemConfig, OutboxConfig
 from trapflow.modem.codec import LinkCodec
 from trapflow.modem.frame import (
     ACK,
@@ -26,7 +26,7 @@ from trapflow.modem.frame import (
     parse_data,
     put_uvarint,
 )
-from trapflow.modem.outbox import Outbox, OutboxConfig, OutboxError, OutboxQueue
+from trapflow.modem.outbox import Outbox, OutboxError, OutboxQueue
 from trapflow.modem.sender import ModemSender
 from trapflow.modem.surface_state import MAX_SESSIONS, load_state
 

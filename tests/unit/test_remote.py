@@ -224,7 +224,7 @@ def test_worker_command_rejects_bad_input(args: list[str], error: str) -> None:
 
 
 def test_status_lists_remote_workers_with_host_state_and_rate() -> None:
-    from trapflow.wire.control_client import format_status
+    from trapflow.cli.status_text import format_status
 
     stats = messages.Stats(t_wall_ns=1, uptime_s=1.0, pairs_in=3, rate_in=1.0, malformed=0,
                            pools={"far": messages.PoolStats(workers=1)}, remote=[

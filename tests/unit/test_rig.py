@@ -8,11 +8,13 @@ from pathlib import Path
 import pytest
 
 from tests.builders import kitti_calib, rectified_calibration
+from trapflow.calibration import rig_files
 from trapflow.calibration.camera import StereoRig
 from trapflow.calibration.model import save_calibration
 from trapflow.config import schema as config
 from trapflow.errors import ConfigError
-from trapflow.sources import Geometry, rig
+from trapflow.sources import rig
+from trapflow.sources.base import Geometry
 
 CALIB_TXT = StereoRig(width=752, height=480, fx=436.0, fy=435.0, cx=370.5, cy=235.2,
                       baseline_m=0.11)
@@ -121,16 +123,16 @@ def test_describe_reads_a_kitti_folder_without_opening_it(tmp_path: Path) -> Non
 def test_rig_files_reject_bad_input(tmp_path: Path, name: str, text: str, error: str) -> None:
     (tmp_path / name).write_text(text)
     with pytest.raises(ConfigError, match=error):
-        rig.read_rig_file(tmp_path / name, (640, 480))
+        rig_files.read_rig_file(tmp_path / name, (640, 480))
 
 
 def test_rig_files(tmp_path: Path) -> None:
     (tmp_path / "calib.txt").write_text(kitti_calib(CALIB_TXT))
-    assert rig.read_rig_file(tmp_path / "calib.txt", (752, 480)).id == CALIB_TXT.id
+    assert rig_files.read_rig_file(tmp_path / "calib.txt", (752, 480)).id == CALIB_TXT.id
     (tmp_path / "c.yaml").write_text("fx: 436\nfy: 435\ncx: 370.5\ncy: 235.2\nbaseline_m: 0.11\n")
-    assert rig.read_rig_file(tmp_path / "c.yaml", (752, 480)) == CALIB_TXT
+    assert rig_files.read_rig_file(tmp_path / "c.yaml", (752, 480)) == CALIB_TXT
     path = write_calibration(tmp_path / "full.yaml", CALIB_TXT)
-    assert rig.read_rig_file(Path(path), (1, 1)) == CALIB_TXT  # its own image size wins
+    assert rig_files.read_rig_file(Path(path), (1, 1)) == CALIB_TXT  # its own image size wins
 
 
 def test_describe_skips_an_unreadable_first_image(tmp_path: Path) -> None:

@@ -7,8 +7,8 @@ import json
 
 import pytest
 
+from trapflow.cli.status_text import format_status
 from trapflow.supervisor.ledger import Delivered, RunLedger, totals_text
-from trapflow.wire.control_client import format_status
 from trapflow.wire.messages import CaptureCounters, PoolStats, Stats
 
 

@@ -9,13 +9,13 @@ from typing import Any
 import msgspec
 import pytest
 
-from trapflow.broker.policy import parse_policy
 from trapflow.broker.state import BrokerState, Dispatch, PoolSpec, Release
+from trapflow.config.schema import parse_policy
 from trapflow.errors import ProtocolError
+from trapflow.runtime.lifecycle import Lifecycle
 from trapflow.supervisor.actions import (
     AddWorker,
     Budget,
-    Lifecycle,
     NodePlan,
     Reconfigure,
     Refused,
@@ -26,7 +26,7 @@ from trapflow.supervisor.actions import (
 )
 from trapflow.supervisor.pool_control import worker_name
 from trapflow.supervisor.state import SupervisorState
-from trapflow.wire import messages
+from trapflow.wire import control_msgs, messages
 from trapflow.wire.control_client import parse_assignment
 
 
@@ -269,19 +269,19 @@ def raw(obj: dict[str, Any]) -> bytes:
 ])
 def test_control_requests_are_decoded_with_bounds(data: bytes, match: str) -> None:
     with pytest.raises(ProtocolError, match=match):
-        messages.decode_control(data)
+        control_msgs.decode_control(data)
 
 
 @pytest.mark.parametrize("req", [
-    messages.PoolRequest(pool="mono", count=3),
-    messages.PoolRequest(pool="mono", active=False),
-    messages.PoolRequest(pool="stereo", policy="fifo:4"),
-    messages.ParamRequest(pool="mono", key="conf_threshold", value=0.5),
-    messages.ParamRequest(pool="mono", key="labels", value="crab"),
-    messages.ParamRequest(pool="mono", key="debug", value=True),
+    control_msgs.PoolRequest(pool="mono", count=3),
+    control_msgs.PoolRequest(pool="mono", active=False),
+    control_msgs.PoolRequest(pool="stereo", policy="fifo:4"),
+    control_msgs.ParamRequest(pool="mono", key="conf_threshold", value=0.5),
+    control_msgs.ParamRequest(pool="mono", key="labels", value="crab"),
+    control_msgs.ParamRequest(pool="mono", key="debug", value=True),
 ])
 def test_control_requests_round_trip(req: messages.Msg) -> None:
-    assert messages.decode_control(messages.encode(req)) == req
+    assert control_msgs.decode_control(messages.encode(req)) == req
 
 
 @pytest.mark.parametrize("msg", [
@@ -370,11 +370,11 @@ def test_control_commands_refuse_bad_usage(tmp_path: Any, args: list[str], code:
 
 
 @pytest.mark.parametrize(("body", "expected", "match"), [
-    (b'{"pool": "mono", "count": 2}', messages.PoolRequest(pool="mono", count=2), None),
-    (b'{"pool": "mono", "active": false}', messages.PoolRequest(pool="mono", active=False),
+    (b'{"pool": "mono", "count": 2}', control_msgs.PoolRequest(pool="mono", count=2), None),
+    (b'{"pool": "mono", "active": false}', control_msgs.PoolRequest(pool="mono", active=False),
      None),
     (b'{"pool": "mono", "policy": "fifo:4"}',
-     messages.PoolRequest(pool="mono", policy="fifo:4"), None),
+     control_msgs.PoolRequest(pool="mono", policy="fifo:4"), None),
     (b'{"pool": "mono"}', None, "exactly one of count, policy, active"),
     (b'{"pool": "mono", "count": 2, "active": true}', None, "exactly one"),
     (b'{"pool": "mono", "count": 0}', None, ">= 1"),
@@ -384,10 +384,10 @@ def test_control_commands_refuse_bad_usage(tmp_path: Any, args: list[str], code:
     (b" " * 5000, None, "at most 4096 bytes"),
 ])
 def test_viewer_pool_changes_are_decoded_with_bounds(
-        body: bytes, expected: messages.PoolRequest | None, match: str | None) -> None:
+        body: bytes, expected: control_msgs.PoolRequest | None, match: str | None) -> None:
     """The viewer's page sends a pool change as JSON: the same bounds as the control socket."""
     if match is None:
-        assert messages.decode_pool_change(body) == expected
+        assert control_msgs.decode_pool_change(body) == expected
     else:
         with pytest.raises(ProtocolError, match=match):
-            messages.decode_pool_change(body)
+            control_msgs.decode_pool_change(body)

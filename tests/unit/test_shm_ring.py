@@ -16,8 +16,8 @@ from tests import builders
 from tests.conftest import only_pools
 from trapflow.config import schema as configmod
 from trapflow.errors import ProtocolError
+from trapflow.wire import frame_msgs, messages
 from trapflow.wire import frame_ring as fr
-from trapflow.wire import messages
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -62,7 +62,7 @@ def test_round_trip_is_byte_identical_and_read_only(make_ring: Callable[..., fr.
     assert lv.base is not None and not lv.flags.owndata
     reader.check(ref)
     assert reader.rejected == 0
-    assert messages.decode_frame_ref(messages.encode(ref)) == ref
+    assert frame_msgs.decode_frame_ref(messages.encode(ref)) == ref
     del lv, rv
     reader.close()
     writer.close()
@@ -208,11 +208,11 @@ def test_new_writer_reclaims_slots_a_crashed_writer_left(
     writer.close()
 
 
-def ref(**kw: object) -> messages.FrameRef:
+def ref(**kw: object) -> frame_msgs.FrameRef:
     fields: dict[str, object] = dict(segment="seg", slot=0, generation=2, left_offset=64,
                                      left_length=100, right_offset=192, right_length=100)
     fields.update(kw)
-    return messages.FrameRef(**fields)  # type: ignore[arg-type]
+    return frame_msgs.FrameRef(**fields)  # type: ignore[arg-type]
 
 
 SLOTS, SLOT_SIZE = 4, 4096
@@ -236,10 +236,10 @@ SLOTS, SLOT_SIZE = 4, 4096
 def test_check_frame_ref(bad: dict[str, int], error: str | None) -> None:
     r = ref(**bad)
     if error is None:
-        messages.check_frame_ref(r, SLOTS, SLOT_SIZE)
+        frame_msgs.check_frame_ref(r, SLOTS, SLOT_SIZE)
     else:
         with pytest.raises(ProtocolError, match=error):
-            messages.check_frame_ref(r, SLOTS, SLOT_SIZE)
+            frame_msgs.check_frame_ref(r, SLOTS, SLOT_SIZE)
 
 
 @pytest.mark.parametrize("data, error", [
@@ -256,10 +256,10 @@ def test_check_frame_ref(bad: dict[str, int], error: str | None) -> None:
 ])
 def test_decode_frame_ref(data: bytes, error: str | None) -> None:
     if error is None:
-        assert messages.decode_frame_ref(data) == ref()
+        assert frame_msgs.decode_frame_ref(data) == ref()
     else:
         with pytest.raises(ProtocolError, match=error):
-            messages.decode_frame_ref(data)
+            frame_msgs.decode_frame_ref(data)
 
 
 def test_reader_rejects_hostile_descriptors(make_ring: Callable[..., fr.FrameRing]) -> None:

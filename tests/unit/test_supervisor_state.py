@@ -5,13 +5,11 @@ from __future__ import annotations
 
 import pytest
 
+from trapflow.runtime.lifecycle import EXIT_RECYCLED_JOBS, EXIT_RECYCLED_RSS, Lifecycle
 from trapflow.supervisor.actions import (
-    EXIT_RECYCLED_JOBS,
-    EXIT_RECYCLED_RSS,
     Budget,
     GiveUp,
     Kill,
-    Lifecycle,
     NodePlan,
     Retry,
     Spawn,

@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 from trapflow.calibration.camera import StereoRig
-from trapflow.synth import SynthOptions, World
 from trapflow.synth.animals import Placement
 from trapflow.synth.geometry import inv_pose
+from trapflow.synth.options import SynthOptions
 from trapflow.synth.rays import Frustum, RayGrid
+from trapflow.synth.render import World
 from trapflow.synth.sprites import boulder
 from trapflow.synth.water import F_SCALE, Light, to_u8
 

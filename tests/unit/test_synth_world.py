@@ -11,8 +11,9 @@ from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import SourceConfig
 from trapflow.errors import ConfigError
 from trapflow.sources.synthetic import SyntheticSource
-from trapflow.synth import SynthOptions, World, parse_options
 from trapflow.synth.geometry import inv_pose
+from trapflow.synth.options import SynthOptions, parse_options
+from trapflow.synth.render import World
 
 RIG = StereoRig.from_fov(320, 180, 70.0, 0.12)
 

@@ -30,7 +30,8 @@ from trapflow.config.schema import Config
 from trapflow.errors import WorkerError
 from trapflow.plugin import Context, Pair, Worker
 from trapflow.runtime import registry
-from trapflow.sources import SkipPair, Source, open_source
+from trapflow.sources.base import SkipPair, Source
+from trapflow.sources.factory import open_source
 from trapflow.sources.rig import describe, mismatch
 from trapflow.stages.result_json import dumps, normalize
 from trapflow.stages.worker import STAMPED, decode_pair

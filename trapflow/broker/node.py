@@ -26,7 +26,7 @@ from trapflow.broker.tap import TapSide
 from trapflow.errors import ProtocolError
 from trapflow.runtime.node import ACTIVE, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog, wire
-from trapflow.wire import messages
+from trapflow.wire import frame_msgs, messages, tap_msgs
 from trapflow.wire.frame_ring import HELD, FrameRing
 from trapflow.wire.transport import (
     PAIR_MAX_MSG_BYTES,
@@ -68,7 +68,7 @@ class BrokerNode(RemoteSide, TapSide, Node):
         # Manual: only prefixes of the tap's topics are taken (TapGate), nothing else is kept.
         self.tap = open_socket(self.ctx, SocketSpec(zmq.XPUB, ep.tap, bind=True, sndhwm=32,
                                                     rcvhwm=TAP_RCVHWM, xpub_manual=True))
-        self.gate = TapGate(self.tap, messages.TAP_TOPICS)
+        self.gate = TapGate(self.tap, tap_msgs.TAP_TOPICS)
         self.wanted: dict[bytes, bool] = {}
         self._jobs: dict[tuple[str, int], bytes] = {}
         pools = {  # a remote pool exists with no local worker: remote workers add to count
@@ -81,7 +81,7 @@ class BrokerNode(RemoteSide, TapSide, Node):
         # Shared-memory ring: the broker owns slot lifetime (frees a slot on Release).
         ring_name = spec.ring
         self.ring = FrameRing(ring_name) if ring_name else None
-        self.refs: dict[int, messages.FrameRef] = {}
+        self.refs: dict[int, frame_msgs.FrameRef] = {}
         self.remote = {n for n, p in self.cfg.pools.items() if p.remote}
         # Remote pools get JPEG: a raw pair is encoded once, on demand, and kept until freed.
         self._jpeg: dict[int, list[Any]] = {}
@@ -190,13 +190,13 @@ class BrokerNode(RemoteSide, TapSide, Node):
             self._on_capture(self.pull.recv_multipart(copy=False))
 
     def _on_capture(self, frames: list[Any]) -> None:
-        if len(frames) == 2 and frame_bytes(frames[0]) == messages.TOPIC_TRUTH:
-            self._publish(messages.TOPIC_TRUTH, frames[1])  # out of band, for the tap only
+        if len(frames) == 2 and frame_bytes(frames[0]) == tap_msgs.TOPIC_TRUTH:
+            self._publish(tap_msgs.TOPIC_TRUTH, frames[1])  # out of band, for the tap only
             return
-        ref: messages.FrameRef | None = None
+        ref: frame_msgs.FrameRef | None = None
         try:
             if len(frames) == 2:
-                pair, ref = messages.check_pair_ref(frames)
+                pair, ref = frame_msgs.check_pair_ref(frames)
                 if self.ring is None:
                     raise ProtocolError("pair: got a frame ref, but no shared-memory ring")
                 self.ring.validate(ref)
@@ -215,10 +215,10 @@ class BrokerNode(RemoteSide, TapSide, Node):
         self.frames[pair.seq] = frames
         if ref is not None:
             self.refs[pair.seq] = ref
-        if self.wanted.get(messages.TOPIC_META):
-            self._publish(messages.TOPIC_META, frames[0])
-        if self.wanted.get(messages.TOPIC_IMAGE):
-            self._publish(messages.TOPIC_IMAGE, *self._payload(pair.seq, copy=True))
+        if self.wanted.get(tap_msgs.TOPIC_META):
+            self._publish(tap_msgs.TOPIC_META, frames[0])
+        if self.wanted.get(tap_msgs.TOPIC_IMAGE):
+            self._publish(tap_msgs.TOPIC_IMAGE, *self._payload(pair.seq, copy=True))
         self._apply(self.state.pair_arrived(pair.seq, time.monotonic()))
 
     # --- local links ----------------------------------------------------------------
@@ -512,7 +512,7 @@ class BrokerNode(RemoteSide, TapSide, Node):
             del self._out[:extra]
         while self._out and self.results_link is not None:
             n, size = 0, 0
-            while n < min(len(self._out), messages.MAX_LINK_FRAMES) and (
+            while n < min(len(self._out), frame_msgs.MAX_LINK_FRAMES) and (
                     n == 0 or size + len(self._out[n]) < RESULTS_BATCH_BYTES):
                 size += len(self._out[n])
                 n += 1
@@ -563,7 +563,7 @@ class BrokerNode(RemoteSide, TapSide, Node):
         if n:
             log.warning("freed %d ring slots held by a previous broker", n)
 
-def _local_msg(msg: messages.AnyWorkerMsg) -> messages.Ready | messages.Alive | messages.Done \
+def _local_msg(msg: messages.WorkerMsg) -> messages.Ready | messages.Alive | messages.Done \
         | messages.Failed | messages.Gone | messages.PoolSwitch | messages.LadderLevel \
         | messages.Stopping:
     """Hello, JoinRequest and HostAlive belong to the remote socket; on a local path they

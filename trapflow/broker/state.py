@@ -17,7 +17,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from trapflow.broker.policy import Pending, Policy, parse_policy
+from trapflow.broker.policy import Pending
+from trapflow.config.schema import Policy, parse_policy
 from trapflow.wire.messages import PoolStats
 
 # A worker that has said nothing for this long while idle is presumed dead.

@@ -13,7 +13,7 @@ import zmq
 
 from trapflow.broker.remote_state import RemoteWorkers
 from trapflow.broker.state import BrokerState
-from trapflow.wire import messages
+from trapflow.wire import messages, tap_msgs
 from trapflow.wire.transport import Poller, TapGate
 
 _NOBLOCK = int(zmq.NOBLOCK)  # a plain int: zmq's enum flags cost a conversion per call
@@ -40,7 +40,7 @@ class TapSide:
     def _on_subscriptions(self) -> None:
         self.poller.touch(self.tap)
         if self.gate.drain():
-            self.wanted = {t: self.gate.wanted(t) for t in messages.TAP_TOPICS}
+            self.wanted = {t: self.gate.wanted(t) for t in tap_msgs.TAP_TOPICS}
 
     def _publish(self, topic: bytes, *frames: Any) -> None:
         self.poller.touch(self.tap)
@@ -69,4 +69,4 @@ class TapSide:
             level_reason=self.level_reason,
         )
         self._last_in = self.state.pairs_in
-        self._publish(messages.TOPIC_STATS, messages.encode(stats))  # cheap: once a second
+        self._publish(tap_msgs.TOPIC_STATS, messages.encode(stats))  # cheap: once a second

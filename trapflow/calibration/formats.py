@@ -520,3 +520,15 @@ def write_camera_info(calib: StereoCalibration, left: Path, right: Path,
 
 def _flat(a: np.ndarray) -> list[float]:
     return [float(v) for v in np.asarray(a, np.float64).ravel()]
+
+
+def load_calibration(path: str | Path, image_size: tuple[int, int] | None = None
+                     ) -> StereoCalibration:
+    """Read a stereo calibration in any format this module understands.
+
+    `path` is one file, `LEFT,RIGHT` (a ROS camera_info pair, or OpenCV's intrinsics and
+    extrinsics files), or a folder holding them. `image_size` (w, h) is needed only for
+    files that do not say it (OpenCV FileStorage output). ConfigError names the file, the
+    missing or bad field and the formats understood.
+    """
+    return read_calibration(str(path), image_size)

@@ -113,20 +113,6 @@ def _v(a: np.ndarray) -> Vector:
     return [float(v) for v in np.asarray(a, np.float64).ravel()]
 
 
-def load_calibration(path: str | Path, image_size: tuple[int, int] | None = None
-                     ) -> StereoCalibration:
-    """Read a stereo calibration in any format calibration_formats.py understands.
-
-    `path` is one file, `LEFT,RIGHT` (a ROS camera_info pair, or OpenCV's intrinsics and
-    extrinsics files), or a folder holding them. `image_size` (w, h) is needed only for
-    files that do not say it (OpenCV FileStorage output). ConfigError names the file, the
-    missing or bad field and the formats understood.
-    """
-    from trapflow.calibration.formats import read_calibration
-
-    return read_calibration(str(path), image_size)
-
-
 def save_calibration(calib: StereoCalibration, path: str | Path) -> None:
     """Write the calibration as YAML (atomically: a half-written file never replaces a good one)."""
     p = Path(path)

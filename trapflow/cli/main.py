@@ -191,7 +191,8 @@ def tap(what: str, count: int | None, save_frames: Path | None, run_dir: Path,
               show_default=True)
 def status(run_dir: Path, as_json: bool, stop: bool, timeout: float) -> None:
     """Show the running pipeline's nodes, lifecycle states and counters."""
-    from trapflow.wire.control_client import format_status, request
+    from trapflow.cli.status_text import format_status
+    from trapflow.wire.control_client import request
 
     try:
         reply = request(run_dir, "stop" if stop else "status", timeout)
@@ -238,7 +239,7 @@ _JSON = click.option("--json", "as_json", is_flag=True, help="Print the raw JSON
 def pool(name: str, count: int | None, policy: str | None, deactivate: bool, activate: bool,
          run_dir: Path, timeout: float, as_json: bool) -> None:
     """Change a running pool: its worker count, policy, or lifecycle (one change)."""
-    from trapflow.wire import messages
+    from trapflow.wire import control_msgs
 
     given = [f for f, v in (("--count", count is not None), ("--policy", policy is not None),
                             ("--activate", activate), ("--deactivate", deactivate)) if v]
@@ -247,7 +248,7 @@ def pool(name: str, count: int | None, policy: str | None, deactivate: bool, act
         raise click.UsageError(f"expected exactly one of --count, --policy, --activate, "
                                f"--deactivate; got {', '.join(given) or 'none'}")
     # Bounds (name, count) are the control decoder's, checked by the supervisor.
-    _control(run_dir, messages.PoolRequest(pool=name, count=count, policy=policy,
+    _control(run_dir, control_msgs.PoolRequest(pool=name, count=count, policy=policy,
                                            active=active), timeout, as_json)
 
 
@@ -260,14 +261,14 @@ def pool(name: str, count: int | None, policy: str | None, deactivate: bool, act
 def param(pool_name: str, assignment: str, run_dir: Path, timeout: float,
           as_json: bool) -> None:
     """Set one plugin parameter of a running pool; its workers restart with it."""
-    from trapflow.wire import messages
+    from trapflow.wire import control_msgs
     from trapflow.wire.control_client import parse_assignment
 
     try:
         key, value = parse_assignment(assignment)
     except ValueError as exc:
         raise click.UsageError(str(exc)) from None
-    _control(run_dir, messages.ParamRequest(pool=pool_name, key=key, value=value), timeout,
+    _control(run_dir, control_msgs.ParamRequest(pool=pool_name, key=key, value=value), timeout,
              as_json)
 
 
@@ -281,11 +282,11 @@ def level(level_name: str, run_dir: Path, timeout: float, as_json: bool) -> None
     decide again."""
     import json
 
-    from trapflow.wire import messages
+    from trapflow.wire import control_msgs
     from trapflow.wire.control_client import request
 
     try:
-        reply = request(run_dir, messages.LevelRequest(level=level_name), timeout)
+        reply = request(run_dir, control_msgs.LevelRequest(level=level_name), timeout)
     except TrapflowError as exc:
         _fail(exc)
     if "error" in reply:

@@ -16,9 +16,7 @@ from typing import IO
 
 import click
 
-from trapflow.config.modem import ModemConfig
-from trapflow.modem.codec import DEFAULT_LABELS
-from trapflow.modem.outbox import OutboxConfig
+from trapflow.config.modem import DEFAULT_LABELS, ModemConfig, OutboxConfig
 from trapflow.runtime.signals import stop_on_signals
 
 

@@ -22,6 +22,7 @@ from typing import Any
 
 import msgspec
 
+from trapflow.config.modem import MAX_PAYLOAD
 from trapflow.errors import ConfigError, ProtocolError
 from trapflow.modem import surface_state
 from trapflow.modem.codec import LinkCodec
@@ -36,7 +37,6 @@ from trapflow.modem.frame import (
     CMD_POOL_POLICY,
     CMD_STATUS,
     COMMAND,
-    MAX_PAYLOAD,
     REPLY,
     REPLY_BUSY,
     REPLY_ERROR,
@@ -51,7 +51,7 @@ from trapflow.modem.frame import (
     signed_payload,
     split_signed,
 )
-from trapflow.wire import messages
+from trapflow.wire import control_msgs, messages
 
 MIN_KEY_BYTES = 16
 REFUSAL_REPLY_INTERVAL_S = 5.0
@@ -340,17 +340,17 @@ def parse_reply_body(body: bytes) -> tuple[int, dict[str, Any]]:
 def control_request(cmd: Command) -> messages.Msg | None:
     """The supervisor request that executes a command (None: the modem answers it)."""
     if cmd.kind == CMD_LEVEL:
-        return messages.LevelRequest(level=cmd.text)
+        return control_msgs.LevelRequest(level=cmd.text)
     if cmd.kind == CMD_POOL_COUNT:
-        return messages.PoolRequest(pool=cmd.pool, count=cmd.count)
+        return control_msgs.PoolRequest(pool=cmd.pool, count=cmd.count)
     if cmd.kind in (CMD_POOL_ACTIVATE, CMD_POOL_DEACTIVATE):
-        return messages.PoolRequest(pool=cmd.pool, active=cmd.kind == CMD_POOL_ACTIVATE)
+        return control_msgs.PoolRequest(pool=cmd.pool, active=cmd.kind == CMD_POOL_ACTIVATE)
     if cmd.kind == CMD_POOL_POLICY:
-        return messages.PoolRequest(pool=cmd.pool, policy=cmd.text)
+        return control_msgs.PoolRequest(pool=cmd.pool, policy=cmd.text)
     if cmd.kind == CMD_PARAM:
-        return messages.ParamRequest(pool=cmd.pool, key=cmd.text, value=cmd.value)
+        return control_msgs.ParamRequest(pool=cmd.pool, key=cmd.text, value=cmd.value)
     if cmd.kind == CMD_STATUS:
-        return messages.StatusRequest()
+        return control_msgs.StatusRequest()
     return None
 
 

@@ -45,7 +45,7 @@ from trapflow.modem.health import HealthMonitor
 from trapflow.modem.sender import ModemSender
 from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog, wire
-from trapflow.wire import messages
+from trapflow.wire import tap_msgs
 from trapflow.wire.control_client import ControlClient
 from trapflow.wire.transport import SocketSpec, open_socket
 
@@ -60,7 +60,7 @@ class ModemNode(Node):
     def __init__(self, spec: NodeSpec) -> None:
         super().__init__(spec)
         self.stats_sub = open_socket(self.ctx, SocketSpec(
-            zmq.SUB, self.endpoints.tap, subscribe=(messages.TOPIC_STATS,), rcvhwm=4))
+            zmq.SUB, self.endpoints.tap, subscribe=(tap_msgs.TOPIC_STATS,), rcvhwm=4))
         self.pools: dict[str, tuple[float, int]] = {}
         health = None
         if self.cfg.health.enabled or self.cfg.ladder.enabled:  # a level change: a record
@@ -189,10 +189,10 @@ class ModemNode(Node):
             except zmq.Again:
                 return
             try:
-                msg = messages.decode_tap(frames)
+                msg = tap_msgs.decode_tap(frames)
             except ProtocolError:
                 continue
-            if not isinstance(msg, messages.TapStats):
+            if not isinstance(msg, tap_msgs.TapStats):
                 continue
             stats = msg.stats
             self.pools = {n: (p.rate, p.dropped) for n, p in stats.pools.items()}

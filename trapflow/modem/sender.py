@@ -17,7 +17,7 @@ from typing import Any
 
 import msgspec
 
-from trapflow.config.modem import BITS_PER_BYTE, ModemConfig
+from trapflow.config.modem import BITS_PER_BYTE, ModemConfig, OutboxConfig
 from trapflow.errors import ProtocolError
 from trapflow.modem.codec import LinkCodec
 from trapflow.modem.frame import (
@@ -34,7 +34,7 @@ from trapflow.modem.frame import (
     parse_ack,
     put_uvarint,
 )
-from trapflow.modem.outbox import ACKED, REJECTED, OutboxConfig, OutboxQueue, Stored
+from trapflow.modem.outbox import ACKED, REJECTED, OutboxQueue, Stored
 from trapflow.modem.port import LinkPort
 
 log = logging.getLogger(__name__)

@@ -23,8 +23,9 @@ from typing import IO, Any
 
 import msgspec
 
+from trapflow.config.modem import DEFAULT_LABELS
 from trapflow.errors import ProtocolError
-from trapflow.modem.codec import DEFAULT_LABELS, LinkCodec
+from trapflow.modem.codec import LinkCodec
 from trapflow.modem.frame import (
     ACK,
     DATA,

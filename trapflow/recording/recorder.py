@@ -38,15 +38,8 @@ from mcap_ros2.writer import Writer
 from trapflow.calibration.camera import StereoRig
 from trapflow.errors import ProtocolError, TrapflowError
 from trapflow.recording import msgs
-from trapflow.wire.messages import (
-    TOPIC_IMAGE,
-    TOPIC_RESULT,
-    StereoPair,
-    TapPair,
-    TapResult,
-    decode_tap,
-    to_builtins,
-)
+from trapflow.wire.messages import StereoPair, to_builtins
+from trapflow.wire.tap_msgs import TOPIC_IMAGE, TOPIC_RESULT, TapPair, TapResult, decode_tap
 from trapflow.wire.transport import SocketSpec, open_socket
 
 log = logging.getLogger(__name__)

@@ -2,7 +2,7 @@
 
 Owns two sockets: each node's PUSH (LogSender) and the supervisor's PULL (LogListener, in
 its own thread with its own socket), bound at the run directory's log.sock. Records travel
-as messages.LogEntry structs, never pickled. Unlike multiprocessing's queue this creates
+as control_msgs.LogEntry structs, never pickled. Unlike multiprocessing's queue this creates
 no named semaphore in /dev/shm, so a kill -9 of the whole process group leaves nothing.
 """
 
@@ -18,7 +18,7 @@ import zmq
 
 from trapflow.errors import ProtocolError
 from trapflow.runtime.ratelog import CONSOLE_ONCE, RateLimitedLog, wire
-from trapflow.wire import messages
+from trapflow.wire import control_msgs, messages
 from trapflow.wire.transport import SocketSpec, new_context, open_socket, set_file_mode
 
 log = logging.getLogger(__name__)
@@ -55,7 +55,7 @@ class LogSender(logging.Handler):
             if record.exc_info and not self.formatter:
                 text += "\n" + logging.Formatter().formatException(record.exc_info)
             text = text[: messages.MAX_LOG_BYTES // 2]  # leaves room for the other fields
-            entry = messages.LogEntry(name=record.name, levelno=record.levelno,
+            entry = control_msgs.LogEntry(name=record.name, levelno=record.levelno,
                                       process=self.process, pid=os.getpid(),
                                       created=record.created, message=text,
                                       console_once=bool(getattr(record, CONSOLE_ONCE, False)))
@@ -100,7 +100,7 @@ class LogListener:
 
     def _take(self, data: bytes) -> None:
         try:
-            e = messages.decode_log(data)
+            e = control_msgs.decode_log(data)
         except ProtocolError as exc:
             self.malformed += 1
             self._ratelog.warning("log", "dropped malformed log record: %s", wire(str(exc)))

@@ -24,8 +24,8 @@ import zmq
 
 from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import Config
+from trapflow.runtime.lifecycle import Lifecycle
 from trapflow.runtime.logchannel import LogSender
-from trapflow.supervisor.actions import Lifecycle
 from trapflow.wire import messages
 from trapflow.wire.transport import Endpoints, SocketSpec, log_endpoint, new_context, open_socket
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from trapflow.calibration.camera import StereoRig
+from trapflow.calibration.rig_files import read_kitti_calib as read_rig_kitti
 from trapflow.config.schema import SourceConfig
 from trapflow.errors import ConfigError
 from trapflow.sources.base import Frames, Geometry, SkipPair, Source, SourceError
@@ -45,10 +46,8 @@ def read_times(path: Path) -> list[int]:
 
 def read_kitti_calib(path: Path, width: int, height: int) -> StereoRig:
     """The rig from a KITTI calib.txt; SourceError says what is wrong."""
-    from trapflow.sources.rig import read_kitti_calib as read
-
     try:
-        return read(path, (width, height))
+        return read_rig_kitti(path, (width, height))
     except ConfigError as exc:
         raise SourceError(f"images: {exc}") from None
 

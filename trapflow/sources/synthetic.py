@@ -12,7 +12,8 @@ from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import SourceConfig
 from trapflow.errors import ConfigError
 from trapflow.sources.base import Frames, Source
-from trapflow.synth import World, parse_options
+from trapflow.synth.options import parse_options
+from trapflow.synth.render import World
 
 
 def check_source(cfg: SourceConfig, rig: StereoRig) -> None:

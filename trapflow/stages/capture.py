@@ -20,9 +20,10 @@ import zmq
 
 from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog
-from trapflow.sources import Frames, SkipPair, Source, SourceError, open_source
+from trapflow.sources.base import Frames, SkipPair, Source, SourceError
+from trapflow.sources.factory import open_source
 from trapflow.sources.rig import mismatch
-from trapflow.wire import messages
+from trapflow.wire import messages, tap_msgs
 from trapflow.wire.frame_ring import RingError, RingWriter
 from trapflow.wire.transport import LinkClient, LinkClosed, SocketSpec, open_socket
 
@@ -223,7 +224,7 @@ class CaptureNode(Node):
         if f.truth is not None:
             truth = msgspec.structs.replace(f.truth, seq=seq)
             # Truth is for tests and viewers; never worth a wait.
-            self._deliver([messages.TOPIC_TRUTH, messages.encode(truth)])
+            self._deliver([tap_msgs.TOPIC_TRUTH, messages.encode(truth)])
 
     def _deliver(self, frames: list[Any]) -> bool:
         """Hand one message to the broker without waiting; False if it cannot take it now."""

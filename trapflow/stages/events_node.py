@@ -15,7 +15,7 @@ from trapflow.errors import ProtocolError
 from trapflow.runtime.node import ACTIVE, FINALIZED, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.stages.events import EventCapture
-from trapflow.wire import jpeg, messages
+from trapflow.wire import jpeg, tap_msgs
 from trapflow.wire.transport import SocketSpec, open_socket
 
 log = logging.getLogger(__name__)
@@ -27,7 +27,7 @@ class EventsNode(Node):
     def __init__(self, spec: NodeSpec) -> None:
         super().__init__(spec)
         self.sub = open_socket(self.ctx, SocketSpec(
-            zmq.SUB, self.endpoints.tap, subscribe=(messages.TOPIC_IMAGE, messages.TOPIC_RESULT),
+            zmq.SUB, self.endpoints.tap, subscribe=(tap_msgs.TOPIC_IMAGE, tap_msgs.TOPIC_RESULT),
             rcvhwm=64))
         self.sub.connect(self.endpoints.results_tap)
         self.capture = EventCapture(self.cfg.events, spec.run_dir / self.cfg.events.folder)
@@ -53,12 +53,12 @@ class EventsNode(Node):
         return 0
 
     def _handle(self, frames: list[zmq.Frame]) -> None:
-        msg = messages.decode_tap(frames)
-        if isinstance(msg, messages.TapPair):
+        msg = tap_msgs.decode_tap(frames)
+        if isinstance(msg, tap_msgs.TapPair):
             # Raw pairs (the default ring) become JPEG here, once: the pre-roll holds
             # hundreds of pairs and an event folder keeps photos, not 2.7 MB frames.
             header, left, right = jpeg.to_jpeg_pair(msg.header, msg.left, msg.right,
                                                     self.cfg.source.jpeg_quality)
             self.capture.on_pair(header, left, right)
-        elif isinstance(msg, messages.TapResult):
+        elif isinstance(msg, tap_msgs.TapResult):
             self.capture.on_result({msg.kind: msg.fields})

@@ -21,7 +21,7 @@ from trapflow.modem.outbox import Outbox, OutboxFull
 from trapflow.runtime.node import ACTIVE, FINALIZED, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.stages.result_json import dumps, normalize
-from trapflow.wire import messages
+from trapflow.wire import messages, tap_msgs
 from trapflow.wire.transport import (
     LINK_RETRY_S,
     TAP_RCVHWM,
@@ -51,7 +51,7 @@ class NormalizerNode(Node):
         self.pub = open_socket(self.ctx, SocketSpec(zmq.XPUB, ep.results_tap, bind=True,
                                                     sndhwm=256, rcvhwm=TAP_RCVHWM,
                                                     xpub_manual=True))
-        self.gate = TapGate(self.pub, (messages.TOPIC_RESULT,))
+        self.gate = TapGate(self.pub, (tap_msgs.TOPIC_RESULT,))
         ncfg = self.cfg.normalizer
         self.path = spec.run_dir / ncfg.results_file
         # Unbuffered: a batch is in the kernel (safe from a crash of this process) before it is
@@ -157,7 +157,7 @@ class NormalizerNode(Node):
             lines.append(line + b"\n")
             self.lines += 1
             try:
-                self.pub.send_multipart([messages.TOPIC_RESULT, line], zmq.NOBLOCK)
+                self.pub.send_multipart([tap_msgs.TOPIC_RESULT, line], zmq.NOBLOCK)
             except zmq.Again:
                 pass
         return True

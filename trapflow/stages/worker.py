@@ -24,10 +24,10 @@ import zmq
 from trapflow.errors import ProtocolError, WorkerError
 from trapflow.plugin import Context, Pair, Worker
 from trapflow.runtime import registry
+from trapflow.runtime.lifecycle import EXIT_RECYCLED_JOBS, EXIT_RECYCLED_RSS
 from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec, freeze_heap
 from trapflow.runtime.ratelog import RateLimitedLog
-from trapflow.supervisor.actions import EXIT_RECYCLED_JOBS, EXIT_RECYCLED_RSS
-from trapflow.wire import jpeg, messages
+from trapflow.wire import frame_msgs, jpeg, messages
 from trapflow.wire.frame_ring import RingError, RingReader
 from trapflow.wire.transport import (
     LINK_RETRY_S,
@@ -362,9 +362,9 @@ class WorkerNode(Node):
                 raise ProtocolError(f"job: expected 4 frames [job, header, left, right] or 3 "
                                     f"[job, header, frame ref], got {len(frames)}")
             job = messages.decode_job(frames[0])
-            ref: messages.FrameRef | None = None
+            ref: frame_msgs.FrameRef | None = None
             if len(frames) == 3:
-                header, ref = messages.check_pair_ref(frames[1:])
+                header, ref = frame_msgs.check_pair_ref(frames[1:])
                 raw_left, raw_right = self._ring().view(ref)  # zero-copy views of the slot
             else:
                 header = messages.check_pair_frames(frames[1:])

@@ -1,4 +1,4 @@
-"""The supervisor cores' vocabulary: node lifecycle states, restart budgets, node plans
+"""The supervisor cores' vocabulary: restart budgets, node plans
 and per-node state, the actions the cores return and the refusal they raise. No logic
 beyond reading them; the decisions are trapflow.supervisor.state's and
 trapflow.supervisor.pool_control's.
@@ -6,45 +6,17 @@ trapflow.supervisor.pool_control's.
 
 from __future__ import annotations
 
-import enum
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from trapflow.runtime.lifecycle import Lifecycle
+
 # Roles the pipeline cannot do without: never given up while the supervisor lives.
 ESSENTIAL_ROLES = frozenset({"broker", "capture", "normalizer"})
 # How long every node has to report its first state before start-up is declared failed.
 STARTUP_TIMEOUT_S = 60.0
-# Exit statuses of a worker recycled on purpose: past its pool's max_rss_mb, or done with
-# its max_jobs. It answered its last pair and said goodbye to the broker; it is replaced at
-# once, without back-off and outside the restart budget (sysexits' EX_TEMPFAIL and next).
-EXIT_RECYCLED_RSS = 75
-EXIT_RECYCLED_JOBS = 76
-RECYCLE_EXITS = {EXIT_RECYCLED_RSS: "rss", EXIT_RECYCLED_JOBS: "jobs"}
-
-
-
-class Lifecycle(str, enum.Enum):
-    """ROS 2 lifecycle states, as nodes report them in heartbeats (a str: the wire form)."""
-
-    UNCONFIGURED = "unconfigured"
-    INACTIVE = "inactive"
-    ACTIVE = "active"
-    FINALIZED = "finalized"
-
-    def __str__(self) -> str:
-        return self.value
-
-    @classmethod
-    def parse(cls, text: str) -> Lifecycle | None:
-        """The state named on the wire, or None for a name no node sends."""
-        try:
-            return cls(text)
-        except ValueError:
-            return None
-
-
 @dataclass(frozen=True)
 class Budget:
     """Restarts allowed per window, their back-off, and the cool-down after a give-up."""

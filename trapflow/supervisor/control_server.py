@@ -16,10 +16,11 @@ import msgspec
 import zmq
 
 from trapflow.errors import ProtocolError
+from trapflow.runtime.lifecycle import Lifecycle
 from trapflow.runtime.ratelog import RateLimitedLog, wire
-from trapflow.supervisor.actions import Action, Lifecycle, Refused
+from trapflow.supervisor.actions import Action, Refused
 from trapflow.supervisor.state import SupervisorState
-from trapflow.wire import messages
+from trapflow.wire import control_msgs, messages
 
 log = logging.getLogger(__name__)
 
@@ -55,26 +56,26 @@ class Control:
             if extra:
                 raise ProtocolError(f"control request: expected 1 frame, got {extra + 1}; "
                                     f"send one encoded StatusRequest or StopRequest")
-            req = messages.decode_control(data)
+            req = control_msgs.decode_control(data)
         except ProtocolError as exc:
             self.ratelog.warning("control", "refused a control request: %s", wire(str(exc)))
             self.sock.send(msgspec.json.encode({"error": str(exc)}))
             return
-        if isinstance(req, messages.StopRequest):
+        if isinstance(req, control_msgs.StopRequest):
             self.stop()
             self.sock.send(msgspec.json.encode({"stopping": True}))
-        elif isinstance(req, (messages.PoolRequest, messages.ParamRequest)):
+        elif isinstance(req, (control_msgs.PoolRequest, control_msgs.ParamRequest)):
             self.sock.send(msgspec.json.encode(self._change(req)))
-        elif isinstance(req, messages.LevelRequest):
+        elif isinstance(req, control_msgs.LevelRequest):
             self.sock.send(msgspec.json.encode(self._force_level(req.level)))
         else:
             self.sock.send(msgspec.json.encode(self.status()))
 
-    def _change(self, req: messages.PoolRequest | messages.ParamRequest) -> dict[str, Any]:
+    def _change(self, req: control_msgs.PoolRequest | control_msgs.ParamRequest) -> dict[str, Any]:
         """A runtime change: the core decides, this applies; the reply says what changed."""
         now = time.monotonic()
         try:
-            if isinstance(req, messages.ParamRequest):
+            if isinstance(req, control_msgs.ParamRequest):
                 in_place = req.pool in self.core.pools and self.reconfigurable(req.pool)
                 actions = self.core.set_param(req.pool, req.key, req.value, now, in_place)
             elif req.count is not None:

@@ -26,12 +26,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from trapflow.broker.policy import parse_policy
+from trapflow.config.ladder import PoolLevel
+from trapflow.config.schema import parse_policy
+from trapflow.runtime.lifecycle import Lifecycle
 from trapflow.supervisor.actions import (
     Action,
     AddWorker,
     LevelChanged,
-    Lifecycle,
     NodePlan,
     NodeState,
     Reconfigure,
@@ -40,7 +41,7 @@ from trapflow.supervisor.actions import (
     Spawn,
     SwitchPool,
 )
-from trapflow.supervisor.ladder import Ladder, PoolLevel, Readings
+from trapflow.supervisor.ladder import Ladder, Readings
 
 # Workers one pool may have (config's PoolConfig.count bound).
 MAX_POOL_COUNT = 64

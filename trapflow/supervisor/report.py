@@ -1,14 +1,17 @@
 """What a run reports while it runs and when it ends: the status reply, the status line,
 ledger.json and the totals. Owns no socket; reads results.jsonl (the ledger's truth).
-The counting is trapflow.supervisor.ledger's; this reads the supervisor through ReportHost.
+The counting is trapflow.supervisor.ledger's; what changes during a run comes to the report
+as a Snapshot the supervisor builds on demand, so the report knows nothing of its class.
 """
 
 from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Any, Protocol
+from typing import IO, Any
 
 import msgspec
 
@@ -21,32 +24,32 @@ from trapflow.supervisor.state import SupervisorState
 from trapflow.wire import messages
 from trapflow.wire.frame_ring import FrameRing
 
-if TYPE_CHECKING:
-    from trapflow.supervisor.shell import Child
-
 # results.jsonl is read incrementally for the ledger, at most this much per status tick.
 RESULTS_READ_BYTES = 4 << 20
 RESULTS_READS_AT_END = 10_000
 
 
-class ReportHost(Protocol):
-    """What a report reads of the supervisor (trapflow.supervisor.shell.Supervisor)."""
+@dataclass(frozen=True)
+class NodeView:
+    """One supervised process as a report shows it."""
 
-    cfg: Config
-    run_dir: Path
-    out: IO[str]
-    t0: float
-    children: list[Child]
-    core: SupervisorState
-    ledger_model: RunLedger
+    name: str
+    pid: int | None
+    pool: str  # "" for a node that is not a pool's worker
+    counters: dict[str, int]
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """What of a running supervisor changes under a report: its nodes, totals and rig."""
+
+    nodes: list[NodeView]
+    stats: messages.Stats | None
     planned_stop: bool
     rig: StereoRig | None
     rig_origin: str
     source_where: str
     ring: FrameRing | None
-
-    @property
-    def stats(self) -> messages.Stats | None: ...
 
 
 def _full_stats(stats: messages.Stats) -> dict[str, Any]:
@@ -59,29 +62,37 @@ def _full_stats(stats: messages.Stats) -> dict[str, Any]:
 class Report:
     """The run's reports, built from the supervisor's state on demand."""
 
-    def __init__(self, host: ReportHost) -> None:
-        self.host = host
+    def __init__(self, cfg: Config, run_dir: Path, out: IO[str], t0: float,
+                 core: SupervisorState, ledger_model: RunLedger,
+                 snapshot: Callable[[], Snapshot]) -> None:
+        self.cfg = cfg
+        self.run_dir = run_dir
+        self.out = out
+        self.t0 = t0
+        self.core = core
+        self.ledger_model = ledger_model
+        self.snapshot = snapshot
 
     def status(self) -> dict[str, Any]:
         """Everything `trapflow status` shows, as JSON-able builtins."""
-        h = self.host
+        h = self.snapshot()
         now = time.monotonic()
         nodes = []
-        for c in h.children:
-            n = h.core.node(c.name)
-            nodes.append({"name": c.name, "pid": c.proc.pid if c.proc else None,
+        for c in h.nodes:
+            n = self.core.node(c.name)
+            nodes.append({"name": c.name, "pid": c.pid,
                           "state": str(n.state), "reason": n.reason,
                           "restarts": n.restart_total, "recycled": n.recycled,
                           "gave_up": n.gave_up,
                           "retries": n.retried, "last_beat_s": round(now - n.last_beat, 1),
                           "counters": c.counters})
         return {
-            "run_dir": str(h.run_dir),
-            "uptime_s": round(now - h.t0, 1),
+            "run_dir": str(self.run_dir),
+            "uptime_s": round(now - self.t0, 1),
             "nodes": nodes,
             "stats": _full_stats(h.stats) if h.stats else None,
             "supervision": self.supervision(),
-            "ledger": self.ledger(final=False),  # ledger.json so far
+            "ledger": self.ledger(final=False, snap=h),  # ledger.json so far
             "rig": ({"calib": h.rig.id, "origin": h.rig_origin,
                      **msgspec.structs.asdict(h.rig)} if h.rig is not None else None),
             "ring": ({"segment": h.ring.name, "slots": h.ring.slots, **h.ring.counts()}
@@ -91,78 +102,75 @@ class Report:
     def supervision(self) -> dict[str, Any]:
         """Give-ups, retries and recycles over the run, and their timeline (seconds since
         start); `recycled` per pool, by why (rss, jobs)."""
-        core = self.host.core
+        core = self.core
         counts = core.counts()
         return {"gave_up": counts["gave_up"], "retries": counts["retry"],
                 "capped": counts["capped"], "control": counts["control"],
                 "recycled": {p: dict(by) for p, by in core.recycled.items()},
                 "pools": core.pool_view(), "ladder": core.ladder_view(),
-                "timeline": [{"t_s": round(e.t - self.host.t0, 1), "node": e.node,
+                "timeline": [{"t_s": round(e.t - self.t0, 1), "node": e.node,
                               "kind": e.kind, "reason": e.reason} for e in core.timeline]}
 
-    def _pool_restarts(self) -> dict[str, int]:
+    def _pool_restarts(self, snap: Snapshot) -> dict[str, int]:
         out: dict[str, int] = {}
-        for c in self.host.children:
-            if c.spec.pool:
-                out[c.spec.pool] = (out.get(c.spec.pool, 0)
-                                    + self.host.core.node(c.name).restart_total)
+        for c in snap.nodes:
+            if c.pool:
+                out[c.pool] = out.get(c.pool, 0) + self.core.node(c.name).restart_total
         return out
 
     def status_text(self) -> str:
         """One line: time, pairs/s in, per pool processed/s, dropped, restarts."""
-        h = self.host
-        view = h.core.ladder_view()
+        view = self.core.ladder_view()
         level = view["level"] if view is not None and view["index"] else ""
-        return h.ledger_model.status_text(time.monotonic() - h.t0, self._pool_restarts(),
-                                          level=level)
+        return self.ledger_model.status_text(time.monotonic() - self.t0,
+                                             self._pool_restarts(self.snapshot()), level=level)
 
     def status_line(self) -> None:
         """The status line on the console: rewritten in place on a terminal."""
         line = self.status_text()
-        out = self.host.out
+        out = self.out
         if out.isatty():
             out.write("\r\x1b[K" + line)
         else:
             out.write(line + "\n")
         out.flush()
 
-    def ledger(self, final: bool = True) -> dict[str, Any]:
+    def ledger(self, final: bool = True, snap: Snapshot | None = None) -> dict[str, Any]:
         """Where every pair went: capture's count, then per pool exactly one state each."""
-        h = self.host
-        return h.ledger_model.ledger({n: p.policy for n, p in h.cfg.pools.items()},
-                                     self._pool_restarts(), self.supervision(), final,
-                                     planned_stop=h.planned_stop)
+        snap = snap or self.snapshot()
+        return self.ledger_model.ledger({n: p.policy for n, p in self.cfg.pools.items()},
+                                        self._pool_restarts(snap), self.supervision(), final,
+                                        planned_stop=snap.planned_stop)
 
     def read_results(self) -> None:
         """Count what results.jsonl gained since the last call (the ledger's truth)."""
-        h = self.host
-        path = h.run_dir / h.cfg.normalizer.results_file
+        path = self.run_dir / self.cfg.normalizer.results_file
         try:
             with open(path, "rb") as f:
-                f.seek(h.ledger_model.delivered.offset)
-                h.ledger_model.delivered.feed(f.read(RESULTS_READ_BYTES))
+                f.seek(self.ledger_model.delivered.offset)
+                self.ledger_model.delivered.feed(f.read(RESULTS_READ_BYTES))
         except FileNotFoundError:
             pass
 
     def print_totals(self) -> None:
         """At the end: the rest of results.jsonl counted, ledger.json written, the totals
         and the summary printed."""
-        h = self.host
-        if h.out.isatty():
-            h.out.write("\n")
+        out, run_dir, snap = self.out, self.run_dir, self.snapshot()
+        if out.isatty():
+            out.write("\n")
         for _ in range(RESULTS_READS_AT_END):
-            before = h.ledger_model.delivered.offset
+            before = self.ledger_model.delivered.offset
             self.read_results()
-            if h.ledger_model.delivered.offset == before:
+            if self.ledger_model.delivered.offset == before:
                 break
-        ledger = self.ledger()
-        (h.run_dir / "ledger.json").write_text(json.dumps(ledger, indent=1) + "\n")
-        if h.stats is not None:
-            h.out.write(run_ledger.totals_text(ledger))
-        c = h.cfg
-        h.out.write("".join(f"{line}\n" for line in run_summary.summary_lines(
-            h.run_dir / c.normalizer.results_file,
-            sum(h.ledger_model.delivered.counts.values()), h.run_dir / c.outbox.path,
-            h.run_dir / c.events.folder if c.events.enabled else None, c.source.kind,
-            h.source_where, c.outbox)))
-        h.out.flush()
+        ledger = self.ledger(snap=snap)
+        (run_dir / "ledger.json").write_text(json.dumps(ledger, indent=1) + "\n")
+        if snap.stats is not None:
+            out.write(run_ledger.totals_text(ledger))
+        c = self.cfg
+        out.write("".join(f"{line}\n" for line in run_summary.summary_lines(
+            run_dir / c.normalizer.results_file,
+            sum(self.ledger_model.delivered.counts.values()), run_dir / c.outbox.path,
+            run_dir / c.events.folder if c.events.enabled else None, c.source.kind,
+            snap.source_where, c.outbox)))
+        out.flush()

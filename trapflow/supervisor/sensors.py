@@ -14,8 +14,9 @@ import os
 import shutil
 from pathlib import Path
 
+from trapflow.config.ladder import SensorsConfig
 from trapflow.runtime.ratelog import RateLimitedLog
-from trapflow.supervisor.ladder import Readings, SensorsConfig
+from trapflow.supervisor.ladder import Readings
 from trapflow.wire.messages import Stats
 
 log = logging.getLogger(__name__)

@@ -28,11 +28,11 @@ from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import Config
 from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError
 from trapflow.runtime import registry, sdnotify
+from trapflow.runtime.lifecycle import RECYCLE_EXITS
 from trapflow.runtime.node import NodeSpec, node_main
 from trapflow.runtime.ratelog import RateLimitedLog, wire
 from trapflow.supervisor import ledger as run_ledger
 from trapflow.supervisor.actions import (
-    RECYCLE_EXITS,
     Action,
     AddWorker,
     Budget,
@@ -51,7 +51,7 @@ from trapflow.supervisor.actions import (
 from trapflow.supervisor.control_server import BrokerLink, Control
 from trapflow.supervisor.ladder import Ladder
 from trapflow.supervisor.ledger import RunLedger
-from trapflow.supervisor.report import Report
+from trapflow.supervisor.report import NodeView, Report, Snapshot
 from trapflow.supervisor.sensors import Sensors
 from trapflow.supervisor.setup import (
     RunLogging,
@@ -62,7 +62,7 @@ from trapflow.supervisor.setup import (
     preflight,
 )
 from trapflow.supervisor.state import DurationClock, SupervisorState
-from trapflow.wire import messages
+from trapflow.wire import messages, tap_msgs
 from trapflow.wire.frame_ring import FrameRing
 from trapflow.wire.transport import (
     Endpoints,
@@ -133,7 +133,9 @@ class Supervisor:
         self.ring: FrameRing | None = None
         self.notifier = sdnotify.Notifier()  # READY/WATCHDOG/STATUS under systemd, else no-op
         self.ratelog = RateLimitedLog(log)  # warnings about messages from sockets
-        self.report = Report(self)  # status reply, status line, ledger.json, totals
+        # status reply, status line, ledger.json, totals
+        self.report = Report(cfg, run_dir, self.out, self.t0, self.core, self.ledger_model,
+                             self.report_snapshot)
         # The degradation ladder: its decisions are the core's, its readings these sensors'.
         self.sensors: Sensors | None = None
         if cfg.ladder.enabled:
@@ -214,7 +216,7 @@ class Supervisor:
             self.broker = BrokerLink(open_socket(self.ctx, SocketSpec(
                 zmq.DEALER, self.endpoints.workers, identity=b"supervisor", sndhwm=100)))
             self.stats_sub = open_socket(self.ctx, SocketSpec(
-                zmq.SUB, self.endpoints.tap, subscribe=(messages.TOPIC_STATS,), rcvhwm=4))
+                zmq.SUB, self.endpoints.tap, subscribe=(tap_msgs.TOPIC_STATS,), rcvhwm=4))
             self._install_signals()
             self.boot()
             self._wait_started()  # every consumer is ready before the first pair exists
@@ -337,16 +339,24 @@ class Supervisor:
         if self.stats_sub in events:
             while True:
                 try:
-                    msg = messages.decode_tap(self.stats_sub.recv_multipart(zmq.NOBLOCK))
+                    msg = tap_msgs.decode_tap(self.stats_sub.recv_multipart(zmq.NOBLOCK))
                 except zmq.Again:
                     break
                 except ProtocolError as exc:
                     self.ratelog.warning("stats", "bad stats message: %s", wire(str(exc)))
                     continue
-                if isinstance(msg, messages.TapStats):
+                if isinstance(msg, tap_msgs.TapStats):
                     self.ledger_model.on_stats(msg.stats)
         if self.control.sock in events:
             self.control.on_request(self.control.sock.recv())
+
+    def report_snapshot(self) -> Snapshot:
+        """What the report reads of this run now."""
+        return Snapshot(
+            nodes=[NodeView(c.name, c.proc.pid if c.proc else None, c.spec.pool or "",
+                            c.counters) for c in self.children],
+            stats=self.stats, planned_stop=self.planned_stop, rig=self.rig,
+            rig_origin=self.rig_origin, source_where=self.source_where, ring=self.ring)
 
     @property
     def stats(self) -> messages.Stats | None:

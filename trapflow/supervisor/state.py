@@ -23,15 +23,14 @@ from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
 
+from trapflow.runtime.lifecycle import RECYCLE_EXITS, Lifecycle
 from trapflow.supervisor.actions import (
-    RECYCLE_EXITS,
     STARTUP_TIMEOUT_S,
     Action,
     Budget,
     Event,
     GiveUp,
     Kill,
-    Lifecycle,
     NodePlan,
     NodeState,
     Retry,

@@ -7,8 +7,9 @@ from __future__ import annotations
 import sqlite3
 from pathlib import Path
 
+from trapflow.config.modem import OutboxConfig
 from trapflow.errors import TrapflowError
-from trapflow.modem.outbox import OutboxConfig, OutboxQueue
+from trapflow.modem.outbox import OutboxQueue
 
 
 def outbox_backlog(path: Path, cfg: OutboxConfig) -> int | None:

@@ -3,8 +3,3 @@
 `World(rig, seed=..., moving=..., rate_hz=..., options=...)` renders pair i with
 `render(i) -> (left, right, Truth)`; see trapflow.synth.render for the pose convention.
 """
-
-from trapflow.synth.options import SynthOptions, parse_options
-from trapflow.synth.render import World, scene_label
-
-__all__ = ["SynthOptions", "World", "parse_options", "scene_label"]

@@ -24,7 +24,7 @@ from trapflow.errors import ProtocolError
 from trapflow.viewer import metrics
 from trapflow.viewer.state import Frame, ViewState
 from trapflow.viewer.taps import PipelineTaps
-from trapflow.wire import messages
+from trapflow.wire import control_msgs, messages
 
 log = logging.getLogger(__name__)
 
@@ -170,7 +170,7 @@ class Viewer:
         pool` makes it: 200 with the supervisor's reply, 409 when it refused the change."""
         self._check_control(request, "pool")
         try:
-            req = messages.decode_pool_change(await request.read())
+            req = control_msgs.decode_pool_change(await request.read())
         except ProtocolError as exc:
             raise web.HTTPBadRequest(text=str(exc)) from None
         log.info("viewer: pool change requested: %s", messages.to_builtins(req))

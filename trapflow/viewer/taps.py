@@ -23,7 +23,7 @@ from trapflow.config.schema import Config
 from trapflow.errors import ProtocolError
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.viewer.state import ViewState
-from trapflow.wire import messages
+from trapflow.wire import control_msgs, messages, tap_msgs
 from trapflow.wire.transport import Endpoints, SocketSpec, new_context, open_socket
 
 log = logging.getLogger(__name__)
@@ -47,17 +47,17 @@ class PipelineTaps:
         self.ctx = new_context()
         self.subs = [
             open_socket(self.ctx, SocketSpec(zmq.SUB, self.endpoints.tap, rcvhwm=TAP_RCVHWM,
-                                             subscribe=(messages.TOPIC_IMAGE,
-                                                        messages.TOPIC_STATS))),
+                                             subscribe=(tap_msgs.TOPIC_IMAGE,
+                                                        tap_msgs.TOPIC_STATS))),
             open_socket(self.ctx, SocketSpec(zmq.SUB, self.endpoints.results_tap,
-                                             subscribe=(messages.TOPIC_RESULT,))),
+                                             subscribe=(tap_msgs.TOPIC_RESULT,))),
         ]
         self.req: zmq.Socket[bytes] | None = None
         self._req_sent = 0.0
         # Control requests from the page, sent one at a time between status requests; the
         # future (if any) gets the supervisor's reply.
-        self._queued: deque[tuple[messages.AnyControl, asyncio.Future[dict[str, Any]] | None]]
-        self._queued = deque()
+        self._queued: deque[tuple[control_msgs.ControlRequest,
+                                  asyncio.Future[dict[str, Any]] | None]] = deque()
         self._waiting: asyncio.Future[dict[str, Any]] | None = None
         self._refresh = False  # a change was answered: ask for status at once
         self._control_out = False  # the request out is a queued one (its reply is no status)
@@ -84,12 +84,12 @@ class PipelineTaps:
         return n
 
     def _feed(self, frames: list[bytes], now: float) -> None:
-        msg = messages.decode_tap(frames)
-        if isinstance(msg, messages.TapResult):
+        msg = tap_msgs.decode_tap(frames)
+        if isinstance(msg, tap_msgs.TapResult):
             self.state.on_result(msg.kind, msg.fields, time.time())
-        elif isinstance(msg, messages.TapPair):
+        elif isinstance(msg, tap_msgs.TapPair):
             self.state.on_image(msg.header, bytes(msg.left), bytes(msg.right))
-        elif isinstance(msg, messages.TapStats):
+        elif isinstance(msg, tap_msgs.TapStats):
             self.state.on_stats(msg.stats, now)
         else:
             raise ProtocolError(f"tap: expected image, stats or result, got {msg!r:.60}")
@@ -131,7 +131,7 @@ class PipelineTaps:
                 self._answer({"error": error})
                 self.state.on_status(None, error)
             return
-        what: messages.AnyControl = messages.StatusRequest()
+        what: control_msgs.ControlRequest = control_msgs.StatusRequest()
         self._control_out = bool(self._queued)
         if self._queued:
             what, self._waiting = self._queued.popleft()
@@ -151,9 +151,9 @@ class PipelineTaps:
 
     def request_stop(self) -> None:
         """The next control request is a stop (sent by poll_status, never blocking)."""
-        self._queued.append((messages.StopRequest(), None))
+        self._queued.append((control_msgs.StopRequest(), None))
 
-    def request(self, what: messages.PoolRequest | messages.ParamRequest
+    def request(self, what: control_msgs.PoolRequest | control_msgs.ParamRequest
                 ) -> asyncio.Future[dict[str, Any]]:
         """Queue a runtime change; the future gets the supervisor's reply (or an error)."""
         fut: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()

@@ -49,7 +49,7 @@ import numpy as np
 
 from trapflow.config.schema import FramesConfig, PoolConfig  # noqa: F401 - FramesConfig re-exported
 from trapflow.errors import ProtocolError, StartupError, TrapflowError
-from trapflow.wire.messages import FRAME_SLOT_HEADER, MAX_RING_SLOTS, FrameRef, check_frame_ref
+from trapflow.wire.frame_msgs import FRAME_SLOT_HEADER, MAX_RING_SLOTS, FrameRef, check_frame_ref
 
 log = logging.getLogger(__name__)
 

@@ -7,7 +7,6 @@ Decoding never trusts the wire: every decoder raises ProtocolError with a reason
 
 from __future__ import annotations
 
-import struct
 from collections.abc import Sequence
 from typing import Annotated, Any, Literal, Union
 
@@ -320,8 +319,6 @@ class Welcome(Msg, frozen=True, tag="welcome"):
     error: str = ""
 
 
-
-
 # A pool's or a parameter's name on the control path: short, plain, safe to log.
 ControlName = Annotated[str, msgspec.Meta(min_length=1, max_length=64,
                                           pattern=r"^[A-Za-z_][A-Za-z0-9_.\-]*$")]
@@ -368,8 +365,9 @@ class Configure(Msg, frozen=True, tag="configure"):
     params: Params
 
 
-WorkerMsg = Union[Ready, Alive, Done, Failed, Gone, Hello, JoinRequest, HostAlive, PoolSwitch,
-                  LadderLevel, Stopping]
+# One spelling per union: msgspec decodes it, and annotations name it.
+WorkerMsg = (Ready | Alive | Done | Failed | Gone | Hello | JoinRequest | HostAlive | PoolSwitch
+             | LadderLevel | Stopping)
 
 
 # --- stats and control ----------------------------------------------------------
@@ -424,55 +422,7 @@ class Stats(Msg, frozen=True, tag="stats"):
     level_reason: str = ""
 
 
-class StatusRequest(Msg, frozen=True, tag="status"):
-    """Ask the supervisor for the pipeline's nodes, states and counters."""
-
-
-class StopRequest(Msg, frozen=True, tag="stop"):
-    """Ask the supervisor to stop the pipeline."""
-
-
-class PoolRequest(Msg, frozen=True, tag="pool"):
-    """Change one pool at run time: exactly one of count, policy, active."""
-
-    pool: ControlName
-    count: Annotated[int, msgspec.Meta(ge=1, le=64)] | None = None
-    policy: PolicyText | None = None
-    active: bool | None = None
-
-
-class ParamRequest(Msg, frozen=True, tag="param"):
-    """Set one plugin parameter of a pool at run time (its workers are reconfigured)."""
-
-    pool: ControlName
-    key: ControlName
-    value: ParamValue
-
-
-class LevelRequest(Msg, frozen=True, tag="level"):
-    """Force the degradation ladder to a level by name, or `auto` to let the triggers decide."""
-
-    level: str
-
-
-ControlRequest = Union[StatusRequest, StopRequest, PoolRequest, ParamRequest, LevelRequest]
-AnyControl = StatusRequest | StopRequest | PoolRequest | ParamRequest | LevelRequest
-
-
-class LogEntry(Msg, frozen=True, tag="log"):
-    """One log record a node sends to the supervisor's log listener (never pickled)."""
-
-    name: str  # the logger's name
-    levelno: int
-    process: str  # the node's name, e.g. "worker:mono:1"
-    pid: int
-    created: float  # wall clock, a label only
-    message: str  # the formatted message, with any traceback appended
-    console_once: bool = False  # said once on the console however many nodes say it
-
-
 # --- codecs ---------------------------------------------------------------------
-
 
 
 def _enc_hook(obj: Any) -> Any:
@@ -490,7 +440,6 @@ _worker_dec = msgspec.msgpack.Decoder(WorkerMsg)
 _result_dec = msgspec.msgpack.Decoder(Result)
 _ack_dec = msgspec.msgpack.Decoder(ResultsAck)
 _stats_dec = msgspec.msgpack.Decoder(Stats)
-_control_dec = msgspec.msgpack.Decoder(ControlRequest)
 _heartbeat_dec = msgspec.msgpack.Decoder(Heartbeat)
 _configure_dec = msgspec.msgpack.Decoder(Configure)
 
@@ -500,7 +449,7 @@ def encode(msg: Msg) -> bytes:
     return _enc.encode(msg)
 
 
-def _decode(dec: msgspec.msgpack.Decoder[Any] | msgspec.json.Decoder[Any], data: Buffer,
+def decode_bounded(dec: msgspec.msgpack.Decoder[Any] | msgspec.json.Decoder[Any], data: Buffer,
             what: str, limit: int) -> Any:
     buf = memoryview(data.buffer if hasattr(data, "buffer") else data)
     if buf.nbytes > limit:
@@ -513,7 +462,7 @@ def _decode(dec: msgspec.msgpack.Decoder[Any] | msgspec.json.Decoder[Any], data:
 
 def decode_pair_header(data: Buffer) -> StereoPair:
     """Decode and sanity-check a StereoPair header frame."""
-    pair: StereoPair = _decode(_pair_dec, data, "pair header", MAX_HEADER_BYTES)
+    pair: StereoPair = decode_bounded(_pair_dec, data, "pair header", MAX_HEADER_BYTES)
     if not (0 < pair.width <= MAX_SIDE and 0 < pair.height <= MAX_SIDE):
         raise ProtocolError(
             f"pair header: expected width and height in 1..{MAX_SIDE}, "
@@ -550,23 +499,19 @@ def check_pair_frames(frames: Sequence[Buffer]) -> StereoPair:
 
 def decode_job(data: Buffer) -> Job:
     """Decode the job frame a worker receives before a pair."""
-    job: Job = _decode(_job_dec, data, "job", MAX_HEADER_BYTES)
+    job: Job = decode_bounded(_job_dec, data, "job", MAX_HEADER_BYTES)
     return job
 
 
 def decode_configure(data: Buffer) -> Configure:
     """Decode the broker's one-frame Configure message to a worker."""
-    msg: Configure = _decode(_configure_dec, data, "configure", MAX_HEADER_BYTES)
+    msg: Configure = decode_bounded(_configure_dec, data, "configure", MAX_HEADER_BYTES)
     return msg
 
 
-AnyWorkerMsg = Ready | Alive | Done | Failed | Gone | Hello | JoinRequest | HostAlive | PoolSwitch \
-    | LadderLevel | Stopping
-
-
-def decode_worker_msg(data: Buffer) -> AnyWorkerMsg:
+def decode_worker_msg(data: Buffer) -> WorkerMsg:
     """Decode frame 0 of a message a worker (or the supervisor) sent to the broker."""
-    msg: AnyWorkerMsg = _decode(_worker_dec, data, "worker message", MAX_HEADER_BYTES)
+    msg: WorkerMsg = decode_bounded(_worker_dec, data, "worker message", MAX_HEADER_BYTES)
     return msg
 
 
@@ -575,13 +520,13 @@ _welcome_dec = msgspec.msgpack.Decoder(Welcome)
 
 def decode_welcome(data: Buffer) -> Welcome:
     """Decode the broker's answer to a JoinRequest or Hello."""
-    welcome: Welcome = _decode(_welcome_dec, data, "welcome", MAX_RESULT_BYTES)
+    welcome: Welcome = decode_bounded(_welcome_dec, data, "welcome", MAX_RESULT_BYTES)
     return welcome
 
 
 def decode_results_ack(data: Buffer) -> ResultsAck:
     """Decode the normalizer's acknowledgement of written results."""
-    ack: ResultsAck = _decode(_ack_dec, data, "results ack", MAX_HEADER_BYTES)
+    ack: ResultsAck = decode_bounded(_ack_dec, data, "results ack", MAX_HEADER_BYTES)
     if ack.count < 0:
         raise ProtocolError(f"results ack: expected a count >= 0, got {ack.count}")
     return ack
@@ -589,19 +534,19 @@ def decode_results_ack(data: Buffer) -> ResultsAck:
 
 def decode_result(data: Buffer) -> Result:
     """Decode an encoded Result."""
-    res: Result = _decode(_result_dec, data, "result", MAX_RESULT_BYTES)
+    res: Result = decode_bounded(_result_dec, data, "result", MAX_RESULT_BYTES)
     return res
 
 
 def decode_stats(data: Buffer) -> Stats:
     """Decode a Stats message from the tap."""
-    stats: Stats = _decode(_stats_dec, data, "stats", MAX_RESULT_BYTES)
+    stats: Stats = decode_bounded(_stats_dec, data, "stats", MAX_RESULT_BYTES)
     return stats
 
 
 def decode_heartbeat(data: Buffer) -> Heartbeat:
     """Decode a Heartbeat a node sent to the supervisor."""
-    hb: Heartbeat = _decode(_heartbeat_dec, data, "heartbeat", MAX_HEADER_BYTES)
+    hb: Heartbeat = decode_bounded(_heartbeat_dec, data, "heartbeat", MAX_HEADER_BYTES)
     return hb
 
 
@@ -610,7 +555,7 @@ _truth_dec = msgspec.msgpack.Decoder(Truth)
 
 def decode_truth(data: Buffer) -> Truth:
     """Decode a Truth message from the tap."""
-    truth: Truth = _decode(_truth_dec, data, "truth", MAX_RESULT_BYTES)
+    truth: Truth = decode_bounded(_truth_dec, data, "truth", MAX_RESULT_BYTES)
     return truth
 
 
@@ -619,7 +564,8 @@ _line_dec = msgspec.json.Decoder(dict[str, dict[str, Any]])
 
 def decode_result_line(data: Buffer) -> tuple[str, dict[str, Any]]:
     """Decode one JSON line of the normalizer's result tap: (algorithm, its fields)."""
-    obj: dict[str, dict[str, Any]] = _decode(_line_dec, data, "result line", MAX_RESULT_BYTES)
+    obj: dict[str, dict[str, Any]] = decode_bounded(_line_dec, data, "result line",
+                                                    MAX_RESULT_BYTES)
     if len(obj) != 1:
         raise ProtocolError(f"result line: expected one key (the algorithm), got {len(obj)}: "
                             f"{sorted(obj)[:5]}")
@@ -627,42 +573,8 @@ def decode_result_line(data: Buffer) -> tuple[str, dict[str, Any]]:
     return kind, fields
 
 
-def decode_control(data: Buffer) -> AnyControl:
-    """Decode a control request (a pool change names exactly one change)."""
-    req: AnyControl = _decode(_control_dec, data, "control request", MAX_HEADER_BYTES)
-    if isinstance(req, PoolRequest):
-        _check_one_change(req, "control request")
-    return req
-
-
-def _check_one_change(req: PoolRequest, what: str) -> None:
-    given = [k for k in ("count", "policy", "active") if getattr(req, k) is not None]
-    if len(given) != 1:
-        raise ProtocolError(f"{what}: a pool change names exactly one of count, policy, "
-                            f"active; got {given or 'none'} for pool {req.pool!r}: send one "
-                            f"change per request")
-
-
-_pool_json_dec = msgspec.json.Decoder(PoolRequest)
-
-
-def decode_pool_change(data: Buffer) -> PoolRequest:
-    """A pool change as JSON (the viewer's page): {"pool": NAME, and one of "count": N,
-    "policy": P, "active": true|false}."""
-    req: PoolRequest = _decode(_pool_json_dec, data, "pool change", MAX_HEADER_BYTES)
-    _check_one_change(req, "pool change")
-    return req
-
-
-_log_dec = msgspec.msgpack.Decoder(LogEntry)
 # A log record with a traceback can be long; past this a node cuts the message.
 MAX_LOG_BYTES = 64 << 10
-
-
-def decode_log(data: Buffer) -> LogEntry:
-    """Decode a LogEntry a node sent to the supervisor's log listener."""
-    entry: LogEntry = _decode(_log_dec, data, "log record", MAX_LOG_BYTES)
-    return entry
 
 
 def worker_identity(pool: str, index: int, pid: int) -> str:
@@ -681,197 +593,6 @@ def owner_identity(host: str, pid: int) -> str:
     return f"owner@{host}:{pid}"
 
 
-# Tap topics: the first frame of every tap message.
-TOPIC_META = b"meta"  # [topic, pair header]
-TOPIC_IMAGE = b"image"  # [topic, pair header, left, right]
-TOPIC_STATS = b"stats"  # [topic, Stats]
-TOPIC_RESULT = b"result"  # [topic, JSON line] (published by the normalizer)
-TOPIC_TRUTH = b"truth"  # [topic, Truth] (published by capture, synthetic sources only)
-TAP_TOPICS = (TOPIC_META, TOPIC_IMAGE, TOPIC_STATS, TOPIC_RESULT, TOPIC_TRUTH)
-
-
-class TapPair(msgspec.Struct, frozen=True):
-    """An image message of the broker's tap: the pair's header and its two images (the
-    received buffers, not copied)."""
-
-    header: StereoPair
-    left: Buffer
-    right: Buffer
-
-
-class TapMeta(msgspec.Struct, frozen=True):
-    """A frame-metadata message of the broker's tap (the header without images)."""
-
-    header: StereoPair
-
-
-class TapStats(msgspec.Struct, frozen=True):
-    """A stats message of the broker's tap."""
-
-    stats: Stats
-
-
-class TapResult(msgspec.Struct, frozen=True):
-    """A line of the normalizer's result tap: its algorithm, fields and the line itself."""
-
-    kind: str
-    fields: dict[str, Any]
-    line: bytes
-
-
-class TapTruth(msgspec.Struct, frozen=True):
-    """A synthetic source's ground truth, on the broker's tap."""
-
-    truth: Truth
-
-
-TapMessage = Union[TapPair, TapMeta, TapStats, TapResult, TapTruth]
-
-
-def _tap_bytes(frame: Buffer) -> bytes:
-    data = getattr(frame, "bytes", None)  # a zmq.Frame received with copy=False
-    return data if isinstance(data, bytes) else bytes(frame)
-
-
-def _tap_view(frame: Buffer) -> Buffer:
-    return getattr(frame, "buffer", frame)  # a zmq.Frame's memoryview; bytes as they are
-
-
-def decode_tap(frames: Sequence[Buffer]) -> TapMessage:
-    """Decode one message of a tap ([topic, ...] as received, bytes or zmq.Frame): the only
-    place that knows how each tap topic is laid out."""
-    if not frames:
-        raise ProtocolError("tap: expected [topic, ...], got an empty message")
-    topic = _tap_bytes(frames[0])
-    n = len(frames)
-    if topic == TOPIC_IMAGE and n == 4:
-        return TapPair(check_pair_frames(frames[1:]), _tap_view(frames[2]),
-                       _tap_view(frames[3]))
-    if topic == TOPIC_RESULT and n == 2:
-        kind, fields = decode_result_line(frames[1])
-        return TapResult(kind, fields, _tap_bytes(frames[1]))
-    if topic == TOPIC_STATS and n == 2:
-        return TapStats(decode_stats(frames[1]))
-    if topic == TOPIC_META and n == 2:
-        return TapMeta(decode_pair_header(frames[1]))
-    if topic == TOPIC_TRUTH and n == 2:
-        return TapTruth(decode_truth(frames[1]))
-    raise ProtocolError(f"tap: expected image [topic, header, left, right] or meta, stats, "
-                        f"result, truth [topic, body], got topic {topic[:20]!r} with "
-                        f"{n} frames")
-
-
 def to_builtins(msg: Msg) -> Any:
     """Plain Python builtins (dicts, lists, numbers) for a message, for JSON output."""
     return msgspec.to_builtins(msg)
-
-
-# --- shared-memory frames -----------------------------------------------------------
-# With a shared-memory ring the pair message is [StereoPair header, FrameRef]: the images
-# stay in the ring slot and only this descriptor travels (trapflow/wire/frame_ring.py).
-
-# Bytes at the start of every ring slot before the payload (generation, lengths).
-FRAME_SLOT_HEADER = 64
-MAX_RING_SLOTS = 4096
-
-_NonNeg = Annotated[int, msgspec.Meta(ge=0)]
-
-
-class FrameRef(Msg, frozen=True, tag="frameref"):
-    """Where one pair lies in a shared-memory ring: slot, its generation when written,
-    and the left and right payloads as (offset, length) from the start of the slot."""
-
-    segment: Annotated[str, msgspec.Meta(min_length=1, max_length=200)]
-    slot: _NonNeg
-    generation: _NonNeg
-    left_offset: _NonNeg
-    left_length: _NonNeg
-    right_offset: _NonNeg
-    right_length: _NonNeg
-
-
-_frame_ref_dec = msgspec.msgpack.Decoder(FrameRef)
-
-
-def decode_frame_ref(data: Buffer) -> FrameRef:
-    """Decode a FrameRef frame (bounds against a ring are checked by check_frame_ref)."""
-    ref: FrameRef = _decode(_frame_ref_dec, data, "frame ref", MAX_HEADER_BYTES)
-    return ref
-
-
-def check_frame_ref(ref: FrameRef, ring_slots: int, slot_size: int) -> None:
-    """Reject a descriptor that would read outside its slot: ProtocolError with the reason.
-
-    A committed generation is even and at least 2 (odd means a write in progress).
-    Both payloads must lie after the slot header, inside the slot, and not overlap.
-    """
-    what = f"frame ref slot {ref.slot}"
-    if not 0 <= ref.slot < ring_slots:
-        raise ProtocolError(f"frame ref: expected slot in 0..{ring_slots - 1}, got {ref.slot}")
-    if ref.generation < 2 or ref.generation % 2:
-        raise ProtocolError(
-            f"{what}: expected an even committed generation >= 2, got {ref.generation}")
-    spans = []
-    for side, off, n in (("left", ref.left_offset, ref.left_length),
-                         ("right", ref.right_offset, ref.right_length)):
-        if n < 1:
-            raise ProtocolError(f"{what}: expected {side} length >= 1, got {n}")
-        if off < FRAME_SLOT_HEADER or off + n > slot_size:
-            raise ProtocolError(
-                f"{what}: expected {side} bytes within {FRAME_SLOT_HEADER}..{slot_size}, "
-                f"got offset {off} length {n}")
-        spans.append((off, off + n))
-    (a0, a1), (b0, b1) = spans
-    if a0 < b1 and b0 < a1:
-        raise ProtocolError(
-            f"{what}: expected disjoint left and right payloads, got left {a0}..{a1} "
-            f"and right {b0}..{b1}")
-
-
-def check_pair_ref(frames: Sequence[Buffer]) -> tuple[StereoPair, FrameRef]:
-    """Validate a [header, frame ref] message (images in shared memory)."""
-    if len(frames) != 2:
-        raise ProtocolError(f"pair: expected 2 frames [header, frame ref], got {len(frames)}")
-    pair = decode_pair_header(frames[0])
-    return pair, decode_frame_ref(frames[1])
-
-
-# --- local links: several frames in one datagram ---------------------------------
-# On one host, descriptors travel over UNIX seqpacket sockets, one datagram per message.
-# A datagram is: u8 frame count, that many u32 little-endian lengths, then the frames.
-
-MAX_LINK_FRAMES = 64  # a batch of results
-MAX_LINK_BYTES = MAX_RESULT_BYTES + 2 * MAX_HEADER_BYTES
-# The head of a datagram of n frames: its count then n lengths (compiled once per n).
-_HEADS = [struct.Struct(f"<B{n}I") for n in range(MAX_LINK_FRAMES + 1)]
-_LENGTHS = [struct.Struct(f"<{n}I") for n in range(MAX_LINK_FRAMES + 1)]
-
-
-def pack_frames(frames: Sequence[Buffer]) -> bytes:
-    """One datagram carrying frames (each bytes-like or a zmq.Frame)."""
-    bufs = [f.buffer if hasattr(f, "buffer") else f for f in frames]
-    if not 0 < len(bufs) <= MAX_LINK_FRAMES:
-        raise ProtocolError(f"link message: expected 1..{MAX_LINK_FRAMES} frames, "
-                            f"got {len(bufs)}")
-    head = _HEADS[len(bufs)].pack(len(bufs), *[memoryview(b).nbytes for b in bufs])
-    return b"".join([head, *bufs])
-
-
-def unpack_frames(data: bytes | memoryview) -> list[memoryview]:
-    """The frames of one datagram, as views into it; ProtocolError if it is not one."""
-    buf = memoryview(data)
-    if buf.nbytes < 1:
-        raise ProtocolError("link message: expected a frame count, got an empty datagram")
-    n = buf[0]
-    at = 1 + 4 * n
-    if not 0 < n <= MAX_LINK_FRAMES or buf.nbytes < at:
-        raise ProtocolError(f"link message: expected 1..{MAX_LINK_FRAMES} frames and their "
-                            f"lengths, got count {n} in {buf.nbytes} bytes")
-    frames = []
-    for size in _LENGTHS[n].unpack_from(buf, 1):
-        frames.append(buf[at:at + size])
-        at += size
-    if at != buf.nbytes:
-        raise ProtocolError(f"link message: frame lengths add up to {at} bytes, "
-                            f"datagram has {buf.nbytes}")
-    return frames

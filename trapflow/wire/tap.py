@@ -14,7 +14,7 @@ import zmq
 
 from trapflow.config import schema as configmod
 from trapflow.errors import ProtocolError, StartupError
-from trapflow.wire import jpeg, messages
+from trapflow.wire import jpeg, tap_msgs
 from trapflow.wire.transport import Endpoints, SocketSpec, new_context, open_socket
 
 # Nothing for this long: say once that the tap is waiting (no pipeline may be running yet).
@@ -22,27 +22,27 @@ WAITING_NOTICE_S = 1.0
 JPEG_QUALITY = 90  # of frames saved from a raw pipeline
 
 TOPICS = {
-    "results": (messages.TOPIC_RESULT,),
-    "frames": (messages.TOPIC_META,),
-    "stats": (messages.TOPIC_STATS,),
-    "truth": (messages.TOPIC_TRUTH,),
-    "all": (messages.TOPIC_RESULT, messages.TOPIC_META, messages.TOPIC_STATS,
-            messages.TOPIC_TRUTH),
+    "results": (tap_msgs.TOPIC_RESULT,),
+    "frames": (tap_msgs.TOPIC_META,),
+    "stats": (tap_msgs.TOPIC_STATS,),
+    "truth": (tap_msgs.TOPIC_TRUTH,),
+    "all": (tap_msgs.TOPIC_RESULT, tap_msgs.TOPIC_META, tap_msgs.TOPIC_STATS,
+            tap_msgs.TOPIC_TRUTH),
 }
 
 
-def describe(msg: messages.TapMessage, frames: list[bytes]) -> str:
+def describe(msg: tap_msgs.TapMessage, frames: list[bytes]) -> str:
     """One printable line for a tap message."""
-    if isinstance(msg, messages.TapResult):
+    if isinstance(msg, tap_msgs.TapResult):
         return "result " + msg.line.decode("utf-8", "replace")
-    if isinstance(msg, (messages.TapMeta, messages.TapPair)):
+    if isinstance(msg, (tap_msgs.TapMeta, tap_msgs.TapPair)):
         p = msg.header
         lat_ms = (time.monotonic_ns() - p.t_mono_ns) / 1e6
-        sizes = (f" {len(frames[2])}+{len(frames[3])} B" if isinstance(msg, messages.TapPair)
+        sizes = (f" {len(frames[2])}+{len(frames[3])} B" if isinstance(msg, tap_msgs.TapPair)
                  else "")
         return (f"frame seq={p.seq} {p.width}x{p.height} {p.encoding}{sizes} "
                 f"skew={p.skew_ns / 1e6:.2f}ms age={lat_ms:.1f}ms source={p.source}")
-    if isinstance(msg, messages.TapStats):
+    if isinstance(msg, tap_msgs.TapStats):
         s = msg.stats
         pools = " ".join(f"{n}:{p.processed}/{p.dropped}d/{p.rate}Hz" for n, p in s.pools.items())
         return f"stats up={s.uptime_s:.0f}s in={s.pairs_in} ({s.rate_in}/s) {pools}"
@@ -62,7 +62,7 @@ def run_tap(what: str, run_dir: Path, endpoints: list[str], count: int | None = 
     topics = list(TOPICS[what])
     if save_frames is not None:
         save_frames.mkdir(parents=True, exist_ok=True)
-        topics = [t for t in topics if t != messages.TOPIC_META] + [messages.TOPIC_IMAGE]
+        topics = [t for t in topics if t != tap_msgs.TOPIC_META] + [tap_msgs.TOPIC_IMAGE]
     if not endpoints:
         if not run_dir.exists():
             raise StartupError(f"no run directory {run_dir}: is a pipeline running there?")
@@ -87,13 +87,13 @@ def run_tap(what: str, run_dir: Path, endpoints: list[str], count: int | None = 
                     waiting_said = True
                 continue
             frames = sub.recv_multipart()
-            msg: messages.TapMessage | None = None
+            msg: tap_msgs.TapMessage | None = None
             try:
-                msg = messages.decode_tap(frames)
+                msg = tap_msgs.decode_tap(frames)
                 line = describe(msg, frames)
             except ProtocolError as exc:
                 line = f"malformed tap message: {exc}"
-            if save_frames is not None and isinstance(msg, messages.TapPair):
+            if save_frames is not None and isinstance(msg, tap_msgs.TapPair):
                 # Photos on disk: a raw pair (the default ring) is encoded here, once.
                 p, left, right = jpeg.to_jpeg_pair(msg.header, msg.left, msg.right,
                                                    JPEG_QUALITY)

@@ -24,7 +24,7 @@ import zmq
 
 from trapflow.config.schema import NetworkConfig
 from trapflow.errors import ProtocolError, StartupError, TrapflowError
-from trapflow.wire import messages
+from trapflow.wire import frame_msgs, messages
 
 # Linux limits a UNIX socket path to 107 bytes.
 MAX_IPC_PATH = 107
@@ -42,7 +42,7 @@ _ENDPOINTS = {
 # --run-dir` finds a TCP-mode pipeline where it finds an ipc one.
 _LOCAL_ENDPOINTS = {
     "control": "control.sock",  # supervisor REP: status, stop
-    "log": "log.sock",  # nodes PUSH -> supervisor PULL: log records (messages.LogEntry)
+    "log": "log.sock",  # nodes PUSH -> supervisor PULL: log records (control_msgs.LogEntry)
 }
 # Modes that hold whatever the umask: the run directory is its owner's alone; sockets and
 # links in it are read-write for the owner only; results and logs may be read by its group.
@@ -400,7 +400,7 @@ class Link:
         sock.setblocking(False)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, _LINK_SNDBUF)
         self.sock = sock
-        self._buf = bytearray(messages.MAX_LINK_BYTES)  # one datagram at a time, reused
+        self._buf = bytearray(frame_msgs.MAX_LINK_BYTES)  # one datagram at a time, reused
         self._view = memoryview(self._buf)
         self._poll = select.poll()
         self._poll.register(sock.fileno(), select.POLLIN)
@@ -410,7 +410,7 @@ class Link:
 
     def send(self, frames: Sequence[messages.Buffer]) -> bool:
         """Send one message; False if the peer's queue is full (it is not sent)."""
-        data = messages.pack_frames(frames)
+        data = frame_msgs.pack_frames(frames)
         try:
             self.sock.send(data)
         except BlockingIOError:
@@ -439,7 +439,7 @@ class Link:
                 raise LinkClosed(f"local link closed: {exc}") from None
             if n == 0:
                 raise LinkClosed("local link closed by its peer")
-            return messages.unpack_frames(bytes(self._view[:n]))
+            return frame_msgs.unpack_frames(bytes(self._view[:n]))
         raise LinkClosed("local link closed: reset by its peer")
 
     def wait(self, timeout_ms: int) -> bool:

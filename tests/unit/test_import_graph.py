@@ -1,0 +1,128 @@
+"""The package's shape stays as built: no import cycle between modules or between concerns
+(trapflow's sub-packages), counting imports inside functions and under TYPE_CHECKING, few
+modules at the top, and no module past the style guide's size.
+
+Regression: three module cycles were hidden by lazy imports (calibration <-> its formats;
+rig -> sources -> sources.images -> rig; supervisor <-> its report via TYPE_CHECKING), and
+the runtime's node base and the control client imported the supervisor."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[2] / "trapflow"
+MAX_TOP_LEVEL_MODULES = 12
+MAX_LINES = 600
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for path in PACKAGE.rglob("*.py"):
+        parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = path
+    return out
+
+
+def _targets(mod: str, path: Path, node: ast.Import | ast.ImportFrom,
+             modules: dict[str, Path]) -> list[str]:
+    if isinstance(node, ast.Import):
+        return [a.name for a in node.names]
+    if node.level:
+        base = mod.split(".")
+        if path.name != "__init__.py":
+            base = base[:-1]
+        base = base[: len(base) - (node.level - 1)]
+        pkg = ".".join(base + ([node.module] if node.module else []))
+    else:
+        pkg = node.module or ""
+    return [f"{pkg}.{a.name}" if f"{pkg}.{a.name}" in modules else pkg for a in node.names]
+
+
+def import_graph() -> dict[str, set[str]]:
+    """Module -> the trapflow modules it imports anywhere in its text (functions included)."""
+    modules = _modules()
+    graph: dict[str, set[str]] = {}
+    for mod, path in modules.items():
+        deps: set[str] = set()
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                for target in _targets(mod, path, node, modules):
+                    while target not in modules and "." in target:
+                        target = target.rsplit(".", 1)[0]
+                    if target.startswith("trapflow") and target != mod and target in modules:
+                        deps.add(target)
+        graph[mod] = deps
+    return graph
+
+
+def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One cycle as a path (first node repeated at the end), or None."""
+    state: dict[str, int] = {}  # 1 on the stack, 2 done
+    stack: list[str] = []
+
+    def visit(node: str) -> list[str] | None:
+        state[node] = 1
+        stack.append(node)
+        for dep in sorted(graph.get(node, ())):
+            if state.get(dep) == 1:
+                return stack[stack.index(dep):] + [dep]
+            if dep not in state and (found := visit(dep)):
+                return found
+        stack.pop()
+        state[node] = 2
+        return None
+
+    for node in sorted(graph):
+        if node not in state and (found := visit(node)):
+            return found
+    return None
+
+
+def _concern(mod: str) -> str:
+    parts = mod.split(".")
+    return parts[1] if len(parts) > 1 else parts[0]
+
+
+@pytest.mark.parametrize(("graph", "expected"), [
+    ({"a": {"b"}, "b": set()}, None),  # a chain is no cycle
+    ({"a": {"b"}, "b": {"a"}}, ["a", "b", "a"]),  # two modules importing each other
+    ({"a": {"b"}, "b": {"c"}, "c": {"a"}}, ["a", "b", "c", "a"]),  # a longer ring
+])
+def test_find_cycle_finds_what_there_is(graph: dict[str, set[str]],
+                                        expected: list[str] | None) -> None:
+    assert find_cycle(graph) == expected
+
+
+def test_the_lazy_import_counts() -> None:
+    """An import inside a function is an edge: the old calibration cycle hid in one."""
+    graph = import_graph()
+    assert "trapflow.calibration.model" in graph["trapflow.calibration.formats"]
+
+
+def test_no_module_import_cycle() -> None:
+    assert find_cycle(import_graph()) is None
+
+
+def test_no_cycle_between_concerns() -> None:
+    """Sub-packages (config, wire, runtime, broker, supervisor, ...) depend one way."""
+    concerns: dict[str, set[str]] = {}
+    for mod, deps in import_graph().items():
+        concerns.setdefault(_concern(mod), set()).update(
+            _concern(d) for d in deps if _concern(d) != _concern(mod))
+    assert find_cycle(concerns) is None
+
+
+def test_few_modules_at_the_top() -> None:
+    top = sorted(p.name for p in PACKAGE.glob("*.py"))
+    assert len(top) <= MAX_TOP_LEVEL_MODULES, top
+
+
+def test_no_module_past_the_size_guide() -> None:
+    long = {str(p.relative_to(PACKAGE)): n for p in PACKAGE.rglob("*.py")
+            if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_LINES}
+    assert long == {}

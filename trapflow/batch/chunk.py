@@ -19,7 +19,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import msgspec
 import numpy as np
 
@@ -35,7 +34,7 @@ from trapflow.sources.factory import open_source
 from trapflow.sources.rig import describe, mismatch
 from trapflow.stages.result_json import dumps, normalize
 from trapflow.stages.worker import STAMPED, decode_pair
-from trapflow.wire import messages
+from trapflow.wire import jpeg, messages
 
 log = logging.getLogger(__name__)
 
@@ -192,12 +191,10 @@ def _release_kept() -> None:
 
 def _encode(img: np.ndarray, cfg: Config) -> np.ndarray:
     """As the capture does: raw bytes or one JPEG at the configured quality."""
-    if cfg.source.encoding == "raw":
-        return np.ascontiguousarray(img)
-    ok, buf = cv2.imencode(".jpg", img, [int(cv2.IMWRITE_JPEG_QUALITY), cfg.source.jpeg_quality])
-    if not ok:
-        raise WorkerError("JPEG encoding failed")
-    return buf
+    try:
+        return jpeg.wire_side(img, cfg.source.encoding, cfg.source.jpeg_quality)
+    except ValueError as exc:
+        raise WorkerError(str(exc)) from None
 
 
 def _time_base(uri: str) -> int:

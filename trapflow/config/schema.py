@@ -100,6 +100,10 @@ class EventsConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
 
 
 
+# The one JPEG quality of pairs on the wire and in recordings (source.jpeg_quality).
+DEFAULT_JPEG_QUALITY = 90
+
+
 class SourceConfig(_Section):
     """Where pairs come from and how they are encoded."""
 
@@ -111,7 +115,7 @@ class SourceConfig(_Section):
     # raw: the ring holds the decoded frames; every local pool reads them, nothing decodes.
     # jpeg: capture encodes each side (~3 ms at 1280x720) and every pool decodes it again.
     encoding: Literal["jpeg", "raw"] = "raw"
-    jpeg_quality: Annotated[int, msgspec.Meta(ge=1, le=100)] = 90
+    jpeg_quality: Annotated[int, msgspec.Meta(ge=1, le=100)] = DEFAULT_JPEG_QUALITY
     seed: int = 1
     moving: bool = False
     loop: bool = False

@@ -36,6 +36,7 @@ from mcap.writer import Writer as McapWriter
 from mcap_ros2.writer import Writer
 
 from trapflow.calibration.camera import StereoRig
+from trapflow.config.schema import DEFAULT_JPEG_QUALITY
 from trapflow.errors import ProtocolError, TrapflowError
 from trapflow.recording import msgs
 from trapflow.wire.messages import StereoPair, to_builtins
@@ -50,7 +51,6 @@ TOPIC_PAIRS = "/trapflow/pairs"
 RESULTS_PREFIX = "/trapflow/results/"
 FRAME_LEFT = "trapflow_left"
 FRAME_RIGHT = "trapflow_right"
-RAW_JPEG_QUALITY = 90
 _SEQ_MEMORY = 4096  # pairs whose capture time a late result can still find
 _EARLY_MAX = 4096  # result lines held for a pair not yet received
 # A chunk is closed (and the file fsynced) at least this often: what a kill -9 can lose.
@@ -203,7 +203,7 @@ class Recorder:
     @staticmethod
     def _jpeg(header: StereoPair, data: bytes | memoryview) -> bytes:
         img = np.frombuffer(data, dtype=np.uint8).reshape(header.height, header.width, 3)
-        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, RAW_JPEG_QUALITY])
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, DEFAULT_JPEG_QUALITY])
         if not ok:
             raise RecorderError(f"pair {header.seq}: JPEG encoding failed")
         return bytes(buf.tobytes())

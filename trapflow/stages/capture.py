@@ -13,7 +13,6 @@ import logging
 import time
 from typing import Any
 
-import cv2
 import msgspec
 import numpy as np
 import zmq
@@ -23,7 +22,7 @@ from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.sources.base import Frames, SkipPair, Source, SourceError
 from trapflow.sources.factory import open_source
 from trapflow.sources.rig import mismatch
-from trapflow.wire import messages, tap_msgs
+from trapflow.wire import jpeg, messages, tap_msgs
 from trapflow.wire.frame_ring import RingError, RingWriter
 from trapflow.wire.transport import LinkClient, LinkClosed, SocketSpec, open_socket
 
@@ -50,7 +49,6 @@ class CaptureNode(Node):
         self.failed: dict[str, int] = {}  # pairs skipped at capture, by kind
         self.source_errors = 0  # a live source lost and reopened
         self.gave_up = 0  # 1 once a finite source failed for good (the reason is in the state)
-        self.jpeg_params = [int(cv2.IMWRITE_JPEG_QUALITY), self.src_cfg.jpeg_quality]
         # With a shared-memory ring each pair is written once there; only a descriptor is sent.
         ring_name = spec.ring
         self.ring = RingWriter(ring_name) if ring_name else None
@@ -159,12 +157,10 @@ class CaptureNode(Node):
             self.beat()
 
     def _encode(self, img: np.ndarray) -> np.ndarray:
-        if self.src_cfg.encoding == "raw":
-            return np.ascontiguousarray(img)
-        ok, buf = cv2.imencode(".jpg", img, self.jpeg_params)
-        if not ok:
-            raise SourceError("JPEG encoding failed")
-        return buf
+        try:
+            return jpeg.wire_side(img, self.src_cfg.encoding, self.src_cfg.jpeg_quality)
+        except ValueError as exc:
+            raise SourceError(str(exc)) from None
 
     def _send(self, f: Frames) -> None:
         h, w = f.left.shape[:2]

@@ -25,6 +25,7 @@ from trapflow.viewer import metrics
 from trapflow.viewer.state import Frame, ViewState
 from trapflow.viewer.taps import PipelineTaps
 from trapflow.wire import control_msgs, messages
+from trapflow.wire.jpeg import PREVIEW_QUALITY
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +48,7 @@ def _jpeg(frame: Frame, side: str) -> bytes:
     if frame.encoding == "jpeg":
         return data
     img = np.frombuffer(data, np.uint8).reshape(frame.height, frame.width, 3)
-    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 80])
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, PREVIEW_QUALITY])
     return bytes(buf) if ok else b""
 
 

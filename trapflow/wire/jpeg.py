@@ -25,6 +25,21 @@ except ImportError:  # pragma: no cover - the OpenCV fallback
 _SCALES = (1, 2, 4, 8)
 
 
+# The viewer's previews: small for a browser link, looked at, never analysed.
+PREVIEW_QUALITY = 80
+
+
+def wire_side(img: np.ndarray, encoding: str, quality: int) -> np.ndarray:
+    """One side of a pair as capture sends it (and batch re-analysis feeds it): the raw
+    pixels made contiguous, or one JPEG at the source's quality."""
+    if encoding == "raw":
+        return np.ascontiguousarray(img)
+    ok, buf = cv2.imencode(".jpg", img, [int(cv2.IMWRITE_JPEG_QUALITY), quality])
+    if not ok:
+        raise ValueError(f"JPEG encoding of a {img.shape} image failed")
+    return buf
+
+
 def encode(img: np.ndarray, quality: int) -> bytes:
     """One BGR uint8 image as JPEG bytes at this quality (1..100)."""
     if _sj is not None:

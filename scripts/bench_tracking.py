@@ -51,7 +51,7 @@ FALSE_PER_PAIR = 0.4  # mean false positives per pair
 
 
 @dataclass(frozen=True)
-class Sequence_:
+class SynthSequence:
     """One synthetic sequence: truth rows and detection rows per rate."""
 
     name: str
@@ -105,13 +105,13 @@ def fake_detections(truths: list[Truth], seed: int) -> list[MotRow]:
     return out
 
 
-def make_sequence(seed: int, frames: int) -> Sequence_:
+def make_sequence(seed: int, frames: int) -> SynthSequence:
     moving = seed % 2 == 0  # half the sequences from a moving rig
     truths = render_truth(seed, frames, moving)
     dets = fake_detections(truths, seed)
     by_rate = {name: [r for r in dets if (r.frame - 1) % step == 0]
                for name, step in RATES.items()}
-    return Sequence_(name=f"seed{seed}{'-moving' if moving else ''}", gt=gt_rows(truths),
+    return SynthSequence(name=f"seed{seed}{'-moving' if moving else ''}", gt=gt_rows(truths),
                      dets=by_rate)
 
 
@@ -183,7 +183,7 @@ def run_bytetrack(dets: list[MotRow], tuned: bool) -> list[MotRow]:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             res = tracker.update(d, timestamp=(frame - 1) / FPS)
-        for box, tid, conf in zip(res.xyxy, res.tracker_id, res.confidence):
+        for box, tid, conf in zip(res.xyxy, res.tracker_id, res.confidence, strict=True):
             if tid >= 0:
                 x1, y1, x2, y2 = (float(v) for v in box)
                 out.append(MotRow(frame=frame, id=int(tid), x=x1, y=y1, w=x2 - x1, h=y2 - y1,
@@ -234,7 +234,7 @@ def score(gt: list[MotRow], hyp: list[MotRow], frames: list[int]) -> dict[str, f
             "gt_dets": int(data["num_gt_dets"]), "gt_ids": len(gid)}  # type: ignore[arg-type]
 
 
-def evaluate(seqs: list[Sequence_], trackers: dict[str, Callable[[list[MotRow]], list[MotRow]]]
+def evaluate(seqs: list[SynthSequence], trackers: dict[str, Callable[[list[MotRow]], list[MotRow]]]
              ) -> dict[str, dict[str, dict[str, float]]]:
     """Per rate and tracker: metrics pooled over sequences (weighted by ground-truth dets)."""
     out: dict[str, dict[str, dict[str, float]]] = {}

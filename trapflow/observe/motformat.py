@@ -44,14 +44,21 @@ class TrackSummary(msgspec.Struct, frozen=True, kw_only=True):
     fps: float
 
 
-def _number(text: str, kind: type[int] | type[float], what: str, where: str) -> float:
+def _number(text: str, what: str, where: str) -> float:
     try:
-        value = kind(text) if kind is float else int(float(text))
+        value = float(text)
     except ValueError:
         raise MotFormatError(f"{where}: {what}: expected a number, got {text!r}") from None
     if not math.isfinite(value):
         raise MotFormatError(f"{where}: {what}: expected a finite number, got {text!r}")
     return value
+
+
+def _integer(text: str, what: str, where: str) -> int:
+    value = _number(text, what, where)
+    if value != int(value):
+        raise MotFormatError(f"{where}: {what}: expected a whole number, got {text!r}")
+    return int(value)
 
 
 def parse_line(line: str, where: str) -> MotRow | None:
@@ -63,16 +70,16 @@ def parse_line(line: str, where: str) -> MotRow | None:
     if len(cols) < 6:
         raise MotFormatError(f"{where}: expected frame,id,x,y,w,h[,conf,...] "
                              f"(at least 6 comma-separated columns), got {text!r}")
-    frame = int(_number(cols[0], int, "frame", where))
+    frame = _integer(cols[0], "frame", where)
     if frame < 1:
         raise MotFormatError(f"{where}: frame: expected 1 or more, got {cols[0]!r}")
-    tid = int(_number(cols[1], int, "id", where))
-    x, y, w, h = (float(_number(c, float, n, where)) for c, n in zip(cols[2:6], "xywh"))
+    tid = _integer(cols[1], "id", where)
+    x, y, w, h = (_number(c, n, where) for c, n in zip(cols[2:6], "xywh", strict=True))
     if w <= 0 or h <= 0:
         raise MotFormatError(f"{where}: expected a box of positive width and height, "
                              f"got w={cols[4]} h={cols[5]}")
-    conf = float(_number(cols[6], float, "conf", where)) if len(cols) > 6 else 1.0
-    cls = int(_number(cols[7], int, "class", where)) if len(cols) > 7 else -1
+    conf = _number(cols[6], "conf", where) if len(cols) > 6 else 1.0
+    cls = _integer(cols[7], "class", where) if len(cols) > 7 else -1
     return MotRow(frame=frame, id=tid, x=x, y=y, w=w, h=h, conf=conf, cls=cls)
 
 
@@ -106,7 +113,7 @@ def read_fps(path: Path) -> float:
         raw = parser.get("Sequence", "frameRate")
     except (OSError, configparser.Error) as exc:
         raise MotFormatError(f"{ini}: expected [Sequence] frameRate=N, got: {exc}") from None
-    fps = _number(raw, float, "[Sequence] frameRate", str(ini))
+    fps = _number(raw, "[Sequence] frameRate", str(ini))
     if fps <= 0:
         raise MotFormatError(f"{ini}: [Sequence] frameRate: expected more than 0, got {raw!r}")
     return fps
@@ -138,7 +145,7 @@ def track_rows(rows: Sequence[MotRow], fps: float, config: TrackerConfig | None 
             Det(label=str(r.cls) if r.cls >= 0 else NO_CLASS_LABEL, confidence=r.conf,
                 box=(r.x, r.y, r.x + r.w, r.y + r.h)) for r in dets])
         out += [msgspec.structs.replace(r, id=tid)
-                for r, tid in zip(dets, upd.track_ids) if tid is not None]
+                for r, tid in zip(dets, upd.track_ids, strict=True) if tid is not None]
     return out
 
 

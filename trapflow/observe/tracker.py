@@ -4,9 +4,9 @@ ones against the tracks left) over a continuous-time Kalman filter; the caller p
 pair's capture time, since the detector may see one pair in three or fewer, irregularly.
 
 Lifecycle: an unmatched high-confidence detection starts a tentative track; it is confirmed
-(and given the next id) at `min_hits` matches, and dies unreported at its first miss while
-tentative. A confirmed track ends when it went `max_gap_s` seconds without a match, or at
-`flush`; only confirmed tracks are reported.
+(and given the next id) at `min_hits` matches, and is dropped unreported when it went
+`tentative_gap_s` without a match before that. A confirmed track ends when it went
+`max_gap_s` seconds without a match, or at `flush`; only confirmed tracks are reported.
 """
 
 from __future__ import annotations
@@ -70,13 +70,13 @@ class TrackerConfig:
     low: float = 0.1
     """Detections below this confidence are ignored; between low and high they may only
     extend a track that the high ones left unmatched."""
-    iou_gate: float = 0.2
+    iou_gate: float = 0.1
     """Least IoU between a track's predicted box and a detection for them to match."""
-    min_hits: int = 3
+    min_hits: int = 2
     """Matches that confirm a tentative track and give it an id."""
-    max_gap_s: float = 1.5
+    max_gap_s: float = 3.0
     """A confirmed track with no match for longer than this (capture time) ends."""
-    tentative_gap_s: float = 0.0
+    tentative_gap_s: float = 0.5
     """A tentative track with no match for longer than this is dropped unreported (0: at
     its first miss, as ByteTrack drops unconfirmed tracks)."""
     path_points: int = 32
@@ -108,6 +108,8 @@ class _Track:
         self.best_confidence = -1.0
         self.best_box: Box = det.box
         self.path: list[tuple[float, float, float]] = []
+        self.stride = 1
+        self.latest = (t_s, 0.0, 0.0)
         self.record(det, t_s, cfg.path_points)
 
     def record(self, det: Det, t_s: float, keep: int) -> None:
@@ -117,9 +119,14 @@ class _Track:
         if det.confidence > self.best_confidence:
             self.best_confidence, self.best_box = det.confidence, det.box
         x1, y1, x2, y2 = det.box
-        self.path.append((t_s, (x1 + x2) / 2, (y1 + y2) / 2))
-        if len(self.path) >= 2 * keep:  # bounded memory: halve, keeping the newest point
-            self.path = self.path[::-2][::-1]
+        self.latest = (t_s, (x1 + x2) / 2, (y1 + y2) / 2)
+        # Bounded memory, evenly spaced: keep every stride-th sighting, and when the path
+        # is full keep every other one and double the stride. The newest is kept apart.
+        if (self.hits - 1) % self.stride == 0:
+            self.path.append(self.latest)
+            if len(self.path) >= 2 * keep:
+                self.path = self.path[::2]
+                self.stride *= 2
 
     def label(self) -> tuple[str, float]:
         # Ties go to the label seen first (dicts keep insertion order): deterministic.
@@ -129,12 +136,12 @@ class _Track:
     def end(self, keep: int) -> TrackEnd:
         assert self.id is not None
         label, share = self.label()
-        idx = np.unique(np.linspace(0, len(self.path) - 1, min(keep, len(self.path)))
-                        .round().astype(int))
+        path = self.path if self.path[-1] == self.latest else [*self.path, self.latest]
+        idx = np.unique(np.linspace(0, len(path) - 1, min(keep, len(path))).round().astype(int))
         return TrackEnd(id=self.id, label=label, label_share=round(share, 4),
                         first_s=self.first_s, last_s=self.last_s, pairs=self.hits,
                         best_confidence=self.best_confidence, best_box=self.best_box,
-                        path=[self.path[i] for i in idx])
+                        path=[path[i] for i in idx])
 
 
 class Tracker:

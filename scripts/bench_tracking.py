@@ -9,6 +9,11 @@ detector saw (no tracker can answer for the others). Development seeds tune the 
 held-out seeds are reported. Writes bench-results/tracking.json and prints a table.
 
     python scripts/bench_tracking.py [--split dev|held-out|both] [--frames N]
+
+Needs the test extra (motmetrics) and, bench only, TrackEval and Roboflow's trackers:
+`pip install supervision && pip install --no-deps trackeval trackers` (--no-deps: both
+ask for opencv-python, a second OpenCV beside opencv-python-headless; they run on either).
+Without trackers the ByteTrack rows are left out.
 """
 
 from __future__ import annotations
@@ -69,6 +74,8 @@ def gt_rows(truths: list[Truth]) -> list[MotRow]:
     out = []
     for i, tr in enumerate(truths):
         for o in labelled(tr):
+            if o.label == "tag":  # AprilTag ids would collide with the animals' (none here)
+                continue
             x1, y1, x2, y2 = o.box
             out.append(MotRow(frame=i + 1, id=o.id, x=x1, y=y1, w=x2 - x1, h=y2 - y1,
                               conf=1.0, cls=LABELS.index(o.label)))
@@ -276,6 +283,11 @@ def main() -> None:
     args = ap.parse_args()
     trackers: dict[str, Callable[[list[MotRow]], list[MotRow]]] = {
         "trapflow": run_trapflow(TrackerConfig()), "greedy-iou": run_greedy}
+    import importlib.util
+
+    if importlib.util.find_spec("trackers") is None:
+        print("trackers is not installed: no ByteTrack rows")
+        args.no_bytetrack = True
     if not args.no_bytetrack:
         trackers["bytetrack"] = lambda d: run_bytetrack(d, tuned=False)
         trackers["bytetrack-tuned"] = lambda d: run_bytetrack(d, tuned=True)

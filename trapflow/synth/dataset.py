@@ -7,6 +7,8 @@ For training a detector: images/NNNNNN.png (the left images again, hard links wh
 file system has them) beside labels/ and data.yaml, the layout Ultralytics reads (it finds
 a label by putting labels/ for images/ in the image's path); and coco.json, the same boxes
 as COCO instances (bbox x, y, width, height in pixels; image file names relative to OUT).
+For trackers: gt/gt.txt, the animals' tracks in MOTChallenge text (frame from 1, id =
+TruthObject.id, x, y, w, h, 1, class from 1 as in classes.txt, visibility) and seqinfo.ini.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ CLASSES = ("crab", "scallop", "tag")
 LABEL_MAX_OCCLUDED = 0.7  # objects hidden more than this get no YOLO label
 LABEL_MIN_SIDE_PX = 4.0
 _OURS = ("image_0", "image_1", "images", "labels", "calib.txt", "poses.txt", "times.txt",
-         "classes.txt", "truth.jsonl", "data.yaml", "coco.json")
+         "classes.txt", "truth.jsonl", "data.yaml", "coco.json", "gt", "seqinfo.ini")
 
 
 def labelled(truth: Truth) -> list[TruthObject]:
@@ -68,7 +70,7 @@ def prepare_dir(out: Path, overwrite: bool) -> None:
                 shutil.rmtree(p)
             elif p.exists():
                 p.unlink()
-    for sub in ("image_0", "image_1", "images", "labels"):
+    for sub in ("image_0", "image_1", "images", "labels", "gt"):
         (out / sub).mkdir(parents=True, exist_ok=True)
 
 
@@ -98,6 +100,20 @@ def coco_annotations(truth: Truth, image_id: int, first_id: int) -> list[dict[st
     return out
 
 
+def mot_gt_lines(truth: Truth, frame: int) -> list[str]:
+    """MOTChallenge ground-truth lines of one pair's labelled animals (tags are left out:
+    their ids are AprilTag ids, which would collide with the animals')."""
+    return [f"{frame},{o.id},{o.box[0]:.2f},{o.box[1]:.2f},{o.box[2] - o.box[0]:.2f},"
+            f"{o.box[3] - o.box[1]:.2f},1,{CLASSES.index(o.label) + 1},{1.0 - o.occluded:.3f}"
+            for o in labelled(truth) if o.label != "tag"]
+
+
+def seqinfo_ini(name: str, frames: int, rate_hz: float, width: int, height: int) -> str:
+    """MOTChallenge's sequence description (trackers and scorers read frameRate here)."""
+    return (f"[Sequence]\nname={name}\nimDir=image_0\nframeRate={rate_hz:g}\n"
+            f"seqLength={frames}\nimWidth={width}\nimHeight={height}\nimExt=.png\n")
+
+
 def _row(values: list[float]) -> str:
     return " ".join(f"{v:.12e}" for v in values)
 
@@ -119,8 +135,10 @@ def write_synth(out: Path, *, frames: int, seed: int, moving: bool, rig: StereoR
         "images": [], "annotations": [],
         "categories": [{"id": i + 1, "name": c, "supercategory": "object"}
                        for i, c in enumerate(CLASSES)]}
+    (out / "seqinfo.ini").write_text(seqinfo_ini(out.name, frames, rate_hz, rig.width,
+                                                 rig.height))
     with open(out / "poses.txt", "w") as poses, open(out / "times.txt", "w") as times, \
-            open(out / "truth.jsonl", "w") as truths:
+            open(out / "truth.jsonl", "w") as truths, open(out / "gt" / "gt.txt", "w") as gt:
         for i in range(frames):
             left, right, truth = world.render(i)
             name = f"{i:06d}"
@@ -133,6 +151,7 @@ def write_synth(out: Path, *, frames: int, seed: int, moving: bool, rig: StereoR
             cv2.imwrite(str(out / "image_1" / f"{name}.png"), right)
             lines = yolo_lines(truth, rig.width, rig.height)
             (out / "labels" / f"{name}.txt").write_text("".join(s + "\n" for s in lines))
+            gt.write("".join(line + "\n" for line in mot_gt_lines(truth, i + 1)))
             poses.write(_row(list(truth.pose)) + "\n")
             times.write(f"{i / rate_hz:.6e}\n")
             truths.write(json.dumps(msgspec.to_builtins(

@@ -1,0 +1,316 @@
+"""Scores trapflow's tracker on synthetic sequences: HOTA (TrackEval), IDF1 and MOTA
+(py-motmetrics), against a greedy-IoU baseline and Roboflow's ByteTrack (`trackers`).
+
+Ground truth: the synthetic world's labelled objects (TruthObject.id is the animal's id).
+Detections: derived from truth with a seeded rng (boxes jittered, some dropped, more so
+when occluded, some given a low confidence or a wrong label, false positives added), at
+full rate and with the detector seeing one pair in three. Scores count only the pairs the
+detector saw (no tracker can answer for the others). Development seeds tune the defaults;
+held-out seeds are reported. Writes bench-results/tracking.json and prints a table.
+
+    python scripts/bench_tracking.py [--split dev|held-out|both] [--frames N]
+
+Needs the test extra (motmetrics) and, bench only, TrackEval and Roboflow's trackers:
+`pip install supervision && pip install --no-deps trackeval trackers` (--no-deps: both
+ask for opencv-python, a second OpenCV beside opencv-python-headless; they run on either).
+Without trackers the ByteTrack rows are left out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from trapflow.camera import StereoRig
+from trapflow.messages import Truth
+from trapflow.observe.assign import iou_matrix
+from trapflow.observe.motformat import MotRow, track_rows
+from trapflow.observe.tracker import TrackerConfig
+from trapflow.synth.dataset import labelled
+from trapflow.synth.options import SynthOptions
+from trapflow.synth.render import World
+
+FPS = 15.0
+WIDTH, HEIGHT = 640, 360
+DEV_SEEDS = (1001, 1002, 1003, 1004)
+HELD_OUT_SEEDS = (2001, 2002, 2003, 2004, 2005, 2006)
+# A busy floor: more animals per scene and few empty scenes, so that tracks cross.
+OPTIONS = SynthOptions(density=3.0, empty_fraction=0.1, episode_s=20.0)
+RATES = {"full": 1, "third": 3}
+LABELS = ("crab", "scallop", "tag")
+
+# How the fake detector errs.
+P_DROP = 0.08  # a visible object missed
+P_DROP_OCCLUDED = 0.5  # added, times the hidden fraction
+P_LOW = 0.2  # a found object given a low confidence (ByteTrack's second stage is for these)
+P_WRONG_LABEL = 0.05
+JITTER = 0.04  # box centre and size noise, in box sides
+FALSE_PER_PAIR = 0.4  # mean false positives per pair
+
+
+@dataclass(frozen=True)
+class SynthSequence:
+    """One synthetic sequence: truth rows and detection rows per rate."""
+
+    name: str
+    gt: list[MotRow]
+    dets: dict[str, list[MotRow]]
+
+
+def render_truth(seed: int, frames: int, moving: bool) -> list[Truth]:
+    rig = StereoRig.from_fov(WIDTH, HEIGHT, 70.0, 0.12)
+    world = World(rig, seed=seed, moving=moving, rate_hz=FPS, options=OPTIONS)
+    return [world.render(i)[2] for i in range(frames)]
+
+
+def gt_rows(truths: list[Truth]) -> list[MotRow]:
+    out = []
+    for i, tr in enumerate(truths):
+        for o in labelled(tr):
+            if o.label == "tag":  # AprilTag ids would collide with the animals' (none here)
+                continue
+            x1, y1, x2, y2 = o.box
+            out.append(MotRow(frame=i + 1, id=o.id, x=x1, y=y1, w=x2 - x1, h=y2 - y1,
+                              conf=1.0, cls=LABELS.index(o.label)))
+    return out
+
+
+def fake_detections(truths: list[Truth], seed: int) -> list[MotRow]:
+    """Detector output for every pair (seeded), in MOT rows with id -1."""
+    rng = np.random.default_rng([seed, 77])
+    out = []
+    for i, tr in enumerate(truths):
+        for o in labelled(tr):
+            if rng.random() < P_DROP + P_DROP_OCCLUDED * o.occluded:
+                continue
+            x1, y1, x2, y2 = o.box
+            w, h = x2 - x1, y2 - y1
+            cx = (x1 + x2) / 2 + rng.normal(0, JITTER) * w
+            cy = (y1 + y2) / 2 + rng.normal(0, JITTER) * h
+            w *= float(np.exp(rng.normal(0, JITTER)))
+            h *= float(np.exp(rng.normal(0, JITTER)))
+            conf = rng.uniform(0.15, 0.5) if rng.random() < P_LOW else rng.uniform(0.5, 0.95)
+            cls = LABELS.index(o.label)
+            if rng.random() < P_WRONG_LABEL:
+                cls = int(rng.integers(len(LABELS)))
+            out.append(MotRow(frame=i + 1, id=-1, x=cx - w / 2, y=cy - h / 2, w=w, h=h,
+                              conf=float(conf), cls=cls))
+        for _ in range(rng.poisson(FALSE_PER_PAIR)):
+            w = rng.uniform(15, 70)
+            h = w * rng.uniform(0.6, 1.4)
+            x, y = rng.uniform(0, WIDTH - w), rng.uniform(0, HEIGHT - h)
+            conf = rng.uniform(0.1, 0.45) if rng.random() < 0.8 else rng.uniform(0.5, 0.7)
+            out.append(MotRow(frame=i + 1, id=-1, x=x, y=y, w=w, h=h, conf=float(conf),
+                              cls=int(rng.integers(len(LABELS)))))
+    return out
+
+
+def make_sequence(seed: int, frames: int) -> SynthSequence:
+    moving = seed % 2 == 0  # half the sequences from a moving rig
+    truths = render_truth(seed, frames, moving)
+    dets = fake_detections(truths, seed)
+    by_rate = {name: [r for r in dets if (r.frame - 1) % step == 0]
+               for name, step in RATES.items()}
+    return SynthSequence(name=f"seed{seed}{'-moving' if moving else ''}", gt=gt_rows(truths),
+                     dets=by_rate)
+
+
+# --- trackers under test: detection rows -> track rows --------------------------------
+
+
+def run_trapflow(config: TrackerConfig) -> Callable[[list[MotRow]], list[MotRow]]:
+    return lambda dets: track_rows(dets, FPS, config)
+
+
+def run_greedy(dets: list[MotRow], iou_min: float = 0.3, conf_min: float = 0.3,
+               max_gap_s: float = 1.5) -> list[MotRow]:
+    """The baseline: each detection to the track whose last box overlaps it most, greedily;
+    no motion model, every track reported from its first box."""
+    tracks: dict[int, tuple[float, np.ndarray]] = {}  # id -> (last time, last box)
+    next_id, out = 1, []
+    frames: dict[int, list[MotRow]] = {}
+    for r in dets:
+        if r.conf >= conf_min:
+            frames.setdefault(r.frame, []).append(r)
+    for frame in sorted(frames):
+        t = (frame - 1) / FPS
+        tracks = {k: v for k, v in tracks.items() if t - v[0] <= max_gap_s}
+        rows = frames[frame]
+        boxes = np.array([[r.x, r.y, r.x + r.w, r.y + r.h] for r in rows])
+        ids = list(tracks)
+        iou = iou_matrix(np.array([tracks[k][1] for k in ids]).reshape(-1, 4), boxes)
+        taken_t: set[int] = set()
+        taken_d: set[int] = set()
+        for flat in np.argsort(-iou, axis=None):
+            a, b = divmod(int(flat), len(rows))
+            if iou[a, b] < iou_min:
+                break
+            if a in taken_t or b in taken_d:
+                continue
+            taken_t.add(a)
+            taken_d.add(b)
+            tracks[ids[a]] = (t, boxes[b])
+            out.append(MotRow(**{**_fields(rows[b]), "id": ids[a]}))
+        for b, r in enumerate(rows):
+            if b not in taken_d:
+                tracks[next_id] = (t, boxes[b])
+                out.append(MotRow(**{**_fields(r), "id": next_id}))
+                next_id += 1
+    return out
+
+
+def _fields(r: MotRow) -> dict[str, object]:
+    return {f: getattr(r, f) for f in r.__struct_fields__}
+
+
+def run_bytetrack(dets: list[MotRow], tuned: bool) -> list[MotRow]:
+    """Roboflow's ByteTrack on the same rows, the frame rate set and capture times given."""
+    import supervision as sv
+    from trackers import ByteTrackTracker
+
+    kw = dict(track_activation_threshold=0.5, high_conf_det_threshold=0.5,
+              minimum_iou_threshold=0.2, lost_track_buffer=45) if tuned else {}
+    tracker = ByteTrackTracker(frame_rate=FPS, **kw)  # type: ignore[arg-type]
+    frames: dict[int, list[MotRow]] = {}
+    for r in dets:
+        frames.setdefault(r.frame, []).append(r)
+    out = []
+    for frame in sorted(frames):
+        rows = frames[frame]
+        d = sv.Detections(xyxy=np.array([[r.x, r.y, r.x + r.w, r.y + r.h] for r in rows]),
+                          confidence=np.array([r.conf for r in rows]),
+                          class_id=np.array([max(r.cls, 0) for r in rows]))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            res = tracker.update(d, timestamp=(frame - 1) / FPS)
+        for box, tid, conf in zip(res.xyxy, res.tracker_id, res.confidence, strict=True):
+            if tid >= 0:
+                x1, y1, x2, y2 = (float(v) for v in box)
+                out.append(MotRow(frame=frame, id=int(tid), x=x1, y=y1, w=x2 - x1, h=y2 - y1,
+                                  conf=float(conf)))
+    return out
+
+
+# --- scoring ---------------------------------------------------------------------------
+
+
+def _by_frame(rows: Sequence[MotRow]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    acc: dict[int, list[MotRow]] = {}
+    for r in rows:
+        acc.setdefault(r.frame, []).append(r)
+    return {f: (np.array([r.id for r in rs]),
+                np.array([[r.x, r.y, r.x + r.w, r.y + r.h] for r in rs])) for f, rs in acc.items()}
+
+
+def score(gt: list[MotRow], hyp: list[MotRow], frames: list[int]) -> dict[str, float]:
+    """HOTA (TrackEval), IDF1, MOTA, ID switches (py-motmetrics) over the given frames."""
+    import motmetrics as mm
+    from trackeval.metrics import HOTA
+
+    g, h = _by_frame(gt), _by_frame(hyp)
+    empty = (np.zeros(0, int), np.zeros((0, 4)))
+    acc = mm.MOTAccumulator(auto_id=False)
+    gid = {k: i for i, k in enumerate(sorted({r.id for r in gt}))}
+    hid = {k: i for i, k in enumerate(sorted({r.id for r in hyp}))}
+    data: dict[str, list[np.ndarray] | int] = {"gt_ids": [], "tracker_ids": [],
+                                               "similarity_scores": []}
+    for f in frames:
+        gi, gb = g.get(f, empty)
+        hi, hb = h.get(f, empty)
+        iou = iou_matrix(gb, hb)
+        acc.update(list(gi), list(hi), np.where(iou >= 0.5, 1.0 - iou, np.nan), frameid=f)
+        data["gt_ids"].append(np.array([gid[k] for k in gi], int))  # type: ignore[union-attr]
+        data["tracker_ids"].append(np.array([hid[k] for k in hi], int))  # type: ignore[union-attr]
+        data["similarity_scores"].append(iou)  # type: ignore[union-attr]
+    data.update(num_gt_ids=len(gid), num_tracker_ids=len(hid), num_timesteps=len(frames),
+                num_gt_dets=sum(len(x) for x in data["gt_ids"]),  # type: ignore[union-attr]
+                num_tracker_dets=sum(len(x) for x in data["tracker_ids"]))  # type: ignore[union-attr]
+    summary = mm.metrics.create().compute(acc, metrics=["idf1", "mota", "num_switches"],
+                                          name="s")
+    hota = HOTA().eval_sequence(data)
+    return {"HOTA": float(np.mean(hota["HOTA"])), "DetA": float(np.mean(hota["DetA"])),
+            "AssA": float(np.mean(hota["AssA"])), "IDF1": float(summary["idf1"].iloc[0]),
+            "MOTA": float(summary["mota"].iloc[0]), "IDSW": int(summary["num_switches"].iloc[0]),
+            "gt_dets": int(data["num_gt_dets"]), "gt_ids": len(gid)}  # type: ignore[arg-type]
+
+
+def evaluate(seqs: list[SynthSequence], trackers: dict[str, Callable[[list[MotRow]], list[MotRow]]]
+             ) -> dict[str, dict[str, dict[str, float]]]:
+    """Per rate and tracker: metrics pooled over sequences (weighted by ground-truth dets)."""
+    out: dict[str, dict[str, dict[str, float]]] = {}
+    for rate, step in RATES.items():
+        out[rate] = {}
+        for name, fn in trackers.items():
+            per = []
+            t0 = time.perf_counter()
+            for s in seqs:
+                last = max([r.frame for r in s.gt] + [1])
+                frames = [f for f in range(1, last + 1) if (f - 1) % step == 0]
+                per.append(score(s.gt, fn(s.dets[rate]), frames))
+            wsum = sum(p["gt_dets"] for p in per) or 1
+            agg = {k: sum(p[k] * p["gt_dets"] for p in per) / wsum
+                   for k in ("HOTA", "DetA", "AssA", "IDF1", "MOTA")}
+            agg["IDSW"] = sum(p["IDSW"] for p in per)
+            agg["seconds"] = time.perf_counter() - t0
+            out[rate][name] = agg
+    return out
+
+
+def table(title: str, res: dict[str, dict[str, dict[str, float]]]) -> str:
+    lines = [title, f"{'rate':6} {'tracker':18} {'HOTA':>6} {'IDF1':>6} {'MOTA':>6} "
+             f"{'AssA':>6} {'DetA':>6} {'IDSW':>5}"]
+    for rate, per in res.items():
+        for name, m in per.items():
+            lines.append(f"{rate:6} {name:18} {m['HOTA'] * 100:6.1f} {m['IDF1'] * 100:6.1f} "
+                         f"{m['MOTA'] * 100:6.1f} {m['AssA'] * 100:6.1f} {m['DetA'] * 100:6.1f} "
+                         f"{int(m['IDSW']):5d}")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--split", choices=("dev", "held-out", "both"), default="both")
+    ap.add_argument("--frames", type=int, default=900, help="pairs per sequence (15 per s)")
+    ap.add_argument("--out", type=Path, default=Path("bench-results/tracking.json"))
+    ap.add_argument("--no-bytetrack", action="store_true")
+    args = ap.parse_args()
+    trackers: dict[str, Callable[[list[MotRow]], list[MotRow]]] = {
+        "trapflow": run_trapflow(TrackerConfig()), "greedy-iou": run_greedy}
+    import importlib.util
+
+    if importlib.util.find_spec("trackers") is None:
+        print("trackers is not installed: no ByteTrack rows")
+        args.no_bytetrack = True
+    if not args.no_bytetrack:
+        trackers["bytetrack"] = lambda d: run_bytetrack(d, tuned=False)
+        trackers["bytetrack-tuned"] = lambda d: run_bytetrack(d, tuned=True)
+    splits = {"dev": DEV_SEEDS, "held-out": HELD_OUT_SEEDS}
+    if args.split != "both":
+        splits = {args.split: splits[args.split]}
+    report: dict[str, object] = {
+        "frames_per_sequence": args.frames, "fps": FPS, "size": [WIDTH, HEIGHT],
+        "options": {f: getattr(OPTIONS, f) for f in ("density", "empty_fraction",
+                                                      "episode_s")},
+        "detector": {"p_drop": P_DROP, "p_drop_occluded": P_DROP_OCCLUDED, "p_low": P_LOW,
+                     "p_wrong_label": P_WRONG_LABEL, "jitter": JITTER,
+                     "false_per_pair": FALSE_PER_PAIR},
+        "tracker_config": repr(TrackerConfig()), "splits": {}}
+    for split, seeds in splits.items():
+        seqs = [make_sequence(s, args.frames) for s in seeds]
+        res = evaluate(seqs, trackers)
+        report["splits"][split] = {"seeds": list(seeds), "results": res}  # type: ignore[index]
+        print(table(f"{split} seeds {list(seeds)}, {args.frames} pairs each", res))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(report, indent=1) + "\n")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,226 @@
+"""The tracker's pure core: ids kept through crossings, gaps and a slow detector; birth,
+death, the two confidence stages and label majority. No sockets, times passed in."""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from trapflow.observe.assign import assign
+from trapflow.observe.tracker import Det, TrackEnd, Tracker, TrackerConfig, Update
+
+
+@dataclass(frozen=True)
+class Mover:
+    """A box moving at constant speed: centre at t = c0 + v t, side `side` pixels."""
+
+    label: str
+    c0: tuple[float, float]
+    v: tuple[float, float]
+    side: float = 40.0
+    conf: float = 0.9
+    absent: tuple[float, float] = (0.0, -1.0)  # not detected for t in [a, b]
+
+    def det(self, t: float) -> Det | None:
+        if self.absent[0] <= t <= self.absent[1]:
+            return None
+        cx, cy = self.c0[0] + self.v[0] * t, self.c0[1] + self.v[1] * t
+        h = self.side / 2
+        return Det(label=self.label, confidence=self.conf, box=(cx - h, cy - h, cx + h, cy + h))
+
+
+def run(movers: list[Mover], times: list[float], cfg: TrackerConfig | None = None
+        ) -> tuple[dict[int, list[int | None]], list[Update]]:
+    """Feed the movers' detections at the given times; ids seen per mover, and the updates."""
+    tracker = Tracker(cfg)
+    ids: dict[int, list[int | None]] = {k: [] for k in range(len(movers))}
+    updates = []
+    for t in times:
+        present = [(k, d) for k, m in enumerate(movers) if (d := m.det(t)) is not None]
+        upd = tracker.update(t, [d for _, d in present])
+        for (k, _), tid in zip(present, upd.track_ids, strict=True):
+            ids[k].append(tid)
+        updates.append(upd)
+    return ids, updates
+
+
+def steady(rate_hz: float, seconds: float) -> list[float]:
+    return [i / rate_hz for i in range(int(seconds * rate_hz) + 1)]
+
+
+IRREGULAR = [0.0, 0.07, 0.2, 0.33, 0.45, 0.71, 0.8, 1.13, 1.2, 1.5, 1.55, 2.1]
+
+ID_KEPT = [
+    # Two animals cross at 15 Hz (boxes overlap mid-way): the motion model keeps them apart.
+    ([Mover("crab", (100, 200), (80, 0)), Mover("scallop", (420, 210), (-80, 0))],
+     steady(15, 4.0)),
+    # The same crossing seen at 5 Hz (the detector on one pair in three).
+    ([Mover("crab", (100, 200), (80, 0)), Mover("crab", (420, 210), (-80, 0))],
+     steady(5, 4.0)),
+    # Irregular capture times, no detection for 1.8 s (shorter than max_gap_s): same id.
+    ([Mover("crab", (100, 100), (30, 10), absent=(0.5, 2.3))],
+     IRREGULAR + [2.35, 2.5, 2.6]),
+    # One pair in three at 15 Hz with a fast animal (two box sides per second).
+    ([Mover("crab", (50, 300), (80, -20), side=40)], [i * 3 / 15 for i in range(20)]),
+    # Three animals side by side moving together, detected at irregular times.
+    ([Mover("crab", (100 + 60 * k, 100), (25, 25)) for k in range(3)], IRREGULAR),
+]
+
+
+@pytest.mark.parametrize(("movers", "times"), ID_KEPT)
+def test_each_animal_keeps_one_id(movers: list[Mover], times: list[float]) -> None:
+    ids, _ = run(movers, times)
+    per = [{i for i in got if i is not None} for got in ids.values()]
+    assert all(len(s) == 1 for s in per), per
+    assert len(set.union(*per)) == len(movers)
+
+
+LIFECYCLE = [
+    # (confidences at 0, 0.1, 0.2, ..., config, ids expected)
+    # Birth: tentative at the first hit, confirmed at min_hits=2.
+    ([0.9, 0.9, 0.9], TrackerConfig(), [None, 1, 1]),
+    # min_hits=3: two tentative detections first.
+    ([0.9, 0.9, 0.9, 0.9], TrackerConfig(min_hits=3), [None, None, 1, 1]),
+    # min_hits=1: an id at once.
+    ([0.9], TrackerConfig(min_hits=1), [1]),
+    # Low-confidence detections alone never start a track.
+    ([0.3, 0.3, 0.3, 0.3], TrackerConfig(), [None, None, None, None]),
+    # ... but extend a confirmed one (ByteTrack's second stage).
+    ([0.9, 0.9, 0.3, 0.3, 0.9], TrackerConfig(), [None, 1, 1, 1, 1]),
+    # ... and do not confirm a tentative one.
+    ([0.9, 0.3, 0.3, 0.9], TrackerConfig(min_hits=2, tentative_gap_s=1.0),
+     [None, None, None, 1]),
+    # Below `low`: ignored altogether, the track goes on after it.
+    ([0.9, 0.9, 0.05, 0.9], TrackerConfig(), [None, 1, None, 1]),
+]
+
+
+@pytest.mark.parametrize(("confs", "cfg", "expected"), LIFECYCLE)
+def test_birth_and_confidence_stages(confs: list[float], cfg: TrackerConfig,
+                                     expected: list[int | None]) -> None:
+    tracker = Tracker(cfg)
+    got = []
+    for k, c in enumerate(confs):
+        x = 100.0 + 5 * k
+        upd = tracker.update(k * 0.1, [Det(label="crab", confidence=c,
+                                           box=(x, 100.0, x + 40, 140.0))])
+        got.append(upd.track_ids[0])
+    assert got == expected
+
+
+DEATH = [
+    # (time of the empty update after the last match at 1.0, ended?)
+    # Exactly max_gap_s later: still alive.
+    (1.0 + 3.0, False),
+    # Past max_gap_s: ended at this call, with the last match as its end.
+    (1.0 + 3.01, True),
+    # Long past: ended once.
+    (100.0, True),
+]
+
+
+@pytest.mark.parametrize(("t_after", "ended"), DEATH)
+def test_death_after_gap_in_seconds(t_after: float, ended: bool) -> None:
+    tracker = Tracker(TrackerConfig(max_gap_s=3.0))
+    for t in (0.0, 0.5, 1.0):
+        tracker.update(t, [Det(label="crab", confidence=0.9, box=(10, 10, 50, 50))])
+    upd = tracker.update(t_after, [])
+    assert bool(upd.ended) is ended
+    if ended:
+        (end,) = upd.ended
+        assert (end.id, end.first_s, end.last_s, end.pairs) == (1, 0.0, 1.0, 3)
+        assert tracker.update(t_after + 10, []).ended == ()
+
+
+def test_tentative_track_is_dropped_unreported() -> None:
+    """A single high-confidence box (clutter) never becomes a track, even at flush."""
+    tracker = Tracker()
+    tracker.update(0.0, [Det(label="crab", confidence=0.9, box=(10, 10, 50, 50))])
+    assert tracker.update(5.0, []).ended == ()
+    assert tracker.flush(6.0) == ()
+
+
+LABELS = [
+    # (labels of the detections, majority, share)
+    (["crab", "crab", "crab", "scallop"], "crab", 0.75),
+    # A tie goes to the label seen first.
+    (["scallop", "crab", "crab", "scallop"], "scallop", 0.5),
+    (["tag"], "tag", 1.0),
+]
+
+
+@pytest.mark.parametrize(("labels", "label", "share"), LABELS)
+def test_label_majority_with_share(labels: list[str], label: str, share: float) -> None:
+    tracker = Tracker(TrackerConfig(min_hits=1))
+    for k, lb in enumerate(labels):
+        tracker.update(k * 0.1, [Det(label=lb, confidence=0.5 + 0.1 * k,
+                                     box=(10 + k, 10, 50 + k, 50))])
+    (end,) = tracker.flush(10.0)
+    assert (end.label, end.label_share) == (label, share)
+    best = len(labels) - 1
+    assert end.best_box == (10 + best, 10, 50 + best, 50)
+    assert end.best_confidence == pytest.approx(0.5 + 0.1 * best)
+
+
+def test_seen_maps_labels_to_confirmed_tracks() -> None:
+    movers = [Mover("crab", (100, 100), (0, 0)), Mover("crab", (300, 100), (0, 0)),
+              Mover("scallop", (500, 100), (0, 0))]
+    _, updates = run(movers, [0.0, 0.1])
+    assert updates[0].seen == {}
+    assert updates[1].seen == {"crab": frozenset({1, 2}), "scallop": frozenset({3})}
+
+
+def test_path_is_decimated_and_keeps_both_ends() -> None:
+    cfg = TrackerConfig(path_points=8)
+    tracker = Tracker(cfg)
+    for k in range(200):
+        tracker.update(k / 15, [Det(label="crab", confidence=0.9,
+                                    box=(k, 0.0, k + 40.0, 40.0))])
+    (end,) = tracker.flush(100.0)
+    assert isinstance(end, TrackEnd)
+    assert 2 <= len(end.path) <= 8
+    assert end.path[0] == (0.0, 20.0, 20.0)
+    assert end.path[-1] == (199 / 15, 219.0, 20.0)
+
+
+def test_time_going_back_is_refused() -> None:
+    tracker = Tracker()
+    tracker.update(2.0, [])
+    with pytest.raises(ValueError, match="must not go back"):
+        tracker.update(1.0, [])
+
+
+BAD_CONFIG = [
+    # low above high
+    ({"low": 0.6, "high": 0.5}, "low <= high"),
+    # no gate at all would match anything to anything
+    ({"iou_gate": 0.0}, "iou_gate"),
+    ({"min_hits": 0}, "min_hits"),
+    ({"max_gap_s": 0.0}, "max_gap_s"),
+]
+
+
+@pytest.mark.parametrize(("kwargs", "error"), BAD_CONFIG)
+def test_config_rejects_bad_values(kwargs: dict[str, float], error: str) -> None:
+    with pytest.raises(ValueError, match=error):
+        TrackerConfig(**kwargs)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (3, 3), (2, 5), (5, 2), (4, 6), (0, 3)])
+def test_assignment_is_optimal(shape: tuple[int, int]) -> None:
+    rng = np.random.default_rng(shape[0] * 10 + shape[1])
+    for _ in range(20):
+        cost = rng.random(shape)
+        got = assign(cost)
+        n, m = shape
+        assert len(got) == min(n, m)
+        if min(n, m) == 0:
+            continue
+        brute = min(
+            sum(cost[i, p[i]] for i in range(n)) for p in itertools.permutations(range(m), n)
+        ) if n <= m else min(
+            sum(cost[p[j], j] for j in range(m)) for p in itertools.permutations(range(n), m))
+        assert sum(cost[i, j] for i, j in got) == pytest.approx(brute)

@@ -28,14 +28,14 @@ from pathlib import Path
 
 import numpy as np
 
-from trapflow.camera import StereoRig
-from trapflow.messages import Truth
+from trapflow.calibration.camera import StereoRig
 from trapflow.observe.assign import iou_matrix
 from trapflow.observe.motformat import MotRow, track_rows
 from trapflow.observe.tracker import TrackerConfig
 from trapflow.synth.dataset import labelled
 from trapflow.synth.options import SynthOptions
 from trapflow.synth.render import World
+from trapflow.wire.messages import Truth
 
 FPS = 15.0
 WIDTH, HEIGHT = 640, 360

@@ -9,10 +9,10 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from trapflow.cli_dataset import dataset
-from trapflow.messages import Truth, TruthObject
+from trapflow.cli.dataset import dataset
 from trapflow.observe.motformat import read_fps, read_mot
 from trapflow.synth.dataset import mot_gt_lines
+from trapflow.wire.messages import Truth, TruthObject
 
 GT_LINES = [
     # (objects, lines)

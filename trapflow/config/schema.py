@@ -172,6 +172,33 @@ class NormalizerConfig(_Section):
     """Digits kept in the float fields of plugin-defined results (built-in fields keep theirs)."""
 
 
+class ObserveConfig(_Section):
+    """Detections become observations: tracks, visits and interval counts (MaxN)."""
+
+    enabled: bool = True
+    tracks_file: str = "tracks.jsonl"
+    """Finished tracks, one JSON object each, in the run directory."""
+    counts_file: str = "counts.jsonl"
+    """Closed intervals: per label visits, MaxN and dwell."""
+    interval_s: Annotated[float, msgspec.Meta(gt=0, le=86400)] = 600.0
+    """Length of a counting interval (aligned to multiples of it in UTC)."""
+    high: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.5
+    """Detections at or above this confidence are matched first and may start tracks."""
+    low: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.1
+    """Between low and high a detection may only extend a confirmed track."""
+    iou_gate: Annotated[float, msgspec.Meta(gt=0, lt=1)] = 0.1
+    """Least overlap of a track's predicted box and a detection for them to match."""
+    min_hits: Annotated[int, msgspec.Meta(ge=1, le=100)] = 2
+    """Detections that confirm a track and give it its id."""
+    max_gap_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 3.0
+    """A track not seen for this long (capture time) has ended."""
+
+    def __post_init__(self) -> None:
+        if self.low > self.high:
+            raise ValueError(f"observe: expected low <= high, got low={self.low} "
+                             f"high={self.high}")
+
+
 class SupervisorConfig(_Section):
     """Heartbeats, restarts and the stop ladder."""
 
@@ -308,6 +335,7 @@ class Config(_Section):
     rig: RigConfig = msgspec.field(default_factory=RigConfig)
     pools: dict[str, PoolConfig] = msgspec.field(default_factory=_default_pools)
     normalizer: NormalizerConfig = msgspec.field(default_factory=NormalizerConfig)
+    observe: ObserveConfig = msgspec.field(default_factory=ObserveConfig)
     supervisor: SupervisorConfig = msgspec.field(default_factory=SupervisorConfig)
     network: NetworkConfig = msgspec.field(default_factory=NetworkConfig)
     frames: FramesConfig = msgspec.field(default_factory=FramesConfig)

@@ -1,4 +1,5 @@
-"""The normalizer process: every result becomes JSON lines in results.jsonl and on its tap.
+"""The normalizer process: every result becomes JSON lines in results.jsonl and on its tap;
+detections are tracked on the way (track ids on their lines, tracks.jsonl, counts.jsonl).
 
 Owns a local link that brings batches of results from the broker and a PUB of JSON
 lines (`result` topic).
@@ -18,6 +19,7 @@ import zmq
 
 from trapflow.errors import ProtocolError
 from trapflow.modem.outbox import Outbox, OutboxFull
+from trapflow.observe.stage import Observations, Observer
 from trapflow.runtime.node import ACTIVE, FINALIZED, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.stages.result_json import dumps, normalize
@@ -62,6 +64,15 @@ class NormalizerNode(Node):
         self.outbox: Outbox | None = None
         if self.cfg.modem.enabled:
             self.outbox = Outbox(spec.run_dir / self.cfg.outbox.path, self.cfg.outbox)
+        # One tracker per detector pool; finished tracks and counts go to their own files.
+        self.observers: dict[str, Observer] = {}
+        self.obs_files: dict[str, IO[bytes]] = {}
+        if self.cfg.observe.enabled:
+            for name in (self.cfg.observe.tracks_file, self.cfg.observe.counts_file):
+                path = spec.run_dir / name
+                self.obs_files[name] = open(path, "ab", buffering=0)  # noqa: SIM115
+                set_file_mode(path)
+        self.tracks = 0
         self.refused = 0
         self.lines = 0
         self.malformed = 0
@@ -70,6 +81,8 @@ class NormalizerNode(Node):
 
     def counters(self) -> dict[str, int]:
         out = {"lines": self.lines, "malformed": self.malformed, "outbox_refused": self.refused,
+               "tracks": self.tracks, "late_for_tracking": sum(o.late for o in
+                                                              self.observers.values()),
                "refused_subscriptions": self.gate.refused}
         out.update(dict.fromkeys(self.routes, 1))
         return out
@@ -94,9 +107,12 @@ class NormalizerNode(Node):
         # Take what the broker already sent before closing the file.
         while self.link.link is not None and self._receive(0):
             pass
-        self.file.flush()
-        os.fsync(self.file.fileno())
-        self.file.close()
+        for obs in self.observers.values():  # tracks still alive end with the run
+            self._write_observations(obs.finish())
+        for fh in (self.file, *self.obs_files.values()):
+            fh.flush()
+            os.fsync(fh.fileno())
+            fh.close()
         if self.outbox is not None:
             self.outbox.close()
         self.set_state(FINALIZED)
@@ -144,6 +160,12 @@ class NormalizerNode(Node):
             self.malformed += 1
             self.ratelog.warning("result", "dropped malformed result: %s", exc)
             return False
+        if self.obs_files and isinstance(res.body, messages.MonoIR):
+            observer = self.observers.get(res.pool)
+            if observer is None:
+                observer = self.observers[res.pool] = Observer(self.cfg.observe)
+            items = [obj["mono_ir"] for obj in objs]
+            self._write_observations(observer.feed(res.t_wall_ns, items))
         if self.outbox is not None:
             try:
                 self.outbox.append_many(objs)
@@ -161,3 +183,11 @@ class NormalizerNode(Node):
             except zmq.Again:
                 pass
         return True
+
+    def _write_observations(self, obs: Observations) -> None:
+        """Finished tracks and closed intervals to their files (unbuffered, as results)."""
+        ocfg = self.cfg.observe
+        for name, objs in ((ocfg.tracks_file, obs.tracks), (ocfg.counts_file, obs.counts)):
+            if objs:
+                self.obs_files[name].write(b"".join(dumps(o) + b"\n" for o in objs))
+        self.tracks += len(obs.tracks)

@@ -170,10 +170,10 @@ def match_ncc(left: np.ndarray, right: np.ndarray, box: tuple[int, int, int, int
                           detail=f"peak correlation {score:.2f} < {need}"
                                  + (f"; search cut at the image edge ({hi} px)" if clipped else ""))
     second = _second_peak(curve, j)
-    if second > score - params.ambiguity_margin:
+    if second > float(curve[j]) - params.ambiguity_margin:  # both peaks from one curve
         return Unmeasured(reason="ambiguous",
                           detail=f"second peak {second:.2f} within {params.ambiguity_margin} "
-                                 f"of the best {score:.2f}")
+                                 f"of the best {float(curve[j]):.2f}")
     sd0 = _shift_sd(patch, fine, score, params)
     return _cell_plane(left, right, box, d_best, sd0, score, (d_lo, hi), params)
 

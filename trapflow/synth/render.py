@@ -24,7 +24,7 @@ from trapflow.synth.animals import Placement, Population
 from trapflow.synth.geometry import Trajectory, floor_points, inv_pose, right_of
 from trapflow.synth.options import SynthOptions
 from trapflow.synth.rays import Frustum, RayGrid
-from trapflow.synth.sprites import boulder, tag_sprite
+from trapflow.synth.sprites import Sprite, boulder, tag_sprite
 from trapflow.synth.texture import Floor
 from trapflow.synth.water import F_SCALE, Light, Noise, Snow, to_u8
 from trapflow.wire.messages import Truth, TruthObject
@@ -86,6 +86,7 @@ class World:
         self._static: list[_View] | None = None
         self._sprite_cache: dict[tuple[int, int], tuple[int, int, np.ndarray, np.ndarray]] = {}
         self._contrib_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self._lengths: dict[int, float] = {}  # sprites live as long as the world: ids stay valid
         if not moving:
             self._static = self._bake_static()
 
@@ -426,8 +427,28 @@ class World:
                        float(d.x0 + xs.max() + 1), float(d.y0 + ys.max() + 1))
             pc = w2c[:3, :3] @ np.array([d.place.x, d.place.y, 0.0]) + w2c[:3, 3]
             out.append(TruthObject(label=d.place.label, box=box, depth_m=round(float(pc[2]), 4),
-                                   id=d.place.id, occluded=round(1.0 - seen / full, 3)))
+                                   id=d.place.id, occluded=round(1.0 - seen / full, 3),
+                                   length_m=0.0 if d.place.label == "tag" else
+                                   round(self._length_m(d.place.sprite), 5),
+                                   xyz=self._centre(d.place, w2c)))
         return out
+
+    def _length_m(self, sprite: Sprite) -> float:
+        """The body's greatest extent (its longest chord) in metres, once per sprite."""
+        key = id(sprite)
+        if key not in self._lengths:
+            ys, xs = np.nonzero(sprite.body > 0.5)
+            hull = cv2.convexHull(np.stack([xs, ys], 1).astype(np.float32)).reshape(-1, 2)
+            chords = np.linalg.norm(hull[:, None, :] - hull[None, :, :], axis=2)
+            # + 1: pixel centres span one pixel less than the body itself
+            self._lengths[key] = (float(chords.max()) + 1.0) * sprite.size_m / sprite.side
+        return self._lengths[key]
+
+    def _centre(self, place: Placement, w2c: np.ndarray) -> tuple[float, float, float]:
+        """The sprite's centre (on the floor, raised by its lift) in the left camera frame."""
+        z = float(self.floor.height_at(np.array([[place.x]]), np.array([[place.y]]))[0, 0])
+        pc = w2c[:3, :3] @ np.array([place.x, place.y, z + place.lift]) + w2c[:3, 3]
+        return (round(float(pc[0]), 5), round(float(pc[1]), 5), round(float(pc[2]), 5))
 
     def _tag_box(self, place: Placement, w2c: np.ndarray) -> tuple[float, float, float, float]:
         hm = self._homography(place, w2c)

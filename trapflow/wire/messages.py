@@ -141,6 +141,8 @@ class TruthObject(Msg, frozen=True):
     depth_m: float = 0.0
     id: int = -1  # track id of the animal, or the AprilTag id
     occluded: float = 0.0  # fraction hidden
+    length_m: float = 0.0  # an animal's greatest body extent (legs and claws included); 0: unset
+    xyz: tuple[float, float, float] | None = None  # its centre in the left camera frame, m
 
 
 class Truth(Msg, frozen=True, tag="truth"):

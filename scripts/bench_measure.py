@@ -1,0 +1,158 @@
+"""Benchmark of per-detection stereo measurement on the synthetic world, against its truth.
+
+Boxes come from the truth (animals at most 10 % hidden, wholly inside the image), so the
+numbers are the measurement's alone, not the detector's. Per range bin: how many boxes were
+measured, median absolute length and range errors (%), and honesty (the share of true values
+within 2 sd). Also CPU ms per measurement beside the packaged detector's process() per pair.
+Seeds given with --seeds; the defaults are held out (never used while developing).
+
+Writes bench-results/measure.json (or --out).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.kits
+
+from trapflow.camera import StereoRig
+from trapflow.measure.stereo import Matcher, Measured, MeasureParams, measure
+from trapflow.messages import TruthObject
+from trapflow.synth import SynthOptions, World
+
+HELD_OUT_SEEDS = (9101, 9102, 9103, 9104, 9105, 9106)
+BINS = ((0.5, 1.0), (1.0, 1.5), (1.5, 2.0), (2.0, 2.5), (2.5, 4.0))
+MAX_OCCLUDED = 0.1
+
+
+def usable(o: TruthObject, rig: StereoRig) -> bool:
+    """An animal seen whole: little hidden, its box clear of the image's edges."""
+    x1, y1, x2, y2 = o.box
+    return (o.label in ("crab", "scallop") and o.occluded <= MAX_OCCLUDED and o.xyz is not None
+            and x1 > 1 and y1 > 1 and x2 < rig.width - 1 and y2 < rig.height - 1)
+
+
+def collect(seeds: list[int], pairs: int, step: int, matcher: Matcher,
+            params: MeasureParams) -> tuple[list[dict[str, Any]], list[float]]:
+    """One row per usable truth box: truth, measurement or reason; and CPU ms per call."""
+    rig = StereoRig.from_fov(640, 360, 70.0, 0.12)
+    rows: list[dict[str, Any]] = []
+    cpu: list[float] = []
+    for seed in seeds:
+        for moving in (False, True):
+            opts = SynthOptions(density=2.0, empty_fraction=0.0, episode_s=12.0)
+            world = World(rig, seed=seed, moving=moving, rate_hz=5.0, options=opts)
+            for i in range(0, pairs * step, step):
+                left, right, truth = world.render(i)
+                gl = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY)
+                gr = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY)
+                for o in truth.objects:
+                    if not usable(o, rig):
+                        continue
+                    t0 = time.process_time()
+                    m = measure(gl, gr, rig, o.box, params, matcher)
+                    cpu.append((time.process_time() - t0) * 1000)
+                    assert o.xyz is not None
+                    row: dict[str, Any] = {"seed": seed, "moving": moving, "pair": i,
+                                           "label": o.label, "range": math.dist(o.xyz, (0, 0, 0)),
+                                           "length": o.length_m}
+                    if isinstance(m, Measured):
+                        row.update(m_range=m.range_m, sd_range=m.range_sd_m, m_length=m.length_m,
+                                   sd_length=m.length_sd_m, method=m.length_method)
+                    else:
+                        row["reason"] = m.reason
+                    rows.append(row)
+    return rows, cpu
+
+
+def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per range bin and overall: counts, median errors (%), honesty (within 2 sd)."""
+    out: dict[str, Any] = {}
+    for lo, hi in ((*b,) for b in (*BINS, (0.5, 2.5))):
+        sel = [r for r in rows if lo <= r["range"] < hi]
+        got = [r for r in sel if "m_range" in r]
+        key = f"{lo}-{hi} m" if (lo, hi) != (0.5, 2.5) else "all 0.5-2.5 m"
+        if not sel:
+            continue
+        le = np.array([abs(r["m_length"] - r["length"]) / r["length"] for r in got])
+        re = np.array([abs(r["m_range"] - r["range"]) / r["range"] for r in got])
+        lh = np.array([abs(r["m_length"] - r["length"]) <= 2 * r["sd_length"] for r in got])
+        rh = np.array([abs(r["m_range"] - r["range"]) <= 2 * r["sd_range"] for r in got])
+        out[key] = {
+            "boxes": len(sel), "measured": len(got),
+            "length_err_median_pct": round(100 * float(np.median(le)), 2) if got else None,
+            "range_err_median_pct": round(100 * float(np.median(re)), 2) if got else None,
+            "length_within_2sd": round(float(lh.mean()), 3) if got else None,
+            "range_within_2sd": round(float(rh.mean()), 3) if got else None,
+            "methods": dict(Counter(r["method"] for r in got)),
+            "reasons": dict(Counter(r["reason"] for r in sel if "reason" in r)),
+        }
+    return out
+
+
+def detector_ms(n: int = 30) -> float | None:
+    """CPU ms per pair of the packaged detector's process() on 640x360 synthetic frames."""
+    try:
+        from trapflow_workers.common import MODELS_DIR
+        from trapflow_workers.crab_detector import CrabDetector
+    except ImportError:
+        return None
+    if not (MODELS_DIR / "crab_detector.onnx").is_file():
+        return None
+    from tests.kits.context import make_context, make_pair
+
+    rig = StereoRig.from_fov(640, 360, 70.0, 0.12)
+    world = World(rig, seed=1, moving=True, rate_hz=5.0)
+    frames = [world.render(i)[0] for i in range(n)]
+    det = CrabDetector()
+    det.configure({}, make_context(rig, pool="mono"))
+    times = []
+    for i, f in enumerate(frames):
+        t0 = time.process_time()
+        det.process(make_pair(f, seq=i))
+        times.append((time.process_time() - t0) * 1000)
+    return float(np.median(times[3:]))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", default=",".join(map(str, HELD_OUT_SEEDS)))
+    ap.add_argument("--pairs", type=int, default=12, help="pairs per sequence")
+    ap.add_argument("--step", type=int, default=15, help="pairs apart (5 Hz)")
+    ap.add_argument("--matcher", choices=("ncc", "sgbm", "both"), default="both")
+    ap.add_argument("--out", type=Path, default=Path("bench-results/measure.json"))
+    args = ap.parse_args()
+    cv2.setNumThreads(1)  # one core, as a pool worker runs
+    seeds = [int(s) for s in args.seeds.split(",")]
+    params = MeasureParams()
+    result: dict[str, Any] = {"seeds": seeds, "pairs_per_sequence": args.pairs,
+                              "rig": "640x360, hfov 70 deg, baseline 0.12 m",
+                              "params": {k: getattr(params, k) for k in params.__struct_fields__}}
+    det = detector_ms()
+    result["detector_process_ms"] = det
+    matchers: list[Matcher] = ["ncc", "sgbm"] if args.matcher == "both" else [args.matcher]
+    for matcher in matchers:
+        rows, cpu = collect(seeds, args.pairs, args.step, matcher, params)
+        ms = float(np.median(cpu))
+        result[matcher] = {"cpu_ms_median": round(ms, 3),
+                           "cpu_ms_p90": round(float(np.percentile(cpu, 90)), 3),
+                           "cost_vs_detector": round(ms / det, 3) if det else None,
+                           "bins": summarise(rows)}
+        print(matcher, json.dumps(result[matcher], indent=1))
+    print("detector process() ms:", det)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()

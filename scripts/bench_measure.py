@@ -25,10 +25,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.kits
 
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 from trapflow.measure.stereo import Matcher, Measured, MeasureParams, measure
-from trapflow.messages import TruthObject
-from trapflow.synth import SynthOptions, World
+from trapflow.synth.options import SynthOptions
+from trapflow.synth.render import World
+from trapflow.wire.messages import TruthObject
 
 HELD_OUT_SEEDS = (9101, 9102, 9103, 9104, 9105, 9106)
 BINS = ((0.5, 1.0), (1.0, 1.5), (1.5, 2.0), (2.0, 2.5), (2.5, 4.0))

@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 import pytest
 
-from trapflow.calibrate import calibrate_stereo
-from trapflow.calibration import StereoCalibration
+from trapflow.calibration.calibrate import calibrate_stereo
+from trapflow.calibration.model import StereoCalibration
 from trapflow.measure.board import MeasureError, board_edges, check_board, measure_points
 from trapflow.measure.stereo import MeasureParams
 

@@ -9,9 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 from trapflow.measure.stereo import Measured, MeasureParams, Unmeasured, measure, triangulate
-from trapflow.synth import SynthOptions, World
+from trapflow.synth.options import SynthOptions
+from trapflow.synth.render import World
 
 RIG = StereoRig.from_fov(640, 360, 70.0, 0.12)
 

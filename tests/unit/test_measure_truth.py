@@ -5,9 +5,10 @@ from __future__ import annotations
 import msgspec
 import pytest
 
-from trapflow.camera import StereoRig
-from trapflow.messages import TruthObject
-from trapflow.synth import SynthOptions, World
+from trapflow.calibration.camera import StereoRig
+from trapflow.synth.options import SynthOptions
+from trapflow.synth.render import World
+from trapflow.wire.messages import TruthObject
 
 RIG = StereoRig.from_fov(640, 360, 70.0, 0.12)
 

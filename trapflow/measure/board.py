@@ -12,8 +12,8 @@ import cv2
 import msgspec
 import numpy as np
 
-from trapflow.calibrate import same_order
-from trapflow.calibration import StereoCalibration
+from trapflow.calibration.calibrate import same_order
+from trapflow.calibration.model import StereoCalibration
 from trapflow.errors import TrapflowError
 from trapflow.measure.stereo import MeasureParams, Unmeasured, match_ncc, triangulate
 from trapflow.sources.rectify import Rectifier

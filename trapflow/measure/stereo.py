@@ -13,7 +13,7 @@ import cv2
 import msgspec
 import numpy as np
 
-from trapflow.camera import StereoRig
+from trapflow.calibration.camera import StereoRig
 
 Reason = Literal["bad_box", "out_of_view", "textureless", "ambiguous", "low_score"]
 Matcher = Literal["ncc", "sgbm"]

@@ -1,4 +1,5 @@
-"""The interface every algorithm implements, with ROS-2-style lifecycle hooks.
+"""The interface every algorithm implements, with ROS-2-style lifecycle hooks; the plugins'
+public API: everything a plugin imports from trapflow comes from this module.
 
 A worker process drives one Worker: configure -> activate -> process()* ->
 deactivate -> cleanup -> shutdown. Plugins never see sockets or bytes.
@@ -14,7 +15,28 @@ from typing import Any
 import numpy as np
 
 from trapflow.calibration.camera import StereoRig
-from trapflow.wire.messages import Body, StereoPair
+from trapflow.calibration.rig_files import YAML_FIELDS, read_rig_file
+from trapflow.errors import ConfigError, WorkerError
+from trapflow.measure.stereo import Measured, Unmeasured, measure
+from trapflow.runtime.ratelog import CONSOLE_ONCE
+from trapflow.wire.jpeg import reduced_size
+from trapflow.wire.messages import (
+    Body,
+    Detection,
+    Extra,
+    MonoIR,
+    StereoIR,
+    StereoPair,
+    StereoVO,
+    Tag,
+    Tags,
+)
+
+__all__ = [
+    "CONSOLE_ONCE", "YAML_FIELDS", "Body", "ConfigError", "Context", "Detection", "Extra",
+    "Measured", "MonoIR", "Pair", "StereoIR", "StereoPair", "StereoRig", "StereoVO", "Tag",
+    "Tags", "Unmeasured", "Worker", "WorkerError", "measure", "read_rig_file", "reduced_size",
+]
 
 
 @dataclass(frozen=True)

@@ -40,9 +40,7 @@ import cv2
 import msgspec
 import numpy as np
 
-from trapflow.errors import WorkerError
-from trapflow.plugin import Context, Pair, Worker
-from trapflow.wire.messages import Tag, Tags
+from trapflow.plugin import Context, Pair, Tag, Tags, Worker, WorkerError
 
 from .calibration import resolve_rig
 from .common import Params, check_frame, floats, parse_params, to_grey

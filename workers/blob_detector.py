@@ -12,9 +12,7 @@ import cv2
 import msgspec
 import numpy as np
 
-from trapflow.errors import WorkerError
-from trapflow.plugin import Context, Pair, Worker
-from trapflow.wire.messages import Detection, MonoIR
+from trapflow.plugin import Context, Detection, MonoIR, Pair, Worker, WorkerError
 
 
 class BlobParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):

@@ -13,9 +13,7 @@ from pathlib import Path
 
 import msgspec
 
-from trapflow.calibration.camera import StereoRig
-from trapflow.calibration.rig_files import YAML_FIELDS, read_rig_file
-from trapflow.errors import ConfigError, WorkerError
+from trapflow.plugin import YAML_FIELDS, ConfigError, StereoRig, WorkerError, read_rig_file
 
 __all__ = ["YAML_FIELDS", "load_calibration", "resolve_rig"]
 

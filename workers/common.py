@@ -17,9 +17,7 @@ import cv2
 import msgspec
 import numpy as np
 
-from trapflow.errors import WorkerError
-from trapflow.plugin import Pair
-from trapflow.wire.jpeg import reduced_size
+from trapflow.plugin import Pair, WorkerError, reduced_size
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 MODELS_DIR = PACKAGE_DIR / "models"

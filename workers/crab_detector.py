@@ -15,12 +15,21 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal, cast
 
+import cv2
 import msgspec
 import numpy as np
 
-from trapflow.errors import WorkerError
-from trapflow.plugin import Context, Pair, Worker
-from trapflow.wire.messages import Detection, MonoIR
+from trapflow.plugin import (
+    Context,
+    Detection,
+    Measured,
+    MonoIR,
+    Pair,
+    StereoRig,
+    Worker,
+    WorkerError,
+    measure,
+)
 
 from .common import check_frame, load_labels, model_path, parse_params
 from .onnx_session import ModelParams, Session, open_session
@@ -80,6 +89,10 @@ class DetectorParams(ModelParams):
     """Head strides for yolox grid decoding."""
     image: Literal["left", "right"] = "left"
     """Which image of the pair to analyse."""
+    measure: bool = True
+    """Measure every box on the stereo pair: range, 3-D position and length with their
+    uncertainty, or the reason it could not (trapflow.measure.stereo; about 1 ms a box).
+    Boxes found in the right image (`image: right`) are not measured."""
 
 
 def _metadata_choice(
@@ -178,6 +191,7 @@ class CrabDetector(Worker):
     def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
         p = parse_params(params, DetectorParams, ctx.pool)
         self.p = p
+        self.ctx_rig = ctx.rig
         if p.model and p.variant != "fp32":
             raise WorkerError(
                 f"pools.{ctx.pool}.params.variant: {p.variant!r} picks a packaged demo model, "
@@ -295,7 +309,39 @@ class CrabDetector(Worker):
             )
             for k, b in zip(keep, mapped, strict=True)
         ]
+        if dets and self.p.measure and self.p.image == "left":
+            dets = self._measure(pair, dets)
         return MonoIR(detections=dets, model=self.session.model_hash)
+
+    def _measure(self, pair: Pair, dets: list[Detection]) -> list[Detection]:
+        """Each box measured on the pair (images as they came: reduced ones with the rig
+        reduced alike, boxes back in frame pixels)."""
+        r = pair.reduction
+        grey = [img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+                for img in (pair.left, pair.right)]
+        rig = self.rig_at(grey[0].shape[1], grey[0].shape[0])
+        out = []
+        for d in dets:
+            box = (d.box[0] / r, d.box[1] / r, d.box[2] / r, d.box[3] / r)
+            m = measure(grey[0], grey[1], rig, box)
+            if isinstance(m, Measured):
+                out.append(msgspec.structs.replace(
+                    d, range_m=m.range_m, range_sd_m=m.range_sd_m, xyz=m.xyz,
+                    disparity_px=m.disparity_px * r, length_m=m.length_m,
+                    length_sd_m=m.length_sd_m, length_method=m.length_method))
+            else:
+                out.append(msgspec.structs.replace(d, unmeasured=m.reason))
+        return out
+
+    def rig_at(self, width: int, height: int) -> StereoRig:
+        """The run's rig for images of this size (a reduced decode scales it)."""
+        rig = self.ctx_rig
+        if (width, height) == (rig.width, rig.height):
+            return rig
+        s = width / rig.width
+        return StereoRig(width=width, height=height, fx=rig.fx * s, fy=rig.fy * s,
+                         cx=(rig.cx + 0.5) * s - 0.5, cy=(rig.cy + 0.5) * s - 0.5,
+                         baseline_m=rig.baseline_m)
 
     def _label(self, cls: int) -> str:
         return self.labels[cls] if self.labels else f"class{cls}"

@@ -12,8 +12,7 @@ from typing import Annotated, Any
 import msgspec
 import numpy as np
 
-from trapflow.plugin import Context, Pair, Worker
-from trapflow.wire.messages import Extra
+from trapflow.plugin import Context, Extra, Pair, Worker
 
 from .common import Params, check_frame, parse_params
 

@@ -14,9 +14,7 @@ import cv2
 import msgspec
 import numpy as np
 
-from trapflow.errors import WorkerError
-from trapflow.plugin import Context, Pair, Worker
-from trapflow.wire.messages import StereoVO
+from trapflow.plugin import Context, Pair, StereoVO, Worker, WorkerError
 
 _I = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 

@@ -9,9 +9,7 @@ import cv2
 import msgspec
 import numpy as np
 
-from trapflow.errors import WorkerError
-from trapflow.plugin import Context, Pair, Worker
-from trapflow.wire.messages import StereoIR
+from trapflow.plugin import Context, Pair, StereoIR, Worker, WorkerError
 
 
 class HistogramParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):

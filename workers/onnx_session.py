@@ -20,8 +20,7 @@ import msgspec
 import numpy as np
 import onnxruntime as ort
 
-from trapflow.errors import WorkerError
-from trapflow.runtime.ratelog import CONSOLE_ONCE
+from trapflow.plugin import CONSOLE_ONCE, WorkerError
 
 from .common import Params
 

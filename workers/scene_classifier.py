@@ -17,9 +17,7 @@ import cv2
 import msgspec
 import numpy as np
 
-from trapflow.errors import WorkerError
-from trapflow.plugin import Context, Pair, Worker
-from trapflow.wire.messages import StereoIR
+from trapflow.plugin import Context, Pair, StereoIR, Worker, WorkerError
 
 from .common import check_frame, load_labels, model_path, parse_params
 from .onnx_session import ModelParams, Session, open_session

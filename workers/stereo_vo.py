@@ -22,9 +22,7 @@ import cv2
 import msgspec
 import numpy as np
 
-from trapflow.calibration.camera import StereoRig
-from trapflow.plugin import Context, Pair, Worker
-from trapflow.wire.messages import StereoVO
+from trapflow.plugin import Context, Pair, StereoRig, StereoVO, Worker
 
 from .calibration import resolve_rig
 from .common import Params, check_frame, floats, parse_params, to_grey

@@ -8,9 +8,7 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
-from trapflow.errors import WorkerError
-from trapflow.plugin import Context, Pair, Worker
-from trapflow.wire.messages import Extra
+from trapflow.plugin import Context, Extra, Pair, Worker, WorkerError
 
 # One read per memory page, as a real consumer would touch its input.
 PAGE = 4096

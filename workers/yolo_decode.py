@@ -17,7 +17,7 @@ from typing import Literal
 
 import numpy as np
 
-from trapflow.errors import WorkerError
+from trapflow.plugin import WorkerError
 
 Layout = Literal["yolov8", "yolov5", "yolox", "yolox_decoded"]
 LAYOUTS: tuple[Layout, ...] = ("yolov8", "yolov5", "yolox", "yolox_decoded")

@@ -51,4 +51,4 @@ def test_every_processed_pair_writes_a_tags_line(spawn, run_dir: Path) -> None:
             assert [g["id"] for g in got] == [TAGGED[seq]]
         else:
             assert got == [{"timestamp": got[0]["timestamp"], "seq": seq, "corners": [],
-                            "calib": calib, "v": 1}]
+                            "calib": calib, "v": 2}]

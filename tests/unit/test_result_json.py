@@ -18,22 +18,36 @@ GOLDEN = [
     (messages.MonoIR(detections=[messages.Detection(label="crab", confidence=0.71234,
                                                     box=(5.43, 7.81, 15.6, 18.14))]),
      '{"mono_ir":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"label":"crab",'
-     '"confidence":0.712,"box":[5.4,7.8,15.6,18.1],"v":1}}'),
+     '"confidence":0.712,"box":[5.4,7.8,15.6,18.1],"v":2}}'),
+    # Measured on the stereo pair: metres to the millimetre, the method named.
+    (messages.MonoIR(detections=[messages.Detection(
+        label="crab", confidence=0.9, box=(5.0, 7.0, 15.0, 18.0), range_m=1.23456,
+        range_sd_m=0.01234, xyz=(0.1, -0.2, 1.2), disparity_px=97.6543, length_m=0.2004,
+        length_sd_m=0.0081, length_method="endpoints")]),
+     '{"mono_ir":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"label":"crab",'
+     '"confidence":0.9,"box":[5.0,7.0,15.0,18.0],"range_m":1.235,"range_sd_m":0.012,'
+     '"length_m":0.2,"length_sd_m":0.008,"xyz":[0.1,-0.2,1.2],"disparity_px":97.65,'
+     '"length_method":"endpoints","v":2}}'),
+    # Not measured: no numbers, the reason instead.
+    (messages.MonoIR(detections=[messages.Detection(
+        label="crab", confidence=0.9, box=(5.0, 7.0, 15.0, 18.0), unmeasured="out_of_view")]),
+     '{"mono_ir":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"label":"crab",'
+     '"confidence":0.9,"box":[5.0,7.0,15.0,18.0],"unmeasured":"out_of_view","v":2}}'),
     (messages.MonoIR(),
      '{"mono_ir":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"label":"none",'
-     '"confidence":0.0,"box":[],"v":1}}'),
+     '"confidence":0.0,"box":[],"v":2}}'),
     (messages.StereoIR(label="scallop", confidence=0.9),
      '{"stereo_ir":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"label":"scallop",'
-     '"confidence":0.9,"v":1}}'),
+     '"confidence":0.9,"v":2}}'),
     (messages.StereoVO(ok=True, rotation=(1, 0, 0, 0, 1, 0, 0, 0, 1), translation=(0.1, 0, 0.25),
                        inliers=120),
      '{"stereo_vo":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"ok":true,"inliers":120,'
-     '"Rt":[[1.0,0.0,0.0,0.1],[0.0,1.0,0.0,0.0],[0.0,0.0,1.0,0.25]],"v":1}}'),
+     '"Rt":[[1.0,0.0,0.0,0.1],[0.0,1.0,0.0,0.0],[0.0,0.0,1.0,0.25]],"v":2}}'),
     (messages.StereoVO(ok=False, reinit=True),
      '{"stereo_vo":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"ok":false,"inliers":0,'
-     '"reinit":true,"v":1}}'),
+     '"reinit":true,"v":2}}'),
     (messages.Extra(name="brightness", fields={"mean": 0.123456, "n": 3}),
-     '{"brightness":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"mean":0.123,"n":3,"v":1}}'),
+     '{"brightness":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"mean":0.123,"n":3,"v":2}}'),
 ]
 
 
@@ -91,7 +105,7 @@ def test_a_pair_without_tags_writes_one_line() -> None:
     """Regression (issue 12): a pair the tags pool processed and found no tag in wrote no line,
     so "processed, nothing found" could not be told from "not processed"."""
     out = [dumps(o).decode() for o in normalize(builders.result(messages.Tags(), t_wall_ns=T))]
-    assert out == ['{"tags":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"corners":[],"v":1}}']
+    assert out == ['{"tags":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"corners":[],"v":2}}']
 
 
 def test_stereo_results_carry_the_rig_id() -> None:

@@ -300,13 +300,14 @@ def _add_commands() -> None:
     from trapflow.cli import dataset as cli_dataset
     from trapflow.cli import export as cli_export
     from trapflow.cli import modem as cli_modem
+    from trapflow.cli import observe as cli_observe
     from trapflow.cli import remote as cli_remote
     from trapflow.cli import sources as cli_sources
     from trapflow.cli.batch import process
 
     for cmd in (*cli_modem.COMMANDS, process, cli_sources.calibrate, cli_sources.record,
                 cli_sources.replay, cli_sources.recover, cli_dataset.dataset,
-                *cli_export.COMMANDS, *cli_remote.COMMANDS):
+                *cli_export.COMMANDS, *cli_remote.COMMANDS, *cli_observe.COMMANDS):
         main.add_command(cmd)
 
 

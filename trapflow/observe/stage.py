@@ -9,10 +9,12 @@ prediction is a few tens of ms off, well inside the IoU gate), not dropped.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import msgspec
+import numpy as np
 
 from trapflow.config.schema import ObserveConfig
 from trapflow.observe.counts import Counter, IntervalCounts
@@ -28,7 +30,50 @@ def tracker_config(cfg: ObserveConfig) -> TrackerConfig:
                          min_hits=cfg.min_hits, max_gap_s=cfg.max_gap_s)
 
 
-def track_record(end: TrackEnd) -> dict[str, Any]:
+# Fewest measured views for a track's speed (a line through fewer is mostly noise).
+MIN_SPEED_VIEWS = 4
+
+
+@dataclass(frozen=True)
+class View:
+    """One stereo measurement of a tracked animal."""
+
+    t_s: float
+    xyz: tuple[float, float, float]
+    length_m: float | None
+    length_sd_m: float | None
+
+
+def aggregate(views: list[View]) -> dict[str, Any]:
+    """A track's measurements: its length (median of the sharpest half of its views, their
+    spread, how many), range and Camtrap DP position at first sighting, and its speed (a
+    straight line fitted to its 3-D positions over time; the rig's own motion is not removed)."""
+    if not views:
+        return {}
+    first = views[0]
+    x, y, z = first.xyz
+    out: dict[str, Any] = {
+        "range_m": round(math.sqrt(x * x + y * y + z * z), 3),
+        # Camtrap DP: distance and angle from the camera's axis at first sighting (degrees,
+        # positive to the right of the axis).
+        "position_radius_m": round(math.hypot(x, z), 3),
+        "position_angle_deg": round(math.degrees(math.atan2(x, z)), 1),
+    }
+    lengths = sorted((v.length_sd_m or 0.0, v.length_m) for v in views if v.length_m)
+    if lengths:
+        best = [length for _, length in lengths[: max(1, (len(lengths) + 1) // 2)]]
+        out["length_m"] = round(float(np.median(best)), 3)
+        out["length_spread_m"] = round(float(np.std(best)), 3)
+        out["length_views"] = len(best)
+    if len(views) >= MIN_SPEED_VIEWS and views[-1].t_s > views[0].t_s:
+        t = np.array([v.t_s - first.t_s for v in views])
+        pos = np.array([v.xyz for v in views])
+        slope = np.polyfit(t, pos, 1)[0]  # m/s along x, y, z
+        out["speed_m_s"] = round(float(np.linalg.norm(slope)), 3)
+    return out
+
+
+def track_record(end: TrackEnd, views: list[View] | None = None) -> dict[str, Any]:
     """A finished track as one tracks.jsonl object (times in UTC seconds, 3 decimals)."""
     out: dict[str, Any] = msgspec.to_builtins(end)
     for key in ("first_s", "last_s", "label_share", "best_confidence"):
@@ -36,12 +81,17 @@ def track_record(end: TrackEnd) -> dict[str, Any]:
     out["duration_s"] = round(end.last_s - end.first_s, 3)
     out["best_box"] = [round(v, 1) for v in end.best_box]
     out["path"] = [[round(t, 3), round(x, 1), round(y, 1)] for t, x, y in end.path]
+    out.update(aggregate(views or []))
     return {"track": out}
 
 
 def count_record(counts: IntervalCounts) -> dict[str, Any]:
     """A closed interval as one counts.jsonl object."""
-    return {"counts": msgspec.to_builtins(counts)}
+    out: dict[str, Any] = msgspec.to_builtins(counts)
+    out["start_s"], out["end_s"] = round(counts.start_s, 3), round(counts.end_s, 3)
+    for label in out["labels"]:
+        label["dwell_s"] = round(label["dwell_s"], 3)
+    return {"counts": out}
 
 
 @dataclass
@@ -58,6 +108,7 @@ class Observer:
     def __init__(self, cfg: ObserveConfig) -> None:
         self.tracker = Tracker(tracker_config(cfg))
         self.counter = Counter(cfg.interval_s)
+        self.views: dict[int, list[View]] = {}  # stereo measurements of live tracks
         self.t_s: float | None = None  # newest capture time fed
         self.late = 0  # results tracked at a newer capture time than their own
 
@@ -76,10 +127,17 @@ class Observer:
         upd = self.tracker.update(t_s, dets)
         for it, tid in zip(boxed, upd.track_ids, strict=True):
             it["track"] = tid
+            if "v" in it:  # the shape's version stays the line's last key
+                it["v"] = it.pop("v")
+            if tid is not None and "xyz" in it:
+                self.views.setdefault(tid, []).append(View(
+                    t_s, tuple(it["xyz"]), it.get("length_m"), it.get("length_sd_m")))
         self.counter.ended(upd.ended)
         closed = self.counter.observe(t_s, upd.seen)
-        return Observations([track_record(e) for e in upd.ended],
-                            [count_record(c) for c in closed])
+        return Observations(self._records(upd.ended), [count_record(c) for c in closed])
+
+    def _records(self, ended: tuple[TrackEnd, ...]) -> list[dict[str, Any]]:
+        return [track_record(e, self.views.pop(e.id, None)) for e in ended]
 
     def finish(self) -> Observations:
         """At the end of a run: every track still alive ends, the open interval closes."""
@@ -87,5 +145,5 @@ class Observer:
             return Observations()
         ended = self.tracker.flush(self.t_s)
         self.counter.ended(ended)
-        return Observations([track_record(e) for e in ended],
+        return Observations(self._records(ended),
                             [count_record(c) for c in self.counter.flush(self.t_s)])

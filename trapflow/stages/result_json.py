@@ -1,7 +1,7 @@
 """Results -> compact JSON objects, the wire contract of the modem and results.jsonl.
 
 Shape: {"mono_ir": {"timestamp": "2025-07-07 12:52:43.120", "seq": 17, "label": "crab",
-"confidence": 0.71, "box": [5.4, 7.8, 15.6, 18.1], "v": 1}} -- numbers as numbers, UTC times.
+"confidence": 0.71, "box": [5.4, 7.8, 15.6, 18.1], "v": 2}} -- numbers as numbers, UTC times.
 Every line ends with `v`, the version of this shape (SCHEMA_VERSION: raised when a key
 changes meaning or goes; a new key does not raise it); lines of ONNX-based pools also carry
 `model`, the short hash of the model file that produced them.
@@ -19,7 +19,10 @@ import msgspec
 from trapflow.wire import messages
 
 _json = msgspec.json.Encoder()
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+"""2: detection lines carry `track` (their track's id, null until confirmed) and, where the
+stereo pair measured them, range_m, range_sd_m, xyz, disparity_px, length_m, length_sd_m,
+length_method, or `unmeasured` with the reason."""
 
 CONFIDENCE_DIGITS = 3
 """Scores: 1e-3 is finer than any threshold a user sets."""
@@ -31,6 +34,8 @@ decimals the composed pose of a short run strayed 4e-5 from the worker's own and
 a rotation; at 1e-9 it stays within 1e-6 of it for a thousand steps and more."""
 ERROR_DIGITS = 3
 """A tag's reprojection error in pixels."""
+METRE_DIGITS = 3
+"""Ranges, positions and lengths of animals: 1 mm, finer than any stereo rig here measures."""
 
 
 def timestamp(t_wall_ns: int) -> str:
@@ -77,7 +82,7 @@ def _items(res: messages.Result, decimals: int) -> list[dict[str, Any]]:
             return [{"mono_ir": {**base, "label": "none", "confidence": 0.0, "box": []}}]
         return [
             {"mono_ir": {**base, "label": d.label, "confidence": _r(d.confidence, cd),
-                         "box": [_r(v, PIXEL_DIGITS) for v in d.box]}}
+                         "box": [_r(v, PIXEL_DIGITS) for v in d.box], **_measured(d)}}
             for d in b.detections
         ]
     if isinstance(b, messages.StereoIR):
@@ -107,6 +112,24 @@ def _items(res: messages.Result, decimals: int) -> list[dict[str, Any]]:
         fields = {k: (_r(v, nd) if isinstance(v, float) else v) for k, v in b.fields.items()}
         return [{b.name: {**base, **fields}}]
     raise TypeError(f"unknown result body {type(b).__name__}")
+
+
+def _measured(d: messages.Detection) -> dict[str, Any]:
+    """A detection's stereo measurement keys (millimetres kept), or its reason code."""
+    if d.range_m is None:
+        return {"unmeasured": d.unmeasured} if d.unmeasured else {}
+    out: dict[str, Any] = {"range_m": _r(d.range_m, METRE_DIGITS)}
+    for key in ("range_sd_m", "length_m", "length_sd_m"):
+        value = getattr(d, key)
+        if value is not None:
+            out[key] = _r(value, METRE_DIGITS)
+    if d.xyz is not None:
+        out["xyz"] = [_r(v, METRE_DIGITS) for v in d.xyz]
+    if d.disparity_px is not None:
+        out["disparity_px"] = _r(d.disparity_px, 2)
+    if d.length_method:
+        out["length_method"] = d.length_method
+    return out
 
 
 def dumps(obj: dict[str, Any]) -> bytes:

@@ -56,11 +56,21 @@ class Job(Msg, frozen=True, tag="job"):
 
 
 class Detection(Msg, frozen=True):
-    """One detected object: label, confidence and box x1, y1, x2, y2 in pixels."""
+    """One detected object: label, confidence and box x1, y1, x2, y2 in pixels; where the
+    stereo pair measured it, its range, position and length with their uncertainties (all
+    metres, left camera frame), else why not (`unmeasured`, a reason code)."""
 
     label: str
     confidence: float
     box: tuple[float, float, float, float]
+    range_m: float | None = None
+    range_sd_m: float | None = None
+    xyz: tuple[float, float, float] | None = None
+    disparity_px: float | None = None
+    length_m: float | None = None
+    length_sd_m: float | None = None
+    length_method: str = ""  # "endpoints" (two ends along the major axis) or "box"
+    unmeasured: str = ""  # out_of_view, textureless, ambiguous, low_score, bad_box, ...
 
 
 class MonoIR(Msg, frozen=True, tag="mono_ir"):

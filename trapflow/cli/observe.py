@@ -1,0 +1,35 @@
+"""`trapflow track`: link detections from any detector into tracks, in MOTChallenge files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from trapflow.cli.exit import bad_input
+from trapflow.config.schema import ObserveConfig
+from trapflow.errors import TrapflowError
+from trapflow.observe.motformat import track_file
+from trapflow.observe.stage import tracker_config
+
+
+@click.command("track")
+@click.argument("detections", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("-o", "--out", "out", required=True,
+              type=click.Path(dir_okay=False, writable=True, path_type=Path),
+              help="Tracks in MOTChallenge format (frame,id,x,y,w,h,conf,...).")
+@click.option("--fps", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Frame rate of the sequence (default: seqinfo.ini beside the file).")
+def track(detections: Path, out: Path, fps: float | None) -> None:
+    """Track DETECTIONS (MOTChallenge `frame,-1,x,y,w,h,conf[,class]`) into tracks with
+    ids, with the tracker of a live run (observe defaults)."""
+    try:
+        summary = track_file(detections, out, fps, tracker_config(ObserveConfig()))
+    except TrapflowError as exc:
+        raise bad_input(exc) from None
+    click.echo(f"{summary.detections} detections in {summary.frames} frames at "
+               f"{summary.fps:g} fps: {summary.tracks} tracks, {summary.tracked} detections "
+               f"tracked -> {out}")
+
+
+COMMANDS = (track,)

@@ -93,6 +93,7 @@ class MotionDetector:
     def __init__(self, cfg: MotionConfig | None = None) -> None:
         self.cfg = cfg or MotionConfig()
         self._kernel = np.ones((2, 2), np.uint8)
+        self._ring = np.ones((3, 3), np.uint8)
         self.reset()
 
     def reset(self) -> None:
@@ -151,13 +152,15 @@ class MotionDetector:
         d = cv2.absdiff(g, bg)
         thr = np.maximum(cv2.sqrt(var) * np.float32(c.k_sigma), np.float32(c.min_diff))
         fg: np.ndarray = (d > thr).astype(np.uint8)
-        still = (1 - fg) if not warming else np.ones_like(fg)
+        # Pixels next to a moving blob are partly covered by it: learning them (the variance
+        # most of all) raised the threshold where the animal goes next and split its blob.
+        still = (1 - cv2.dilate(fg, self._ring)) if not warming else np.ones_like(fg)
         # While warming the rate falls as 1/n: the first background is a plain mean.
         a = max(c.alpha, 1.0 / self._n) if warming else c.alpha
         cv2.accumulateWeighted(g, bg, a, mask=still)
         cv2.accumulateWeighted(cv2.multiply(d, d), var, a, mask=still)
         if not warming:
-            cv2.accumulateWeighted(g, bg, c.alpha_moving, mask=fg)
+            cv2.accumulateWeighted(g, bg, c.alpha_moving, mask=1 - still)
         return fg
 
     def _opencv(self, g: np.ndarray, warming: bool) -> np.ndarray:

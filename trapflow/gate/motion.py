@@ -102,6 +102,7 @@ class MotionDetector:
         self._bg: np.ndarray | None = None
         self._var: np.ndarray | None = None
         self._sub: Any = None
+        self._prev: np.ndarray | None = None
 
     def update(self, image: np.ndarray) -> MotionResult:
         """One pair's left image (BGR or grey, any size): what moved against the background."""
@@ -109,12 +110,17 @@ class MotionDetector:
         warming = self._n < self.cfg.warmup
         self._n += 1
         fg = self._foreground(small, warming)
-        if warming:
+        prev, self._prev = self._prev, small
+        if warming or prev is None:
             return MotionResult(False, 0.0, warming=True)
         if cv2.countNonZero(fg) > self.cfg.max_cover * fg.size:
             self._relearn(small)
             return MotionResult(False, 0.0, relearnt=True)
-        return self._regions(fg, image.shape[1], image.shape[0])
+        # Only a blob that also changed since the last pair moves: the ghost an animal leaves
+        # where it stood (and an animal standing still) is no motion; keep-alive and tracks
+        # see still animals. On the default world this halved the empty pairs called motion.
+        changed = (cv2.absdiff(small, prev) > self.cfg.min_diff).astype(np.uint8)
+        return self._regions(fg, changed, image.shape[1], image.shape[0])
 
     def small(self, image: np.ndarray) -> np.ndarray:
         """The small grey image, float32, scaled to a median of NORM_MEDIAN."""
@@ -152,15 +158,16 @@ class MotionDetector:
         d = cv2.absdiff(g, bg)
         thr = np.maximum(cv2.sqrt(var) * np.float32(c.k_sigma), np.float32(c.min_diff))
         fg: np.ndarray = (d > thr).astype(np.uint8)
-        # Pixels next to a moving blob are partly covered by it: learning them (the variance
-        # most of all) raised the threshold where the animal goes next and split its blob.
-        still = (1 - cv2.dilate(fg, self._ring)) if not warming else np.ones_like(fg)
+        # Pixels next to a moving blob are partly covered by it: learning their variance
+        # raised the threshold where the animal went next and split its blob in two.
+        still = (1 - fg) if not warming else np.ones_like(fg)
+        quiet = (1 - cv2.dilate(fg, self._ring)) if not warming else still
         # While warming the rate falls as 1/n: the first background is a plain mean.
         a = max(c.alpha, 1.0 / self._n) if warming else c.alpha
         cv2.accumulateWeighted(g, bg, a, mask=still)
-        cv2.accumulateWeighted(cv2.multiply(d, d), var, a, mask=still)
+        cv2.accumulateWeighted(cv2.multiply(d, d), var, a, mask=quiet)
         if not warming:
-            cv2.accumulateWeighted(g, bg, c.alpha_moving, mask=1 - still)
+            cv2.accumulateWeighted(g, bg, c.alpha_moving, mask=fg)
         return fg
 
     def _opencv(self, g: np.ndarray, warming: bool) -> np.ndarray:
@@ -190,12 +197,17 @@ class MotionDetector:
 
     # --- regions ------------------------------------------------------------------
 
-    def _regions(self, fg: np.ndarray, width: int, height: int) -> MotionResult:
+    def _regions(self, fg: np.ndarray, changed: np.ndarray, width: int, height: int
+                 ) -> MotionResult:
         c = self.cfg
         opened = cv2.morphologyEx(fg, cv2.MORPH_OPEN, self._kernel)
-        n, _labels, stats, _ = cv2.connectedComponentsWithStats(opened, connectivity=8)
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(opened, connectivity=8)
+        if n <= 1:
+            return MotionResult(False, 0.0)
+        moving = set(np.unique(labels[changed > 0]).tolist())
         sx, sy = width / c.width, height / c.height
-        keep = [stats[i] for i in range(1, n) if stats[i][cv2.CC_STAT_AREA] >= c.min_area]
+        keep = [stats[i] for i in range(1, n)
+                if stats[i][cv2.CC_STAT_AREA] >= c.min_area and i in moving]
         if not keep:
             return MotionResult(False, 0.0)
         keep.sort(key=lambda s: -int(s[cv2.CC_STAT_AREA]))

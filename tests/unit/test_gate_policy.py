@@ -1,0 +1,185 @@
+"""The gate's decision core: which pairs a gated pool gets, which are gated, and when."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import pytest
+
+from trapflow.gate.policy import (
+    Action,
+    DutyConfig,
+    Feed,
+    GateConfig,
+    Gated,
+    GateState,
+    Keep,
+    Notice,
+    Rate,
+    Relearn,
+)
+
+HZ = 10.0
+# An event: ("pair", seq, moved) at seq / HZ, ("alive" | "ended", track, t), ("rig", moving,
+# t), ("tick", t).
+Event = tuple[object, ...]
+
+
+def still(first: int, last: int) -> list[Event]:
+    """Pairs first..last (inclusive) in which nothing moved."""
+    return [("pair", s, False) for s in range(first, last + 1)]
+
+
+def moved(*seqs: int) -> list[Event]:
+    return [("pair", s, True) for s in seqs]
+
+
+def play(gate: GateState, events: Iterable[Event]) -> list[Action]:
+    out: list[Action] = []
+    for ev in events:
+        kind = ev[0]
+        if kind == "pair":
+            seq, motion = int(ev[1]), bool(ev[2])  # type: ignore[call-overload]
+            out += gate.pair(seq, motion, 0.05 if motion else 0.0, seq / HZ)
+        elif kind == "alive":
+            out += gate.track_alive(int(ev[1]), float(ev[2]))  # type: ignore[call-overload,arg-type]
+        elif kind == "ended":
+            out += gate.track_ended(int(ev[1]), float(ev[2]))  # type: ignore[call-overload,arg-type]
+        elif kind == "rig":
+            out += gate.set_rig_moving(bool(ev[1]), float(ev[2]))  # type: ignore[arg-type]
+        elif kind == "tick":
+            out += gate.tick(float(ev[1]))  # type: ignore[arg-type]
+        else:
+            raise TypeError(f"unknown event {ev!r}")
+    return out
+
+
+def fed(actions: Iterable[Action]) -> list[tuple[int, str]]:
+    return [(a.seq, a.reason.value) for a in actions if isinstance(a, Feed)]
+
+
+def gated(actions: Iterable[Action]) -> list[int]:
+    return [a.seq for a in actions if isinstance(a, Gated)]
+
+
+CFG = GateConfig(pre_roll=3, keepalive_s=5.0, hold_s=2.0)
+
+
+@pytest.mark.parametrize(("cfg", "events", "want_fed", "want_gated"), [
+    # The first pair is fed (keep-alive): an animal in view from the start is seen.
+    (CFG, still(0, 0), [(0, "keepalive")], []),
+    # Still scene: one keep-alive pair every 5 s, the rest gated once 3 newer pairs came.
+    (CFG, still(0, 119), [(0, "keepalive"), (50, "keepalive"), (100, "keepalive")],
+     [s for s in range(1, 117) if s not in (50, 100)]),
+    # Motion begins at 10: the 3 pairs before it come first, in order (pre-roll).
+    (CFG, still(0, 9) + moved(10), [(0, "keepalive"), (7, "pre_roll"), (8, "pre_roll"),
+                                    (9, "pre_roll"), (10, "motion")], [1, 2, 3, 4, 5, 6]),
+    # A keep-alive in between: pre-roll still gives the last 3 withheld pairs, in order.
+    (CFG, still(0, 50) + moved(51),
+     [(0, "keepalive"), (50, "keepalive"), (47, "pre_roll"), (48, "pre_roll"),
+      (49, "pre_roll"), (51, "motion")], [s for s in range(1, 47)]),
+    # Hold: 2 s after the last motion (t = 0.0) every pair goes on, then the gate closes.
+    (CFG, moved(0) + still(1, 24), [(0, "motion")] + [(s, "hold") for s in range(1, 21)],
+     [21]),
+    # Keep-alive counts from the last pair fed, whatever its reason (hold ended at 2.0 s).
+    (CFG, moved(0) + still(1, 75), [(0, "motion")] + [(s, "hold") for s in range(1, 21)]
+     + [(70, "keepalive")], [s for s in range(21, 73) if s != 70]),
+    # A live track holds the gate open; when it ends, the gate closes at once (5 withheld
+    # pairs, the newest 3 kept as pre-roll).
+    (CFG, [("alive", 7, 0.0)] + still(0, 9) + [("ended", 7, 0.95)] + still(10, 14),
+     [(s, "track") for s in range(10)], [10, 11]),
+    # A track whose end was lost expires after its TTL (10 s), by tick.
+    (CFG, [("alive", 7, 0.0)] + still(0, 99) + [("tick", 10.5)] + still(105, 109),
+     [(s, "track") for s in range(100)], [105, 106]),
+    # No pre-roll: a withheld pair is gated at once.
+    (GateConfig(pre_roll=0), still(0, 3), [(0, "keepalive")], [1, 2, 3]),
+    # A score under min_score is not motion.
+    (GateConfig(pre_roll=0, min_score=0.1), moved(0, 1, 2), [(0, "keepalive")], [1, 2]),
+    # Rig moving: the gate is off and feeds everything; kept pre-roll pairs are gated.
+    (CFG, still(0, 2) + [("rig", True, 0.25)] + still(3, 5),
+     [(0, "keepalive"), (3, "off"), (4, "off"), (5, "off")], [1, 2]),
+    # Rig still again: a hold of hold_s while the background is learnt afresh, then gated.
+    (CFG, [("rig", True, 0.0)] + still(0, 1) + [("rig", False, 0.15)] + still(2, 26),
+     [(0, "off"), (1, "off")] + [(s, "hold") for s in range(2, 22)], [22, 23]),
+])
+def test_feeds_and_gates(cfg: GateConfig, events: list[Event], want_fed: list[tuple[int, str]],
+                         want_gated: list[int]) -> None:
+    actions = play(GateState({"mono": cfg}), events)
+    assert fed(actions) == want_fed
+    assert gated(actions) == want_gated
+
+
+def test_pre_roll_comes_before_the_pair_that_moved() -> None:
+    actions = play(GateState({"mono": CFG}), still(0, 2) + moved(3))
+    assert actions[-3:] == [Feed("mono", 1, actions[-3].reason),  # type: ignore[union-attr]
+                            Feed("mono", 2, actions[-2].reason),  # type: ignore[union-attr]
+                            Feed("mono", 3, actions[-1].reason)]  # type: ignore[union-attr]
+    assert [a.reason.value for a in actions[-3:]] == ["pre_roll", "pre_roll", "motion"]  # type: ignore[union-attr]
+
+
+def test_every_pair_ends_in_one_feed_or_one_gated() -> None:
+    """The ledger adds up per pool: fed + gated + kept = pairs, with two pools' own rules."""
+    gate = GateState({"mono": CFG, "stereo": GateConfig(pre_roll=1, keepalive_s=20.0,
+                                                        hold_s=0.5)})
+    events = still(0, 80) + moved(81, 82) + still(83, 200) + [("alive", 1, 15.0)] + \
+        still(201, 260) + moved(261) + still(262, 300)
+    actions = play(gate, events)
+    actions += gate.finish()
+    for pool in ("mono", "stereo"):
+        seqs = [a.seq for a in actions if isinstance(a, Feed | Gated) and a.pool == pool]
+        assert sorted(seqs) == list(range(301)), pool
+        counts = gate.counts()[pool]
+        assert sum(counts.fed.values()) + counts.gated == 301
+        assert counts.kept == 0
+        kept = {a.seq for a in actions if isinstance(a, Keep) and a.pool == pool}
+        assert kept <= set(seqs)
+
+
+def test_rig_moving_says_so_once() -> None:
+    gate = GateState({"mono": CFG})
+    actions = play(gate, [("rig", True, 0.0)] + still(0, 30) + [("rig", True, 3.5)])
+    assert [a for a in actions if isinstance(a, Notice)] == \
+        [Notice("motion gate off: the rig moves, every pair is fed")]
+    back = play(gate, [("rig", False, 4.0)])
+    assert Relearn() in back and sum(isinstance(a, Notice) for a in back) == 1
+
+
+@pytest.mark.parametrize(("duty", "events", "want"), [
+    # Off by default: never a rate change.
+    (DutyConfig(), still(0, 200), []),
+    # Idle rate after 5 s without motion (the start counts as motion).
+    (DutyConfig(idle_after_s=5.0), still(0, 60), [(50, Rate(2.0))]),
+    # Motion brings the full rate back on that very pair, before its feeds.
+    (DutyConfig(idle_after_s=5.0), still(0, 60) + moved(61), [(50, Rate(2.0)),
+                                                               (61, Rate(None))]),
+    # A live track keeps the full rate.
+    (DutyConfig(idle_after_s=5.0), [("alive", 3, 0.0)] + still(0, 60), []),
+])
+def test_duty_cycling(duty: DutyConfig, events: list[Event], want: list[tuple[int, Rate]]
+                      ) -> None:
+    gate = GateState({"mono": CFG}, duty)
+    got = []
+    for ev in events:
+        for a in play(gate, [ev]):
+            if isinstance(a, Rate):
+                got.append((ev[1], a))
+    assert got == want
+
+
+def test_full_rate_comes_before_the_feeds_of_the_pair_that_moved() -> None:
+    gate = GateState({"mono": CFG}, DutyConfig(idle_after_s=1.0))
+    play(gate, still(0, 20))
+    assert gate.idle
+    actions = play(gate, moved(21))
+    assert actions[0] == Rate(None) and isinstance(actions[-1], Feed)
+
+
+@pytest.mark.parametrize(("kwargs", "error"), [
+    ({"pre_roll": -1}, "pre_roll: expected 0..100 pairs, got -1"),  # negative
+    ({"keepalive_s": 0.0}, "keepalive_s: expected > 0 s, got 0.0"),  # a keep-alive is a must
+    ({"hold_s": -1.0}, "hold_s: expected >= 0 s, got -1.0"),  # negative
+    ({"min_score": 1.0}, "min_score: expected 0 <= score < 1, got 1.0"),  # nothing passes
+])
+def test_config_rejects(kwargs: dict[str, float], error: str) -> None:
+    with pytest.raises(ValueError, match=error.replace("(", r"\(")):
+        GateConfig(**kwargs)  # type: ignore[arg-type]

@@ -1,0 +1,280 @@
+"""The gate's decisions, pure: events in (pair seen with its motion result, track alive or
+ended, rig moving, tick), actions out (feed, keep for pre-roll, gated, rate, notice).
+No sockets, no clocks: callers pass `now` in seconds (monotonic).
+
+Per gated pool a pair is fed when it moved, while the hold lasts after motion (hold_s), while
+any track is alive, or as the keep-alive (one pair every keepalive_s); otherwise it is kept
+as pre-roll (the last `pre_roll` withheld pairs, fed in order when motion begins) and, once
+older pairs push it out, gated for good. Every pair of a pool ends in exactly one Feed or
+one Gated. A moving rig turns the gate off (everything fed) until it is still again.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+# A track not said alive again for this long is taken as ended (its end was lost).
+TRACK_TTL_S = 10.0
+
+
+class Reason(enum.Enum):
+    """Why a pair was fed to a gated pool."""
+
+    MOTION = "motion"
+    PRE_ROLL = "pre_roll"
+    HOLD = "hold"
+    TRACK = "track"
+    KEEPALIVE = "keepalive"
+    OFF = "off"  # the gate is off: the rig moves
+
+
+@dataclass(frozen=True)
+class GateConfig:
+    """One gated pool's rules."""
+
+    pre_roll: int = 5
+    """Withheld pairs kept (in the frame ring) and fed in order when motion begins: 0.5 s
+    at 10 pairs/s, what an animal crossing the frame edge needs before it is seen moving."""
+    keepalive_s: float = 5.0
+    """One pair at least this often without motion: a still animal in view is still seen."""
+    hold_s: float = 3.0
+    """Pairs keep going for this long after the last motion (an animal pausing mid-walk)."""
+    min_score: float = 0.0
+    """A motion result counts only with at least this score (share of the image moving)."""
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.pre_roll <= 100:
+            raise ValueError(f"gate pre_roll: expected 0..100 pairs, got {self.pre_roll}")
+        if not self.keepalive_s > 0:
+            raise ValueError(f"gate keepalive_s: expected > 0 s, got {self.keepalive_s}")
+        if not self.hold_s >= 0:
+            raise ValueError(f"gate hold_s: expected >= 0 s, got {self.hold_s}")
+        if not 0 <= self.min_score < 1:
+            raise ValueError(f"gate min_score: expected 0 <= score < 1, got {self.min_score}")
+
+
+@dataclass(frozen=True)
+class DutyConfig:
+    """Duty cycling of capture, opt-in: an idle rate after a while without motion."""
+
+    idle_after_s: float = 0.0
+    """Seconds without motion (and no track alive) before the idle rate; 0: never."""
+    idle_rate_hz: float = 2.0
+    """Capture rate while idle; the first pair that moves brings the full rate back."""
+
+    def __post_init__(self) -> None:
+        if not self.idle_after_s >= 0:
+            raise ValueError(f"duty idle_after_s: expected >= 0 s, got {self.idle_after_s}")
+        if not 0 < self.idle_rate_hz <= 240:
+            raise ValueError(f"duty idle_rate_hz: expected 0 < rate <= 240, "
+                             f"got {self.idle_rate_hz}")
+
+
+@dataclass(frozen=True)
+class Feed:
+    """Give pair `seq` to `pool` (queue it under the pool's policy)."""
+
+    pool: str
+    seq: int
+    reason: Reason
+
+
+@dataclass(frozen=True)
+class Keep:
+    """Withhold pair `seq` from `pool` for now, but keep it: it may be fed as pre-roll."""
+
+    pool: str
+    seq: int
+
+
+@dataclass(frozen=True)
+class Gated:
+    """`pool` will never get pair `seq`: count it gated and drop the pool's hold on it."""
+
+    pool: str
+    seq: int
+
+
+@dataclass(frozen=True)
+class Rate:
+    """Capture at `hz` (duty cycling), or at the configured full rate when hz is None."""
+
+    hz: float | None
+
+
+@dataclass(frozen=True)
+class Relearn:
+    """Start the motion background afresh (the rig stopped moving)."""
+
+
+@dataclass(frozen=True)
+class Notice:
+    """One INFO line for the log: the gate changed how it works."""
+
+    text: str
+
+
+Action = Feed | Keep | Gated | Rate | Relearn | Notice
+
+
+@dataclass(frozen=True)
+class GateCounts:
+    """One gated pool's counters: pairs fed by reason, gated, kept for pre-roll now."""
+
+    fed: dict[str, int]
+    gated: int
+    kept: int
+
+
+@dataclass
+class _Pool:
+    name: str
+    cfg: GateConfig
+    kept: deque[int] = field(default_factory=deque)
+    last_fed: float | None = None
+    last_motion: float | None = None
+    fed: dict[Reason, int] = field(default_factory=dict)
+    gated: int = 0
+
+
+class GateState:
+    """Feed-or-withhold for every gated pool of one pipeline, and the capture rate."""
+
+    def __init__(self, pools: Mapping[str, GateConfig], duty: DutyConfig | None = None,
+                 track_ttl_s: float = TRACK_TTL_S) -> None:
+        self._pools = {n: _Pool(n, c) for n, c in pools.items()}
+        self.duty = duty or DutyConfig()
+        self._track_ttl = track_ttl_s
+        self._tracks: dict[int, float] = {}  # track id -> when last said alive
+        self.rig_moving = False
+        self.idle = False
+        self._last_motion: float | None = None  # any motion, for duty cycling
+
+    # --- events -------------------------------------------------------------------
+
+    def pair(self, seq: int, motion: bool, score: float, now: float) -> list[Action]:
+        """Pair `seq` was seen (motion result of its left image): a Feed, Keep or Gated per
+        pool, pre-roll Feeds (older seqs, in order) before the Feed of a pair that moved."""
+        actions: list[Action] = []
+        if self._last_motion is None or motion:
+            self._last_motion = now  # the run's start counts as motion: no idle at once
+        if motion and self.idle:
+            self.idle = False
+            actions.append(Rate(None))  # the next pair comes at the full rate
+        tracking = self._tracking(now)
+        for pool in self._pools.values():
+            actions.extend(self._decide(pool, seq, motion, score, tracking, now))
+        actions.extend(self._duty(now))
+        return actions
+
+    def track_alive(self, track_id: int, now: float) -> list[Action]:
+        """A recogniser's track is alive (say so again at least every track_ttl_s)."""
+        self._tracks[track_id] = now
+        return []
+
+    def track_ended(self, track_id: int, now: float) -> list[Action]:
+        """A track ended: the hold it gave ends with it (the pools' own hold_s still runs)."""
+        self._tracks.pop(track_id, None)
+        return []
+
+    def set_rig_moving(self, moving: bool, now: float) -> list[Action]:
+        """Visual odometry says whether the rig moves. A moving rig changes every pixel, so
+        the gate turns itself off (one Notice) and on again when the rig is still."""
+        if moving == self.rig_moving:
+            return []
+        self.rig_moving = moving
+        actions: list[Action] = []
+        if moving:
+            actions.append(Notice("motion gate off: the rig moves, every pair is fed"))
+            for pool in self._pools.values():
+                actions.extend(self._gate_kept(pool))
+            if self.idle:
+                self.idle = False
+                actions.append(Rate(None))
+        else:
+            actions.append(Notice("motion gate on: the rig is still"))
+            actions.append(Relearn())
+            for pool in self._pools.values():
+                pool.last_motion = now  # hold while the new background is learnt
+        return actions
+
+    def tick(self, now: float) -> list[Action]:
+        """Forget tracks not said alive for track_ttl_s; the duty-cycle rate."""
+        for tid in [t for t, seen in self._tracks.items() if now - seen > self._track_ttl]:
+            del self._tracks[tid]
+        return self._duty(now)
+
+    def finish(self) -> list[Action]:
+        """The run ends: what is kept for pre-roll is gated."""
+        actions: list[Action] = []
+        for pool in self._pools.values():
+            actions.extend(self._gate_kept(pool))
+        return actions
+
+    # --- queries ------------------------------------------------------------------
+
+    def counts(self) -> dict[str, GateCounts]:
+        """Counters of every gated pool."""
+        return {p.name: GateCounts(fed={r.value: n for r, n in p.fed.items()}, gated=p.gated,
+                                   kept=len(p.kept))
+                for p in self._pools.values()}
+
+    def open(self, pool_name: str, now: float) -> bool:
+        """Whether the pool would get a still pair now (hold, track or gate off)."""
+        pool = self._pools[pool_name]
+        return self.rig_moving or self._held(pool, now) or self._tracking(now)
+
+    # --- internals ----------------------------------------------------------------
+
+    def _decide(self, pool: _Pool, seq: int, motion: bool, score: float, tracking: bool,
+                now: float) -> list[Action]:
+        if self.rig_moving:
+            return [self._feed(pool, seq, Reason.OFF, now)]
+        if motion and score >= pool.cfg.min_score:
+            pool.last_motion = now
+            pre = [self._feed(pool, old, Reason.PRE_ROLL, now) for old in sorted(pool.kept)]
+            pool.kept.clear()
+            return [*pre, self._feed(pool, seq, Reason.MOTION, now)]
+        if self._held(pool, now):
+            return [self._feed(pool, seq, Reason.HOLD, now)]
+        if tracking:
+            return [self._feed(pool, seq, Reason.TRACK, now)]
+        if pool.last_fed is None or now - pool.last_fed >= pool.cfg.keepalive_s:
+            return [self._feed(pool, seq, Reason.KEEPALIVE, now)]
+        if pool.cfg.pre_roll == 0:
+            pool.gated += 1
+            return [Gated(pool.name, seq)]
+        pool.kept.append(seq)
+        actions: list[Action] = [Keep(pool.name, seq)]
+        while len(pool.kept) > pool.cfg.pre_roll:
+            pool.gated += 1
+            actions.append(Gated(pool.name, pool.kept.popleft()))
+        return actions
+
+    def _feed(self, pool: _Pool, seq: int, reason: Reason, now: float) -> Feed:
+        pool.last_fed = now
+        pool.fed[reason] = pool.fed.get(reason, 0) + 1
+        return Feed(pool.name, seq, reason)
+
+    def _held(self, pool: _Pool, now: float) -> bool:
+        return pool.last_motion is not None and now - pool.last_motion <= pool.cfg.hold_s
+
+    def _tracking(self, now: float) -> bool:
+        return any(now - seen <= self._track_ttl for seen in self._tracks.values())
+
+    def _gate_kept(self, pool: _Pool) -> list[Action]:
+        out: list[Action] = [Gated(pool.name, seq) for seq in pool.kept]
+        pool.gated += len(pool.kept)
+        pool.kept.clear()
+        return out
+
+    def _duty(self, now: float) -> list[Action]:
+        d = self.duty
+        if (not d.idle_after_s or self.idle or self.rig_moving or self._last_motion is None
+                or self._tracking(now) or now - self._last_motion < d.idle_after_s):
+            return []
+        self.idle = True
+        return [Rate(d.idle_rate_hz)]

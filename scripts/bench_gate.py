@@ -25,11 +25,12 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from trapflow.camera import StereoRig  # noqa: E402
+from trapflow.calibration.camera import StereoRig  # noqa: E402
 from trapflow.gate.motion import METHODS, MotionConfig, MotionDetector  # noqa: E402
 from trapflow.gate.policy import Feed, GateConfig, GateState  # noqa: E402
-from trapflow.messages import Truth  # noqa: E402
-from trapflow.synth import SynthOptions, World  # noqa: E402
+from trapflow.synth.options import SynthOptions  # noqa: E402
+from trapflow.synth.render import World  # noqa: E402
+from trapflow.wire.messages import Truth  # noqa: E402
 
 ANIMALS = ("crab", "scallop")
 RATE_HZ = 10.0

@@ -18,7 +18,7 @@ from tests.conftest import Pipeline, only_pools, write_config
 from trapflow.broker.node import BrokerNode
 from trapflow.config.schema import Config, PoolConfig
 from trapflow.runtime.node import NodeSpec
-from trapflow.wire import messages
+from trapflow.wire import identity, messages
 from trapflow.wire.frame_ring import FrameRing
 from trapflow.wire.transport import LinkClient, make_private
 
@@ -70,7 +70,7 @@ def test_broker_reads_a_recycled_workers_goodbye_before_it_calls_a_send_news(
     closed link, warned and counted that pair lost. Now the broker reads the goodbye waiting
     on the link first: the pair is queued again (not lost) and the log says it at debug."""
     with _broker_with_link(run_dir, prefix) as (broker, client, link, served):
-        ident = messages.worker_identity("noop", 0, 4242)
+        ident = identity.worker_identity("noop", 0, 4242)
         link.send([messages.encode(messages.Ready(worker=ident, pool="noop", credit=1))])
         broker._drain_link(served)
         broker._on_capture(builders.pair_frames(0))  # dispatched to the worker
@@ -103,7 +103,7 @@ def test_the_supervisors_notice_of_a_recycle_does_not_overtake_the_workers_answe
     from an unknown worker (a warning, the result dropped, the pair computed twice). The
     broker now reads that worker's link before it applies the notice."""
     with _broker_with_link(run_dir, prefix) as (broker, client, link, served):
-        ident = messages.worker_identity("noop", 0, 4343)
+        ident = identity.worker_identity("noop", 0, 4343)
         link.send([messages.encode(messages.Ready(worker=ident, pool="noop", credit=1))])
         broker._drain_link(served)
         broker._on_capture(builders.pair_frames(0))

@@ -20,7 +20,7 @@ import zmq
 from tests import builders
 from tests.conftest import Pipeline, only_pools, poll_for, recv, write_config
 from tests.reliability import figures, scaled
-from trapflow.wire import control_msgs, messages
+from trapflow.wire import control_msgs, identity, messages
 from trapflow.wire.transport import LinkClosed, connect_link
 
 SMALL = {"width": 320, "height": 240, "rate_hz": 15.0}
@@ -90,7 +90,7 @@ def test_forged_answers_on_the_workers_socket_and_link_are_never_written(
     p: Pipeline = spawn(["--config", str(_config(run_dir.parent / "forge.yaml"))], run_dir)
     s = p.wait_active()
     poll_for(lambda: len(p.results()) > 10, 30, what="first results")
-    real = messages.worker_identity("fast", 0, _node(s, "worker:fast:0")["pid"])
+    real = identity.worker_identity("fast", 0, _node(s, "worker:fast:0")["pid"])
     dealer = zctx.socket(zmq.DEALER)
     dealer.connect(f"ipc://{run_dir.resolve() / 'workers.sock'}")
     stranger = connect_link(str(run_dir / "workers.link"))

@@ -23,7 +23,7 @@ import zmq
 from tests import builders
 from tests.conftest import Pipeline, only_pools, poll_for, write_config
 from tests.reliability import figures, scaled
-from trapflow.wire import control_msgs, messages
+from trapflow.wire import control_msgs, identity, messages
 from trapflow.wire.transport import Link, LinkClosed, connect_link
 
 FUZZ_S = scaled("TRAPFLOW_CHAOS_FUZZ_S", 20.0)  # scripts/chaos.sh runs it longer
@@ -184,7 +184,7 @@ def test_fuzz_every_socket_and_link_of_a_running_pipeline(spawn, run_dir: Path, 
     st = p.wait_active()
     poll_for(lambda: len(p.results()) > 10, 30, what="first results")
     pids = {n["name"]: n["pid"] for n in st["nodes"]}
-    real = messages.worker_identity("fast", 0, pids["worker:fast:0"])
+    real = identity.worker_identity("fast", 0, pids["worker:fast:0"])
     fuzz = Fuzzer(run_dir, zctx, random.Random(SEED), real)
     fuzz.setup()
     try:

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from tests.kits.context import make_context, make_pair
+from trapflow import registry
 from trapflow.errors import WorkerError
-from trapflow.runtime import registry
 from trapflow.wire.messages import Extra, Result, decode_result, encode
 
 

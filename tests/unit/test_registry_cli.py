@@ -7,10 +7,10 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
+from trapflow import registry
 from trapflow.cli.main import main
 from trapflow.errors import WorkerError
 from trapflow.plugin import Worker
-from trapflow.runtime import registry
 
 
 @pytest.mark.parametrize("name", ["mono", "stereo", "vo", "noop", "slow", "crash"])

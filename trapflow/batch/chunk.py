@@ -22,13 +22,13 @@ from typing import Any
 import msgspec
 import numpy as np
 
+from trapflow import registry
 from trapflow.batch.plan import SEQUENTIAL_POOLS, Chunk, Input, fingerprint
 from trapflow.calibration.camera import StereoRig
 from trapflow.config import schema as configmod
 from trapflow.config.schema import Config
 from trapflow.errors import WorkerError
 from trapflow.plugin import Context, Pair, Worker
-from trapflow.runtime import registry
 from trapflow.sources.base import SkipPair, Source
 from trapflow.sources.factory import open_source
 from trapflow.sources.rig import describe, mismatch

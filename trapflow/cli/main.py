@@ -7,12 +7,12 @@ from typing import Any, NoReturn
 
 import click
 
+from trapflow import registry
 from trapflow.cli.exit import CommandFailed, failed
 from trapflow.cli.sources import SizeType, SourceSpecType, WorkersType
 from trapflow.cli.view_params import ViewAddressType
 from trapflow.config import schema as configmod
 from trapflow.errors import EXIT_USAGE, TrapflowError
-from trapflow.runtime import registry
 
 
 def _fail(exc: TrapflowError) -> NoReturn:

@@ -205,8 +205,8 @@ def lossless_problems(pairs_read: int, stats: Stats, pools: Iterable[str],
 def _replay_config(path: Path, config_path: str | None, loop: bool, opts: dict[str, Any],
                    workers: dict[str, int] | None, size: tuple[int, int] | None) -> Config:
     """The config of a replay: the file's, with the replay source and the flags over it."""
+    from trapflow import registry
     from trapflow.config import schema as config_mod
-    from trapflow.runtime import registry
 
     cfg = config_mod.load(config_path)
     src: dict[str, Any] = {"kind": "replay", "uri": str(path), "loop": loop,

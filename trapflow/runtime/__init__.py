@@ -1,2 +1,2 @@
 """The process base every node runs on: lifecycle and exit codes, the log channel,
-signals, sd_notify, rate-limited logging and the plugin registry."""
+signals, sd_notify and rate-limited logging."""

@@ -22,15 +22,15 @@ from typing import Any
 import msgspec
 import zmq
 
+from trapflow import registry
 from trapflow.calibration.camera import StereoRig
 from trapflow.config import schema as configmod
 from trapflow.errors import ConfigError, ProtocolError, StartupError
-from trapflow.runtime import registry
 from trapflow.runtime.lifecycle import RECYCLE_EXITS
 from trapflow.runtime.logchannel import LogListener
 from trapflow.runtime.node import JoinSpec, NodeSpec, node_main
 from trapflow.stages.worker import WorkerNode
-from trapflow.wire import messages
+from trapflow.wire import identity, messages
 from trapflow.wire.transport import SocketSpec, client_keys, log_endpoint, new_context, open_socket
 
 log = logging.getLogger(__name__)
@@ -104,7 +104,7 @@ class RemoteWorkerNode(WorkerNode):
         return join
 
     def _identity(self) -> str:
-        return messages.remote_identity(self.pool, self.join.host, self.spec.index, os.getpid())
+        return identity.remote_identity(self.pool, self.join.host, self.spec.index, os.getpid())
 
     def _hello(self) -> messages.Hello:
         return messages.Hello(worker=self.ident, pool=self.pool, host=self.join.host,
@@ -219,7 +219,7 @@ class RemotePool:
 
     def _died(self, p: _Proc, now: float) -> None:
         """Tell the broker at once (its pairs are lost, not timed out), restart later."""
-        ident = messages.remote_identity(self.pool, self.join.host, p.index, p.proc.pid)
+        ident = identity.remote_identity(self.pool, self.join.host, p.index, p.proc.pid)
         code = p.proc.exitcode
         why = RECYCLE_EXITS.get(code, "") if code is not None else ""
         if why:  # recycled on purpose (max_rss_mb, max_jobs): replaced at once
@@ -269,7 +269,7 @@ def run(endpoint: str, pool: str, count: int, keys: Path | None, host: str,
     """`trapflow worker`: join the pipeline at endpoint with count processes of pool."""
     if not pool.isidentifier():
         raise ConfigError(f"--pool: expected a pool name (an identifier), got {pool!r}")
-    owner = messages.owner_identity(host, os.getpid())
+    owner = identity.owner_identity(host, os.getpid())
     join = JoinSpec(endpoint, str(keys.resolve()) if keys else "", host, owner)
     tmp = None
     if run_dir is None:  # only debug output (`save: true`) lands here

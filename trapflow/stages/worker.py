@@ -21,13 +21,13 @@ import numpy as np
 import psutil
 import zmq
 
+from trapflow import registry
 from trapflow.errors import ProtocolError, WorkerError
 from trapflow.plugin import Context, Pair, Worker
-from trapflow.runtime import registry
 from trapflow.runtime.lifecycle import EXIT_RECYCLED_JOBS, EXIT_RECYCLED_RSS
 from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec, freeze_heap
 from trapflow.runtime.ratelog import RateLimitedLog
-from trapflow.wire import frame_msgs, jpeg, messages
+from trapflow.wire import frame_msgs, identity, jpeg, messages
 from trapflow.wire.frame_ring import RingError, RingReader
 from trapflow.wire.transport import (
     LINK_RETRY_S,
@@ -138,7 +138,7 @@ class WorkerNode(Node):
 
     def _identity(self) -> str:
         """The routing identity of this process (a remote worker names its host too)."""
-        return messages.worker_identity(self.pool, self.spec.index, os.getpid())
+        return identity.worker_identity(self.pool, self.spec.index, os.getpid())
 
     def _open_dealer(self) -> zmq.Socket[bytes]:
         """The DEALER to the broker, for workers that get the bytes (remote: true)."""

@@ -15,10 +15,10 @@ from typing import IO
 
 import zmq
 
+from trapflow import registry
 from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import Config
 from trapflow.errors import StartupError, TrapflowError
-from trapflow.runtime import registry
 from trapflow.runtime.logchannel import LogListener, PrivateRotatingFile
 from trapflow.runtime.ratelog import ConsoleOnce
 from trapflow.sources import rig

@@ -24,10 +24,11 @@ from typing import IO, Any
 import msgspec
 import zmq
 
+from trapflow import registry
 from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import Config
 from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError
-from trapflow.runtime import registry, sdnotify
+from trapflow.runtime import sdnotify
 from trapflow.runtime.lifecycle import RECYCLE_EXITS
 from trapflow.runtime.node import NodeSpec, node_main
 from trapflow.runtime.ratelog import RateLimitedLog, wire
@@ -62,7 +63,7 @@ from trapflow.supervisor.setup import (
     preflight,
 )
 from trapflow.supervisor.state import DurationClock, SupervisorState
-from trapflow.wire import messages, tap_msgs
+from trapflow.wire import identity, messages, tap_msgs
 from trapflow.wire.frame_ring import FrameRing
 from trapflow.wire.transport import (
     Endpoints,
@@ -495,7 +496,7 @@ class Supervisor:
             return False
 
     def _tell_broker_gone(self, c: Child, reason: str) -> None:
-        self.broker.gone(messages.worker_identity(c.spec.pool, c.spec.index, c.proc.pid), reason)
+        self.broker.gone(identity.worker_identity(c.spec.pool, c.spec.index, c.proc.pid), reason)
 
     # --- control and the verdict ---------------------------------------------------------
 

@@ -589,22 +589,6 @@ def decode_result_line(data: Buffer) -> tuple[str, dict[str, Any]]:
 MAX_LOG_BYTES = 64 << 10
 
 
-def worker_identity(pool: str, index: int, pid: int) -> str:
-    """The routing identity of one worker process (new with every restart)."""
-    return f"{pool}:{index}:{pid}"
-
-
-def remote_identity(pool: str, host: str, index: int, pid: int) -> str:
-    """The routing identity of a worker process on another host: never a local one's
-    (those have no '@'), so a remote peer cannot answer for a local worker."""
-    return f"{pool}@{host}:{index}:{pid}"
-
-
-def owner_identity(host: str, pid: int) -> str:
-    """The identity of a `trapflow worker` supervisor on another host."""
-    return f"owner@{host}:{pid}"
-
-
 def to_builtins(msg: Msg) -> Any:
     """Plain Python builtins (dicts, lists, numbers) for a message, for JSON output."""
     return msgspec.to_builtins(msg)

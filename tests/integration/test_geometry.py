@@ -107,7 +107,7 @@ def test_kitti_folder_runs_vo_and_tags_with_its_calib_txt(
     assert code == 0, err
     check_geometric_results(p, KITTI, N)
     logged = (run_dir / "trapflow.log").read_text()
-    assert f"supervisor INFO rig from {tmp_path / 'seq' / 'calib.txt'}: 752x480" in logged
+    assert f"supervisor.shell INFO rig from {tmp_path / 'seq' / 'calib.txt'}: 752x480" in logged
     assert f"(calib {KITTI.id})" in logged
 
 

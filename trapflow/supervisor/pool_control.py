@@ -16,13 +16,14 @@ inactive whatever the level until the operator activates it; deactivating a pool
 has off takes it over); a pool the operator activates while the ladder has it off runs
 until the next level change.
 
-PoolControl is a base of trapflow.supervisor.state.SupervisorState, which owns the nodes
-and the timeline this part reads and writes.
+PoolControl is held by trapflow.supervisor.state.SupervisorState, which owns the nodes, the
+timeline and whether the pipeline is stopping: it hands this part the node table, its
+timeline note and a question for `stopping` at construction.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -67,29 +68,37 @@ def worker_name(pool: str, index: int) -> str:
     return f"worker:{pool}:{index}"
 
 
+# A timeline entry: (now, node, kind, reason).
+Note = Callable[[float, str, str, str], None]
+
+
 class PoolControl:
     """Runtime control of the pools (`trapflow pool`, `trapflow param`) and the ladder's
-    levels; the nodes, the timeline and `stopping` are the supervisor core's."""
+    levels; the nodes, the timeline and `stopping` are the supervisor core's, lent here."""
 
-    nodes: dict[str, NodeState]
-    pools: dict[str, PoolState]
-    ladder: Ladder | None
-    stopping: bool
+    def __init__(self, nodes: dict[str, NodeState], note: Note, stopping: Callable[[], bool],
+                 ladder: Ladder | None = None) -> None:
+        self.nodes = nodes  # the core's node table: workers added and retired here
+        self._note = note
+        self._stopping = stopping
+        self.by_name: dict[str, PoolState] = {}
+        self.ladder = ladder  # None: the ladder is off in the config
 
-    def _note(self, now: float, name: str, kind: str, reason: str) -> None:
-        raise NotImplementedError  # the timeline: SupervisorState._note
+    @property
+    def stopping(self) -> bool:
+        return self._stopping()
 
     # --- runtime control ----------------------------------------------------------------
 
     def add_pool(self, name: str, count: int, policy: str, params: Mapping[str, Any],
                  liveness_s: float) -> None:
         """A pool started at boot (its workers are added as nodes by the caller)."""
-        self.pools[name] = PoolState(name, count, policy, dict(params), liveness_s)
+        self.by_name[name] = PoolState(name, count, policy, dict(params), liveness_s)
 
     def _pool(self, name: str) -> PoolState:
-        p = self.pools.get(name)
+        p = self.by_name.get(name)
         if p is None:
-            started = ", ".join(sorted(self.pools)) or "none"
+            started = ", ".join(sorted(self.by_name)) or "none"
             raise Refused(f"no pool {name!r} in this run (pools started: {started}); "
                           "a pool with count 0 at start has no broker queue: start it "
                           "with a count of at least 1")
@@ -193,7 +202,7 @@ class PoolControl:
         return {p.name: {"state": str(p.state), "count": p.count, "policy": p.policy,
                          "params": dict(p.params), "changes": p.changes, "off_by": p.off_by,
                          "min_interval_s": p.min_interval_s}
-                for p in self.pools.values()}
+                for p in self.by_name.values()}
 
     # --- degradation ladder ---------------------------------------------------------------
 
@@ -225,7 +234,7 @@ class PoolControl:
         assert self.ladder is not None
         plan = self.ladder.plan()
         actions: list[Action] = []
-        for p in self.pools.values():
+        for p in self.by_name.values():
             want = plan.get(p.name, PoolLevel())
             active: bool | None = None
             if not want.active and p.state == Lifecycle.ACTIVE:

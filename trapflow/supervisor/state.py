@@ -13,8 +13,9 @@ retried after a cool-down with a fresh budget; an essential node (broker, captur
 normalizer) is never abandoned while the supervisor lives, it keeps restarting at the
 capped back-off. Every give-up and retry is kept in a timeline for status and the ledger.
 
-Runtime pool control and the degradation ladder are decided in the same core, by its
-base trapflow.supervisor.pool_control.PoolControl; the actions are trapflow.supervisor.actions'.
+Runtime pool control and the degradation ladder are decided by the PoolControl this core
+holds (`pools`, trapflow.supervisor.pool_control), over the same nodes and timeline; the
+actions are trapflow.supervisor.actions'.
 """
 
 from __future__ import annotations
@@ -39,24 +40,25 @@ from trapflow.supervisor.actions import (
     WorkerGone,
 )
 from trapflow.supervisor.ladder import Ladder
-from trapflow.supervisor.pool_control import PoolControl, PoolState
+from trapflow.supervisor.pool_control import PoolControl
 
 # Timeline entries kept for status and the ledger (the oldest go first).
 MAX_TIMELINE = 1000
 
 
-class SupervisorState(PoolControl):
-    """Lifecycle, liveness and restart decisions for every node of one pipeline."""
+class SupervisorState:
+    """Lifecycle, liveness and restart decisions for every node of one pipeline; runtime
+    control of its pools and the ladder in `pools`."""
 
-    def __init__(self, plans: Iterable[NodePlan], budget: Budget) -> None:
+    def __init__(self, plans: Iterable[NodePlan], budget: Budget,
+                 ladder: Ladder | None = None) -> None:
         self.nodes = {p.name: NodeState(p) for p in plans}
         self.budget = budget
         self.timeline: deque[Event] = deque(maxlen=MAX_TIMELINE)
         self._counts = {"gave_up": 0, "retry": 0, "capped": 0, "control": 0, "level": 0,
                         "recycled": 0}
         self.stopping = False
-        self.pools: dict[str, PoolState] = {}
-        self.ladder: Ladder | None = None  # set by the shell when the ladder is enabled
+        self.pools = PoolControl(self.nodes, self._note, lambda: self.stopping, ladder)
         # Workers recycled per pool, by why (rss, jobs).
         self.recycled: dict[str, dict[str, int]] = {}
 

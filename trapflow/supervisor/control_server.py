@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import msgspec
 import zmq
 
-from trapflow.errors import ProtocolError
+from trapflow.errors import ProtocolError, unreachable
 from trapflow.runtime.lifecycle import Lifecycle
 from trapflow.runtime.ratelog import RateLimitedLog, wire
 from trapflow.supervisor.actions import Action, Refused
@@ -36,7 +36,7 @@ class Control:
 
     def __init__(self, sock: zmq.Socket[bytes], core: SupervisorState, ratelog: RateLimitedLog,
                  *, status: Callable[[], dict[str, Any]], stop: Callable[[], None],
-                 act: Callable[[list[Action], float], None],
+                 act: Callable[[Sequence[Action], float], None],
                  reconfigurable: Callable[[str], bool]) -> None:
         self.sock = sock
         self.core = core
@@ -69,8 +69,10 @@ class Control:
             self.sock.send(msgspec.json.encode(self._change(req)))
         elif isinstance(req, control_msgs.LevelRequest):
             self.sock.send(msgspec.json.encode(self._force_level(req.level)))
-        else:
+        elif isinstance(req, control_msgs.StatusRequest):
             self.sock.send(msgspec.json.encode(self.status()))
+        else:
+            unreachable(req)
 
     def _change(self, req: control_msgs.PoolRequest | control_msgs.ParamRequest) -> dict[str, Any]:
         """A runtime change: the core decides, this applies; the reply says what changed."""

@@ -31,11 +31,11 @@ from trapflow.config.ladder import PoolLevel
 from trapflow.config.schema import parse_policy
 from trapflow.runtime.lifecycle import Lifecycle
 from trapflow.supervisor.actions import (
-    Action,
     AddWorker,
     LevelChanged,
     NodePlan,
     NodeState,
+    PoolAction,
     Reconfigure,
     Refused,
     Retire,
@@ -110,7 +110,7 @@ class PoolControl:
         pool.changes += 1
         self._note(now, f"pool:{pool.name}", "control", what)
 
-    def set_count(self, name: str, count: int, now: float) -> list[Action]:
+    def set_count(self, name: str, count: int, now: float) -> list[PoolAction]:
         """Grow or shrink a pool to `count` workers (the highest indices go first)."""
         p = self._pool(name)
         if not 1 <= count <= MAX_POOL_COUNT:
@@ -118,7 +118,7 @@ class PoolControl:
                           "to stop its work without losing the pool, use --deactivate")
         if count == p.count:
             raise Refused(f"pool {name!r} already has {count} workers")
-        actions: list[Action] = []
+        actions: list[PoolAction] = []
         for i in range(p.count, count):
             wname = worker_name(name, i)
             n = self.nodes.get(wname)
@@ -140,7 +140,7 @@ class PoolControl:
         p.count = count
         return actions
 
-    def set_active(self, name: str, active: bool, now: float) -> list[Action]:
+    def set_active(self, name: str, active: bool, now: float) -> list[PoolAction]:
         """activate/deactivate, as a ROS 2 lifecycle node moves between active and inactive:
         an inactive pool's workers keep their models loaded and get no pairs."""
         p = self._pool(name)
@@ -162,7 +162,7 @@ class PoolControl:
         p.off_by = "" if active else "operator"
         return [SwitchPool(name, active=active)]
 
-    def set_policy(self, name: str, policy: str, now: float) -> list[Action]:
+    def set_policy(self, name: str, policy: str, now: float) -> list[PoolAction]:
         """A new queueing policy for the pool's pending pairs (the broker applies it)."""
         p = self._pool(name)
         try:
@@ -176,7 +176,7 @@ class PoolControl:
         return [SwitchPool(name, policy=policy)]
 
     def set_param(self, name: str, key: str, value: Any, now: float,
-                  in_place: bool = False) -> list[Action]:
+                  in_place: bool = False) -> list[PoolAction]:
         """One plugin parameter changed. A plugin that can be configured again
         (`in_place`) gets the pool's new parameters between pairs; otherwise every worker
         of the pool restarts with them."""
@@ -187,7 +187,7 @@ class PoolControl:
         p.params[key] = value
         how = "reconfigured in place" if in_place else "restarting workers"
         self._control(now, p, f"param {key}: {before!r} -> {value!r}; {how}")
-        actions: list[Action] = []
+        actions: list[PoolAction] = []
         for i in range(p.count):
             n = self.nodes[worker_name(name, i)]
             actions.append(Reconfigure(n.name, name, dict(p.params), restart=not in_place))
@@ -206,14 +206,14 @@ class PoolControl:
 
     # --- degradation ladder ---------------------------------------------------------------
 
-    def degrade(self, readings: Readings, now: float) -> list[Action]:
+    def degrade(self, readings: Readings, now: float) -> list[PoolAction]:
         """A snapshot of the sensors: the ladder may step one level (see supervisor.ladder)."""
         if self.ladder is None or self.stopping:
             return []
         step = self.ladder.update(readings, now)
         return self._level(now) if step.changed else []
 
-    def force_level(self, level: str, now: float) -> list[Action]:
+    def force_level(self, level: str, now: float) -> list[PoolAction]:
         """The operator's `trapflow level NAME|auto`; Refused for an unknown level."""
         if self.ladder is None:
             raise Refused("no degradation ladder in this run: it is off in the config "
@@ -229,11 +229,11 @@ class PoolControl:
         self._note(now, "ladder", "level", f"{self.ladder.level}: {self.ladder.reason}")
         return []
 
-    def _level(self, now: float, forced: bool = False) -> list[Action]:
+    def _level(self, now: float, forced: bool = False) -> list[PoolAction]:
         """Pools to the ladder's new level (the operator's rule in the module docstring)."""
         assert self.ladder is not None
         plan = self.ladder.plan()
-        actions: list[Action] = []
+        actions: list[PoolAction] = []
         for p in self.by_name.values():
             want = plan.get(p.name, PoolLevel())
             active: bool | None = None

@@ -16,7 +16,7 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import IO, Any
@@ -26,7 +26,7 @@ import zmq
 
 from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import Config
-from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError
+from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError, unreachable
 from trapflow.runtime import registry, sdnotify
 from trapflow.runtime.lifecycle import RECYCLE_EXITS
 from trapflow.runtime.node import NodeSpec, node_main
@@ -394,7 +394,7 @@ class Supervisor:
                 self._act(actions, now)
         self._act(self.core.tick(now), now)
 
-    def _act(self, actions: list[Action], now: float) -> None:
+    def _act(self, actions: Sequence[Action], now: float) -> None:
         for a in actions:
             if isinstance(a, Spawn):
                 c = self._named(a.name)
@@ -433,6 +433,8 @@ class Supervisor:
                 self.broker.level(self.core.pools)
             elif isinstance(a, Reconfigure):
                 self._reconfigure(a)
+            else:
+                unreachable(a)
 
     def _respawn(self, c: Child, now: float) -> None:
         """A restart: what the dead process had counted is kept, then a new one starts."""

@@ -27,11 +27,11 @@ from dataclasses import dataclass
 from trapflow.runtime.lifecycle import RECYCLE_EXITS, Lifecycle
 from trapflow.supervisor.actions import (
     STARTUP_TIMEOUT_S,
-    Action,
     Budget,
     Event,
     GiveUp,
     Kill,
+    NodeAction,
     NodePlan,
     NodeState,
     Retry,
@@ -86,7 +86,7 @@ class SupervisorState:
         n.last_beat, n.state, n.reason = now, life, reason
         return True
 
-    def exited(self, name: str, code: int | None, now: float) -> list[Action]:
+    def exited(self, name: str, code: int | None, now: float) -> list[NodeAction]:
         """The node's process ended with `code`: finished, restarted, or given up."""
         n = self.nodes[name]
         if not n.running:
@@ -97,7 +97,7 @@ class SupervisorState:
             return []
         if self.stopping:
             return []
-        actions: list[Action] = []
+        actions: list[NodeAction] = []
         why = RECYCLE_EXITS.get(code, "") if code is not None else ""
         if n.plan.role == "worker" and why and not n.retired:
             # Planned: replaced at once, no back-off, the restart budget untouched.
@@ -150,9 +150,9 @@ class SupervisorState:
         n = self.nodes[name]
         n.running, n.finished = False, True
 
-    def tick(self, now: float) -> list[Action]:
+    def tick(self, now: float) -> list[NodeAction]:
         """Time passes: silent nodes are killed, due restarts and retries spawned."""
-        actions: list[Action] = []
+        actions: list[NodeAction] = []
         if self.stopping:
             return actions
         for n in self.nodes.values():
@@ -179,7 +179,7 @@ class SupervisorState:
                 actions.append(Spawn(n.name, n.restart_total))
         return actions
 
-    def stop(self, reason: str) -> list[Action]:
+    def stop(self, reason: str) -> list[NodeAction]:
         """A stop command (control socket, signal, duration, drained source)."""
         if self.stopping:
             return []

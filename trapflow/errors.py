@@ -3,7 +3,11 @@
 Also the exit-code policy every command follows (README, "Exit status"): 0 when it did
 what was asked, 1 when it ran and failed, 2 when it could not start as asked (a bad
 option, config or input named on the command line).
+
+And `unreachable`, the last branch of every exhaustive dispatch over a union.
 """
+
+from typing import NoReturn
 
 EXIT_OK, EXIT_FAILURE, EXIT_USAGE = 0, 1, 2
 
@@ -31,3 +35,10 @@ class StartupError(TrapflowError):
 def exit_code(exc: TrapflowError) -> int:
     """The exit status for an error that ends a command: 2 for usage or config, else 1."""
     return EXIT_USAGE if isinstance(exc, (ConfigError, StartupError)) else EXIT_FAILURE
+
+
+def unreachable(value: NoReturn) -> NoReturn:
+    """The `else` of a dispatch over a closed union (typing.assert_never, which Python 3.10
+    lacks): mypy rejects a call it can still reach, so a member added to the union without
+    a branch fails the type check; at run time it names the type that had no branch."""
+    raise TypeError(f"no branch for {type(value).__name__}: {value!r}")

@@ -16,6 +16,7 @@ from typing import Any
 import pytest
 
 from tests.conftest import REPO, Pipeline, only_pools, poll_for, write_config
+from trapflow.cli.status_text import format_status
 from trapflow.wire import control_client as control
 from trapflow.wire import control_msgs
 
@@ -80,7 +81,7 @@ def test_hot_cpu_slows_stereo_and_it_comes_back(spawn, run_dir: Path) -> None:
         "ir_slowed"
     assert "cpu_temp_c 85C >= 80C" in s["ladder"]["reason"]
 
-    text = control.format_status(control.request(run_dir, "status"))  # `trapflow status`
+    text = format_status(control.request(run_dir, "status"))  # `trapflow status`
     assert "ladder: level ir_slowed (1 of 1, auto)" in text
     assert "at most 1 pair / 1 s" in text
 

@@ -29,15 +29,14 @@ HOT = TriggerConfig(sensor="cpu_temp_c", dwell_s=0.0,
 
 
 def core(*pools: str) -> SupervisorState:
-    s = SupervisorState((), Budget())
+    s = SupervisorState((), Budget(), ladder=Ladder(LadderConfig(triggers=[HOT])))
     for name in pools or ("mono", "stereo", "vo"):
-        s.add_pool(name, 1, "latest", {}, liveness_s=5.0)
-    s.ladder = Ladder(LadderConfig(triggers=[HOT]))
+        s.pools.add_pool(name, 1, "latest", {}, liveness_s=5.0)
     return s
 
 
 def hot(s: SupervisorState, temp: float, now: float) -> list[Any]:
-    return s.degrade(Readings(cpu_temp_c=temp), now)
+    return s.pools.degrade(Readings(cpu_temp_c=temp), now)
 
 
 # --- the supervision core ---------------------------------------------------------------------
@@ -60,7 +59,7 @@ def test_level_changes_become_pool_switches(temps: list[float], level: str,
     for i, t in enumerate(temps):
         acts = hot(s, t, float(i))
     assert acts[:-1] == switches
-    assert acts[-1] == LevelChanged(level, s.ladder.reason if s.ladder else "", False)
+    assert acts[-1] == LevelChanged(level, s.pools.ladder.reason if s.pools.ladder else "", False)
     assert s.timeline[-1].kind == "level" and s.timeline[-1].node == "ladder"
     assert s.counts()["level"] == len(temps)
 
@@ -74,7 +73,7 @@ def test_no_change_no_actions() -> None:
 
 def test_the_ladder_never_activates_a_pool_the_operator_deactivated() -> None:
     s = core()
-    s.set_active("mono", False, 0.0)  # the operator
+    s.pools.set_active("mono", False, 0.0)  # the operator
     hot(s, 90, 1.0)
     hot(s, 90, 2.0)
     acts = hot(s, 90, 3.0)  # vo_health: mono is off already, by the operator
@@ -83,35 +82,35 @@ def test_the_ladder_never_activates_a_pool_the_operator_deactivated() -> None:
         acts = hot(s, 40, float(t))  # all the way back to full
         assert not any(isinstance(a, SwitchPool) and a.pool == "mono" and a.active
                        for a in acts)
-    assert s.ladder is not None and s.ladder.level == "full"
-    assert s.pools["mono"].state == Lifecycle.INACTIVE
-    assert s.pool_view()["mono"]["off_by"] == "operator"
-    assert s.pools["stereo"].state == Lifecycle.ACTIVE  # the ladder's own: back on
+    assert s.pools.ladder is not None and s.pools.ladder.level == "full"
+    assert s.pools.by_name["mono"].state == Lifecycle.INACTIVE
+    assert s.pools.pool_view()["mono"]["off_by"] == "operator"
+    assert s.pools.by_name["stereo"].state == Lifecycle.ACTIVE  # the ladder's own: back on
 
 
 def test_the_operator_takes_over_a_pool_the_ladder_switched_off() -> None:
     s = core()
     hot(s, 90, 0.0)
     hot(s, 90, 1.0)  # mono_vo: stereo off by the ladder
-    assert s.set_active("stereo", False, 2.0) == []  # off already: nothing to tell
-    assert s.pool_view()["stereo"]["off_by"] == "operator"
+    assert s.pools.set_active("stereo", False, 2.0) == []  # off already: nothing to tell
+    assert s.pools.pool_view()["stereo"]["off_by"] == "operator"
     assert s.timeline[-1].kind == "control"
     for t in range(3, 6):
         acts = hot(s, 40, float(t))
         assert not any(isinstance(a, SwitchPool) and a.pool == "stereo" and a.active
                        for a in acts)
-    assert s.ladder is not None and s.ladder.level == "full"
-    assert s.pools["stereo"].state == Lifecycle.INACTIVE
+    assert s.pools.ladder is not None and s.pools.ladder.level == "full"
+    assert s.pools.by_name["stereo"].state == Lifecycle.INACTIVE
     with pytest.raises(Refused, match="is inactive"):
-        s.set_active("stereo", False, 6.0)  # the operator's own: no transition
+        s.pools.set_active("stereo", False, 6.0)  # the operator's own: no transition
 
 
 def test_an_operator_activation_holds_until_the_next_level_change() -> None:
     s = core()
     hot(s, 90, 0.0)
     hot(s, 90, 1.0)  # mono_vo: stereo off by the ladder
-    assert s.pool_view()["stereo"]["off_by"] == "ladder"
-    assert s.set_active("stereo", True, 2.0) == [SwitchPool("stereo", active=True)]
+    assert s.pools.pool_view()["stereo"]["off_by"] == "ladder"
+    assert s.pools.set_active("stereo", True, 2.0) == [SwitchPool("stereo", active=True)]
     assert hot(s, 79, 3.0) == []  # same level: the operator's choice stands
     acts = hot(s, 90, 4.0)  # vo_health: a new level switches it off again
     assert SwitchPool("stereo", active=False) in acts
@@ -119,23 +118,23 @@ def test_an_operator_activation_holds_until_the_next_level_change() -> None:
 
 def test_force_and_auto() -> None:
     s = core()
-    acts = s.force_level("mono_vo", 0.0)
+    acts = s.pools.force_level("mono_vo", 0.0)
     assert acts[-1] == LevelChanged("mono_vo", "full -> mono_vo: forced by the operator", True)
     assert SwitchPool("stereo", active=False) in acts
     assert hot(s, 40, 1.0) == []  # forced: the cold reading changes nothing
-    assert s.force_level(AUTO, 2.0) == []
+    assert s.pools.force_level(AUTO, 2.0) == []
     assert s.timeline[-1].reason == "mono_vo: auto (from mono_vo)"
     assert [type(a).__name__ for a in hot(s, 40, 3.0)][-1] == "LevelChanged"
     with pytest.raises(Refused, match="expected one of full"):
-        s.force_level("boiling", 4.0)
+        s.pools.force_level("boiling", 4.0)
 
 
 def test_no_ladder_refuses_a_level_and_never_degrades() -> None:
     s = SupervisorState((), Budget())
     with pytest.raises(Refused, match="ladder.enabled: false"):
-        s.force_level("full", 0.0)
-    assert s.degrade(Readings(cpu_temp_c=99), 0.0) == []
-    assert s.ladder_view() is None
+        s.pools.force_level("full", 0.0)
+    assert s.pools.degrade(Readings(cpu_temp_c=99), 0.0) == []
+    assert s.pools.ladder_view() is None
 
 
 # --- the broker: one pair per minimum interval ------------------------------------------------

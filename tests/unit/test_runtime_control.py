@@ -32,7 +32,7 @@ from trapflow.wire.control_client import parse_assignment
 
 def core(count: int = 2, params: dict[str, Any] | None = None) -> SupervisorState:
     s = SupervisorState((), Budget(max_restarts=2))
-    s.add_pool("mono", count, "latest", params or {"conf": 0.25}, liveness_s=5.0)
+    s.pools.add_pool("mono", count, "latest", params or {"conf": 0.25}, liveness_s=5.0)
     for i in range(count):
         name = worker_name("mono", i)
         s.add(NodePlan(name, "worker", 5.0, pool="mono"))
@@ -60,10 +60,10 @@ def test_lifecycle_transitions(steps: list[bool], refused_at: int | None) -> Non
     for i, active in enumerate(steps):
         if i == refused_at:
             with pytest.raises(Refused, match="ROS 2 lifecycle"):
-                s.set_active("mono", active, float(i))
+                s.pools.set_active("mono", active, float(i))
             return
-        assert s.set_active("mono", active, float(i)) == [SwitchPool("mono", active=active)]
-        assert s.pools["mono"].state == (Lifecycle.ACTIVE if active else Lifecycle.INACTIVE)
+        assert s.pools.set_active("mono", active, float(i)) == [SwitchPool("mono", active=active)]
+        assert s.pools.by_name["mono"].state == (Lifecycle.ACTIVE if active else Lifecycle.INACTIVE)
     assert refused_at is None
     assert [e.kind for e in s.timeline] == ["control"] * len(steps)
     assert s.counts()["control"] == len(steps)
@@ -79,7 +79,7 @@ def test_lifecycle_transitions(steps: list[bool], refused_at: int | None) -> Non
 ])
 def test_count_grows_and_shrinks_from_the_top(count: int, expected: list[str]) -> None:
     s = core(count=2)
-    acts = s.set_count("mono", count, 1.0)
+    acts = s.pools.set_count("mono", count, 1.0)
     assert kinds(acts) == expected
     if count > 2:
         assert acts[0] == AddWorker("worker:mono:2", "mono", 2)
@@ -87,28 +87,28 @@ def test_count_grows_and_shrinks_from_the_top(count: int, expected: list[str]) -
         assert s.node("worker:mono:2").pool == "mono"
     else:
         assert acts == [Retire("worker:mono:1", "pool mono shrank to 1")]
-    assert s.pool_view()["mono"]["count"] == count
+    assert s.pools.pool_view()["mono"]["count"] == count
     assert s.timeline[-1].reason == f"count 2 -> {count}"
 
 
 def test_a_retired_worker_is_not_restarted_and_can_come_back() -> None:
     s = core(count=2)
-    s.set_count("mono", 1, 1.0)
+    s.pools.set_count("mono", 1, 1.0)
     acts = s.exited("worker:mono:1", 0, 2.0)
     assert kinds(acts) == ["WorkerGone"]  # the broker forgets it at once
     n = s.node("worker:mono:1")
     assert n.finished and n.state == Lifecycle.FINALIZED
     assert s.heartbeat("worker:mono:0", 100, "active", "", 99.0)  # the one left is alive
     assert s.tick(100.0) == []  # the retired one: never respawned, never killed for silence
-    assert kinds(s.set_count("mono", 2, 101.0)) == ["AddWorker", "Spawn"]
+    assert kinds(s.pools.set_count("mono", 2, 101.0)) == ["AddWorker", "Spawn"]
     assert not s.node("worker:mono:1").retired
 
 
 def test_growing_onto_a_worker_still_stopping_is_refused() -> None:
     s = core(count=2)
-    s.set_count("mono", 1, 1.0)  # worker 1 told to stop, not yet exited
+    s.pools.set_count("mono", 1, 1.0)  # worker 1 told to stop, not yet exited
     with pytest.raises(Refused, match="still stopping"):
-        s.set_count("mono", 2, 1.5)
+        s.pools.set_count("mono", 2, 1.5)
 
 
 # --- the core: parameters and policy ---------------------------------------------------------
@@ -116,7 +116,7 @@ def test_growing_onto_a_worker_still_stopping_is_refused() -> None:
 
 def test_param_restarts_each_worker_outside_the_budget() -> None:
     s = core(count=2)
-    acts = s.set_param("mono", "conf", 0.9, 1.0)
+    acts = s.pools.set_param("mono", "conf", 0.9, 1.0)
     assert acts == [Reconfigure(worker_name("mono", i), "mono", {"conf": 0.9}) for i in (0, 1)]
     assert s.timeline[-1].reason == "param conf: 0.25 -> 0.9; restarting workers"
     for _ in range(5):  # more than the budget's 2 restarts: none is counted against it
@@ -129,7 +129,7 @@ def test_param_restarts_each_worker_outside_the_budget() -> None:
 
 def test_param_in_place_reaches_the_workers_through_the_broker_without_a_restart() -> None:
     s = core(count=2)
-    acts = s.set_param("mono", "conf", 0.9, 1.0, in_place=True)
+    acts = s.pools.set_param("mono", "conf", 0.9, 1.0, in_place=True)
     assert acts == [
         *(Reconfigure(worker_name("mono", i), "mono", {"conf": 0.9}, restart=False)
           for i in (0, 1)),
@@ -143,7 +143,7 @@ def test_param_in_place_reaches_the_workers_through_the_broker_without_a_restart
 
 def test_an_unplanned_exit_after_a_param_change_is_a_crash_again() -> None:
     s = core(count=1)
-    s.set_param("mono", "conf", 0.9, 1.0)
+    s.pools.set_param("mono", "conf", 0.9, 1.0)
     assert kinds(s.exited("worker:mono:0", 0, 2.0)) == ["WorkerGone", "Spawn"]
     s.spawned("worker:mono:0", 201, 2.0)
     assert kinds(s.exited("worker:mono:0", 1, 3.0)) == ["WorkerGone"]  # back-off, no Spawn
@@ -162,23 +162,23 @@ def test_an_unplanned_exit_after_a_param_change_is_a_crash_again() -> None:
 ])
 def test_refused_commands_change_nothing(call: str, args: tuple[Any, ...], match: str) -> None:
     s = core(count=2)
-    before = s.pool_view()
+    before = s.pools.pool_view()
     with pytest.raises(Refused, match=match):
-        getattr(s, call)(*args, 1.0)
-    assert s.pool_view() == before and not s.timeline
+        getattr(s.pools, call)(*args, 1.0)
+    assert s.pools.pool_view() == before and not s.timeline
 
 
 def test_nothing_changes_while_stopping() -> None:
     s = core()
     s.stop("test")
     with pytest.raises(Refused, match="stopping"):
-        s.set_active("mono", False, 1.0)
+        s.pools.set_active("mono", False, 1.0)
 
 
 def test_policy_goes_to_the_broker() -> None:
     s = core()
-    assert s.set_policy("mono", "fifo:4", 1.0) == [SwitchPool("mono", policy="fifo:4")]
-    assert s.pool_view()["mono"]["policy"] == "fifo:4"
+    assert s.pools.set_policy("mono", "fifo:4", 1.0) == [SwitchPool("mono", policy="fifo:4")]
+    assert s.pools.pool_view()["mono"]["policy"] == "fifo:4"
 
 
 # --- the broker: a deactivated pool counts what it would have queued -------------------------
@@ -340,7 +340,7 @@ def test_param_assignment_refused(text: str, match: str) -> None:
 
 def test_worker_gone_still_reaches_the_broker_for_a_retired_worker() -> None:
     s = core(count=2)
-    s.set_count("mono", 1, 1.0)
+    s.pools.set_count("mono", 1, 1.0)
     acts = s.exited("worker:mono:1", 0, 2.0)
     assert isinstance(acts[0], WorkerGone)
 

@@ -19,12 +19,13 @@ from typing import Any
 
 import zmq
 
-from trapflow.errors import ConfigError, ProtocolError
+from trapflow.errors import ConfigError, ProtocolError, unreachable
 from trapflow.modem.command import (
     CommandGuard,
     CounterState,
     Execute,
     Refuse,
+    Reply,
     control_request,
     describe,
     load_counter,
@@ -117,8 +118,10 @@ class ModemNode(Node):
                 self.ratelog.log(level, d.kind, "surface command refused: %s", wire(d.why))
             elif isinstance(d, Execute):
                 self._execute(d, now)
-            else:
+            elif isinstance(d, Reply):
                 self.sender.send_reply(d.payload)
+            else:
+                unreachable(d)
         if self.running is not None:
             reply = self.control.poll(now)
             if reply is not None:

@@ -3,6 +3,8 @@
 Runs as its own process beside the normalizer, sharing the outbox file. Per class it
 is stop-and-wait (one batch in flight, resent until acknowledged or expired), so each
 class arrives in order; classes interleave by priority up to `window` frames in flight.
+What goes out when (priority, window, bit rate, back-off, byte budget) is decided by
+trapflow.modem.schedule; this shell reads and writes the port and the outbox.
 """
 
 from __future__ import annotations
@@ -17,57 +19,30 @@ from typing import Any
 
 import msgspec
 
-from trapflow.config.modem import BITS_PER_BYTE, ModemConfig, OutboxConfig
-from trapflow.errors import ProtocolError
+from trapflow.config.modem import ModemConfig, OutboxConfig
+from trapflow.errors import ProtocolError, unreachable
 from trapflow.modem.codec import LinkCodec
-from trapflow.modem.frame import (
-    ACK,
-    COMMAND,
-    DATA,
-    OVERHEAD,
-    REPLY,
-    SESSION_BYTES,
-    Deframer,
-    data_payload,
-    frame,
-    message_cost,
-    parse_ack,
-    put_uvarint,
-)
-from trapflow.modem.outbox import ACKED, REJECTED, OutboxQueue, Stored
+from trapflow.modem.frame import ACK, COMMAND, SESSION_BYTES, Deframer, parse_ack
+from trapflow.modem.outbox import ACKED, REJECTED, OutboxQueue
 from trapflow.modem.port import LinkPort
+from trapflow.modem.schedule import (
+    HOUR_NS,
+    ClassQueue,
+    Queued,
+    Schedule,
+    SendData,
+    SendReply,
+    Wait,
+    floor,
+)
 
 log = logging.getLogger(__name__)
 
-HOUR_NS = 3600 * 10**9
 LOAD_PER_CLASS = 64  # pending records of one class held in memory at once
 PURGE_INTERVAL_S = 60.0
 MAX_COMMANDS = 8  # COMMAND payloads held for the node between two steps; more are dropped
 MAX_REPLIES = 4  # REPLY payloads waiting for the link; the oldest goes first when more come
 BACKLOG_INTERVAL_S = 5.0
-
-
-class _Msg:
-    """A record on its way: encoded body, class, attempts, ack deadline."""
-
-    __slots__ = ("stored", "body", "attempts", "deadline")
-
-    def __init__(self, stored: Stored, body: bytes) -> None:
-        self.stored = stored
-        self.body = body
-        self.attempts = 0
-        self.deadline = 0.0
-
-
-class _Class:
-    """Per-class queue: loaded pending records (oldest first) and the batch in flight."""
-
-    def __init__(self, name: str, rank: int) -> None:
-        self.name = name
-        self.rank = rank
-        self.queue: collections.deque[_Msg] = collections.deque()
-        self.cursor = 0  # highest seq loaded from the outbox
-        self.inflight: list[_Msg] = []
 
 
 class ModemSender:
@@ -88,19 +63,18 @@ class ModemSender:
         self.codec = LinkCodec(self.cfg.labels)
         self.deframer = Deframer()
         self.health = health
-        self.classes: dict[str, _Class] = {}
-        self.by_id: dict[int, _Msg] = {}
+        self.classes: dict[str, ClassQueue] = {}
+        self.by_id: dict[int, Queued] = {}
         self._frames: dict[int, tuple[float, set[int]]] = {}  # frame no -> (deadline, ids unacked)
         self._frame_no = 0
         self._last_known = 0
-        self._link_free_at = 0.0  # monotonic time the previous frame has left the modem
         self._next_housekeeping = 0.0
         self._next_purge = 0.0
         self._next_backlog = 0.0
-        self._ledger: collections.deque[tuple[int, int]] = collections.deque(
-            self.queue.sent_since(time.time_ns() - HOUR_NS)
-        )
-        self._ledger_bytes = sum(b for _, b in self._ledger)
+        # The decisions: bit rate, window, priorities, back-off and the hourly byte budget
+        # (counting what was sent in the last hour, before a restart too).
+        self.schedule = Schedule(self.cfg, self.session,
+                                 self.queue.sent_since(time.time_ns() - HOUR_NS))
         self.counters = collections.Counter[str]()
         self.blocked = ""
         self._backlog = 0
@@ -137,9 +111,7 @@ class ModemSender:
             self._housekeeping(now)
         sent = self._send(now)
         self.queue.tick()
-        if sent:
-            return 0.0
-        return max(0.0, min(0.1, self._link_free_at - now)) if self._link_free_at > now else 0.1
+        return 0.0 if sent else self.schedule.idle_s(now)
 
     def close(self) -> None:
         """Close the port and the outbox connection."""
@@ -213,13 +185,13 @@ class ModemSender:
 
     # --- loading, expiry, aggregation ---------------------------------------------------
 
-    def _class(self, name: str) -> _Class:
+    def _class(self, name: str) -> ClassQueue:
         cls = self.classes.get(name)
         if cls is None:
-            cls = self.classes[name] = _Class(name, self.cfg.priority_of(name))
+            cls = self.classes[name] = ClassQueue(name, self.cfg.priority_of(name))
         return cls
 
-    def _load(self, cls: _Class) -> None:
+    def _load(self, cls: ClassQueue) -> None:
         room = LOAD_PER_CLASS - len(cls.queue) - len(cls.inflight)
         if room <= 0:
             return
@@ -243,7 +215,7 @@ class ModemSender:
                 self.queue.resolve([stored.seq], REJECTED)
                 self.counters["too_large"] += 1
                 continue
-            msg = _Msg(stored, body)
+            msg = Queued(stored, body)
             msg.attempts = int(stored.seq in tried)  # sent before a restart: may be up there
             cls.queue.append(msg)
 
@@ -270,7 +242,7 @@ class ModemSender:
             self._next_purge = now + PURGE_INTERVAL_S
             self.queue.purge()
 
-    def _expire(self, cls: _Class, wall_ns: int) -> None:
+    def _expire(self, cls: ClassQueue, wall_ns: int) -> None:
         ttl = self.cfg.ttl_of(cls.name)
         if ttl <= 0:
             return
@@ -280,10 +252,10 @@ class ModemSender:
             self.counters["expired"] += gone
             cls.queue = collections.deque(m for m in cls.queue if m.stored.t_ns >= before)
 
-    def _aggregate(self, cls: _Class, wall_ns: int) -> None:
+    def _aggregate(self, cls: ClassQueue, wall_ns: int) -> None:
         interval_ns = int(self.cfg.aggregate_interval_s * 1e9)
         current = wall_ns // interval_ns
-        buckets: dict[int, list[_Msg]] = collections.defaultdict(list)
+        buckets: dict[int, list[Queued]] = collections.defaultdict(list)
         for msg in cls.queue:
             bucket = msg.stored.t_ns // interval_ns
             # A record sent once may already be on the surface: summarising it would count it twice.
@@ -329,19 +301,7 @@ class ModemSender:
 
     def floor(self) -> int:
         """Lowest seq the surface may still receive as new (everything below is settled)."""
-        heads = [self._last_known + 1]
-        for cls in self.classes.values():
-            heads.extend(m.stored.seq for m in cls.inflight[:1])
-            heads.extend(m.stored.seq for m in list(cls.queue)[:1])
-        return min(heads)
-
-    def _budget_ok(self, nbytes: int, wall_ns: int) -> bool:
-        while self._ledger and self._ledger[0][0] < wall_ns - HOUR_NS:
-            self._ledger_bytes -= self._ledger.popleft()[1]
-        if self.cfg.bytes_per_hour and self._ledger_bytes + nbytes > self.cfg.bytes_per_hour:
-            self.blocked = "hourly byte budget spent"
-            return False
-        return True
+        return floor(self._last_known, self.classes.values())
 
     def send_reply(self, payload: bytes) -> None:
         """Queue a REPLY payload: it goes out before any DATA, within the bit rate and the
@@ -359,77 +319,39 @@ class ModemSender:
         self.commands.clear()
         return out
 
-    def _put_on_air(self, wire: bytes, now: float, wall: int) -> None:
-        airtime = len(wire) * BITS_PER_BYTE / self.cfg.bit_rate
-        self._link_free_at = max(now, self._link_free_at) + airtime
-        self._ledger.append((wall, len(wire)))
-        self._ledger_bytes += len(wire)
-
-    def _send_reply(self, now: float) -> bool:
-        wire = frame(REPLY, self.replies[0])
+    def _send(self, now: float) -> bool:
+        """At most one frame out, as the schedule decides; False when none left."""
         wall = time.time_ns()
-        if not self._budget_ok(len(wire), wall):
+        d = self.schedule.next(now, wall, self.replies, len(self._frames),
+                               self.classes.values(), self._last_known)
+        if isinstance(d, Wait):
+            if d.blocked is not None:
+                self.blocked = d.blocked
             return False
-        if not self.port.write(wire):
+        if not self.port.write(d.wire):
             self._requeue_all()
             return False
-        self.replies.popleft()
-        self._put_on_air(wire, now, wall)
-        self.queue.record_sent(len(wire), [], wall)
-        self.counters["replies"] += 1
-        self.counters["bytes"] += len(wire)
+        self.schedule.on_air(len(d.wire), now, wall)
+        if isinstance(d, SendReply):
+            self.replies.popleft()
+            self.queue.record_sent(len(d.wire), [], wall)
+            self.counters["replies"] += 1
+            self.counters["bytes"] += len(d.wire)
+        elif isinstance(d, SendData):
+            self._in_flight(d, wall)
+        else:
+            unreachable(d)
         self.blocked = ""
         return True
 
-    def _send(self, now: float) -> bool:
-        if now < self._link_free_at:
-            self.blocked = "bit rate"
-            return False
-        if self.replies:  # above every class; no acknowledgement, so outside the window
-            return self._send_reply(now)
-        if len(self._frames) >= self.cfg.window:
-            self.blocked = "window full"
-            return False
-        ready = sorted(
-            (c for c in self.classes.values() if c.queue and not c.inflight),
-            key=lambda c: (c.rank, c.queue[0].stored.seq),
-        )
-        if not ready:
-            self.blocked = ""
-            return False
-        floor = self.floor()
-        head = bytearray(self.session)
-        put_uvarint(head, floor)
-        size = len(head)
-        batch: list[tuple[_Class, _Msg]] = []
-        for cls in ready:
-            for msg in cls.queue:
-                cost = message_cost(floor, msg.stored.seq, msg.body)
-                if size + cost > self.cfg.max_frame_payload:
-                    break
-                batch.append((cls, msg))
-                size += cost
-        if not batch:
-            return False
-        nbytes = size + OVERHEAD
-        wall = time.time_ns()
-        if not self._budget_ok(nbytes, wall):
-            return False
-        wire = frame(
-            DATA, data_payload(self.session, floor, ((m.stored.seq, m.body) for _, m in batch))
-        )
-        if not self.port.write(wire):
-            self._requeue_all()
-            return False
-        self._put_on_air(wire, now, wall)
-        self.queue.record_sent(len(wire), [m.stored.seq for _, m in batch if not m.attempts], wall)
-        ack_airtime = 24 * BITS_PER_BYTE / self.cfg.bit_rate
-        for cls, msg in batch:
+    def _in_flight(self, d: SendData, wall: int) -> None:
+        """A DATA frame left: recorded in the outbox (records sent the first time), its
+        records in flight until their acknowledgement deadlines."""
+        self.queue.record_sent(len(d.wire), [m.stored.seq for _, m in d.batch if not m.attempts],
+                               wall)
+        for cls, msg in d.batch:
             cls.queue.popleft()
-            wait = min(
-                self.cfg.ack_timeout_s * self.cfg.backoff**msg.attempts, self.cfg.backoff_max_s
-            )
-            msg.deadline = self._link_free_at + ack_airtime + wait
+            msg.deadline = self.schedule.ack_deadline(msg.attempts)
             if msg.attempts:
                 self.counters["retransmits"] += 1
             msg.attempts += 1
@@ -437,14 +359,12 @@ class ModemSender:
             self.by_id[msg.stored.seq] = msg
         self._frame_no += 1
         self._frames[self._frame_no] = (
-            max(m.deadline for _, m in batch),
-            {m.stored.seq for _, m in batch},
+            max(m.deadline for _, m in d.batch),
+            {m.stored.seq for _, m in d.batch},
         )
         self.counters["frames"] += 1
-        self.counters["bytes"] += len(wire)
-        self.counters["messages"] += len(batch)
-        self.blocked = ""
-        return True
+        self.counters["bytes"] += len(d.wire)
+        self.counters["messages"] += len(d.batch)
 
     # --- stats ------------------------------------------------------------------------
 
@@ -456,7 +376,7 @@ class ModemSender:
             "blocked": self.blocked,
             "port": self.port.url,
             "session": self.session.hex(),
-            "bytes_last_hour": self._ledger_bytes,
+            "bytes_last_hour": self.schedule.bytes_last_hour,
             "bytes_per_hour": self.cfg.bytes_per_hour,
             "backlog": self._backlog,
             "in_flight": len(self.by_id),

@@ -149,8 +149,12 @@ class Reconfigure:
     restart: bool = True
 
 
-Action = Spawn | Kill | WorkerGone | GiveUp | Retry | Stop | AddWorker | Retire | SwitchPool \
-    | Reconfigure | LevelChanged
+# What the node core (supervisor.state) decides: restarts, kills, give-ups, the stop.
+NodeAction = Spawn | Kill | WorkerGone | GiveUp | Retry | Stop
+# What pool control and the ladder (supervisor.pool_control) decide.
+PoolAction = AddWorker | Spawn | Retire | SwitchPool | Reconfigure | LevelChanged
+# Everything the shell applies (Supervisor._act dispatches over every member).
+Action = NodeAction | PoolAction
 
 
 class Refused(ValueError):

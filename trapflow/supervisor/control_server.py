@@ -9,16 +9,17 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import msgspec
 import zmq
 
-from trapflow.errors import ProtocolError
+from trapflow.errors import ProtocolError, unreachable
 from trapflow.runtime.lifecycle import Lifecycle
 from trapflow.runtime.ratelog import RateLimitedLog, wire
 from trapflow.supervisor.actions import Action, Refused
+from trapflow.supervisor.pool_control import PoolControl
 from trapflow.supervisor.state import SupervisorState
 from trapflow.wire import control_msgs, messages
 
@@ -35,7 +36,7 @@ class Control:
 
     def __init__(self, sock: zmq.Socket[bytes], core: SupervisorState, ratelog: RateLimitedLog,
                  *, status: Callable[[], dict[str, Any]], stop: Callable[[], None],
-                 act: Callable[[list[Action], float], None],
+                 act: Callable[[Sequence[Action], float], None],
                  reconfigurable: Callable[[str], bool]) -> None:
         self.sock = sock
         self.core = core
@@ -68,22 +69,24 @@ class Control:
             self.sock.send(msgspec.json.encode(self._change(req)))
         elif isinstance(req, control_msgs.LevelRequest):
             self.sock.send(msgspec.json.encode(self._force_level(req.level)))
-        else:
+        elif isinstance(req, control_msgs.StatusRequest):
             self.sock.send(msgspec.json.encode(self.status()))
+        else:
+            unreachable(req)
 
     def _change(self, req: control_msgs.PoolRequest | control_msgs.ParamRequest) -> dict[str, Any]:
         """A runtime change: the core decides, this applies; the reply says what changed."""
         now = time.monotonic()
         try:
             if isinstance(req, control_msgs.ParamRequest):
-                in_place = req.pool in self.core.pools and self.reconfigurable(req.pool)
-                actions = self.core.set_param(req.pool, req.key, req.value, now, in_place)
+                in_place = req.pool in self.core.pools.by_name and self.reconfigurable(req.pool)
+                actions = self.core.pools.set_param(req.pool, req.key, req.value, now, in_place)
             elif req.count is not None:
-                actions = self.core.set_count(req.pool, req.count, now)
+                actions = self.core.pools.set_count(req.pool, req.count, now)
             elif req.policy is not None:
-                actions = self.core.set_policy(req.pool, req.policy, now)
+                actions = self.core.pools.set_policy(req.pool, req.policy, now)
             else:
-                actions = self.core.set_active(req.pool, bool(req.active), now)
+                actions = self.core.pools.set_active(req.pool, bool(req.active), now)
         except Refused as exc:
             log.warning("refused a control change: %s", exc)
             return {"error": str(exc)}
@@ -91,21 +94,21 @@ class Control:
         log.info("control: %s %s", change.node, change.reason)
         self.act(actions, now)
         return {"changed": change.node, "change": change.reason,
-                "pool": self.core.pool_view()[req.pool]}
+                "pool": self.core.pools.pool_view()[req.pool]}
 
     def _force_level(self, level: str) -> dict[str, Any]:
         """`trapflow level NAME|auto`: the core decides, this applies; the reply says the
         level, whether it is forced and why (or the error)."""
         now = time.monotonic()
         try:
-            actions = self.core.force_level(level, now)
+            actions = self.core.pools.force_level(level, now)
         except Refused as exc:
             log.warning("refused a level change: %s", wire(str(exc)))
             return {"error": str(exc)}
         if not actions:
             log.info("ladder: %s", self.core.timeline[-1].reason)
         self.act(actions, now)
-        view = self.core.ladder_view()
+        view = self.core.pools.ladder_view()
         assert view is not None
         return {"level": view["level"], "auto": not view["forced"], "reason": view["reason"]}
 
@@ -148,10 +151,10 @@ class BrokerLink:
             log.warning("could not tell the broker about pool %s now; status reconciles it",
                         pool)
 
-    def level(self, core: SupervisorState) -> None:
+    def level(self, pools: PoolControl) -> None:
         """The ladder's level to the broker, which publishes it in its stats (status, the
         viewer, and the modem node, which sends a health record when it changes)."""
-        view = core.ladder_view()
+        view = pools.ladder_view()
         if view is None:
             return
         self.switched_at = time.monotonic()
@@ -161,18 +164,18 @@ class BrokerLink:
         except zmq.Again:
             log.warning("could not tell the broker the ladder's level now; status reconciles it")
 
-    def reconcile(self, core: SupervisorState, stats: messages.Stats | None) -> None:
+    def reconcile(self, pools: PoolControl, stats: messages.Stats | None) -> None:
         """A restarted broker starts every pool active, with no minimum interval and no
         level: tell it again what runtime control and the ladder decided."""
         if time.monotonic() - self.switched_at < RECONCILE_AFTER_S:
             return  # its stats may not show the latest switch yet
-        for name, p in core.pools.items():
+        for name, p in pools.by_name.items():
             seen = stats.pools.get(name) if stats is not None else None
             want = p.state == Lifecycle.ACTIVE
             if seen is not None and seen.active != want:
                 self.switch_pool(name, want, None)
             if seen is not None and seen.min_interval_s != p.min_interval_s:
                 self.switch_pool(name, None, None, min_interval_s=p.min_interval_s)
-        view = core.ladder_view()
+        view = pools.ladder_view()
         if stats is not None and view is not None and stats.level != view["level"]:
-            self.level(core)
+            self.level(pools)

@@ -16,13 +16,14 @@ inactive whatever the level until the operator activates it; deactivating a pool
 has off takes it over); a pool the operator activates while the ladder has it off runs
 until the next level change.
 
-PoolControl is a base of trapflow.supervisor.state.SupervisorState, which owns the nodes
-and the timeline this part reads and writes.
+PoolControl is held by trapflow.supervisor.state.SupervisorState, which owns the nodes, the
+timeline and whether the pipeline is stopping: it hands this part the node table, its
+timeline note and a question for `stopping` at construction.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -30,11 +31,11 @@ from trapflow.config.ladder import PoolLevel
 from trapflow.config.schema import parse_policy
 from trapflow.runtime.lifecycle import Lifecycle
 from trapflow.supervisor.actions import (
-    Action,
     AddWorker,
     LevelChanged,
     NodePlan,
     NodeState,
+    PoolAction,
     Reconfigure,
     Refused,
     Retire,
@@ -67,29 +68,37 @@ def worker_name(pool: str, index: int) -> str:
     return f"worker:{pool}:{index}"
 
 
+# A timeline entry: (now, node, kind, reason).
+Note = Callable[[float, str, str, str], None]
+
+
 class PoolControl:
     """Runtime control of the pools (`trapflow pool`, `trapflow param`) and the ladder's
-    levels; the nodes, the timeline and `stopping` are the supervisor core's."""
+    levels; the nodes, the timeline and `stopping` are the supervisor core's, lent here."""
 
-    nodes: dict[str, NodeState]
-    pools: dict[str, PoolState]
-    ladder: Ladder | None
-    stopping: bool
+    def __init__(self, nodes: dict[str, NodeState], note: Note, stopping: Callable[[], bool],
+                 ladder: Ladder | None = None) -> None:
+        self.nodes = nodes  # the core's node table: workers added and retired here
+        self._note = note
+        self._stopping = stopping
+        self.by_name: dict[str, PoolState] = {}
+        self.ladder = ladder  # None: the ladder is off in the config
 
-    def _note(self, now: float, name: str, kind: str, reason: str) -> None:
-        raise NotImplementedError  # the timeline: SupervisorState._note
+    @property
+    def stopping(self) -> bool:
+        return self._stopping()
 
     # --- runtime control ----------------------------------------------------------------
 
     def add_pool(self, name: str, count: int, policy: str, params: Mapping[str, Any],
                  liveness_s: float) -> None:
         """A pool started at boot (its workers are added as nodes by the caller)."""
-        self.pools[name] = PoolState(name, count, policy, dict(params), liveness_s)
+        self.by_name[name] = PoolState(name, count, policy, dict(params), liveness_s)
 
     def _pool(self, name: str) -> PoolState:
-        p = self.pools.get(name)
+        p = self.by_name.get(name)
         if p is None:
-            started = ", ".join(sorted(self.pools)) or "none"
+            started = ", ".join(sorted(self.by_name)) or "none"
             raise Refused(f"no pool {name!r} in this run (pools started: {started}); "
                           "a pool with count 0 at start has no broker queue: start it "
                           "with a count of at least 1")
@@ -101,7 +110,7 @@ class PoolControl:
         pool.changes += 1
         self._note(now, f"pool:{pool.name}", "control", what)
 
-    def set_count(self, name: str, count: int, now: float) -> list[Action]:
+    def set_count(self, name: str, count: int, now: float) -> list[PoolAction]:
         """Grow or shrink a pool to `count` workers (the highest indices go first)."""
         p = self._pool(name)
         if not 1 <= count <= MAX_POOL_COUNT:
@@ -109,7 +118,7 @@ class PoolControl:
                           "to stop its work without losing the pool, use --deactivate")
         if count == p.count:
             raise Refused(f"pool {name!r} already has {count} workers")
-        actions: list[Action] = []
+        actions: list[PoolAction] = []
         for i in range(p.count, count):
             wname = worker_name(name, i)
             n = self.nodes.get(wname)
@@ -131,7 +140,7 @@ class PoolControl:
         p.count = count
         return actions
 
-    def set_active(self, name: str, active: bool, now: float) -> list[Action]:
+    def set_active(self, name: str, active: bool, now: float) -> list[PoolAction]:
         """activate/deactivate, as a ROS 2 lifecycle node moves between active and inactive:
         an inactive pool's workers keep their models loaded and get no pairs."""
         p = self._pool(name)
@@ -153,7 +162,7 @@ class PoolControl:
         p.off_by = "" if active else "operator"
         return [SwitchPool(name, active=active)]
 
-    def set_policy(self, name: str, policy: str, now: float) -> list[Action]:
+    def set_policy(self, name: str, policy: str, now: float) -> list[PoolAction]:
         """A new queueing policy for the pool's pending pairs (the broker applies it)."""
         p = self._pool(name)
         try:
@@ -167,7 +176,7 @@ class PoolControl:
         return [SwitchPool(name, policy=policy)]
 
     def set_param(self, name: str, key: str, value: Any, now: float,
-                  in_place: bool = False) -> list[Action]:
+                  in_place: bool = False) -> list[PoolAction]:
         """One plugin parameter changed. A plugin that can be configured again
         (`in_place`) gets the pool's new parameters between pairs; otherwise every worker
         of the pool restarts with them."""
@@ -178,7 +187,7 @@ class PoolControl:
         p.params[key] = value
         how = "reconfigured in place" if in_place else "restarting workers"
         self._control(now, p, f"param {key}: {before!r} -> {value!r}; {how}")
-        actions: list[Action] = []
+        actions: list[PoolAction] = []
         for i in range(p.count):
             n = self.nodes[worker_name(name, i)]
             actions.append(Reconfigure(n.name, name, dict(p.params), restart=not in_place))
@@ -193,18 +202,18 @@ class PoolControl:
         return {p.name: {"state": str(p.state), "count": p.count, "policy": p.policy,
                          "params": dict(p.params), "changes": p.changes, "off_by": p.off_by,
                          "min_interval_s": p.min_interval_s}
-                for p in self.pools.values()}
+                for p in self.by_name.values()}
 
     # --- degradation ladder ---------------------------------------------------------------
 
-    def degrade(self, readings: Readings, now: float) -> list[Action]:
+    def degrade(self, readings: Readings, now: float) -> list[PoolAction]:
         """A snapshot of the sensors: the ladder may step one level (see supervisor.ladder)."""
         if self.ladder is None or self.stopping:
             return []
         step = self.ladder.update(readings, now)
         return self._level(now) if step.changed else []
 
-    def force_level(self, level: str, now: float) -> list[Action]:
+    def force_level(self, level: str, now: float) -> list[PoolAction]:
         """The operator's `trapflow level NAME|auto`; Refused for an unknown level."""
         if self.ladder is None:
             raise Refused("no degradation ladder in this run: it is off in the config "
@@ -220,12 +229,12 @@ class PoolControl:
         self._note(now, "ladder", "level", f"{self.ladder.level}: {self.ladder.reason}")
         return []
 
-    def _level(self, now: float, forced: bool = False) -> list[Action]:
+    def _level(self, now: float, forced: bool = False) -> list[PoolAction]:
         """Pools to the ladder's new level (the operator's rule in the module docstring)."""
         assert self.ladder is not None
         plan = self.ladder.plan()
-        actions: list[Action] = []
-        for p in self.pools.values():
+        actions: list[PoolAction] = []
+        for p in self.by_name.values():
             want = plan.get(p.name, PoolLevel())
             active: bool | None = None
             if not want.active and p.state == Lifecycle.ACTIVE:

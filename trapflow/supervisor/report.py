@@ -107,7 +107,7 @@ class Report:
         return {"gave_up": counts["gave_up"], "retries": counts["retry"],
                 "capped": counts["capped"], "control": counts["control"],
                 "recycled": {p: dict(by) for p, by in core.recycled.items()},
-                "pools": core.pool_view(), "ladder": core.ladder_view(),
+                "pools": core.pools.pool_view(), "ladder": core.pools.ladder_view(),
                 "timeline": [{"t_s": round(e.t - self.t0, 1), "node": e.node,
                               "kind": e.kind, "reason": e.reason} for e in core.timeline]}
 
@@ -120,7 +120,7 @@ class Report:
 
     def status_text(self) -> str:
         """One line: time, pairs/s in, per pool processed/s, dropped, restarts."""
-        view = self.core.ladder_view()
+        view = self.core.pools.ladder_view()
         level = view["level"] if view is not None and view["index"] else ""
         return self.ledger_model.status_text(time.monotonic() - self.t0,
                                              self._pool_restarts(self.snapshot()), level=level)

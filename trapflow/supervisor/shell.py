@@ -16,7 +16,7 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import IO, Any
@@ -27,7 +27,7 @@ import zmq
 from trapflow import registry
 from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import Config
-from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError
+from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError, unreachable
 from trapflow.runtime import sdnotify
 from trapflow.runtime.lifecycle import RECYCLE_EXITS
 from trapflow.runtime.node import NodeSpec, node_main
@@ -121,7 +121,9 @@ class Supervisor:
         self.out = out or sys.stdout
         self.mp = mp.get_context("spawn")
         self.children: list[Child] = []
-        self.core = SupervisorState((), _budget(cfg))  # the decisions (filled by boot())
+        # The decisions (filled by boot()); the ladder's readings are the sensors' below.
+        self.core = SupervisorState((), _budget(cfg),
+                                    ladder=Ladder(cfg.ladder) if cfg.ladder.enabled else None)
         self.ledger_model = RunLedger()  # the counters (status line, status, ledger.json)
         self.stop_requested = False
         self.planned_stop = False  # a duration, stop request, signal or drained source
@@ -140,7 +142,6 @@ class Supervisor:
         # The degradation ladder: its decisions are the core's, its readings these sensors'.
         self.sensors: Sensors | None = None
         if cfg.ladder.enabled:
-            self.core.ladder = Ladder(cfg.ladder)
             self.sensors = Sensors(cfg.ladder.sensors, run_dir)
 
     # --- the process graph --------------------------------------------------------------
@@ -161,8 +162,8 @@ class Supervisor:
             self._add(NodeSpec("events", "events", cfg, run, ring=ring), sup.liveness_s)
         for pool, pcfg in cfg.pools.items():
             if pcfg.count:  # runtime control (trapflow pool / param) knows the pools run
-                self.core.add_pool(pool, pcfg.count, pcfg.policy, pcfg.params,
-                                   worker_liveness(pcfg.timeout_s, sup.heartbeat_interval_s))
+                self.core.pools.add_pool(pool, pcfg.count, pcfg.policy, pcfg.params,
+                                         worker_liveness(pcfg.timeout_s, sup.heartbeat_interval_s))
             for i in range(pcfg.count):
                 spec = NodeSpec("worker", f"worker:{pool}:{i}", cfg, run, pool=pool, index=i,
                                 rig=self.rig, ring=ring)
@@ -287,8 +288,8 @@ class Supervisor:
             self._watch(now)
             if self.sensors is not None and now >= next_ladder:
                 next_ladder = now + self.cfg.ladder.interval_s
-                self._act(self.core.degrade(self.sensors.read(self.stats, self._outbox()),
-                                            now), now)
+                self._act(self.core.pools.degrade(
+                    self.sensors.read(self.stats, self._outbox()), now), now)
             if clock.due(now, self.ledger_model.capture().produced):
                 log.info("duration of %g s reached", self.duration)
                 self.planned_stop = True
@@ -304,7 +305,7 @@ class Supervisor:
                 self.report.read_results()
                 self.report.status_line()
                 self._notify_systemd()
-                self.broker.reconcile(self.core, self.stats)
+                self.broker.reconcile(self.core.pools, self.stats)
 
     def _outbox(self) -> int | None:
         """Records waiting for the modem, as the modem node last counted (None: no modem)."""
@@ -394,7 +395,7 @@ class Supervisor:
                 self._act(actions, now)
         self._act(self.core.tick(now), now)
 
-    def _act(self, actions: list[Action], now: float) -> None:
+    def _act(self, actions: Sequence[Action], now: float) -> None:
         for a in actions:
             if isinstance(a, Spawn):
                 c = self._named(a.name)
@@ -430,9 +431,11 @@ class Supervisor:
                 self._switch_pool(a.pool, a.active, a.policy, a.params, a.min_interval_s)
             elif isinstance(a, LevelChanged):
                 log.info("ladder: level %s (%s)", a.level, a.reason)
-                self.broker.level(self.core)
+                self.broker.level(self.core.pools)
             elif isinstance(a, Reconfigure):
                 self._reconfigure(a)
+            else:
+                unreachable(a)
 
     def _respawn(self, c: Child, now: float) -> None:
         """A restart: what the dead process had counted is kept, then a new one starts."""

@@ -13,8 +13,9 @@ retried after a cool-down with a fresh budget; an essential node (broker, captur
 normalizer) is never abandoned while the supervisor lives, it keeps restarting at the
 capped back-off. Every give-up and retry is kept in a timeline for status and the ledger.
 
-Runtime pool control and the degradation ladder are decided in the same core, by its
-base trapflow.supervisor.pool_control.PoolControl; the actions are trapflow.supervisor.actions'.
+Runtime pool control and the degradation ladder are decided by the PoolControl this core
+holds (`pools`, trapflow.supervisor.pool_control), over the same nodes and timeline; the
+actions are trapflow.supervisor.actions'.
 """
 
 from __future__ import annotations
@@ -26,11 +27,11 @@ from dataclasses import dataclass
 from trapflow.runtime.lifecycle import RECYCLE_EXITS, Lifecycle
 from trapflow.supervisor.actions import (
     STARTUP_TIMEOUT_S,
-    Action,
     Budget,
     Event,
     GiveUp,
     Kill,
+    NodeAction,
     NodePlan,
     NodeState,
     Retry,
@@ -39,24 +40,25 @@ from trapflow.supervisor.actions import (
     WorkerGone,
 )
 from trapflow.supervisor.ladder import Ladder
-from trapflow.supervisor.pool_control import PoolControl, PoolState
+from trapflow.supervisor.pool_control import PoolControl
 
 # Timeline entries kept for status and the ledger (the oldest go first).
 MAX_TIMELINE = 1000
 
 
-class SupervisorState(PoolControl):
-    """Lifecycle, liveness and restart decisions for every node of one pipeline."""
+class SupervisorState:
+    """Lifecycle, liveness and restart decisions for every node of one pipeline; runtime
+    control of its pools and the ladder in `pools`."""
 
-    def __init__(self, plans: Iterable[NodePlan], budget: Budget) -> None:
+    def __init__(self, plans: Iterable[NodePlan], budget: Budget,
+                 ladder: Ladder | None = None) -> None:
         self.nodes = {p.name: NodeState(p) for p in plans}
         self.budget = budget
         self.timeline: deque[Event] = deque(maxlen=MAX_TIMELINE)
         self._counts = {"gave_up": 0, "retry": 0, "capped": 0, "control": 0, "level": 0,
                         "recycled": 0}
         self.stopping = False
-        self.pools: dict[str, PoolState] = {}
-        self.ladder: Ladder | None = None  # set by the shell when the ladder is enabled
+        self.pools = PoolControl(self.nodes, self._note, lambda: self.stopping, ladder)
         # Workers recycled per pool, by why (rss, jobs).
         self.recycled: dict[str, dict[str, int]] = {}
 
@@ -84,7 +86,7 @@ class SupervisorState(PoolControl):
         n.last_beat, n.state, n.reason = now, life, reason
         return True
 
-    def exited(self, name: str, code: int | None, now: float) -> list[Action]:
+    def exited(self, name: str, code: int | None, now: float) -> list[NodeAction]:
         """The node's process ended with `code`: finished, restarted, or given up."""
         n = self.nodes[name]
         if not n.running:
@@ -95,7 +97,7 @@ class SupervisorState(PoolControl):
             return []
         if self.stopping:
             return []
-        actions: list[Action] = []
+        actions: list[NodeAction] = []
         why = RECYCLE_EXITS.get(code, "") if code is not None else ""
         if n.plan.role == "worker" and why and not n.retired:
             # Planned: replaced at once, no back-off, the restart budget untouched.
@@ -148,9 +150,9 @@ class SupervisorState(PoolControl):
         n = self.nodes[name]
         n.running, n.finished = False, True
 
-    def tick(self, now: float) -> list[Action]:
+    def tick(self, now: float) -> list[NodeAction]:
         """Time passes: silent nodes are killed, due restarts and retries spawned."""
-        actions: list[Action] = []
+        actions: list[NodeAction] = []
         if self.stopping:
             return actions
         for n in self.nodes.values():
@@ -177,7 +179,7 @@ class SupervisorState(PoolControl):
                 actions.append(Spawn(n.name, n.restart_total))
         return actions
 
-    def stop(self, reason: str) -> list[Action]:
+    def stop(self, reason: str) -> list[NodeAction]:
         """A stop command (control socket, signal, duration, drained source)."""
         if self.stopping:
             return []

@@ -1,0 +1,181 @@
+"""The modem sender's scheduling without a port or an outbox: which frame goes out (a REPLY
+before any DATA, classes by priority then age, records while they fit the frame), why none
+does (bit rate, window, hourly byte budget), the acknowledgement back-off and the wait
+between steps. Pins the rules ModemSender._send applied inline before they moved to
+trapflow.modem.schedule (issue 21): same order, same reasons in `blocked`."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from trapflow.config.modem import BITS_PER_BYTE, ModemConfig
+from trapflow.modem.frame import DATA, OVERHEAD, REPLY, Deframer, parse_data
+from trapflow.modem.outbox import Stored
+from trapflow.modem.schedule import (
+    BIT_RATE,
+    BUDGET_SPENT,
+    HOUR_NS,
+    IDLE_WAIT_S,
+    WINDOW_FULL,
+    ClassQueue,
+    Decision,
+    Queued,
+    Schedule,
+    SendData,
+    SendReply,
+    Wait,
+    floor,
+)
+
+SESSION = b"\x0a\x0b\x0c\x0d"
+WALL = 10 * HOUR_NS  # the wall clock of every decision here (ns)
+NOW = 100.0  # the monotonic clock (s)
+# 32 bytes a frame: session and floor take 5, a record of a 10-byte body 12 (id delta,
+# length, body): two such records fit, a third does not, a 1-byte one (3) still does.
+CFG = {"max_frame_payload": 32, "window": 2, "bit_rate": 300.0}
+
+Spec = list[tuple[int, list[tuple[int, int]], list[int]]]  # (rank, [(seq, body len)], in flight)
+
+
+def classes(spec: Spec) -> list[ClassQueue]:
+    out = []
+    for i, (rank, queued, inflight) in enumerate(spec):
+        c = ClassQueue(f"c{i}", rank)
+        c.queue.extend(record(seq, n) for seq, n in queued)
+        c.inflight.extend(record(seq, 10) for seq in inflight)
+        out.append(c)
+    return out
+
+
+def record(seq: int, body_len: int) -> Queued:
+    body = bytes(body_len)
+    return Queued(Stored(seq=seq, t_ns=WALL, cls="c", body=body, intact=True), body)
+
+
+def schedule(sent: list[tuple[int, int]] | None = None, **cfg: Any) -> Schedule:
+    return Schedule(ModemConfig(**{**CFG, **cfg}), SESSION, sent or [])
+
+
+def what(d: Decision) -> tuple[Any, ...]:
+    """A decision as a row can spell it: ("wait", blocked), ("reply",), ("data", [seqs])."""
+    if isinstance(d, Wait):
+        return ("wait", d.blocked)
+    if isinstance(d, SendReply):
+        return ("reply",)
+    return ("data", [m.stored.seq for _, m in d.batch])
+
+
+B = 1000  # an hourly byte budget
+
+
+@pytest.mark.parametrize(("spec", "replies", "in_flight", "busy", "budget", "sent", "want"), [
+    # the previous frame is still on the air: nothing, a reply neither
+    ([(0, [(1, 10)], [])], 1, 0, True, 0, [], ("wait", BIT_RATE)),
+    # a reply goes above every class and outside the window
+    ([(0, [(1, 10)], [])], 1, 2, False, 0, [], ("reply",)),
+    # a reply counts in the hourly budget too
+    ([], 1, 0, False, B, [(WALL, B)], ("wait", BUDGET_SPENT)),
+    # `window` DATA frames wait for their ACK: no more
+    ([(0, [(1, 10)], [])], 0, 2, False, 0, [], ("wait", WINDOW_FULL)),
+    # nothing queued: idle, nothing to say
+    ([], 0, 0, False, 0, [], ("wait", "")),
+    # a class with a batch in flight waits for it (stop-and-wait keeps its order)
+    ([(0, [(2, 10)], [1])], 0, 0, False, 0, [], ("wait", "")),
+    # priority rank first, whatever the age
+    ([(5, [(1, 1)], []), (0, [(7, 1)], [])], 0, 0, False, 0, [], ("data", [7, 1])),
+    # same rank: the older head first
+    ([(3, [(9, 1)], []), (3, [(4, 1)], [])], 0, 0, False, 0, [], ("data", [4, 9])),
+    # records in order while they fit; a later class's small record fills the rest
+    ([(0, [(1, 10), (2, 10), (3, 10)], []), (1, [(4, 1)], [])], 0, 0, False, 0, [],
+     ("data", [1, 2, 4])),
+    # a record that fits no frame: nothing, and the reason stays as it was
+    ([(0, [(1, 40)], [])], 0, 0, False, 0, [], ("wait", None)),
+    # the budget spent in the last hour holds DATA back
+    ([(0, [(1, 10)], [])], 0, 0, False, B, [(WALL - HOUR_NS + 1, B)],
+     ("wait", BUDGET_SPENT)),
+    # frames older than an hour no longer count
+    ([(0, [(1, 10)], [])], 0, 0, False, B, [(WALL - HOUR_NS - 1, B)], ("data", [1])),
+    # a budget of 0 is no budget
+    ([(0, [(1, 10)], [])], 0, 0, False, 0, [(WALL, 10**9)], ("data", [1])),
+])
+def test_what_goes_out_next(spec: Spec, replies: int, in_flight: int, busy: bool, budget: int,
+                            sent: list[tuple[int, int]], want: tuple[Any, ...]) -> None:
+    s = schedule(sent, bytes_per_hour=budget)
+    if busy:
+        s.on_air(30, NOW, WALL)
+    queued = [bytes([i]) * 8 for i in range(replies)]
+    assert what(s.next(NOW, WALL, queued, in_flight, classes(spec), 0)) == want
+
+
+def test_a_data_frame_carries_the_session_the_floor_and_the_batch() -> None:
+    s = schedule()
+    cs = classes([(0, [(5, 10), (6, 10)], []), (1, [(7, 1)], [4])])
+    d = s.next(NOW, WALL, [], 0, cs, 8)
+    assert isinstance(d, SendData)
+    [(kind, payload)] = list(Deframer().feed(d.wire))
+    # the floor is the lowest seq not settled: c1's record in flight (c1 waits for its ACK)
+    assert kind == DATA and parse_data(payload) == (SESSION, 4, [(5, bytes(10)),
+                                                                 (6, bytes(10))])
+    assert [c.name for c, _ in d.batch] == ["c0", "c0"]
+
+
+def test_a_reply_is_framed_whole() -> None:
+    d = schedule().next(NOW, WALL, [b"\x02" * 24, b"\x03"], 0, [], 0)
+    assert isinstance(d, SendReply) and list(Deframer().feed(d.wire)) == [(REPLY, b"\x02" * 24)]
+
+
+@pytest.mark.parametrize(("last_known", "spec", "want"), [
+    (9, [], 10),  # nothing queued: everything up to the outbox's last seq is settled
+    (9, [(0, [(6, 1), (7, 1)], [])], 6),  # the oldest queued head
+    (9, [(0, [(6, 1)], [3]), (1, [(5, 1)], [])], 3),  # a record in flight is not settled
+])
+def test_floor(last_known: int, spec: Spec, want: int) -> None:
+    assert floor(last_known, classes(spec)) == want
+
+
+def test_the_link_is_busy_for_each_frame_s_air_time_back_to_back() -> None:
+    s = schedule(bytes_per_hour=B)
+    s.on_air(30, NOW, WALL)  # 30 bytes at 300 bit/s, 10 bits a byte: 1 s
+    s.on_air(30, NOW + 0.5, WALL)  # written while the first is on the air: queued behind it
+    assert s.link_free_at == pytest.approx(NOW + 2.0)
+    assert what(s.next(NOW + 1.9, WALL, [b"r"], 0, [], 0)) == ("wait", BIT_RATE)
+    assert s.bytes_last_hour == 60
+
+
+@pytest.mark.parametrize(("attempts", "wait_s"), [
+    (0, 3.0),  # the ack timeout
+    (1, 6.0),  # doubled per attempt
+    (2, 12.0),
+    (5, 60.0),  # capped at backoff_max_s
+])
+def test_ack_deadline_backs_off(attempts: int, wait_s: float) -> None:
+    s = schedule(ack_timeout_s=3.0, backoff=2.0, backoff_max_s=60.0)
+    s.on_air(30, NOW, WALL)
+    ack_air = 24 * BITS_PER_BYTE / CFG["bit_rate"]
+    assert s.ack_deadline(attempts) == pytest.approx(NOW + 1.0 + ack_air + wait_s)
+
+
+@pytest.mark.parametrize(("free_in_s", "want"), [
+    (None, IDLE_WAIT_S),  # nothing ever sent
+    (-5.0, IDLE_WAIT_S),  # the link free long ago
+    (0.05, 0.05),  # until the link is free
+    (5.0, IDLE_WAIT_S),  # but never longer than the idle wait
+])
+def test_idle_wait(free_in_s: float | None, want: float) -> None:
+    s = schedule()
+    if free_in_s is not None:
+        s.link_free_at = NOW + free_in_s
+    assert s.idle_s(NOW) == pytest.approx(want)
+
+
+def test_overhead_counts_in_the_budget() -> None:
+    """The budget is checked on the whole frame (payload and OVERHEAD), as before the move."""
+    payload = 4 + 1 + 12  # session, floor, one 10-byte record
+    at_limit = schedule([(WALL, 0)], bytes_per_hour=payload + OVERHEAD)
+    assert what(at_limit.next(NOW, WALL, [], 0, classes([(0, [(1, 10)], [])]), 0)) == (
+        "data", [1])
+    short = schedule([(WALL, 1)], bytes_per_hour=payload + OVERHEAD)
+    assert what(short.next(NOW, WALL, [], 0, classes([(0, [(1, 10)], [])]), 0)) == (
+        "wait", BUDGET_SPENT)

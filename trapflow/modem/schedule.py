@@ -1,0 +1,194 @@
+"""The modem sender's scheduling, pure: which frame leaves next on the link, or why none does.
+No port, no outbox, no clock: callers pass `now` (monotonic seconds) and `wall_ns` (the wall
+clock the hourly byte budget is counted in, as the outbox records what was sent).
+
+The rules, one per branch of `Schedule.next`, in order: nothing while the previous frame is
+still on the air (the bit rate); a queued REPLY above every class and outside the window (it
+gets no acknowledgement); at most `window` DATA frames waiting for their ACK; the classes
+with records queued and none in flight, by priority rank and then by the oldest head, each
+class's records in seq order while they fit the frame; and every frame within the hourly
+byte budget. A record's acknowledgement is awaited for the frame's air time, an ACK's, and
+the timeout backed off by the record's attempts (`ack_deadline`).
+
+The sender (trapflow.modem.sender) owns the port and the outbox: it writes what this
+decides, moves the records in flight, and reports each frame put on the air (`on_air`).
+"""
+
+from __future__ import annotations
+
+import collections
+from collections.abc import Collection, Iterable, Sequence
+from dataclasses import dataclass
+
+from trapflow.config.modem import BITS_PER_BYTE, ModemConfig
+from trapflow.modem.frame import (
+    DATA,
+    OVERHEAD,
+    REPLY,
+    data_payload,
+    frame,
+    message_cost,
+    put_uvarint,
+)
+from trapflow.modem.outbox import Stored
+
+HOUR_NS = 3600 * 10**9
+ACK_BYTES = 24  # an ACK frame's air time is allowed for in every acknowledgement deadline
+IDLE_WAIT_S = 0.1  # longest wait between two steps of the sender
+
+# Why nothing goes out (the sender's `blocked`, in its stats).
+BIT_RATE = "bit rate"
+WINDOW_FULL = "window full"
+BUDGET_SPENT = "hourly byte budget spent"
+
+
+class Queued:
+    """A record on its way: encoded body, attempts, ack deadline."""
+
+    __slots__ = ("stored", "body", "attempts", "deadline")
+
+    def __init__(self, stored: Stored, body: bytes) -> None:
+        self.stored = stored
+        self.body = body
+        self.attempts = 0
+        self.deadline = 0.0
+
+
+class ClassQueue:
+    """Per-class queue: loaded pending records (oldest first) and the batch in flight."""
+
+    def __init__(self, name: str, rank: int) -> None:
+        self.name = name
+        self.rank = rank
+        self.queue: collections.deque[Queued] = collections.deque()
+        self.cursor = 0  # highest seq loaded from the outbox
+        self.inflight: list[Queued] = []
+
+
+@dataclass(frozen=True)
+class Wait:
+    """Nothing goes out on this step: `blocked` says why ("": nothing to send), None leaves
+    the reason as it was."""
+
+    blocked: str | None
+
+
+@dataclass(frozen=True)
+class SendReply:
+    """The first queued REPLY, framed."""
+
+    wire: bytes
+
+
+@dataclass(frozen=True)
+class SendData:
+    """One DATA frame, framed, and the records it carries, each with its class (the heads
+    of their classes' queues, in queue order)."""
+
+    wire: bytes
+    batch: tuple[tuple[ClassQueue, Queued], ...]
+
+
+Decision = Wait | SendReply | SendData
+
+
+def floor(last_known: int, classes: Iterable[ClassQueue]) -> int:
+    """Lowest seq the surface may still receive as new (everything below is settled)."""
+    heads = [last_known + 1]
+    for cls in classes:
+        heads.extend(m.stored.seq for m in cls.inflight[:1])
+        if cls.queue:
+            heads.append(cls.queue[0].stored.seq)
+    return min(heads)
+
+
+def ready(classes: Iterable[ClassQueue]) -> list[ClassQueue]:
+    """Classes that may send (records queued, none in flight: stop-and-wait per class), by
+    priority rank, then the oldest head first."""
+    return sorted((c for c in classes if c.queue and not c.inflight),
+                  key=lambda c: (c.rank, c.queue[0].stored.seq))
+
+
+def pack(classes: Iterable[ClassQueue], head_bytes: int, low: int, max_payload: int
+         ) -> tuple[list[tuple[ClassQueue, Queued]], int]:
+    """The records one DATA payload carries and its size: each class's records in order
+    while they fit, then the next class's (a class whose next record does not fit leaves
+    room for a smaller one of a later class)."""
+    size = head_bytes
+    batch: list[tuple[ClassQueue, Queued]] = []
+    for cls in classes:
+        for msg in cls.queue:
+            cost = message_cost(low, msg.stored.seq, msg.body)
+            if size + cost > max_payload:
+                break
+            batch.append((cls, msg))
+            size += cost
+    return batch, size
+
+
+class Schedule:
+    """What the link may carry now: the bit rate (when the last frame has left the modem),
+    the window, the classes' priorities and the hourly byte budget."""
+
+    def __init__(self, cfg: ModemConfig, session: bytes,
+                 sent: Iterable[tuple[int, int]] = ()) -> None:
+        self.cfg = cfg  # read at every decision: a changed limit applies at once
+        self.session = session
+        self.link_free_at = 0.0  # monotonic time the previous frame has left the modem
+        # Frames sent in the last hour: (wall ns, bytes), the oldest first.
+        self._ledger: collections.deque[tuple[int, int]] = collections.deque(sent)
+        self.bytes_last_hour = sum(b for _, b in self._ledger)
+
+    def next(self, now: float, wall_ns: int, replies: Sequence[bytes], frames_in_flight: int,
+             classes: Collection[ClassQueue], last_known: int) -> Decision:
+        """What to send now, or why nothing (`last_known`: the outbox's last seq seen)."""
+        if now < self.link_free_at:
+            return Wait(BIT_RATE)
+        if replies:  # above every class; no acknowledgement, so outside the window
+            wire = frame(REPLY, replies[0])
+            return SendReply(wire) if self._fits(len(wire), wall_ns) else Wait(BUDGET_SPENT)
+        if frames_in_flight >= self.cfg.window:
+            return Wait(WINDOW_FULL)
+        order = ready(classes)
+        if not order:
+            return Wait("")
+        low = floor(last_known, classes)
+        head = bytearray(self.session)
+        put_uvarint(head, low)
+        batch, size = pack(order, len(head), low, self.cfg.max_frame_payload)
+        if not batch:
+            return Wait(None)
+        if not self._fits(size + OVERHEAD, wall_ns):
+            return Wait(BUDGET_SPENT)
+        payload = data_payload(self.session, low, ((m.stored.seq, m.body) for _, m in batch))
+        return SendData(frame(DATA, payload), tuple(batch))
+
+    def _fits(self, nbytes: int, wall_ns: int) -> bool:
+        """Whether `nbytes` more stay within the hourly budget (frames older than an hour
+        leave the count)."""
+        while self._ledger and self._ledger[0][0] < wall_ns - HOUR_NS:
+            self.bytes_last_hour -= self._ledger.popleft()[1]
+        budget = self.cfg.bytes_per_hour
+        return not budget or self.bytes_last_hour + nbytes <= budget
+
+    def on_air(self, nbytes: int, now: float, wall_ns: int) -> None:
+        """A frame of `nbytes` was written: the link is busy for its air time, and it counts
+        in the hourly budget."""
+        airtime = nbytes * BITS_PER_BYTE / self.cfg.bit_rate
+        self.link_free_at = max(now, self.link_free_at) + airtime
+        self._ledger.append((wall_ns, nbytes))
+        self.bytes_last_hour += nbytes
+
+    def ack_deadline(self, attempts: int) -> float:
+        """When a record sent in the frame just put on the air, after `attempts` earlier
+        sends, is given up waiting for (its timeout backs off per attempt, capped)."""
+        ack_airtime = ACK_BYTES * BITS_PER_BYTE / self.cfg.bit_rate
+        wait = min(self.cfg.ack_timeout_s * self.cfg.backoff**attempts, self.cfg.backoff_max_s)
+        return self.link_free_at + ack_airtime + wait
+
+    def idle_s(self, now: float) -> float:
+        """How long the sender may wait after a step that sent nothing: until the link is
+        free, at most IDLE_WAIT_S."""
+        if self.link_free_at > now:
+            return max(0.0, min(IDLE_WAIT_S, self.link_free_at - now))
+        return IDLE_WAIT_S

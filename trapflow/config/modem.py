@@ -20,8 +20,10 @@ DEFAULT_LABELS = (
 
 
 def _priorities() -> list[str]:
-    return ["stereo_ir/scallop", "mono_ir/crab", "health", "tags", "stereo_ir/*", "mono_ir/*",
-            "stereo_vo", "*"]  # fmt: skip
+    # Observations first: interval counts (MaxN, visits) and finished tracks answer the
+    # questions asked of a trap in a few bytes; per-pair detections follow.
+    return ["counts", "track", "stereo_ir/scallop", "mono_ir/crab", "health", "tags",
+            "stereo_ir/*", "mono_ir/*", "stereo_vo", "*"]  # fmt: skip
 
 
 class ModemConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
@@ -47,6 +49,9 @@ class ModemConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     """Each resend of the same message waits this factor longer."""
     backoff_max_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 60.0
     """Longest wait for an acknowledgement."""
+    detections: bool = True
+    """Send per-pair detection lines (mono_ir) too; false: only tracks and interval counts
+    of the detector pools go out, the lines stay on disk."""
     priorities: list[str] = msgspec.field(default_factory=_priorities)
     """Message class patterns (fnmatch), most urgent first; unmatched classes come last."""
     ttl_s: dict[str, Annotated[float, msgspec.Meta(ge=0)]] = msgspec.field(

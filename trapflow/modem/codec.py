@@ -161,6 +161,76 @@ def _dec_ts(r: Reader, ctx: _Ctx) -> Any:
     return f"{text}.{ms:03d}" if has_ms else text
 
 
+def _enc_secs(out: bytearray, v: Any, ctx: _Ctx) -> None:
+    # "YYYY-MM-DD HH:MM:SS": whole seconds since 2020 (4 bytes until 2028, 5 after).
+    if not isinstance(v, str) or len(v) != 19:
+        raise _Unfit
+    try:
+        secs = calendar.timegm(time.strptime(v, "%Y-%m-%d %H:%M:%S"))
+    except ValueError:
+        raise _Unfit from None
+    if secs < _EPOCH_S:
+        raise _Unfit
+    put_uvarint(out, secs - _EPOCH_S)
+
+
+def _dec_secs(r: Reader, ctx: _Ctx) -> Any:
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(_EPOCH_S + r.uvarint()))
+
+
+def _enc_opt_id(out: bytearray, v: Any, ctx: _Ctx) -> None:
+    # A track id, or None (not yet confirmed): id + 1, 0 for None.
+    if v is None:
+        out.append(0)
+        return
+    _enc_uint(out, v + 1 if isinstance(v, int) and not isinstance(v, bool) else -1, ctx)
+
+
+def _dec_opt_id(r: Reader, ctx: _Ctx) -> Any:
+    v = r.uvarint()
+    return v - 1 if v else None
+
+
+# A track's [length_m, range_m, speed_m_s] (None where not measured): centimetres,
+# decimetres and cm/s as unsigned varints plus one (0: none), one byte each for a crab.
+_MEASURED_SCALES = (100, 10, 100)
+
+
+def _enc_measured(out: bytearray, v: Any, ctx: _Ctx) -> None:
+    if not isinstance(v, list) or len(v) != len(_MEASURED_SCALES):
+        raise _Unfit
+    for x, scale in zip(v, _MEASURED_SCALES, strict=True):
+        if x is None:
+            out.append(0)
+        elif (q := round(_num(x) * scale)) < 0:
+            raise _Unfit
+        else:
+            put_uvarint(out, q + 1)
+
+
+def _dec_measured(r: Reader, ctx: _Ctx) -> Any:
+    return [(q - 1) / scale if (q := r.uvarint()) else None for scale in _MEASURED_SCALES]
+
+
+def _enc_label_counts(out: bytearray, v: Any, ctx: _Ctx) -> None:
+    # An interval's labels: count, then per label its name, visits, MaxN, dwell in seconds.
+    if not isinstance(v, list):
+        raise _Unfit
+    put_uvarint(out, len(v))
+    for lab in v:
+        if not isinstance(lab, dict) or set(lab) != {"label", "visits", "max_n", "dwell_s"}:
+            raise _Unfit
+        _enc_label(out, lab["label"], ctx)
+        for key in ("visits", "max_n"):
+            _enc_uint(out, lab[key], ctx)
+        put_uvarint(out, max(0, round(_num(lab["dwell_s"]))))
+
+
+def _dec_label_counts(r: Reader, ctx: _Ctx) -> Any:
+    return [{"label": _dec_label(r, ctx), "visits": r.uvarint(), "max_n": r.uvarint(),
+             "dwell_s": r.uvarint()} for _ in range(r.uvarint())]
+
+
 def _enc_box(out: bytearray, v: Any, ctx: _Ctx) -> None:
     if not isinstance(v, list) or len(v) != 4:
         raise _Unfit
@@ -327,11 +397,19 @@ BOOL = (_enc_bool, _dec_bool)
 STR = (_enc_str, _dec_str)
 LABEL = (_enc_label, _dec_label)
 CONF = (_enc_conf, _dec_conf)
+SECS = (_enc_secs, _dec_secs)
+MM = _fixed(1000)  # metres to the millimetre
+CM = _fixed(100)  # metres (or m/s) to the centimetre
 
 # kind byte -> (record key, fields in wire order). Append only: the surface must agree.
 KINDS: dict[int, tuple[str, list[tuple[str, tuple[Enc, Dec]]]]] = {
     1: ("mono_ir", [("timestamp", TS), ("seq", UINT), ("label", LABEL), ("confidence", CONF),
-                    ("box", (_enc_box, _dec_box)), ("v", UINT), ("model", CALIB)]),
+                    ("box", (_enc_box, _dec_box)), ("v", UINT), ("model", CALIB),
+                    # appended for result lines v2: fields only append, old records decode
+                    ("track", (_enc_opt_id, _dec_opt_id)), ("range_m", MM),
+                    ("range_sd_m", MM), ("length_m", MM), ("length_sd_m", MM),
+                    ("xyz", _fixed_list(1000, 3)), ("disparity_px", _fixed(100)),
+                    ("length_method", STR), ("unmeasured", STR)]),
     2: ("stereo_ir", [("timestamp", TS), ("seq", UINT), ("label", LABEL), ("confidence", CONF),
                       ("calib", CALIB), ("v", UINT), ("model", CALIB)]),
     3: ("stereo_vo", [("timestamp", TS), ("seq", UINT), ("ok", BOOL), ("Rt", (_enc_rt, _dec_rt)),
@@ -347,6 +425,14 @@ KINDS: dict[int, tuple[str, list[tuple[str, tuple[Enc, Dec]]]]] = {
                    ("pools", (_enc_pools, _dec_pools)), ("level", STR)]),
     6: ("aggregate", [("class", STR), ("from", TS), ("to", TS), ("count", UINT),
                       ("best", (_enc_records, _dec_records))]),
+    # A finished track (trapflow.observe.stage.modem_track). Common case, 12 bytes after
+    # the kind byte: field mask 1, id 1, label 1, start 4, duration 1, confidence 1,
+    # measured 3 (ids under 128, a label of the table, under two minutes, a crab's size).
+    7: ("track", [("id", UINT), ("label", LABEL), ("start", SECS), ("duration_s", UINT),
+                  ("confidence", CONF), ("measured", (_enc_measured, _dec_measured)),
+                  ("pairs", UINT)]),
+    8: ("counts", [("start", SECS), ("minutes", UINT), ("pairs", UINT),
+                   ("labels", (_enc_label_counts, _dec_label_counts))]),
 }  # fmt: skip
 _BY_KEY = {key: (kind, fields) for kind, (key, fields) in KINDS.items()}
 

@@ -10,6 +10,7 @@ prediction is a few tens of ms off, well inside the IoU gate), not dropped.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -94,12 +95,44 @@ def count_record(counts: IntervalCounts) -> dict[str, Any]:
     return {"counts": out}
 
 
+def _utc(t_s: float) -> str:
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(t_s))
+
+
+def modem_track(record: dict[str, Any]) -> dict[str, Any]:
+    """A finished track as the modem carries it (modem/codec.py kind 7): no path, no box,
+    no pair count (the interval's counts say the effort), whole seconds, and `measured` =
+    [length_m to the cm, range_m to the dm, speed_m_s to the cm/s] where known; the
+    surface writes it back as a JSON line."""
+    t = record["track"]
+    out: dict[str, Any] = {"id": t["id"], "label": t["label"], "start": _utc(t["first_s"]),
+                           "duration_s": round(t["last_s"] - t["first_s"]),
+                           "confidence": round(t["best_confidence"], 2)}
+    measured = [t.get("length_m"), t.get("range_m"), t.get("speed_m_s")]
+    if any(m is not None for m in measured):
+        out["measured"] = [None if m is None else round(m, nd)
+                           for m, nd in zip(measured, (2, 1, 2), strict=True)]
+    return {"track": out}
+
+
+def modem_counts(record: dict[str, Any]) -> dict[str, Any]:
+    """A closed interval as the modem carries it (kind 8): start, minutes, per label."""
+    c = record["counts"]
+    return {"counts": {"start": _utc(c["start_s"]),
+                       "minutes": round((c["end_s"] - c["start_s"]) / 60),
+                       "pairs": c["pairs"], "labels": c["labels"]}}
+
+
 @dataclass
 class Observations:
     """What one call produced: finished tracks and closed intervals, as JSON objects."""
 
     tracks: list[dict[str, Any]] = field(default_factory=list)
     counts: list[dict[str, Any]] = field(default_factory=list)
+
+    def for_modem(self) -> list[dict[str, Any]]:
+        """The same, compact, for the outbox."""
+        return [*map(modem_counts, self.counts), *map(modem_track, self.tracks)]
 
 
 class Observer:

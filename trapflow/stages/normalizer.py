@@ -167,11 +167,13 @@ class NormalizerNode(Node):
             items = [obj["mono_ir"] for obj in objs]
             self._write_observations(observer.feed(res.t_wall_ns, items))
         if self.outbox is not None:
+            sent = objs if (self.cfg.modem.detections or not objs
+                            or "mono_ir" not in objs[0]) else []
             try:
-                self.outbox.append_many(objs)
+                self.outbox.append_many(sent)
             except OutboxFull as exc:
-                self.refused += len(objs)
-                self.ratelog.warning("outbox", "outbox refused %d records: %s", len(objs), exc)
+                self.refused += len(sent)
+                self.ratelog.warning("outbox", "outbox refused %d records: %s", len(sent), exc)
         if objs and len(self.routes) < MAX_ROUTES:
             self.routes.add(f"route:{res.pool}:{next(iter(objs[0]))}")
         for obj in objs:
@@ -191,3 +193,10 @@ class NormalizerNode(Node):
             if objs:
                 self.obs_files[name].write(b"".join(dumps(o) + b"\n" for o in objs))
         self.tracks += len(obs.tracks)
+        if self.outbox is not None and (records := obs.for_modem()):
+            try:
+                self.outbox.append_many(records)
+            except OutboxFull as exc:
+                self.refused += len(records)
+                self.ratelog.warning("outbox", "outbox refused %d records: %s", len(records),
+                                     exc)

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from trapflow.config.schema import ObserveConfig
+from trapflow.observe.stage import Observer
 from trapflow.stages.result_json import normalize
 from trapflow.wire import messages
 
@@ -34,6 +36,11 @@ SHAPES: dict[type, list[messages.Msg]] = {
                         model="0123abcd"),
         messages.MonoIR(model="0123abcd"),
         messages.MonoIR(detections=[messages.Detection("crab", 0.8, (1.0, 2.0, 3.0, 4.0))]),
+        messages.MonoIR(detections=[messages.Detection(
+            "crab", 0.8, (1.0, 2.0, 3.0, 4.0), range_m=1.5, range_sd_m=0.01, xyz=(0, 0, 1.5),
+            disparity_px=96.0, length_m=0.2, length_sd_m=0.01, length_method="endpoints")]),
+        messages.MonoIR(detections=[messages.Detection("crab", 0.8, (1.0, 2.0, 3.0, 4.0),
+                                                       unmeasured="textureless")]),
     ],
     messages.StereoIR: [
         messages.StereoIR(label="crab", confidence=0.7, calib="deadbeef", model="0123abcd"),
@@ -73,9 +80,14 @@ def _readme_table() -> dict[str, dict[str, str]]:
 
 
 def _lines(body: messages.Msg) -> list[dict[str, typing.Any]]:
+    """The lines as results.jsonl gets them: normalized, then detections tracked (the
+    normalizer's observation stage adds `track`)."""
     res = messages.Result(seq=5, t_wall_ns=1_700_000_000_000_000_000, t_mono_ns=1, pool="p",
                           worker="w", proc_ns=1, body=body)  # type: ignore[arg-type]
-    return normalize(res)
+    objs = normalize(res)
+    if isinstance(body, messages.MonoIR):
+        Observer(ObserveConfig()).feed(res.t_wall_ns, [o["mono_ir"] for o in objs])
+    return objs
 
 
 def _kind(body: messages.Msg) -> str:

@@ -1,7 +1,7 @@
 """What the broker knows of worker processes on other hosts, pure: who joined which pool
 from which host, which local supervisor (owner) may report its death, and its rate.
 
-No sockets, no clocks. The broker's state machine (broker_state.py) decides dispatch and
+No sockets, no clocks. The broker's state machine (broker.state) decides dispatch and
 eviction for remote workers as for local ones; this table only names them for status.
 """
 

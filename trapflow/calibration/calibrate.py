@@ -4,7 +4,7 @@ Views where either side shows no complete board are rejected and named. Three mo
 `pinhole` calibrates each camera (k1 k2 p1 p2) then the extrinsics with the intrinsics
 fixed; `rational` is OpenCV's samples/cpp/stereo_calib.cpp step for step (one joint fit);
 `fisheye` calibrates each equidistant lens, dropping views OpenCV finds ill-conditioned,
-then the extrinsics. The rectification is computed by calibration_rectify.py.
+then the extrinsics. The rectification is computed by calibration.rectify.
 """
 
 from __future__ import annotations

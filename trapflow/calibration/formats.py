@@ -5,7 +5,7 @@ Understood: trapflow's own YAML; plain K1/D1/K2/D2/R/T YAML; a ROS camera_info p
 fisheye mode's `plumb_bob` with 4 coefficients) or its oST text file; a Kalibr camchain
 (cam0 + cam1); OpenCV FileStorage YAML/XML (stereo_calib.cpp's intrinsics + extrinsics,
 stereoRectify's output, cv::fisheye::stereoCalibrate's output). Except for trapflow's own
-files, the rectification is computed here from K/D/R/T (calibration_rectify.py) and,
+files, the rectification is computed here from K/D/R/T (calibration.rectify) and,
 where the file carries R1/R2, checked against them. Errors name the file, the field and
 FORMATS.
 """

@@ -2,7 +2,7 @@
 
 Written by `trapflow calibrate`, read by sources for rectification and by algorithms
 (through StereoRig) for intrinsics and baseline. Other formats (ROS camera_info pairs,
-Kalibr camchains, OpenCV FileStorage, plain K/D/R/T) are read by calibration_formats.py.
+Kalibr camchains, OpenCV FileStorage, plain K/D/R/T) are read by calibration.formats.
 Fields are documented in docs/calibration.md.
 """
 

@@ -3,7 +3,7 @@
 Errors name the YAML path (`$.pools.vo.policy`) and what was expected. The
 defaults here are the defaults; configs/default.yaml documents every key and a
 test keeps the two equal. A leaf: it imports only config-struct modules (modem/config.py,
-ladder_config.py), never a module of the runtime; those import their sections from here.
+config.ladder), never a module of the runtime; those import their sections from here.
 """
 
 from __future__ import annotations

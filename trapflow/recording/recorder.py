@@ -7,7 +7,7 @@ algorithm); VO poses are nav_msgs/msg/Odometry, and the trajectory one nav_msgs/
 the end; detections and tags are foxglove_msgs/msg/ImageAnnotations on the left image, one
 message per pair (with foxglove-schemas-protobuf installed). No installable package
 carries vision_msgs (docs/recordings.md), so there is no Detection2DArray. Every message is
-stamped with its pair's capture time; definitions come from recording_msgs. The file is
+stamped with its pair's capture time; definitions come from recording.msgs. The file is
 written as OUT.part and renamed on close, so an interrupted recording never leaves a
 half-written OUT behind. Every second the chunk in progress is closed and the file synced,
 so a recorder killed by a crash or a power cut loses at most that second: recover() copies

@@ -126,3 +126,12 @@ def drain_skipping(src: Source, reads: int) -> tuple[list[Frames], list[SkipPair
         return got, skipped
     finally:
         src.close()
+
+
+def small_source(rate_hz: float | None = 15.0, **extra: object) -> dict[str, object]:
+    """The `source:` section of most pipeline tests: the synthetic world at 320x240 (cheap to
+    render, still large enough for every plugin), at rate_hz (None: the default rate)."""
+    out: dict[str, object] = {"width": 320, "height": 240}
+    if rate_hz is not None:
+        out["rate_hz"] = rate_hz
+    return {**out, **extra}

@@ -24,6 +24,8 @@ from trapflow.synth.dataset import labelled
 from trapflow.synth.options import SynthOptions
 from trapflow.synth.render import World
 
+pytestmark = pytest.mark.slow  # renders and runs the algorithms over long sequences
+
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "scripts"))
 import synth_demo_data as sd  # noqa: E402

@@ -12,6 +12,8 @@ import pytest
 
 from tests.conftest import Pipeline, only_pools, poll_for, write_config
 
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
 
 def _node(status: dict, name: str) -> dict:
     return next(n for n in status["nodes"] if n["name"] == name)

@@ -15,6 +15,8 @@ from tests.integration.test_finite_faults import H, W, write_recording
 from trapflow.recording.recorder import TOPIC_LEFT, TOPIC_RIGHT
 from trapflow.supervisor.ledger import STATUS_WIDTH, UNFINISHED
 
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
 STATUS_LINE = re.compile(r"^ *\d+\.\ds \| ")
 
 

@@ -8,13 +8,16 @@ from pathlib import Path
 import cv2
 import pytest
 
+from tests.builders import small_source
 from tests.conftest import Pipeline, only_pools, write_config
+
+pytestmark = pytest.mark.slow  # starts whole pipelines
 
 
 @pytest.mark.timeout(90)
 def test_trigger_keeps_preroll_and_postroll_pairs(spawn, run_dir: Path) -> None:
     cfg = write_config(run_dir.parent / "events.yaml", {
-        "source": {"width": 320, "height": 240, "rate_hz": 10.0},
+        "source": small_source(10.0),
         "pools": only_pools({"stereo": {"plugin": "histogram", "policy": "latest"}}),
         "events": {"enabled": True, "pre_s": 1.0, "post_s": 1.0,
                    "triggers": [{"algorithm": "stereo_ir", "not_label": "nothing"}]},

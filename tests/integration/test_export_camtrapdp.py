@@ -23,6 +23,8 @@ import pytest
 from tests.conformance.conftest import kit_path, realdata_root
 from tests.conftest import REPO, Pipeline, only_pools, write_config
 
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
 frictionless = pytest.importorskip("frictionless", reason="frictionless (test extra) missing")
 W, H = 320, 240
 

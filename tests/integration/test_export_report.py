@@ -14,6 +14,8 @@ import pytest
 
 from tests.conftest import REPO, Pipeline
 
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
 
 class Page(HTMLParser):
     """Tables as lists of rows, polylines with their attributes, and every URL referenced."""

@@ -18,6 +18,8 @@ from tests.conftest import REPO, Pipeline, write_config
 from trapflow.recording.recorder import Recorder
 from trapflow.wire.messages import StereoPair
 
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
 W, H = 96, 64
 
 

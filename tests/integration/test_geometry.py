@@ -29,7 +29,7 @@ from trapflow.calibration.model import save_calibration
 from trapflow.config.schema import from_data
 from trapflow.sources.rig import describe
 
-pytestmark = pytest.mark.timeout(180)
+pytestmark = [pytest.mark.timeout(180), pytest.mark.slow]  # starts whole pipelines
 
 # A KITTI-like rig: neither the default size nor the default field of view or baseline.
 KITTI = StereoRig(width=752, height=480, fx=436.0, fy=436.0, cx=370.5, cy=235.2,

@@ -15,10 +15,13 @@ from typing import Any
 
 import pytest
 
+from tests.builders import small_source
 from tests.conftest import REPO, Pipeline, only_pools, poll_for, write_config
 from trapflow.cli.status_text import format_status
 from trapflow.wire import control_client as control
 from trapflow.wire import control_msgs
+
+pytestmark = pytest.mark.slow  # starts whole pipelines
 
 K = 1.0  # the stereo pool's minimum interval at ir_slowed, seconds
 WINDOW = 2.5  # seconds the pool's rate is measured over at each level
@@ -52,7 +55,7 @@ def test_hot_cpu_slows_stereo_and_it_comes_back(spawn, run_dir: Path) -> None:
     temp = run_dir.parent / "thermal_zone0_temp"
     temp.write_text("40000\n")
     cfg = write_config(run_dir.parent / "ladder.yaml", {
-        "source": {"width": 320, "height": 240, "rate_hz": 8.0, "seed": 1},
+        "source": small_source(8.0, seed=1),
         "pools": only_pools({"stereo": {"count": 1, "policy": "latest"}}),
         "ladder": {
             "interval_s": 0.2,

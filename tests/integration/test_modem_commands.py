@@ -35,6 +35,8 @@ from trapflow.modem.surface import SurfaceReceiver
 from trapflow.modem.surface_command import CommandClient
 from trapflow.wire.control_client import request
 
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
 
 def status(p: Pipeline) -> dict[str, Any]:
     """The status straight from the control socket (no interpreter start per call)."""

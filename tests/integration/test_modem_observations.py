@@ -22,6 +22,8 @@ from tests.conftest import (
     write_config,
 )
 
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
 
 def _lines(path: Path) -> list[dict]:
     return [json.loads(x) for x in path.read_text().splitlines() if x.strip()]

@@ -12,7 +12,10 @@ from pathlib import Path
 
 import pytest
 
+from tests.builders import small_source
 from tests.conftest import REPO, Pipeline, only_pools, poll_for, write_config
+
+pytestmark = pytest.mark.slow  # starts whole pipelines
 
 
 @pytest.fixture
@@ -49,7 +52,7 @@ def test_results_and_health_reach_the_surface(spawn, run_dir: Path, helpers) -> 
     surface_out = link / "surface.jsonl"
     helpers.append(_cli("surface", str(link / "b"), "-o", str(surface_out)))
     cfg = write_config(link / "modem.yaml", {
-        "source": {"width": 320, "height": 240, "rate_hz": 5.0},
+        "source": small_source(5.0),
         "pools": only_pools({"stereo": {"plugin": "histogram", "policy": "latest"}}),
         "modem": {"enabled": True, "port": str(link / "a"), "bit_rate": 2400.0,
                   "ack_timeout_s": 1.0, "reopen_interval_s": 0.5},

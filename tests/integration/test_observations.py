@@ -15,6 +15,8 @@ import pytest
 
 from tests.conftest import REPO, Pipeline, write_config
 
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
 SEED = 4244  # crabs walk through; never used to tune the tracker
 FRAMES = 150
 

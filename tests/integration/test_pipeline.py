@@ -12,7 +12,10 @@ from pathlib import Path
 import psutil
 import pytest
 
+from tests.builders import small_source
 from tests.conftest import REPO, Pipeline, only_pools, poll_for
+
+pytestmark = pytest.mark.slow  # starts whole pipelines
 
 SMALL = ["--size", "320x240", "--rate", "15"]
 
@@ -110,7 +113,7 @@ def test_save_flag_keeps_debug_pairs(spawn, run_dir: Path) -> None:
     from tests.conftest import write_config
 
     cfg = write_config(run_dir.parent / "save.yaml", {
-        "source": {"width": 320, "height": 240, "rate_hz": 10.0},
+        "source": small_source(10.0),
         "pools": only_pools({"stereo": {"plugin": "histogram", "save": True, "time": True}}),
     })
     p: Pipeline = spawn(["--config", str(cfg), "--duration", "5"], run_dir)

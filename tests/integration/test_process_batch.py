@@ -21,6 +21,8 @@ from tests.builders import floor_scene
 from tests.conftest import REPO, Pipeline, only_pools, write_config
 from trapflow.calibration.camera import StereoRig
 
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
 PLUGIN = "tests.integration.batch_plugins:FailChunk"
 N = 10
 

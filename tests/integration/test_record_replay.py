@@ -14,7 +14,10 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
+from tests.builders import small_source
 from tests.conftest import REPO, Pipeline, only_pools, poll_for, record_until, write_config
+
+pytestmark = pytest.mark.slow  # starts whole pipelines
 
 
 @pytest.mark.timeout(150)
@@ -33,7 +36,7 @@ def test_record_then_replay_lossless(spawn, run_dir: Path) -> None:
     assert topics["/trapflow/left/image/compressed"] == "sensor_msgs/msg/CompressedImage"
     assert n_left >= 10
     cfg = write_config(work / "replay.yaml", {
-        "source": {"width": 320, "height": 240},
+        "source": small_source(None),
         "pools": only_pools({"every": {"plugin": "digest", "policy": "ordered:64"}}),
     })
     replay = subprocess.run(

@@ -26,6 +26,8 @@ from rosbags.highlevel import AnyReader
 
 from tests.conftest import REPO, Pipeline, poll_for
 
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
 W, H = 320, 240
 
 

@@ -14,6 +14,7 @@ from typing import Any
 import pytest
 
 from tests import builders
+from tests.builders import small_source
 from tests.conftest import Pipeline, only_pools, write_config
 from trapflow.broker.node import BrokerNode
 from trapflow.config.schema import Config, PoolConfig
@@ -22,7 +23,9 @@ from trapflow.wire import identity, messages
 from trapflow.wire.frame_ring import FrameRing
 from trapflow.wire.transport import LinkClient, make_private
 
-SMALL = {"width": 320, "height": 240, "rate_hz": 15.0}
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
+SMALL = small_source(15.0)
 GROW = "tests.integration.recycle_plugins:Grow"
 
 

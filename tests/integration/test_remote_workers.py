@@ -20,10 +20,13 @@ from typing import Any
 import psutil
 import pytest
 
+from tests.builders import small_source
 from tests.conftest import Pipeline, TrapflowProcess, only_pools, poll_for, write_config
 from trapflow.wire.keys import generate
 
-SMALL = {"width": 320, "height": 240, "seed": 3}
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
+SMALL = small_source(None, seed=3)
 DETECTOR = "tests.integration.remote_plugins:PooledDetector"
 
 
@@ -418,7 +421,7 @@ def test_a_remote_hosts_recycled_workers_are_replaced_at_once_without_loss(
     cfg = remote_config(run_dir.parent / "far.yaml", bind, keys, {
         "far": {"plugin": "noop", "policy": "fifo:8", "count": 0, "remote": True,
                 "max_jobs": 3},
-    }, {"width": 320, "height": 240, "rate_hz": 10.0})
+    }, small_source(10.0))
     p: Pipeline = spawn(["--config", str(cfg)], run_dir)
     p.wait_active()
     w = remote("--connect", bind, "--pool", "far", "--keys", str(keys["worker"]))

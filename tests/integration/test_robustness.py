@@ -15,10 +15,13 @@ import pytest
 import zmq
 
 from tests import builders
+from tests.builders import small_source
 from tests.conftest import Pipeline, only_pools, poll_for, recv, write_config
 from trapflow.wire import messages
 
-SMALL = {"width": 320, "height": 240, "rate_hz": 15.0}
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
+SMALL = small_source(15.0)
 
 
 def _node(status: dict, name: str) -> dict:

@@ -16,7 +16,10 @@ from typing import Any
 
 import pytest
 
+from tests.builders import small_source
 from tests.conftest import REPO, Pipeline, only_pools, poll_for, write_config
+
+pytestmark = pytest.mark.slow  # starts whole pipelines
 
 
 def tf(*args: str) -> subprocess.CompletedProcess[str]:
@@ -37,7 +40,7 @@ def node(p: Pipeline, name: str) -> dict[str, Any]:
 @pytest.mark.timeout(240)
 def test_pool_count_lifecycle_and_param_at_run_time(spawn, run_dir: Path) -> None:
     cfg = write_config(run_dir.parent / "ctl.yaml", {
-        "source": {"width": 320, "height": 240, "rate_hz": 4.0, "seed": 1},
+        "source": small_source(4.0, seed=1),
         "pools": only_pools({"mono": {"count": 1, "policy": "latest"},
                              # a plugin that cannot be configured again: restarted instead
                              "slow": {"plugin": "slow", "params": {"delay_s": 0.05}}}),

@@ -12,10 +12,13 @@ from typing import Any
 
 import pytest
 
+from tests.builders import small_source
 from tests.conftest import Pipeline, only_pools, poll_for, write_config
 from trapflow.wire.frame_ring import PREFIX, list_segments
 
-SMALL = {"width": 320, "height": 240, "rate_hz": 15.0}
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
+SMALL = small_source(15.0)
 
 
 @pytest.mark.timeout(90)

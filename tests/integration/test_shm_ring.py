@@ -20,6 +20,8 @@ from tests import builders
 from trapflow.wire import frame_msgs, messages
 from trapflow.wire import frame_ring as fr
 
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
 SPAWN = mp.get_context("spawn")
 
 

@@ -13,14 +13,17 @@ from pathlib import Path
 
 import pytest
 
+from tests.builders import small_source
 from tests.conftest import Pipeline, only_pools, poll_for, write_config
+
+pytestmark = pytest.mark.slow  # starts whole pipelines
 
 
 @pytest.mark.timeout(120)
 def test_a_hung_worker_is_killed_after_timeout_s_even_on_its_first_pair(
         spawn, run_dir: Path) -> None:
     cfg = write_config(run_dir.parent / "hang.yaml", {
-        "source": {"width": 320, "height": 240, "rate_hz": 10.0},
+        "source": small_source(10.0),
         # liveness_s far above timeout_s: only timeout_s can explain a kill within the test
         "supervisor": {"liveness_s": 60.0, "restart_backoff_s": 0.2, "max_restarts": 20},
         "pools": only_pools({

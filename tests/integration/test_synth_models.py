@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.slow  # renders and runs the algorithms over long sequences
+
 ROOT = Path(__file__).resolve().parents[2]
 MODELS = ROOT / "workers" / "models"
 sys.path.insert(0, str(ROOT / "scripts"))

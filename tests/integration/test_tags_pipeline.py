@@ -12,6 +12,8 @@ from tests.conftest import Pipeline, write_config
 from tests.kits.scenes import pose, rot_x, tag_image
 from trapflow.calibration.camera import StereoRig
 
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
 TAGGED = {1: 5, 4: 17}  # pair index -> tag id; the other pairs show no tag
 
 

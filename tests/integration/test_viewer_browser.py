@@ -19,8 +19,9 @@ from tests.integration.viewer_util import (
     profile_dir,
 )
 
-pytestmark = pytest.mark.skipif(browser_skip_reason() is not None,
-                                reason=str(browser_skip_reason()))
+pytestmark = [pytest.mark.skipif(browser_skip_reason() is not None,
+                                 reason=str(browser_skip_reason())),
+              pytest.mark.slow]  # starts whole pipelines and a browser
 
 BOX_BGR = np.array([51, 221, 255])  # the page draws detections in #ffdd33
 

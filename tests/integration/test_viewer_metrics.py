@@ -15,6 +15,8 @@ from prometheus_client.parser import text_string_to_metric_families
 from tests.conftest import REPO, Pipeline, poll_for
 from tests.integration.viewer_util import free_port, get, get_json, post
 
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
 
 def _samples(text: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
     return {(s.name, tuple(sorted(s.labels.items()))): s.value

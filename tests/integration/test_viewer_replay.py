@@ -17,6 +17,8 @@ from trapflow.recording.recorder import Recorder
 from trapflow.synth.render import World
 from trapflow.wire.messages import StereoPair
 
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
 W, H, N, RATE = 320, 240, 40, 10.0
 
 

@@ -12,6 +12,8 @@ import pytest
 from tests.conftest import Pipeline, poll_for, write_config
 from tests.integration.viewer_util import free_port, get_json
 
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
 
 def _viewer(p: Pipeline) -> psutil.Process | None:
     for kid in p.track():

@@ -10,6 +10,8 @@ import pytest
 
 from tests.conftest import Pipeline, poll_for
 
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
 
 def _m(rows: list[list[float]]) -> np.ndarray:
     out = np.eye(4)

@@ -18,12 +18,15 @@ import pytest
 import zmq
 
 from tests import builders
+from tests.builders import small_source
 from tests.conftest import Pipeline, only_pools, poll_for, recv, write_config
 from tests.reliability import figures, scaled
 from trapflow.wire import control_msgs, identity, messages
 from trapflow.wire.transport import LinkClosed, connect_link
 
-SMALL = {"width": 320, "height": 240, "rate_hz": 15.0}
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
+SMALL = small_source(15.0)
 FORGED = "forged"  # a field no real noop result has
 FLOOD = int(scaled("TRAPFLOW_CHAOS_FLOOD", 10_000))  # malformed heartbeats; chaos.sh sends more
 

@@ -14,8 +14,11 @@ import psutil
 import pytest
 import zmq
 
+from tests.builders import small_source
 from tests.conftest import Pipeline, only_pools, poll_for, write_config
 from trapflow.wire import tap_msgs
+
+pytestmark = pytest.mark.slow  # starts whole pipelines
 
 # Measured without the caps (issue 16): 20 subscriptions of 64 KB added 63 MB to the broker
 # and to the normalizer, 10,000 small random ones 10-19 MB. With them, a 64 KB subscription
@@ -43,7 +46,7 @@ def test_huge_and_many_subscriptions_leave_broker_and_normalizer_memory_flat(
     """Issue 16 item 7: subscriptions grew the broker's and normalizer's memory without
     bound, and kept it after the subscribers disconnected."""
     cfg = write_config(run_dir.parent / "subs.yaml", {
-        "source": {"width": 320, "height": 240, "rate_hz": 15.0},
+        "source": small_source(15.0),
         "pools": only_pools({"fast": {"plugin": "noop", "policy": "ordered:64"}}),
     })
     p: Pipeline = spawn(["--config", str(cfg)], run_dir)

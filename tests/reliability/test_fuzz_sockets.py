@@ -21,10 +21,13 @@ import pytest
 import zmq
 
 from tests import builders
+from tests.builders import small_source
 from tests.conftest import Pipeline, only_pools, poll_for, write_config
 from tests.reliability import figures, scaled
 from trapflow.wire import control_msgs, identity, messages
 from trapflow.wire.transport import Link, LinkClosed, connect_link
+
+pytestmark = pytest.mark.slow  # starts whole pipelines
 
 FUZZ_S = scaled("TRAPFLOW_CHAOS_FUZZ_S", 20.0)  # scripts/chaos.sh runs it longer
 SEED = 1616
@@ -177,7 +180,7 @@ class Fuzzer:
 def test_fuzz_every_socket_and_link_of_a_running_pipeline(spawn, run_dir: Path, zctx) -> None:
     """Issue 16: a reliability suite that keeps items 2, 5, 7 and 8 true under random input."""
     cfg = write_config(run_dir.parent / "fuzz.yaml", {
-        "source": {"width": 320, "height": 240, "rate_hz": 15.0},
+        "source": small_source(15.0),
         "pools": only_pools({"fast": {"plugin": "noop", "policy": "ordered:64"}}),
     })
     p: Pipeline = spawn(["--config", str(cfg)], run_dir)

@@ -22,9 +22,12 @@ from pathlib import Path
 
 import pytest
 
+from tests.builders import small_source
 from tests.conftest import REPO, Pipeline, only_pools, poll_for, write_config
 
-SMALL = {"kind": "synthetic", "width": 320, "height": 240, "rate_hz": 10}
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
+SMALL = small_source(10, kind="synthetic")
 POOLS = only_pools({"vo": {"count": 1}})
 
 

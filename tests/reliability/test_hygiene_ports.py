@@ -16,6 +16,8 @@ from tests.reliability.test_hygiene_modes import SMALL, _free_base_port
 from trapflow.errors import EXIT_USAGE
 from trapflow.wire.frame_ring import PREFIX, list_segments
 
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
 
 @pytest.mark.timeout(60)
 @pytest.mark.parametrize(("offset", "what"), [

@@ -16,12 +16,15 @@ from pathlib import Path
 import psutil
 import pytest
 
+from tests.builders import small_source
 from tests.conftest import Pipeline, only_pools, write_config
 from tests.reliability import figures, scaled
 from trapflow.wire.frame_ring import PREFIX, SHM_DIR, list_segments
 
+pytestmark = pytest.mark.slow  # starts whole pipelines
+
 CUTS = int(scaled("TRAPFLOW_CHAOS_CUTS", 3))
-SMALL = {"kind": "synthetic", "width": 320, "height": 240, "rate_hz": 10}
+SMALL = small_source(10, kind="synthetic")
 
 
 def _shm_files(pids: list[int]) -> set[str]:

@@ -20,8 +20,11 @@ from pathlib import Path
 import psutil
 import pytest
 
+from tests.builders import small_source
 from tests.conftest import Pipeline, only_pools, poll_for, write_config
 from tests.reliability import figures, scaled
+
+pytestmark = pytest.mark.slow  # starts whole pipelines
 
 STORM_S = scaled("TRAPFLOW_CHAOS_STORM_S", 25.0)  # scripts/chaos.sh runs it longer
 SEED = 1622
@@ -70,7 +73,7 @@ def _delivered(run_dir: Path) -> dict[str, set[int]]:
 def test_kill_storm_ledger_equals_results_and_nothing_is_abandoned(spawn, run_dir: Path
                                                                    ) -> None:
     cfg = write_config(run_dir.parent / "storm.yaml", {
-        "source": {"width": 320, "height": 240, "rate_hz": 12.0},
+        "source": small_source(12.0),
         "supervisor": {"max_restarts": 3, "restart_window_s": 20.0, "restart_backoff_s": 0.2,
                        "restart_backoff_max_s": 1.0, "retry_cooldown_s": 3.0},
         "pools": only_pools({

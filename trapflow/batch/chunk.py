@@ -225,6 +225,9 @@ def chunk_paths(out: str, chunk: Chunk) -> tuple[Path, Path]:
 
 def run_chunk(task: ChunkTask) -> dict[str, Any]:
     """Process one chunk and write its files; returns its ledger (also written)."""
+    # Long on purpose: one chunk's life in the order a resume relies on (open, skip what the
+    # chunk file already holds, per-pair loop, ledger, atomic write); split, that order would
+    # be spread over functions that each hold half of the state.
     t0 = time.monotonic()
     cfg = input_config(task.config, task.input)
     chunk = task.chunk

@@ -176,6 +176,8 @@ def process(cfg: Config, inputs: list[Input], out: Path, opts: Options, echo: Ec
     """Run every input's chunks on the cluster; write results, ledgers and the summary.
     `echo` gets a line per input at the end, `echo_err` notes, `progress_stream` (default
     stderr) the progress line."""
+    # Long on purpose: the client's sequence read top-down (plan, resume, cluster, submit,
+    # progress, per-input files, summary), as boot() reads for the live pipeline.
     err = echo_err or echo
     unknown = [p for p in opts.pools if p not in cfg.pools]
     if unknown:

@@ -161,6 +161,8 @@ def _send_command(
     retry: float,
     timeout: float,
 ) -> None:
+    # Long on purpose: one signed command's exchange with the box from start to end, each
+    # step using what the one before opened or read (port, key, counter, session, reply).
     import time
 
     from trapflow.cli.exit import CommandFailed, bad_input

@@ -134,6 +134,8 @@ class Rows:
 
 def build_rows(run_dir: Path, dep: Deployment, events_folder: str = "events") -> Rows:
     """The package's rows from a run directory (results.jsonl and the event folders)."""
+    # Long on purpose: a package's rows built from one reading of the run (results and
+    # events), in the order its tables refer to each other (deployment, media, observations).
     run_results = _results(run_dir / "results.jsonl")
     if not (run_dir / "results.jsonl").is_file():
         raise ExportError(f"export: expected {run_dir / 'results.jsonl'} (a run directory), "

@@ -215,6 +215,9 @@ class CommandGuard:
 
     def receive(self, payload: bytes, now: float) -> Decision:
         """What to do with one COMMAND payload."""
+        # Long on purpose: the checks of one received command in the order that makes a
+        # replay or forgery harmless (frame, signature, counter, state saved, then run);
+        # split, a later check could run before an earlier one.
         if self.key is None:
             return self._refuse(
                 "refused_no_key",

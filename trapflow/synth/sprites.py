@@ -58,6 +58,8 @@ CRAB_PALETTES = [  # BGR carapace, legs: shore crab (olive), edible crab (brick)
 
 def crab_frames(rng: np.random.Generator, carapace_m: float, side: int = 160) -> list[Sprite]:
     """A walking cycle of one crab; the front (claws) faces the sprite's top."""
+    # Long on purpose: one drawing, stroke by stroke (body, legs, claws, eyes, shading);
+    # the strokes share the body's geometry.
     pal = CRAB_PALETTES[int(rng.integers(len(CRAB_PALETTES)))]
     shell = np.array(pal[0], np.float32) * rng.uniform(0.85, 1.15)
     legc = np.array(pal[1], np.float32) * rng.uniform(0.85, 1.15)

@@ -311,7 +311,7 @@ def test_a_plugins_own_calibration_wins_and_its_id_is_reported(
 
 def test_a_custom_stereo_message_tells_its_frame_size(tmp_path: Path) -> None:
     """A bag of one user-defined stereo message: the rig takes the size of its first images."""
-    from tests.integration.test_sources_replay import H, W, write_stereo_msg_bag
+    from tests.unit.test_sources_replay import H, W, write_stereo_msg_bag
 
     msg_def = write_stereo_msg_bag(tmp_path, 2)
     found = describe(from_data({"source": {"kind": "replay", "uri": str(tmp_path / "bag"),

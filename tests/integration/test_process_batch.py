@@ -72,11 +72,13 @@ def run_process(args: list[str], timeout: float = 90) -> tuple[int, str, str]:
 
 
 def by_pair(lines: list[dict[str, Any]]) -> dict[int, list[str]]:
-    """Result lines per pair, without what differs between runs by design (the time label)."""
+    """Result lines per pair, without what differs between runs by design: the time label,
+    and the track ids, which follow from capture times (the live run's wall clock, the
+    re-analysis' position x rate for a folder without times)."""
     out: dict[int, list[str]] = defaultdict(list)
     for line in lines:
         (name, body), = line.items()
-        body = {k: v for k, v in body.items() if k != "timestamp"}
+        body = {k: v for k, v in body.items() if k not in ("timestamp", "track")}
         out[body["seq"]].append(json.dumps({name: body}, sort_keys=True))
     return {seq: sorted(v) for seq, v in out.items()}
 
@@ -109,6 +111,11 @@ def test_process_equals_the_live_pipeline_pair_for_pair(spawn, run_dir: Path) ->
     assert by_pair(batch) == want
     seqs = [next(iter(x.values()))["seq"] for x in batch]
     assert seqs == sorted(seqs), "results.jsonl is not in time order"
+    # Re-analysis tracks too, over the whole input across its chunks.
+    boxes = [x["mono_ir"] for x in batch if x.get("mono_ir", {}).get("label", "none") != "none"]
+    assert boxes and all("track" in b for b in boxes)
+    tracks = read_lines(out / "scene" / "tracks.jsonl")
+    assert {b["track"] for b in boxes} - {None} <= {t["track"]["id"] for t in tracks}
     assert "; dashboard " in err and "pairs/s" in err and "ETA" in err
     ledger = json.loads((out / "scene" / "ledger.json").read_text())
     assert ledger["read"] == N and ledger["processed"] == dict.fromkeys(pools, N)
@@ -307,7 +314,7 @@ def test_a_folder_tree_of_a_bag_and_a_recording_each_chunk_reads_its_own_pairs(
 
     from rosbags.rosbag2 import StoragePlugin
 
-    from tests.integration.test_sources_replay import img, write_bag, write_trapflow
+    from tests.unit.test_sources_replay import img, write_bag, write_trapflow
 
     tree = tmp_path / "deploy"
     (tree / "day1").mkdir(parents=True)

@@ -35,6 +35,8 @@ from trapflow.batch.plan import (
 )
 from trapflow.config.schema import Config
 from trapflow.errors import ConfigError
+from trapflow.observe.stage import track_pairs
+from trapflow.stages.result_json import dumps, parse_timestamp
 
 log = logging.getLogger(__name__)
 
@@ -239,7 +241,7 @@ def process(cfg: Config, inputs: list[Input], out: Path, opts: Options, echo: Ec
             reports[task.input.name].chunks.append(entry)
             progress.add(chunk.end - chunk.first)
     for report in reports.values():
-        _write_input(out / report.input.name, report, opts, cfg.normalizer.decimals)
+        _write_input(out / report.input.name, report, opts, cfg)
     summary = Summary(list(reports.values()), time.monotonic() - t0, dashboard, resumed)
     text = summary_table(summary)
     atomic_write(out / "summary.txt", text.encode())
@@ -286,9 +288,11 @@ def ledger_of(report: InputReport, opts: Options) -> dict[str, Any]:
     }
 
 
-def _write_input(folder: Path, report: InputReport, opts: Options, decimals: int) -> None:
-    """INPUT/results.jsonl in time order (VO poses chained across chunks) and ledger.json."""
-    lines: list[tuple[int, int, bytes]] = []
+def _write_input(folder: Path, report: InputReport, opts: Options, cfg: Config) -> None:
+    """INPUT/results.jsonl in time order (VO poses chained across chunks, detections
+    tracked over the whole input), its tracks.jsonl and counts.jsonl, and ledger.json."""
+    decimals = cfg.normalizer.decimals
+    lines: list[tuple[int, int, dict[str, Any]]] = []
     stitchers: dict[str, Stitcher] = {}
     boundaries: list[dict[str, Any]] = []
     order = {pool: i for i, pool in enumerate(opts.pools)}
@@ -303,16 +307,28 @@ def _write_input(folder: Path, report: InputReport, opts: Options, decimals: int
             st = stitchers.setdefault(chunk.pools[0], Stitcher(decimals))
             vo = [x for x in raw if "stereo_vo" in x]
             raw = [x for x in raw if "stereo_vo" not in x] + st.add(chunk, vo)
-        for x in raw:
-            seq = next(iter(x.values()))["seq"]
-            lines.append((seq, rank, json.dumps(x, separators=(",", ":")).encode()))
+        lines += [(next(iter(x.values()))["seq"], rank, x) for x in raw]
     for st in stitchers.values():
         boundaries += [b.as_dict() for b in st.boundaries]
     report.boundaries = boundaries
     lines.sort(key=lambda t: (t[0], t[1]))
     folder.mkdir(parents=True, exist_ok=True)
-    atomic_write(folder / "results.jsonl", b"".join(line + b"\n" for _s, _r, line in lines))
+    if cfg.observe.enabled:  # tracks across chunks: the whole input, in capture order
+        obs = track_pairs(_detections_by_pair([x for _s, _r, x in lines]), cfg.observe)
+        for name, objs in ((cfg.observe.tracks_file, obs.tracks),
+                           (cfg.observe.counts_file, obs.counts)):
+            atomic_write(folder / name, b"".join(dumps(o) + b"\n" for o in objs))
+    atomic_write(folder / "results.jsonl", b"".join(dumps(x) + b"\n" for _s, _r, x in lines))
     atomic_write(folder / "ledger.json", json.dumps(ledger_of(report, opts), indent=1).encode())
+
+
+def _detections_by_pair(objs: list[dict[str, Any]]) -> list[tuple[int, list[dict[str, Any]]]]:
+    """(capture time ns, the pair's mono_ir items) for each pair, in the lines' order."""
+    pairs: dict[int, list[dict[str, Any]]] = {}
+    for obj in objs:
+        if (item := obj.get("mono_ir")) is not None:
+            pairs.setdefault(item["seq"], []).append(item)
+    return [(parse_timestamp(items[0]["timestamp"]), items) for items in pairs.values()]
 
 
 def input_line(report: InputReport, opts: Options) -> str:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -133,6 +134,19 @@ class Observations:
     def for_modem(self) -> list[dict[str, Any]]:
         """The same, compact, for the outbox."""
         return [*map(modem_counts, self.counts), *map(modem_track, self.tracks)]
+
+
+def track_pairs(pairs: Iterable[tuple[int, list[dict[str, Any]]]],
+                cfg: ObserveConfig) -> Observations:
+    """Re-analysis: one input's detection lines, pair by pair in capture order as
+    (capture time ns, that pair's mono_ir items), tracked as the live normalizer tracks
+    them (their `track` keys set in place); returns every track and count."""
+    obs = Observer(cfg)
+    out = Observations()
+    for got in [*(obs.feed(t_ns, items) for t_ns, items in pairs), obs.finish()]:
+        out.tracks += got.tracks
+        out.counts += got.counts
+    return out
 
 
 class Observer:

@@ -44,6 +44,12 @@ def timestamp(t_wall_ns: int) -> str:
     return t.strftime("%Y-%m-%d %H:%M:%S.") + f"{t.microsecond // 1000:03d}"
 
 
+def parse_timestamp(text: str) -> int:
+    """The wall-clock ns of a line's `timestamp` (to the millisecond it carries)."""
+    t = dt.datetime.strptime(text, "%Y-%m-%d %H:%M:%S.%f").replace(tzinfo=dt.timezone.utc)
+    return int(t.timestamp()) * 10**9 + t.microsecond * 1000
+
+
 def _r(x: float, nd: int) -> float:
     return round(float(x), nd)
 

@@ -25,6 +25,7 @@ from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
 
 from tests.conftest import REPO, Pipeline, poll_for
+from trapflow.stages.result_json import SCHEMA_VERSION
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
 
@@ -168,7 +169,7 @@ def test_recording_of_a_running_pipeline_decodes_and_matches_its_ledger(
     # Annotations: one message per pair the detector processed, boxes as closed outlines.
     mono = [json.loads(m.data)["mono_ir"] for m in msgs["/trapflow/results/mono_ir"]]
     # Every line carries the schema version; the ONNX detector's, its model file's hash.
-    assert {r["v"] for r in mono + vo} == {1}
+    assert {r["v"] for r in mono + vo} == {SCHEMA_VERSION}
     models = {hashlib.sha256(p.read_bytes()).hexdigest()[:8]
               for p in (REPO / "workers" / "models").glob("*.onnx")}
     assert len({r["model"] for r in mono}) == 1 and {r["model"] for r in mono} <= models

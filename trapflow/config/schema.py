@@ -199,6 +199,19 @@ class ObserveConfig(_Section):
                              f"high={self.high}")
 
 
+class EnergyConfig(_Section):
+    """The power model ledger.json's energy estimate uses (trapflow.gate.energy.BOARDS)."""
+
+    board: Literal["pi5", "orin_nano"] = "pi5"
+    """Board whose power model turns CPU time into watts."""
+    cameras: Annotated[int, msgspec.Meta(ge=0, le=8)] = 2
+    """Cameras streaming."""
+    battery_wh: Annotated[float, msgspec.Meta(ge=0)] = 0.0
+    """Battery capacity; with it, the estimate says how many days it lasts (0: not said)."""
+    usable: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.8
+    """Share of the battery that may be drawn."""
+
+
 class SupervisorConfig(_Section):
     """Heartbeats, restarts and the stop ladder."""
 
@@ -336,6 +349,7 @@ class Config(_Section):
     pools: dict[str, PoolConfig] = msgspec.field(default_factory=_default_pools)
     normalizer: NormalizerConfig = msgspec.field(default_factory=NormalizerConfig)
     observe: ObserveConfig = msgspec.field(default_factory=ObserveConfig)
+    energy: EnergyConfig = msgspec.field(default_factory=EnergyConfig)
     supervisor: SupervisorConfig = msgspec.field(default_factory=SupervisorConfig)
     network: NetworkConfig = msgspec.field(default_factory=NetworkConfig)
     frames: FramesConfig = msgspec.field(default_factory=FramesConfig)

@@ -16,7 +16,8 @@ from typing import IO, Any
 import msgspec
 
 from trapflow.calibration.camera import StereoRig
-from trapflow.config.schema import Config
+from trapflow.config.schema import Config, EnergyConfig
+from trapflow.gate.energy import BOARDS, estimate
 from trapflow.supervisor import ledger as run_ledger
 from trapflow.supervisor import summary as run_summary
 from trapflow.supervisor.ledger import RunLedger
@@ -50,6 +51,28 @@ class Snapshot:
     rig_origin: str
     source_where: str
     ring: FrameRing | None
+    cpu_s: dict[str, float]  # CPU seconds per role so far (trapflow.supervisor.cpu)
+
+
+def energy_section(cfg: EnergyConfig, cpu_s: dict[str, float], wall_s: float
+                   ) -> dict[str, Any]:
+    """ledger.json's `energy`: the board's power model over this run's CPU per role."""
+    est = estimate(BOARDS[cfg.board], cpu_s, max(wall_s, 1e-3), cameras=cfg.cameras)
+    out: dict[str, Any] = {
+        "board": cfg.board, "wall_s": round(wall_s, 1), "cpu_s": cpu_s,
+        "busy_cores": round(est.busy_cores, 3), "watts": round(est.watts, 2),
+        "wh_per_day": round(est.wh_per_day, 1)}
+    if cfg.battery_wh > 0:
+        out["days_on_battery"] = round(est.days(cfg.battery_wh, cfg.usable), 1)
+    return out
+
+
+def energy_text(energy: dict[str, Any]) -> str:
+    """One line for the end of a run."""
+    days = (f", {energy['days_on_battery']} days on the battery"
+            if "days_on_battery" in energy else "")
+    return (f"energy ({energy['board']} model): {energy['busy_cores']} cores busy, "
+            f"{energy['watts']} W, {energy['wh_per_day']} Wh/day{days}\n")
 
 
 def _full_stats(stats: messages.Stats) -> dict[str, Any]:
@@ -138,9 +161,11 @@ class Report:
     def ledger(self, final: bool = True, snap: Snapshot | None = None) -> dict[str, Any]:
         """Where every pair went: capture's count, then per pool exactly one state each."""
         snap = snap or self.snapshot()
-        return self.ledger_model.ledger({n: p.policy for n, p in self.cfg.pools.items()},
-                                        self._pool_restarts(snap), self.supervision(), final,
-                                        planned_stop=snap.planned_stop)
+        out = self.ledger_model.ledger({n: p.policy for n, p in self.cfg.pools.items()},
+                                       self._pool_restarts(snap), self.supervision(), final,
+                                       planned_stop=snap.planned_stop)
+        out["energy"] = energy_section(self.cfg.energy, snap.cpu_s, time.monotonic() - self.t0)
+        return out
 
     def read_results(self) -> None:
         """Count what results.jsonl gained since the last call (the ledger's truth)."""
@@ -167,6 +192,7 @@ class Report:
         (run_dir / "ledger.json").write_text(json.dumps(ledger, indent=1) + "\n")
         if snap.stats is not None:
             out.write(run_ledger.totals_text(ledger))
+        out.write(energy_text(ledger["energy"]))
         c = self.cfg
         out.write("".join(f"{line}\n" for line in run_summary.summary_lines(
             run_dir / c.normalizer.results_file,

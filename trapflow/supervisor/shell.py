@@ -50,6 +50,7 @@ from trapflow.supervisor.actions import (
     WorkerGone,
 )
 from trapflow.supervisor.control_server import BrokerLink, Control
+from trapflow.supervisor.cpu import CpuMeter
 from trapflow.supervisor.ladder import Ladder
 from trapflow.supervisor.ledger import RunLedger
 from trapflow.supervisor.report import NodeView, Report, Snapshot
@@ -136,6 +137,7 @@ class Supervisor:
         self.ring: FrameRing | None = None
         self.notifier = sdnotify.Notifier()  # READY/WATCHDOG/STATUS under systemd, else no-op
         self.ratelog = RateLimitedLog(log)  # warnings about messages from sockets
+        self.cpu = CpuMeter()  # CPU per role: the energy estimate in ledger.json
         # status reply, status line, ledger.json, totals
         self.report = Report(cfg, run_dir, self.out, self.t0, self.core, self.ledger_model,
                              self.report_snapshot)
@@ -303,6 +305,8 @@ class Supervisor:
             if now >= next_status:
                 next_status = now + 1.0
                 self.report.read_results()
+                self.cpu.sample((c.spec.pool or c.spec.role, c.proc.pid if c.proc else None)
+                                for c in self.children)
                 self.report.status_line()
                 self._notify_systemd()
                 self.broker.reconcile(self.core.pools, self.stats)
@@ -358,7 +362,8 @@ class Supervisor:
             nodes=[NodeView(c.name, c.proc.pid if c.proc else None, c.spec.pool or "",
                             c.counters) for c in self.children],
             stats=self.stats, planned_stop=self.planned_stop, rig=self.rig,
-            rig_origin=self.rig_origin, source_where=self.source_where, ring=self.ring)
+            rig_origin=self.rig_origin, source_where=self.source_where, ring=self.ring,
+            cpu_s=self.cpu.totals())
 
     @property
     def stats(self) -> messages.Stats | None:

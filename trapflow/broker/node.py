@@ -1,9 +1,10 @@
 """The broker process: translates sockets to BrokerState events and actions to sends.
 
 Owns: PULL from capture, ROUTER to workers, a local link of results to the
-normalizer (in batches), PUB tap (frame metadata, images, stats once a second: read and
-published by its base trapflow.broker.tap.TapSide), and with network.remote.bind a second
-ROUTER for workers on other hosts (CURVE, ZAP: trapflow.broker.remote.RemoteSide).
+normalizer (in batches), PUB tap (frame metadata, images, stats once a second: its
+trapflow.broker.tap.BrokerTap), and with network.remote.bind a second ROUTER for workers
+on other hosts (CURVE, ZAP: its trapflow.broker.remote.RemoteWorkersSide). Who may send
+what is trapflow.broker.trust's to say.
 Image frames are forwarded as received (zero-copy); only the small header is
 decoded. With the shared-memory ring, capture and local workers talk to it over
 local links instead (descriptors only).
@@ -20,9 +21,20 @@ from typing import Any
 
 import zmq
 
-from trapflow.broker.remote import RemoteSide, frame_bytes
-from trapflow.broker.state import BrokerState, Dispatch, Evicted, PoolSpec, Rejected, Release
-from trapflow.broker.tap import TapSide
+from trapflow.broker import trust
+from trapflow.broker.remote import BrokerHooks, RemoteWorkersSide, frame_bytes
+from trapflow.broker.state import (
+    Action,
+    BrokerState,
+    Dispatch,
+    Evicted,
+    PoolSpec,
+    Rejected,
+    Release,
+    never,
+)
+from trapflow.broker.tap import BrokerTap
+from trapflow.broker.trust import SUPERVISOR_IDENT, LocalMsg
 from trapflow.errors import ProtocolError
 from trapflow.runtime.node import ACTIVE, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog, wire
@@ -30,12 +42,10 @@ from trapflow.wire import frame_msgs, messages, tap_msgs
 from trapflow.wire.frame_ring import HELD, FrameRing
 from trapflow.wire.transport import (
     PAIR_MAX_MSG_BYTES,
-    TAP_RCVHWM,
     Link,
     LinkClosed,
     Poller,
     SocketSpec,
-    TapGate,
     accept_link,
     listen_link,
     open_socket,
@@ -48,28 +58,23 @@ STATS_INTERVAL_S = 1.0
 TICK_INTERVAL_S = 0.1
 RESULTS_BATCH_BYTES = 64 << 10  # results leave in datagrams of about this size, or less
 MAX_WAITING_RESULTS = 100_000  # kept while no normalizer listens; beyond, the oldest go
-SUPERVISOR_IDENT = b"supervisor"  # the supervisor's DEALER identity on the workers socket
 MAX_GOODBYES = 256  # workers that left on purpose, remembered for the log's level
 
 
-class BrokerNode(RemoteSide, TapSide, Node):
+class BrokerNode(Node):
     """Distributes pairs to worker pools with back-pressure and per-pool policies."""
 
     def __init__(self, spec: NodeSpec) -> None:
         super().__init__(spec)
         ep = self.endpoints
+        self.poller = Poller()
         self.pull = open_socket(self.ctx, SocketSpec(zmq.PULL, ep.capture, bind=True, rcvhwm=8,
                                                      max_msg_bytes=PAIR_MAX_MSG_BYTES))
         self.router = open_socket(
             self.ctx, SocketSpec(zmq.ROUTER, ep.workers, bind=True, router_mandatory=True)
         )
-        # XPUB tells us what taps subscribe to, so nothing is published that nobody reads;
-        # a small high-water mark: a slow tap loses messages instead of holding the broker.
-        # Manual: only prefixes of the tap's topics are taken (TapGate), nothing else is kept.
-        self.tap = open_socket(self.ctx, SocketSpec(zmq.XPUB, ep.tap, bind=True, sndhwm=32,
-                                                    rcvhwm=TAP_RCVHWM, xpub_manual=True))
-        self.gate = TapGate(self.tap, tap_msgs.TAP_TOPICS)
-        self.wanted: dict[bytes, bool] = {}
+        self.poller.register(self.pull)
+        self.poller.register(self.router)
         self._jobs: dict[tuple[str, int], bytes] = {}
         pools = {  # a remote pool exists with no local worker: remote workers add to count
             name: PoolSpec(p.parsed_policy, p.timeout_s, p.max_pending_age_s)
@@ -82,9 +87,8 @@ class BrokerNode(RemoteSide, TapSide, Node):
         ring_name = spec.ring
         self.ring = FrameRing(ring_name) if ring_name else None
         self.refs: dict[int, frame_msgs.FrameRef] = {}
-        self.remote = {n for n, p in self.cfg.pools.items() if p.remote}
-        # Remote pools get JPEG: a raw pair is encoded once, on demand, and kept until freed.
-        self._jpeg: dict[int, list[Any]] = {}
+        # Remote pools get JPEG, from their local workers too (the remote side encodes it).
+        self.remote_pools = {n for n, p in self.cfg.pools.items() if p.remote}
         if self.ring is not None and spec.restarted:
             self._reclaim_held()
         # Local links (ring only): listeners, then one Link per connected capture or worker.
@@ -93,10 +97,13 @@ class BrokerNode(RemoteSide, TapSide, Node):
             self.listeners[listen_link(ep.capture_link)] = "capture"
             self.listeners[listen_link(ep.workers_link)] = "worker"
         self.fds: dict[int, Any] = {}  # file descriptor -> local link or listener
-        self.poller = Poller()
-        for sock in (self.pull, self.router, self.tap):
-            self.poller.register(sock)
-        self._open_remote()
+        self.ratelog = RateLimitedLog(log)
+        self.remote = RemoteWorkersSide(
+            self.cfg, spec.the_rig, self.ctx, self.poller, self.state, self.ratelog,
+            BrokerHooks(apply=self._apply, refuse=self._refuse, goodbye=self._goodbye,
+                        on_worker_msg=self._on_worker_msg, payload=self._payload))
+        self.tap = BrokerTap(self.ctx, ep.tap, self.poller, self.state, self.remote.roster,
+                             started=time.monotonic())
         for listener in self.listeners:
             self.poller.register(listener)
             self.fds[listener.fileno()] = listener
@@ -113,15 +120,10 @@ class BrokerNode(RemoteSide, TapSide, Node):
         self.refused: dict[str, int] = {}
         self.malformed = 0
         self.unroutable = 0
-        self.ratelog = RateLimitedLog(log)
         # A planned stop began (the supervisor said so): workers leave, none of it is news.
         self.winding_down = False
         # Workers that said a planned goodbye (stop, recycle), newest last (bounded).
         self._goodbyes: collections.OrderedDict[bytes, str] = collections.OrderedDict()
-        self.started = time.monotonic()
-        self._last_in = 0
-        self._last_processed: dict[str, int] = {}
-        self._last_stats = self.started
         # The ladder's level, as the supervisor last said (for Stats): the first level at
         # the run's start; unknown after a restart until the supervisor tells it again.
         ladder = self.cfg.ladder
@@ -129,10 +131,10 @@ class BrokerNode(RemoteSide, TapSide, Node):
         self.level_reason = ""
 
     def counters(self) -> dict[str, int]:
-        return {"pairs_in": self.state.pairs_in, "malformed": self.malformed,
+        return {"pairs_in": self.state.pairs_in, "malformed": self._malformed(),
                 "held": self.state.held(), "results_waiting": len(self._out) + len(self._unacked),
                 "results_dropped": self.results_dropped, "late_answers": self.state.late,
-                "refused_subscriptions": self.gate.refused,
+                "refused_subscriptions": self.tap.gate.refused,
                 **{f"rejected_{k}": n for k, n in self.state.rejected.items()},
                 **{f"refused_{k}": n for k, n in self.refused.items()}}
 
@@ -144,10 +146,7 @@ class BrokerNode(RemoteSide, TapSide, Node):
             socks, fds = poller.poll(int(TICK_INTERVAL_S * 1000))
             if self.router in socks:
                 self._drain_workers()
-            if self.remote_router is not None and self.remote_router in socks:
-                self._drain_remote()
-            if self.monitor is not None and self.monitor in socks:
-                self._on_handshakes()
+            self.remote.serve(socks)
             for ready in [self.fds[fd] for fd in fds if fd in self.fds]:
                 if ready in self.listeners:
                     self._accept(ready)
@@ -155,15 +154,15 @@ class BrokerNode(RemoteSide, TapSide, Node):
                     self._drain_link(ready)
             if self.pull in socks:
                 self._drain_capture()
-            if self.tap in socks:
-                self._on_subscriptions()
+            if self.tap.sock in socks:
+                self.tap.on_subscriptions()
             self._flush_results()
             now = time.monotonic()
             if now >= next_tick:
                 next_tick = now + TICK_INTERVAL_S
                 self._apply(self.state.tick(now))
-                self._evict_silent_hosts(now)
-                if now - self._last_stats >= STATS_INTERVAL_S:
+                self.remote.evict_silent_hosts(now)
+                if self.tap.stats_due(now, STATS_INTERVAL_S):
                     self._publish_stats(now)
                 self.beat()
         self.state.finish()  # what is still pending or in flight will never be processed
@@ -191,7 +190,7 @@ class BrokerNode(RemoteSide, TapSide, Node):
 
     def _on_capture(self, frames: list[Any]) -> None:
         if len(frames) == 2 and frame_bytes(frames[0]) == tap_msgs.TOPIC_TRUTH:
-            self._publish(tap_msgs.TOPIC_TRUTH, frames[1])  # out of band, for the tap only
+            self.tap.publish(tap_msgs.TOPIC_TRUTH, frames[1])  # out of band, for the tap only
             return
         ref: frame_msgs.FrameRef | None = None
         try:
@@ -215,10 +214,10 @@ class BrokerNode(RemoteSide, TapSide, Node):
         self.frames[pair.seq] = frames
         if ref is not None:
             self.refs[pair.seq] = ref
-        if self.wanted.get(tap_msgs.TOPIC_META):
-            self._publish(tap_msgs.TOPIC_META, frames[0])
-        if self.wanted.get(tap_msgs.TOPIC_IMAGE):
-            self._publish(tap_msgs.TOPIC_IMAGE, *self._payload(pair.seq, copy=True))
+        if self.tap.wanted.get(tap_msgs.TOPIC_META):
+            self.tap.publish(tap_msgs.TOPIC_META, frames[0])
+        if self.tap.wanted.get(tap_msgs.TOPIC_IMAGE):
+            self.tap.publish(tap_msgs.TOPIC_IMAGE, *self._payload(pair.seq, copy=True))
         self._apply(self.state.pair_arrived(pair.seq, time.monotonic()))
 
     # --- local links ----------------------------------------------------------------
@@ -258,17 +257,15 @@ class BrokerNode(RemoteSide, TapSide, Node):
                 msg = _local_msg(messages.decode_worker_msg(frames[0]))
                 ident = self.link_ident.get(link)
                 if ident is None:  # a worker names itself in its first message
-                    if isinstance(msg, (messages.PoolSwitch, messages.LadderLevel,
-                                        messages.Stopping)):
-                        raise ProtocolError("worker link: expected a worker message first, "
-                                            f"got a {msg.__struct_config__.tag} (only the "
-                                            "supervisor sends those, on the workers socket)")
-                    ident = msg.worker.encode()
+                    name = trust.names_link(msg)
+                    if isinstance(name, trust.Refuse):
+                        raise ProtocolError(name.text())
+                    ident = name.encode()
                     if ident in self.worker_links:  # that name is another live link's
                         self._refuse("duplicate_worker",
                                      "refused a worker link naming itself '%s': a live link "
                                      "has that name; every worker process has its own",
-                                     wire(msg.worker))
+                                     wire(name))
                         self._drop_link(link, "duplicate name")
                         return
                     self.link_ident[link] = ident
@@ -318,7 +315,11 @@ class BrokerNode(RemoteSide, TapSide, Node):
                 self.malformed += 1
                 self.ratelog.warning("worker", "dropped malformed worker message: %s", exc)
 
-    def _on_worker_msg(self, ident: bytes, msg: Any, frames: list[Any]) -> None:
+    def _on_worker_msg(self, ident: bytes, msg: LocalMsg, frames: list[Any]) -> None:
+        verdict = trust.on_workers_socket(ident, msg)
+        if isinstance(verdict, trust.Refuse):
+            self._refuse(verdict.reason, verdict.message, *verdict.args)
+            return
         now = time.monotonic()
         if isinstance(msg, messages.Ready):
             self._apply(self.state.worker_ready(ident, msg.pool, msg.credit, now))
@@ -331,16 +332,10 @@ class BrokerNode(RemoteSide, TapSide, Node):
             actions = self.state.job_done(ident, msg.pool, msg.seq, True, now)
             if not any(isinstance(a, Rejected) for a in actions):
                 self._out.append(frames[2])  # only an answer to a job this worker was given
-                self.remotes.processed(ident)
+                self.remote.roster.processed(ident)
             self._apply(actions)
         elif isinstance(msg, messages.Gone):
-            # Only the supervisor tells of another worker's death; a worker, of its own.
             gone = msg.worker.encode()
-            if ident not in (SUPERVISOR_IDENT, gone):
-                self._refuse("forged_gone", "refused a gone message for worker '%s' from '%s': "
-                             "only the supervisor or that worker may send it",
-                             wire(msg.worker), wire(ident))
-                return
             link = self.worker_links.get(gone)
             if ident == SUPERVISOR_IDENT and link is not None:
                 # Read what the worker sent before it exited first (its last answer and
@@ -351,19 +346,11 @@ class BrokerNode(RemoteSide, TapSide, Node):
                                                requeue=msg.reason.startswith(
                                                    messages.GONE_RECYCLED)))
         elif isinstance(msg, messages.Stopping):
-            if ident != SUPERVISOR_IDENT:
-                self._refuse("forged_stopping", "refused a stopping notice from '%s': only "
-                             "the supervisor may send it", wire(ident))
-                return
             self.winding_down = True
             log.debug("planned stop: workers leave from now on")
         elif isinstance(msg, messages.PoolSwitch):
-            self._on_pool_switch(ident, msg, now)
+            self._on_pool_switch(msg, now)
         elif isinstance(msg, messages.LadderLevel):
-            if ident != SUPERVISOR_IDENT:
-                self._refuse("forged_level", "refused a ladder level '%s' from '%s': only the "
-                             "supervisor may send it", wire(msg.level), wire(ident))
-                return
             self.level, self.level_reason = msg.level, msg.reason  # in the next Stats
         elif isinstance(msg, messages.Failed):
             actions = self.state.job_done(ident, msg.pool, msg.seq, False, now, msg.kind)
@@ -371,20 +358,15 @@ class BrokerNode(RemoteSide, TapSide, Node):
                 self.ratelog.warning("failed:" + msg.pool, "%s failed pair %d: %s",
                                      wire(msg.worker), msg.seq, wire(msg.reason))
             self._apply(actions)
-
-    # --- remote workers (another host) ----------------------------------------------
+        else:
+            never(msg)
 
     def close(self) -> None:
-        if self.auth is not None:
-            self.auth.stop()
+        self.remote.close()
         super().close()
 
-    def _on_pool_switch(self, ident: bytes, msg: messages.PoolSwitch, now: float) -> None:
-        """Runtime control of a pool: only the supervisor may send it."""
-        if ident != SUPERVISOR_IDENT:
-            self._refuse("forged_switch", "refused a pool switch for '%s' from '%s': only "
-                         "the supervisor may send it", wire(msg.pool), wire(ident))
-            return
+    def _on_pool_switch(self, msg: messages.PoolSwitch, now: float) -> None:
+        """Runtime control of a pool, from the supervisor (trust checked who sent it)."""
         try:
             if msg.active is not None:
                 self._apply(self.state.set_active(msg.pool, msg.active, now))
@@ -412,12 +394,12 @@ class BrokerNode(RemoteSide, TapSide, Node):
                     self.router.send_multipart([ident, frame])
             except (zmq.ZMQError, LinkClosed) as exc:  # it is gone: its successor starts
                 self._unreachable("configure", ident, link, exc,
-                                  remote=ident in self.remotes.known)
+                                  remote=self.remote.is_remote(ident))
         log.info("pool %s: new parameters sent to its workers", pool)
 
     # --- actions --------------------------------------------------------------------
 
-    def _apply(self, actions: list[Any]) -> None:
+    def _apply(self, actions: list[Action]) -> None:
         for action in actions:
             if isinstance(action, Dispatch):
                 key = (action.pool, action.gap)
@@ -428,25 +410,21 @@ class BrokerNode(RemoteSide, TapSide, Node):
                         self._jobs[key] = job
                 link = self.worker_links.get(action.worker)
                 try:
-                    if action.worker in self.remotes.known:
-                        assert self.remote_router is not None
-                        self.poller.touch(self.remote_router)
-                        self.remote_router.send_multipart(
-                            [action.worker, job, *self._remote_payload(action.seq)],
-                            copy=False)
+                    if self.remote.is_remote(action.worker):
+                        self.remote.send_job(action.worker, job, action.seq)
                     elif link is not None:
                         if not link.send([job, *self.frames[action.seq]]):
                             raise LinkClosed("its queue is full")
                     else:
-                        remote = action.pool in self.remote
+                        remote = action.pool in self.remote_pools
                         self.poller.touch(self.router)
-                        payload = (self._remote_payload(action.seq) if remote
+                        payload = (self.remote.jpeg_payload(action.seq) if remote
                                    else self._payload(action.seq, copy=False))
                         self.router.send_multipart([action.worker, job, *payload], copy=False)
                 except (zmq.ZMQError, LinkClosed) as exc:  # EHOSTUNREACH: the worker vanished
                     self.unroutable += 1
                     self._unreachable("route", action.worker, link, exc,
-                                      remote=action.worker in self.remotes.known)
+                                      remote=self.remote.is_remote(action.worker))
                     if link is not None:
                         self._drop_link(link, "unreachable")
                     else:
@@ -454,7 +432,7 @@ class BrokerNode(RemoteSide, TapSide, Node):
                                                            time.monotonic()))
             elif isinstance(action, Release):
                 self.frames.pop(action.seq, None)
-                self._jpeg.pop(action.seq, None)
+                self.remote.release(action.seq)
                 ref = self.refs.pop(action.seq, None)
                 if ref is not None and self.ring is not None:
                     self.ring.free_ref(ref)
@@ -465,7 +443,7 @@ class BrokerNode(RemoteSide, TapSide, Node):
                     "dispatched to that worker or was answered already", wire(action.worker),
                     wire(action.pool), action.seq, action.reason)
             elif isinstance(action, Evicted):
-                self.remotes.evicted(action.worker, action.reason)
+                self.remote.roster.evicted(action.worker, action.reason)
                 # A worker told to stop, or recycled, leaves on purpose; anything else is news.
                 level = (logging.INFO if messages.is_planned_goodbye(action.reason)
                          else logging.WARNING)
@@ -474,6 +452,16 @@ class BrokerNode(RemoteSide, TapSide, Node):
                     wire(action.worker), action.pool, wire(action.reason),
                     list(action.lost) or "none",
                 )
+            else:
+                never(action)
+
+    def _malformed(self) -> int:
+        """Malformed messages dropped, from every socket and link (the remote side counts
+        its own)."""
+        return self.malformed + self.remote.malformed
+
+    def _publish_stats(self, now: float) -> None:
+        self.tap.publish_stats(now, self._malformed(), self.level, self.level_reason)
 
     def _goodbye(self, ident: bytes, reason: str) -> None:
         """Remember a worker that left on purpose: a send to it afterwards is no news."""
@@ -492,7 +480,7 @@ class BrokerNode(RemoteSide, TapSide, Node):
         if link is not None:
             self._drain_link(link)  # its Gone (and EOF) settle it as it meant to leave
         elif remote:
-            self._drain_remote()
+            self.remote.drain()
         else:
             self._drain_workers()
         if self.winding_down or ident in self._goodbyes:
@@ -563,9 +551,8 @@ class BrokerNode(RemoteSide, TapSide, Node):
         if n:
             log.warning("freed %d ring slots held by a previous broker", n)
 
-def _local_msg(msg: messages.WorkerMsg) -> messages.Ready | messages.Alive | messages.Done \
-        | messages.Failed | messages.Gone | messages.PoolSwitch | messages.LadderLevel \
-        | messages.Stopping:
+
+def _local_msg(msg: messages.WorkerMsg) -> LocalMsg:
     """Hello, JoinRequest and HostAlive belong to the remote socket; on a local path they
     are refused."""
     if isinstance(msg, (messages.Hello, messages.JoinRequest, messages.HostAlive)):

@@ -14,59 +14,71 @@ import zmq
 from trapflow.broker.remote_state import RemoteWorkers
 from trapflow.broker.state import BrokerState
 from trapflow.wire import messages, tap_msgs
-from trapflow.wire.transport import Poller, TapGate
+from trapflow.wire.transport import TAP_RCVHWM, Poller, SocketSpec, TapGate, open_socket
 
 _NOBLOCK = int(zmq.NOBLOCK)  # a plain int: zmq's enum flags cost a conversion per call
 
 
-class TapSide:
-    """A base of trapflow.broker.node.BrokerNode: the tap socket, its subscriptions and the
-    stats. What it uses of the broker is declared here; the broker defines it."""
+class BrokerTap:
+    """The tap socket of a broker, its subscriptions and the stats it publishes; owned by
+    trapflow.broker.node.BrokerNode, which reads the rest from the state and roster given."""
 
-    tap: zmq.Socket[bytes]
-    gate: TapGate
-    wanted: dict[bytes, bool]
-    poller: Poller
-    state: BrokerState
-    remotes: RemoteWorkers
-    started: float
-    malformed: int
-    level: str
-    level_reason: str
-    _last_in: int
-    _last_processed: dict[str, int]
-    _last_stats: float
+    def __init__(self, ctx: zmq.Context[zmq.Socket[bytes]], endpoint: str, poller: Poller,
+                 state: BrokerState, roster: RemoteWorkers, started: float) -> None:
+        # XPUB tells us what taps subscribe to, so nothing is published that nobody reads;
+        # a small high-water mark: a slow tap loses messages instead of holding the broker.
+        # Manual: only prefixes of the tap's topics are taken (TapGate), nothing else is kept.
+        self.sock = open_socket(ctx, SocketSpec(zmq.XPUB, endpoint, bind=True, sndhwm=32,
+                                                rcvhwm=TAP_RCVHWM, xpub_manual=True))
+        self.gate = TapGate(self.sock, tap_msgs.TAP_TOPICS)
+        self.wanted: dict[bytes, bool] = {}
+        self._poller = poller
+        self._state = state
+        self._roster = roster
+        self._started = started
+        self._last_in = 0
+        self._last_processed: dict[str, int] = {}
+        self._last_stats = started
+        poller.register(self.sock)
 
-    def _on_subscriptions(self) -> None:
-        self.poller.touch(self.tap)
+    def on_subscriptions(self) -> None:
+        """Read what taps (un)subscribed to."""
+        self._poller.touch(self.sock)
         if self.gate.drain():
             self.wanted = {t: self.gate.wanted(t) for t in tap_msgs.TAP_TOPICS}
 
-    def _publish(self, topic: bytes, *frames: Any) -> None:
-        self.poller.touch(self.tap)
+    def publish(self, topic: bytes, *frames: Any) -> None:
+        """Send now, or lose it: a slow subscriber never holds the broker."""
+        self._poller.touch(self.sock)
         try:
-            self.tap.send_multipart([topic, *frames], _NOBLOCK, copy=False)
+            self.sock.send_multipart([topic, *frames], _NOBLOCK, copy=False)
         except zmq.Again:
             pass  # a slow subscriber loses tap messages; the pipeline never waits
 
-    def _publish_stats(self, now: float) -> None:
+    def stats_due(self, now: float, interval_s: float) -> bool:
+        """Whether interval_s passed since the last stats."""
+        return now - self._last_stats >= interval_s
+
+    def publish_stats(self, now: float, malformed: int, level: str, level_reason: str) -> None:
+        """The broker's Stats, with rates since the last ones."""
         dt = now - self._last_stats
         self._last_stats = now
-        pools = self.state.pool_stats()
+        state = self._state
+        pools = state.pool_stats()
         for name, ps in pools.items():
             prev = self._last_processed.get(name, 0)
             self._last_processed[name] = ps.processed
             pools[name] = msgspec.structs.replace(ps, rate=round((ps.processed - prev) / dt, 2))
         stats = messages.Stats(
             t_wall_ns=time.time_ns(),
-            uptime_s=round(now - self.started, 3),
-            pairs_in=self.state.pairs_in,
-            rate_in=round((self.state.pairs_in - self._last_in) / dt, 2),
-            malformed=self.malformed,
+            uptime_s=round(now - self._started, 3),
+            pairs_in=state.pairs_in,
+            rate_in=round((state.pairs_in - self._last_in) / dt, 2),
+            malformed=malformed,
             pools=pools,
-            remote=self.remotes.stats(dt, self.state.worker_pools()),
-            level=self.level,
-            level_reason=self.level_reason,
+            remote=self._roster.stats(dt, state.worker_pools()),
+            level=level,
+            level_reason=level_reason,
         )
-        self._last_in = self.state.pairs_in
-        self._publish(tap_msgs.TOPIC_STATS, messages.encode(stats))  # cheap: once a second
+        self._last_in = state.pairs_in
+        self.publish(tap_msgs.TOPIC_STATS, messages.encode(stats))  # cheap: once a second

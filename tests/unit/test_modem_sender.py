@@ -53,12 +53,14 @@ def test_outbox_config_rejects(data: dict[str, Any], error: str) -> None:
 @pytest.mark.parametrize(
     ("cls", "rank", "ttl", "aggregated"),
     [
-        ("stereo_ir/scallop", 0, 0.0, False),
-        ("mono_ir/crab", 1, 0.0, True),
-        ("health", 2, 3600.0, False),
-        ("mono_ir/fish", 5, 0.0, True),
-        ("stereo_vo", 6, 600.0, True),
-        ("whatever", 7, 0.0, False),
+        ("counts", 0, 0.0, False),  # observations first (issue 23)
+        ("track", 1, 0.0, False),
+        ("stereo_ir/scallop", 2, 0.0, False),
+        ("mono_ir/crab", 3, 0.0, True),
+        ("health", 4, 3600.0, False),
+        ("mono_ir/fish", 7, 0.0, True),
+        ("stereo_vo", 8, 600.0, True),
+        ("whatever", 9, 0.0, False),
     ],
 )
 def test_class_policy(cls: str, rank: int, ttl: float, aggregated: bool) -> None:

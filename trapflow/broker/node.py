@@ -31,11 +31,10 @@ from trapflow.broker.state import (
     PoolSpec,
     Rejected,
     Release,
-    never,
 )
 from trapflow.broker.tap import BrokerTap
 from trapflow.broker.trust import SUPERVISOR_IDENT, LocalMsg
-from trapflow.errors import ProtocolError
+from trapflow.errors import ProtocolError, unreachable
 from trapflow.runtime.node import ACTIVE, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog, wire
 from trapflow.wire import frame_msgs, messages, tap_msgs
@@ -359,7 +358,7 @@ class BrokerNode(Node):
                                      wire(msg.worker), msg.seq, wire(msg.reason))
             self._apply(actions)
         else:
-            never(msg)
+            unreachable(msg)
 
     def close(self) -> None:
         self.remote.close()
@@ -453,7 +452,7 @@ class BrokerNode(Node):
                     list(action.lost) or "none",
                 )
             else:
-                never(action)
+                unreachable(action)
 
     def _malformed(self) -> int:
         """Malformed messages dropped, from every socket and link (the remote side counts

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import NoReturn
 
 from trapflow.broker.policy import Pending
 from trapflow.config.schema import Policy, parse_policy
@@ -77,12 +76,6 @@ class Rejected:
 
 
 Action = Dispatch | Release | Evicted | Rejected
-
-
-def never(x: NoReturn) -> NoReturn:
-    """The last branch of an isinstance chain over a union (actions, messages): mypy
-    reports the chain when a member of the union has no branch of its own."""
-    raise TypeError(f"no branch for a {type(x).__name__}")
 
 
 @dataclass(frozen=True)

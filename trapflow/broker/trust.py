@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from trapflow.broker.remote_state import RemoteWorkers
-from trapflow.broker.state import never
+from trapflow.errors import unreachable
 from trapflow.runtime.ratelog import wire
 from trapflow.wire.messages import (
     Alive,
@@ -90,7 +90,7 @@ def on_workers_socket(sender: bytes, msg: LocalMsg) -> Verdict:
             "forged_level", "refused a ladder level '%s' from '%s': only the supervisor may "
             "send it", (wire(msg.level), wire(sender))))
     else:
-        never(msg)
+        unreachable(msg)
 
 
 def names_link(msg: LocalMsg) -> str | Refuse:
@@ -104,7 +104,7 @@ def names_link(msg: LocalMsg) -> str | Refuse:
     elif isinstance(msg, (Ready, Alive, Done, Failed, Gone)):
         return msg.worker
     else:
-        never(msg)
+        unreachable(msg)
 
 
 def _remote_name(sender: bytes) -> str:
@@ -138,4 +138,4 @@ def on_remote_socket(sender: bytes, msg: WorkerMsg, roster: RemoteWorkers) -> Ve
                           (_remote_name(sender), wire(msg.pool)))
         return ALLOW
     else:
-        never(msg)
+        unreachable(msg)

@@ -68,6 +68,9 @@ class Context:
     save: bool = False
     time: bool = False
     extra: Mapping[str, Any] = field(default_factory=dict)
+    #: the side of the AprilTags the source lays, in metres, where the source knows it (a
+    #: synthetic world); None for a camera. A plugin's configured size must agree with it
+    tag_size_m: float | None = None
 
 
 class Worker:

@@ -33,6 +33,7 @@ from __future__ import annotations
 import atexit
 import functools
 import logging
+import math
 from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
@@ -40,7 +41,7 @@ import cv2
 import msgspec
 import numpy as np
 
-from trapflow.plugin import Context, Pair, Tag, Tags, Worker, WorkerError
+from trapflow.plugin import ConfigError, Context, Pair, Tag, Tags, Worker, WorkerError
 
 from .calibration import resolve_rig
 from .common import Params, check_frame, floats, parse_params, to_grey
@@ -61,6 +62,8 @@ OPENCV_TO_C = [1, 0, 3, 2]
 # refinement, +0.43 (sd 0.04) from its quad fit alone.
 C_PIXEL_CENTRE = 0.5
 Pos = Annotated[float, msgspec.Meta(gt=0)]
+# Where neither the params nor the source say how big the tags are (a camera, no config).
+FALLBACK_TAG_SIZE_M = 0.1
 
 
 class TagParams(Params):
@@ -68,8 +71,9 @@ class TagParams(Params):
 
     family: Literal["36h11", "36h10", "25h9", "16h5"] = "36h11"
     """AprilTag family."""
-    tag_size_m: Pos = 0.1
-    """Edge of the black square, in metres."""
+    tag_size_m: Pos | None = None
+    """Edge of the black square, in metres. Unset: the size the source lays (a synthetic
+    world publishes its own), else 0.1. A size that contradicts the source's is an error."""
     sizes: dict[int, Pos] = {}
     """Per-id tag sizes overriding tag_size_m."""
     calibration: str = ""
@@ -123,6 +127,32 @@ def _c_library_available() -> bool:
     return True
 
 
+def tag_size(p: TagParams, ctx: Context) -> float:
+    """The run's one tag size: the params', else the source's, else FALLBACK_TAG_SIZE_M.
+
+    ConfigError when a configured size (or a per-id one) contradicts the size the source
+    lays: every pose would be off by their ratio (0.10 m assumed of 0.12 m tags put every
+    tag 16.5 % too near).
+    """
+    src = ctx.tag_size_m
+    if src is not None:
+        given = [("tag_size_m", p.tag_size_m)] + [(f"sizes.{i}", v) for i, v in p.sizes.items()]
+        for key, size in given:
+            if size is not None and not math.isclose(size, src, rel_tol=1e-6):
+                raise ConfigError(
+                    f"pools.{ctx.pool}.params.{key}: expected the source's tag size "
+                    f"{src:g} m (the tags it lays), got {size:g} m; remove the key to take "
+                    f"the source's, or have the source lay {size:g} m tags "
+                    f"(source.options.tag_size_m)")
+        return src
+    if p.tag_size_m is not None:
+        return p.tag_size_m
+    log.warning("tags: the source does not say how big its tags are and "
+                "pools.%s.params.tag_size_m is unset: assuming %g m (every range scales "
+                "with it)", ctx.pool, FALLBACK_TAG_SIZE_M)
+    return FALLBACK_TAG_SIZE_M
+
+
 def tag_object_points(size_m: float) -> np.ndarray:
     """The four corners p0..p3 in the tag frame (x right, y down, z into the tag), metres."""
     h = size_m / 2.0
@@ -143,6 +173,7 @@ class AprilTags(Worker):
     def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
         p = parse_params(params, TagParams, ctx.pool)
         self.p = p
+        self.size = tag_size(p, ctx)
         self.rig = resolve_rig(p.calibration, p.intrinsics, None, ctx.rig)
         self.backend = self._backend(p, ctx.pool)
         if self.backend == "apriltag":
@@ -156,7 +187,7 @@ class AprilTags(Worker):
             self.detector = cv2.aruco.ArucoDetector(dictionary, det)
         log.info(
             "tags: %s detector, family %s, size %.3f m, fx=%.1f",
-            self.backend, p.family, p.tag_size_m, self.rig.fx,
+            self.backend, p.family, self.size, self.rig.fx,
         )
 
     @staticmethod
@@ -210,7 +241,7 @@ class AprilTags(Worker):
         K = rig.K  # noqa: N806 - the usual name of the matrix
         tags = []
         for tag_id, px in self.detect(gray):
-            obj = tag_object_points(self.p.sizes.get(tag_id, self.p.tag_size_m))
+            obj = tag_object_points(self.p.sizes.get(tag_id, self.size))
             n, rvecs, tvecs, _ = cv2.solvePnPGeneric(
                 obj, px, K, None, flags=cv2.SOLVEPNP_IPPE_SQUARE
             )

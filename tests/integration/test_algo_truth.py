@@ -20,6 +20,9 @@ from trapflow_workers.vo_metrics import as_4x4, drift_percent, end_drift_percent
 
 from tests.kits.context import make_context, make_pair
 from trapflow.calibration.camera import StereoRig
+from trapflow.config import schema as configmod
+from trapflow.sources import rig as rigmod
+from trapflow.sources.synthetic import SyntheticSource
 from trapflow.synth.dataset import labelled
 from trapflow.synth.options import SynthOptions
 from trapflow.synth.render import World
@@ -172,6 +175,32 @@ def test_tag_poses_match_rendered_tags(
             assert t.error < 2.0  # measured max 1.66 px (the C library, 1280x720, tag 7)
             seen += 1
     assert seen >= 40
+
+
+@pytest.mark.timeout(60)
+def test_tag_ranges_on_the_synthetic_default_out_of_the_box() -> None:
+    """Regression (issue 24): the default world lays 0.12 m tags and the tags pool assumed
+    0.10 m, so every range was 16.5 % short (median 0.835 of the truth over 253 tags). The
+    size now flows from the source as the rig does (sources.rig.describe -> Context); the
+    pool's params are the defaults'. Measured: 84 tags, ratio 0.9994 to 1.0017."""
+    cfg = configmod.with_source(configmod.load(None), options={"tags": 8})
+    found = rigmod.describe(cfg)  # what preflight hands every node
+    assert found.tag_size_m == 0.12
+    source = SyntheticSource(cfg.source, found.rig)
+    tags = AprilTags()
+    tags.configure(cfg.pools["tags"].params,
+                   make_context(found.rig, pool="tags", tag_size_m=found.tag_size_m))
+    world, poses = source.world, source.world.tag_poses()
+    ratios = []
+    for i in range(0, 90, 6):
+        left, right, truth = world.render(i)
+        cam = as_4x4(truth.pose)
+        for t in tags.process(make_pair(left, right, seq=i)).tags:
+            true_m = float(np.linalg.norm((_inv(cam) @ poses[t.id])[:3, 3]))
+            ratios.append(float(np.linalg.norm(t.translation)) / true_m)
+    assert len(ratios) >= 40
+    worst = max(ratios, key=lambda r: abs(r - 1.0))
+    assert abs(worst - 1.0) < 0.01, f"a tag's range is {worst:.4f} of the truth"
 
 
 def _iou(a: tuple[float, ...], b: tuple[float, ...]) -> float:

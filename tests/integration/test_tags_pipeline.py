@@ -54,3 +54,21 @@ def test_every_processed_pair_writes_a_tags_line(spawn, run_dir: Path) -> None:
         else:
             assert got == [{"timestamp": got[0]["timestamp"], "seq": seq, "corners": [],
                             "calib": calib, "v": 2}]
+
+
+@pytest.mark.timeout(90)
+def test_a_tag_size_against_the_sources_stops_the_start(spawn, run_dir: Path) -> None:
+    """Regression (issue 24): the tags pool measured the synthetic world's 0.12 m tags as
+    0.10 m ones, 16.5 % short, and said nothing. The world's size now reaches the pool
+    through the supervisor's preflight (NodeSpec, Context); a configured size that
+    contradicts it ends the run at start with both sizes and the fix."""
+    cfg = write_config(run_dir.parent / "tags.yaml", {
+        "source": {"rate_hz": 5.0, "options": {"tags": 8}},
+        "pools": {"tags": {"params": {"tag_size_m": 0.1}}},
+    })
+    p: Pipeline = spawn(["--config", str(cfg), "--workers", "tags=1", "--duration", "20"],
+                        run_dir)
+    code, _, err = p.wait(60)
+    assert code != 0
+    assert ("pools.tags.params.tag_size_m: expected the source's tag size 0.12 m (the tags "
+            "it lays), got 0.1 m; remove the key") in " ".join(err.split())

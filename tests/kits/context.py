@@ -42,12 +42,15 @@ def make_context(
     pool: str = "test",
     run_dir: Path | None = None,
     extra: Mapping[str, Any] | None = None,
+    tag_size_m: float | None = None,
 ) -> Context:
-    """A Context for a plugin under test (default rig: 640x480, 70 degrees, 12 cm)."""
+    """A Context for a plugin under test (default rig: 640x480, 70 degrees, 12 cm; the
+    source's tag size: none known)."""
     return Context(
         pool=pool,
         worker=f"{pool}:0",
         run_dir=run_dir or Path("."),
         rig=rig or StereoRig.from_fov(640, 480, 70.0, 0.12),
         extra=extra or {},
+        tag_size_m=tag_size_m,
     )

@@ -17,7 +17,7 @@ from trapflow_workers.apriltags import AprilTags, tag_object_points
 from tests.kits.context import make_context, make_pair
 from tests.kits.scenes import pose, rot_x, rot_z, tag_image
 from trapflow.calibration.camera import StereoRig
-from trapflow.errors import WorkerError
+from trapflow.errors import ConfigError, WorkerError
 
 RIG = StereoRig.from_fov(1280, 720, 70.0, 0.12)
 
@@ -125,6 +125,41 @@ def test_configure_rejects(tmp_path: Path, params: dict[str, Any], error: str) -
     params = {k: v.format(tmp=tmp_path) if isinstance(v, str) else v for k, v in params.items()}
     with pytest.raises(WorkerError, match=error):
         _detector(**params)
+
+
+@pytest.mark.parametrize(
+    ("params", "source_m", "size_m"),
+    [
+        ({}, 0.12, 0.12),  # the source says: taken as it is
+        ({"tag_size_m": 0.12}, 0.12, 0.12),  # the config agrees with the source
+        ({"tag_size_m": 0.16}, None, 0.16),  # a camera knows no size: the config's
+        ({}, None, apriltags.FALLBACK_TAG_SIZE_M),  # nobody says: the fallback (logged)
+    ],
+)
+def test_tag_size_comes_from_one_place(params: dict[str, Any], source_m: float | None,
+                                       size_m: float) -> None:
+    tags = AprilTags()
+    tags.configure(params, make_context(RIG, pool="tags", tag_size_m=source_m))
+    assert tags.size == size_m
+
+
+@pytest.mark.parametrize(
+    ("params", "key"),
+    [
+        ({"tag_size_m": 0.1}, "tag_size_m"),
+        ({"sizes": {3: 0.2}}, "sizes.3"),
+    ],
+)
+def test_tag_size_against_the_source_is_an_error(params: dict[str, Any], key: str) -> None:
+    """Regression (issue 24): the tags pool assumed 0.10 m where the synthetic world lays
+    0.12 m tags, so every tag range came out 16.5 % short without a word."""
+    tags = AprilTags()
+    with pytest.raises(ConfigError) as got:
+        tags.configure(params, make_context(RIG, pool="tags", tag_size_m=0.12))
+    text = str(got.value)
+    assert text.startswith(f"pools.tags.params.{key}: expected the source's tag size 0.12 m")
+    assert "got 0.1 m" in text or "got 0.2 m" in text
+    assert "remove the key" in text and "source.options.tag_size_m" in text
 
 
 def test_wrong_frame_size_is_a_worker_error() -> None:

@@ -299,6 +299,7 @@ def level(level_name: str, run_dir: Path, timeout: float, as_json: bool) -> None
 def _add_commands() -> None:
     from trapflow.cli import dataset as cli_dataset
     from trapflow.cli import export as cli_export
+    from trapflow.cli import measure as cli_measure
     from trapflow.cli import modem as cli_modem
     from trapflow.cli import observe as cli_observe
     from trapflow.cli import remote as cli_remote
@@ -307,7 +308,8 @@ def _add_commands() -> None:
 
     for cmd in (*cli_modem.COMMANDS, process, cli_sources.calibrate, cli_sources.record,
                 cli_sources.replay, cli_sources.recover, cli_dataset.dataset,
-                *cli_export.COMMANDS, *cli_remote.COMMANDS, *cli_observe.COMMANDS):
+                *cli_export.COMMANDS, *cli_remote.COMMANDS, *cli_observe.COMMANDS,
+                *cli_measure.COMMANDS):
         main.add_command(cmd)
 
 

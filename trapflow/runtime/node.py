@@ -80,6 +80,7 @@ class NodeSpec:
     pool: str = ""
     index: int = 0
     rig: StereoRig | None = None  # the run's rig, decided once by trapflow.sources.rig at preflight
+    tag_size_m: float | None = None  # the tags the source lays, where it knows (sources.rig)
     ring: str = ""  # the shared-memory frame ring's segment name ("" without one)
     # A restarted broker frees the ring slots its predecessor held; a first one must not
     # (capture's first pairs may already hold slots on their way to it).

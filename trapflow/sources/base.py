@@ -50,6 +50,9 @@ class Geometry:
     rig: StereoRig | None = None  # its own calibration: KITTI calib.txt, CameraInfo
     origin: str = ""  # where the rig came from, e.g. "calib.txt in DIR"
     where: str = ""  # what the frames are, for messages: "images in DIR"
+    # The side of the AprilTags the source lays (a synthetic world knows it); None where the
+    # source cannot know (a camera): the tags pool's params then say it.
+    tag_size_m: float | None = None
 
 
 class Source:

@@ -3,7 +3,8 @@
 In order: a calibration file (rig.calibration or source.options.rectify), the source's
 own (a KITTI calib.txt, CameraInfo in a bag), the size of the source's real frames with
 the configured field of view, and last the configured size and field of view. The
-supervisor resolves it once at preflight and hands it to every node through NodeSpec.
+supervisor resolves it once at preflight and hands it to every node through NodeSpec,
+with the other fact of the world only the source knows: the size of the tags it lays.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ class Resolved:
     rig: StereoRig
     origin: str
     where: str = ""  # what the source's frames are: "images in DIR", a bag's topics
+    tag_size_m: float | None = None  # the tags the source lays (a synthetic world's), if known
 
 
 def from_config(cfg: Config, size: tuple[int, int] | None = None) -> StereoRig:
@@ -75,7 +77,9 @@ def resolve(cfg: Config, geometry: Geometry) -> Resolved:
 
 
 def describe(cfg: Config) -> Resolved:
-    """The rig of the source the config names, asked of the source without opening it."""
+    """The rig of the source the config names, and the size of the tags it lays, asked of
+    the source without opening it."""
 
     geometry = build_source(cfg.source, from_config(cfg)).geometry()
-    return replace(resolve(cfg, geometry), where=geometry.where)
+    return replace(resolve(cfg, geometry), where=geometry.where,
+                   tag_size_m=geometry.tag_size_m)

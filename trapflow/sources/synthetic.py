@@ -11,7 +11,7 @@ import time
 from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import SourceConfig
 from trapflow.errors import ConfigError
-from trapflow.sources.base import Frames, Source
+from trapflow.sources.base import Frames, Geometry, Source
 from trapflow.synth.options import parse_options
 from trapflow.synth.render import World
 
@@ -39,6 +39,11 @@ class SyntheticSource(Source):
         self.options = parse_options(cfg.options)
         self._world: World | None = None
         self._i = 0
+
+    def geometry(self) -> Geometry:
+        """The tags' size, where the world lays tags: the run's one tag size."""
+        opts = self.options
+        return Geometry(tag_size_m=opts.tag_size_m if opts.tags else None)
 
     def open(self) -> None:
         self._world = World(self.rig, seed=self.cfg.seed, moving=self.cfg.moving,

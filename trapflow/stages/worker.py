@@ -166,7 +166,7 @@ class WorkerNode(Node):
             ctx = Context(
                 pool=self.pool, worker=self.ident, run_dir=self.spec.run_dir,
                 rig=self.rig, debug=self.pcfg.debug, save=self.pcfg.save,
-                time=self.pcfg.time,
+                time=self.pcfg.time, tag_size_m=self.spec.tag_size_m,
             )
             plugin.configure(self.pcfg.params, ctx)
             self.set_state(INACTIVE)
@@ -266,7 +266,7 @@ class WorkerNode(Node):
         self.pcfg = msgspec.structs.replace(self.pcfg, params=dict(msg.params))
         ctx = Context(pool=self.pool, worker=self.ident, run_dir=self.spec.run_dir,
                       rig=self.rig, debug=self.pcfg.debug, save=self.pcfg.save,
-                      time=self.pcfg.time)
+                      time=self.pcfg.time, tag_size_m=self.spec.tag_size_m)
         try:
             self.plugin.deactivate()
             self.set_state(INACTIVE)

@@ -134,6 +134,7 @@ class Supervisor:
         self.rig: StereoRig | None = None  # decided at preflight (trapflow.sources.rig)
         self.rig_origin = ""
         self.source_where = ""  # what the source reads (a recording's image topics)
+        self.tag_size_m: float | None = None  # the tags the source lays, where it knows
         self.ring: FrameRing | None = None
         self.notifier = sdnotify.Notifier()  # READY/WATCHDOG/STATUS under systemd, else no-op
         self.ratelog = RateLimitedLog(log)  # warnings about messages from sockets
@@ -168,7 +169,7 @@ class Supervisor:
                                          worker_liveness(pcfg.timeout_s, sup.heartbeat_interval_s))
             for i in range(pcfg.count):
                 spec = NodeSpec("worker", f"worker:{pool}:{i}", cfg, run, pool=pool, index=i,
-                                rig=self.rig, ring=ring)
+                                rig=self.rig, tag_size_m=self.tag_size_m, ring=ring)
                 self._add(spec, worker_liveness(pcfg.timeout_s, sup.heartbeat_interval_s))
         self._add(NodeSpec("capture", "capture", cfg, run, rig=self.rig, ring=ring),
                   sup.liveness_s)
@@ -206,6 +207,7 @@ class Supervisor:
         try:
             found = preflight(self.cfg)
             self.rig, self.rig_origin, self.source_where = found.rig, found.origin, found.where
+            self.tag_size_m = found.tag_size_m
             self.endpoints = Endpoints.for_run(self.cfg.network, self.run_dir)
             self.run_log = RunLogging(self.ctx, self.endpoints.log, self.run_dir, self.cfg)
             self.hb = open_socket(self.ctx, SocketSpec(zmq.PULL, self.endpoints.heartbeat,
@@ -472,7 +474,8 @@ class Supervisor:
         that follows."""
         self.cfg = self._pool_cfg(a.pool, count=max(self.cfg.pools[a.pool].count, a.index + 1))
         spec = NodeSpec("worker", a.name, self.cfg, self.run_dir, pool=a.pool, index=a.index,
-                        rig=self.rig, ring=self.ring.name if self.ring is not None else "")
+                        rig=self.rig, tag_size_m=self.tag_size_m,
+                        ring=self.ring.name if self.ring is not None else "")
         for c in self.children:
             if c.name == a.name:
                 c.spec = spec

@@ -14,9 +14,7 @@ from __future__ import annotations
 
 from collections import deque
 
-from trapflow.config.schema import DEFAULT_ORDERED_BOUND as DEFAULT_ORDERED_BOUND
-from trapflow.config.schema import Policy as Policy
-from trapflow.config.schema import parse_policy as parse_policy
+from trapflow.config.schema import Policy
 
 
 class Pending:

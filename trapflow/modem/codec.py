@@ -17,7 +17,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from trapflow.config.modem import DEFAULT_LABELS as DEFAULT_LABELS
+from trapflow.config.modem import DEFAULT_LABELS
 from trapflow.errors import ProtocolError
 from trapflow.modem.frame import Reader, put_svarint, put_uvarint
 

@@ -24,7 +24,7 @@ import struct
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from trapflow.config.modem import MAX_PAYLOAD as MAX_PAYLOAD
+from trapflow.config.modem import MAX_PAYLOAD
 from trapflow.errors import ProtocolError
 
 SYNC = b"\xa5\x5a"

@@ -15,7 +15,7 @@ from typing import Any
 
 import psutil
 
-from trapflow.config.modem import HealthConfig as HealthConfig
+from trapflow.config.modem import HealthConfig
 
 PoolRates = dict[str, tuple[float, int]]  # pool -> (results per second, drops so far)
 

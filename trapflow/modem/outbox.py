@@ -25,7 +25,7 @@ from typing import Any
 
 import msgspec
 
-from trapflow.config.modem import OutboxConfig as OutboxConfig
+from trapflow.config.modem import OutboxConfig
 from trapflow.errors import TrapflowError
 from trapflow.modem.frame import SESSION_BYTES
 

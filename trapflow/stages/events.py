@@ -16,8 +16,7 @@ from typing import Any
 
 import psutil
 
-from trapflow.config.schema import EventsConfig as EventsConfig
-from trapflow.config.schema import TriggerRule as TriggerRule
+from trapflow.config.schema import EventsConfig, TriggerRule
 from trapflow.wire.messages import StereoPair
 
 log = logging.getLogger(__name__)

@@ -21,16 +21,14 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from trapflow.config.ladder import AUTO as AUTO
-from trapflow.config.ladder import LOWER_IS_WORSE as LOWER_IS_WORSE
-from trapflow.config.ladder import POOL_SENSORS as POOL_SENSORS
-from trapflow.config.ladder import UNITS as UNITS
-from trapflow.config.ladder import LadderConfig as LadderConfig
-from trapflow.config.ladder import LevelConfig as LevelConfig
-from trapflow.config.ladder import PoolLevel as PoolLevel
-from trapflow.config.ladder import Sensor as Sensor
-from trapflow.config.ladder import SensorsConfig as SensorsConfig
-from trapflow.config.ladder import TriggerConfig as TriggerConfig
+from trapflow.config.ladder import (
+    AUTO,
+    LOWER_IS_WORSE,
+    UNITS,
+    LadderConfig,
+    PoolLevel,
+    TriggerConfig,
+)
 
 
 @dataclass(frozen=True)

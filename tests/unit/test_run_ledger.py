@@ -163,3 +163,57 @@ def test_trapflow_status_renders_the_supervision_timeline_and_the_ledger() -> No
     assert "supervision: 1 give-ups, 1 retries, 0 capped restarts" in text
     assert "worker:vo:0" in text and "retry" in text and "gave_up" in text
     assert "vo: processed 20" in text and "restarts 6" in text
+
+
+def _live_and_final(produced: int, pairs_in: int, written: int | None,
+                    **pool: int) -> tuple[dict[str, int], dict[str, int]]:
+    """The vo pool's row of the live ledger and of the final one after a failure."""
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=produced))
+    led.on_stats(_stats(pairs_in, received=pairs_in, workers=1, **pool))
+    if written is not None:  # results.jsonl holds `written` results of the pool
+        led.on_normalizer({"route:vo:stereo_vo": 1})
+        led.delivered.feed(b"".join(_line("stereo_vo", s) for s in range(written)))
+    live = led.ledger({"vo": "ordered"}, {}, final=False)["pools"]["vo"]
+    end = led.ledger({"vo": "ordered"}, {})["pools"]["vo"]
+    return live, end
+
+
+@pytest.mark.parametrize(
+    ("produced", "pairs_in", "written", "pool", "live_lost", "in_progress", "final_lost"), [
+        # captured, not yet at the broker: on the capture link
+        (25, 20, None, {"processed": 17, "pending": 1, "in_flight": 2}, 0, 8, 8),
+        # answered by the worker, not yet written: on its way to results.jsonl
+        (20, 20, 15, {"processed": 20}, 0, 5, 5),
+        # both at once, with a queue and a worker busy
+        (30, 26, 18, {"processed": 22, "pending": 2, "in_flight": 2}, 0, 12, 12),
+        # a healthy run with nothing on its way
+        (20, 20, 20, {"processed": 20}, 0, 0, 0),
+        # what a broker counted lost (a worker evicted with its pair) is lost at once
+        (20, 20, None, {"processed": 15, "lost": 3, "pending": 2}, 3, 2, 5),
+        # the broker's count never exceeds what is not in a state
+        (20, 20, 19, {"processed": 20, "lost": 4}, 1, 0, 1),
+    ])
+def test_live_ledger_counts_pairs_on_their_way_as_in_progress_not_lost(
+        produced: int, pairs_in: int, written: int | None, pool: dict[str, int],
+        live_lost: int, in_progress: int, final_lost: int) -> None:
+    """Regression (issue 22, item 1): the live ledger (viewer, `trapflow status` totals)
+    counted pairs captured but not yet at the broker, and answered but not yet written, as
+    lost ("lost 1" to "lost 10" per pool on healthy runs whose ledger.json said 0)."""
+    live, end = _live_and_final(produced, pairs_in, written, **pool)
+    assert (live["lost"], live["in_progress"]) == (live_lost, in_progress)
+    assert (end["lost"], "in_progress" in end) == (final_lost, False)
+
+
+def test_a_retired_broker_s_held_pairs_are_lost_in_the_live_ledger() -> None:
+    """What a dead broker held can never finish: lost while the run goes on, not in progress
+    (kept by the fix of issue 22, item 1)."""
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=40))
+    led.on_stats(_stats(30, received=30, processed=25, pending=3, in_flight=2, workers=1))
+    led.retire_broker()
+    led.on_stats(_stats(10, received=10, processed=8, pending=1, in_flight=1, workers=1))
+    live = led.ledger({"vo": "ordered"}, {}, final=False)["pools"]["vo"]
+    assert (live["processed"], live["lost"], live["in_progress"]) == (33, 5, 2)
+    text = totals_text(led.ledger({"vo": "ordered"}, {}, final=False))
+    assert "lost 5, in progress 2," in text

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -60,3 +61,23 @@ def test_refuses_non_empty_folder_unless_overwrite(tmp_path: Path) -> None:
 def test_bad_input_names_the_parameter(tmp_path: Path, args: list[str], error: str) -> None:
     res = CliRunner().invoke(dataset, ["synth", str(tmp_path / "x"), *SMALL, *args])
     assert res.exit_code == 2 and error in res.output, res.output
+
+
+def test_the_default_seed_labels_animals(tmp_path: Path) -> None:
+    """Regression (issue 22, item 9): `trapflow dataset synth` with its default seed wrote 0
+    annotations (seed 0's first scene is empty for its first 20 s)."""
+    out = tmp_path / "ds"
+    res = CliRunner().invoke(dataset, ["synth", str(out), "--frames", "4",
+                                                       "--width", "320", "--height", "240"])
+    assert res.exit_code == 0, res.output
+    coco = json.loads((out / "coco.json").read_text())
+    assert len(coco["annotations"]) >= 3 and "warning" not in res.stderr
+    assert sum(len(p.read_text().splitlines()) for p in (out / "labels").iterdir()) >= 3
+
+
+def test_a_dataset_without_annotation_says_so(tmp_path: Path) -> None:
+    """The other half of issue 22, item 9: an empty dataset is written, and said to be empty."""
+    res = CliRunner().invoke(dataset, ["synth", str(tmp_path / "ds"), "--frames",
+                                                       "2", "--seed", "0", *SMALL])
+    assert res.exit_code == 0, res.output
+    assert "no animal or tag was labelled in these 2 pairs (seed 0)" in res.stderr

@@ -198,8 +198,8 @@ def _encode(img: np.ndarray, cfg: Config) -> np.ndarray:
 
 
 def _time_base(uri: str) -> int:
-    """Wall-clock label of position 0: the input's modification time (finite inputs carry
-    no wall clock every source can give; this one is the same for every chunk)."""
+    """Wall-clock label of position 0 for an input without capture times of its own (files:
+    a recording gives each pair's): its modification time, the same for every chunk."""
     path = Path(uri.split(",")[0])
     try:
         return path.stat().st_mtime_ns
@@ -263,7 +263,9 @@ def run_chunk(task: ChunkTask) -> dict[str, Any]:
                 continue
             left_buf, right_buf = _encode(frames.left, cfg), _encode(frames.right, cfg)
             header = messages.StereoPair(
-                seq=pos, t_wall_ns=base_ns + pos * period_ns, t_mono_ns=frames.t_left_ns,
+                seq=pos, t_mono_ns=frames.t_left_ns,
+                t_wall_ns=(base_ns + pos * period_ns if frames.t_wall_ns is None
+                           else frames.t_wall_ns),
                 t_left_ns=frames.t_left_ns, t_right_ns=frames.t_right_ns,
                 skew_ns=frames.right_minus_left_ns(), encoding=cfg.source.encoding,
                 width=w, height=h, source=cfg.source.kind)

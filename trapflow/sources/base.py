@@ -29,13 +29,18 @@ class SkipPair(SourceError):
 
 @dataclass
 class Frames:
-    """One stereo capture: BGR uint8 images and their monotonic capture times."""
+    """One stereo capture: BGR uint8 images and their monotonic capture times.
+
+    `t_wall_ns` is the source's own wall-clock capture time, where it has one (a recording's
+    stamps): results are labelled with it. None (a camera, files): the clock at capture.
+    """
 
     left: np.ndarray
     right: np.ndarray
     t_left_ns: int
     t_right_ns: int
     truth: Truth | None = None  # only synthetic sources know it; seq is filled by capture
+    t_wall_ns: int | None = None
 
     def right_minus_left_ns(self) -> int:
         """Capture-time skew between the two cameras."""

@@ -2,7 +2,8 @@
 
 Images come from two sensor_msgs Image/CompressedImage topics (or one custom stereo message
 whose .msg definition the user gives), are paired by timestamp, and are delivered with the
-original timing scaled by `rate` (0: as fast as possible).
+original timing scaled by `rate` (0: as fast as possible), each pair labelled with its
+recorded capture time.
 
 source.options: rate (1.0), left_topic, right_topic, tolerance_s (half the frame period),
 msg_type + msg_def (path of a .msg file) + topic, left_field ('left'), right_field ('right'),
@@ -377,7 +378,10 @@ class ReplaySource(Source):
         right = image_to_bgr(rm, f"replay: {self.path.name} message {ir}")
         same_size(left, right, f"replay: {self.path.name} messages {il} and {ir}")
         now = time.monotonic_ns()
-        return Frames(left=left, right=right, t_left_ns=now, t_right_ns=now + (tr - tl))
+        # The recorded left stamp is the pair's capture time (a later lap of a loop goes on
+        # past the last one), whatever the replay's pace.
+        return Frames(left=left, right=right, t_left_ns=now, t_right_ns=now + (tr - tl),
+                      t_wall_ns=self._lap_offset + tl)
 
     def count_pairs(self) -> int:
         """How many pairs one pass over the recording yields (opens and closes it)."""

@@ -192,7 +192,8 @@ class CaptureNode(Node):
         self.seq += 1
         header = messages.StereoPair(
             seq=seq,
-            t_wall_ns=time.time_ns(),
+            # A recording's own capture time; a camera's is now (a label only).
+            t_wall_ns=time.time_ns() if f.t_wall_ns is None else f.t_wall_ns,
             t_mono_ns=time.monotonic_ns(),  # stamped after encoding: transport latency
             t_left_ns=f.t_left_ns,
             t_right_ns=f.t_right_ns,

@@ -246,11 +246,13 @@ class RunLedger:
         """Where every pair went: capture's count, then per pool exactly one state each;
         restarts per pool and the supervision timeline (give-ups, retries).
 
-        While the run goes on (not final), pairs pending or in flight are in progress, not
-        lost. At its end they can no longer finish: after a planned stop (duration, a stop
-        request, a signal, a drained source) those that no broker counted as lost were
-        merely on their way (capture link, queue, worker, normalizer) and are "unfinished
-        at stop", counted apart; after a failure they are lost."""
+        While the run goes on (not final), every pair not in a state and not counted lost by
+        a broker is in progress: on the capture link, pending, at a worker, or answered and
+        on its way to results.jsonl (a dead broker's pending and in-flight pairs are counted
+        lost when it is retired). At its end they can no longer finish: after a planned stop
+        (duration, a stop request, a signal, a drained source) those that no broker counted
+        as lost were merely on their way (capture link, queue, worker, normalizer) and are
+        "unfinished at stop", counted apart; after a failure they are lost."""
         cap = self.capture()
         s = self.stats
         produced = self.produced()
@@ -271,8 +273,8 @@ class RunLedger:
             ended = (processed + p.dropped + p.timed_out + p.errors + p.inactive + p.throttled
                      + p.stale)
             rest = max(0, produced - ended)
-            if not final:
-                in_progress = min(rest, p.pending + p.in_flight)
+            if not final:  # only what a broker counted lost is lost while the run goes on
+                in_progress = rest - min(rest, p.lost)
             elif planned_stop:  # what no broker had counted lost when the stop began
                 lost = p.lost if self.lost_at_stop is None else self.lost_at_stop.get(name, 0)
                 in_progress = rest - min(rest, lost)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import fcntl
 import logging
 import os
+import stat
 import sys
 from datetime import datetime
 from pathlib import Path
@@ -44,6 +45,25 @@ def link_latest(run_dir: Path) -> None:
             latest.symlink_to(run_dir.name)
     except OSError:
         pass  # a convenience only
+
+
+def discard_run_dir(run_dir: Path) -> bool:
+    """Remove a run directory that holds nothing of value (its lock file, sockets, empty
+    files: what a start that failed before capture leaves); True if it was removed. One
+    with anything else in it (a log that says why a node could not start) is kept."""
+    try:
+        entries = list(run_dir.iterdir())
+        for path in entries:
+            st = path.lstat()
+            if not (path.name == LOCK_FILE or stat.S_ISSOCK(st.st_mode)
+                    or (stat.S_ISREG(st.st_mode) and st.st_size == 0)):
+                return False
+        for path in entries:
+            path.unlink()
+        run_dir.rmdir()
+    except OSError:
+        return False  # a convenience only: a directory left is no error
+    return True
 
 
 def lock_run_dir(run_dir: Path) -> IO[str]:

@@ -59,6 +59,7 @@ from trapflow.supervisor.setup import (
     RunLogging,
     create_ring,
     default_run_dir,
+    discard_run_dir,
     link_latest,
     lock_run_dir,
     preflight,
@@ -115,9 +116,11 @@ class Supervisor:
     """Lifecycle manager of one pipeline."""
 
     def __init__(self, cfg: Config, run_dir: Path, duration: float | None = None,
-                 out: IO[str] | None = None) -> None:
+                 out: IO[str] | None = None, latest: bool = False) -> None:
         self.cfg = cfg
         self.run_dir = run_dir
+        self.latest = latest  # point runs/latest at run_dir once the run starts
+        self.started = False  # capture spawned: the run exists, whatever happens next
         self.duration = duration
         self.out = out or sys.stdout
         self.mp = mp.get_context("spawn")
@@ -227,6 +230,9 @@ class Supervisor:
             self.boot()
             self._wait_started()  # every consumer is ready before the first pair exists
             self._spawn(self._child("capture"), time.monotonic())
+            self.started = True
+            if self.latest:
+                link_latest(self.run_dir)
             self._wait_started()
             self.notifier.ready(f"running in {self.run_dir}")
             self._supervise()
@@ -579,14 +585,19 @@ def run(cfg: Config, run_dir: Path | None = None, duration: float | None = None,
     Returns the exit status, the last stats the broker published (the run's totals) and,
     when the status is 1, the line that says why.
     """
+    latest = run_dir is None
     if run_dir is None:
         run_dir = default_run_dir()
-        run_dir.mkdir(parents=True, exist_ok=True)
-        link_latest(run_dir)
+    created = not run_dir.exists()
+    run_dir.mkdir(parents=True, exist_ok=True)
     if announce:
         announce(f"run directory: {run_dir}")
-    sup = Supervisor(cfg, run_dir, duration, out)
-    code = sup.run()
+    sup = Supervisor(cfg, run_dir, duration, out, latest=latest)
+    try:
+        code = sup.run()
+    finally:
+        if created and not sup.started:  # it failed before capture: no run to leave behind
+            discard_run_dir(run_dir)
     return RunResult(code, sup.stats, sup.failure,
                      run_ledger.capture_failures(sup.capture_counts()))
 

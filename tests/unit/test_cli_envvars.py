@@ -12,7 +12,7 @@ from click.testing import CliRunner
 
 from trapflow.cli import main as cli
 from trapflow.config.schema import Config
-from trapflow.supervisor import shell as supervisor
+from trapflow.supervisor import run as supervisor
 
 
 @pytest.fixture

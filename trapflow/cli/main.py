@@ -75,7 +75,7 @@ def start(config_path: str | None, workers: dict[str, int] | None, duration: flo
           source_spec: tuple[str, str] | None, loop: bool | None,
           view: tuple[str, int] | None, metrics_file: str | None) -> None:
     """Run the pipeline: capture, broker, worker pools and normalizer."""
-    from trapflow.supervisor.shell import run as run_pipeline
+    from trapflow.supervisor.run import run as run_pipeline
 
     try:
         cfg = configmod.load(config_path)

@@ -248,7 +248,7 @@ def replay(path: Path, rate: float, loop: bool, assert_lossless: bool,
     from trapflow.recording.recorder import PART_SUFFIX, recover
     from trapflow.sources.replay import ReplaySource
     from trapflow.sources.rig import from_config
-    from trapflow.supervisor.shell import run
+    from trapflow.supervisor.run import run
 
     if assert_lossless and loop:
         raise click.UsageError("--assert-lossless needs a finite replay; drop --loop")

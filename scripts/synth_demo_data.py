@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from trapflow.calibration.camera import StereoRig
+from trapflow.observe.assign import iou_matrix as iou
 from trapflow.synth.dataset import labelled
 from trapflow.synth.options import SynthOptions
 from trapflow.synth.render import World
@@ -66,18 +67,6 @@ def det_targets(truth, s: float, dx: int, dy: int) -> list[tuple[int, float, flo
             out.append((DET_CLASSES.index(o.label), x1 * s + dx, y1 * s + dy, x2 * s + dx,
                         y2 * s + dy))
     return out
-
-
-def iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU of boxes a (N,4) with b (M,4), x1y1x2y2."""
-    x1 = np.maximum(a[:, None, 0], b[None, :, 0])
-    y1 = np.maximum(a[:, None, 1], b[None, :, 1])
-    x2 = np.minimum(a[:, None, 2], b[None, :, 2])
-    y2 = np.minimum(a[:, None, 3], b[None, :, 3])
-    inter = np.clip(x2 - x1, 0, None) * np.clip(y2 - y1, 0, None)
-    area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
-    area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
-    return inter / (area_a[:, None] + area_b[None, :] - inter + 1e-9)
 
 
 def decode(out: np.ndarray, conf: float = 0.05, iou_thr: float = 0.5

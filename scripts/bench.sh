@@ -30,6 +30,13 @@ Parts, in order, with their run time on a 2-core machine (full / --quick):
   process     Dask LocalCluster vs one plain loop                 ~2 min  / skipped
   viewer      live viewer against the default pipeline            ~1 min  / skipped
   modem       modem link                                          ~1 min  / skipped
+  tracking    trapflow's tracker vs greedy IoU and ByteTrack (trackers, if
+              installed) on held-out synthetic sequences, HOTA (TrackEval),
+              IDF1 and MOTA (py-motmetrics), full rate and 1 pair in 3 ~4 min / skipped
+  measure     stereo range and length against the synthetic truth per range
+              bin, honesty of the stated sd, cost per box          ~2 min  / skipped
+  gate        motion gate: cost per pair per method, pairs fed, animals
+              missed, empty water withheld                         ~3 min  / skipped
 
 Numbers go to OUT_DIR: one JSON (and Markdown) per part, and OUT_DIR/bench.md with all
 of them; the CPU table is what docs/benchmarks.md quotes. Nothing is asserted.
@@ -80,6 +87,12 @@ echo "[bench] live viewer (30 s against the default pipeline)" >&2
 "$PY" scripts/bench_viewer.py --out "$OUT" > /dev/null
 echo "[bench] modem link" >&2
 "$PY" scripts/bench_modem.py --out "$OUT/modem.json" > "$OUT/modem.txt"
+echo "[bench] tracking (held-out synthetic sequences)" >&2
+"$PY" scripts/bench_tracking.py --out "$OUT/tracking.json" > "$OUT/tracking.txt"
+echo "[bench] stereo measurement (held-out synthetic sequences)" >&2
+"$PY" scripts/bench_measure.py --out "$OUT/measure.json" > "$OUT/measure.txt"
+echo "[bench] motion gate" >&2
+"$PY" scripts/bench_gate.py --out "$OUT" > "$OUT/gate.txt"
 echo "[bench] worker recycling (health check per pair, replacement time)" >&2
 "$PY" scripts/bench_recycle.py --out "$OUT/recycle.json" > "$OUT/recycle.txt"
 {
@@ -95,6 +108,14 @@ echo "[bench] worker recycling (health check per pair, replacement time)" >&2
   cat "$OUT/modem.txt"
   echo '```'
   echo
+  for part in tracking measure gate; do
+    echo "## ${part^}"
+    echo
+    echo '```'
+    cat "$OUT/$part.txt"
+    echo '```'
+    echo
+  done
   echo "## Worker recycling"
   echo
   echo '```'

@@ -46,6 +46,15 @@ def test_default_yaml_documents_the_defaults() -> None:
         ({"pools": {"mono": {"colour": "red"}}}, r"unknown field `colour` - at `\$.pools.mono`"),
         ({"pools": {"vo": {"count": 2, "policy": "ordered"}}}, "ordered policy takes count 0 or 1"),
         ({"pools": {"bad-name": {}}}, "must be an identifier"),
+        # A gated ordered pool would see every withheld pair as a gap: refused, with why.
+        ({"pools": {"vo": {"gate": "motion"}}},
+         r"an ordered pool \(visual odometry\) needs every pair.*\$.pools.vo"),
+        ({"pools": {"mono": {"gate": "sometimes"}}}, r"\$.pools.mono.gate"),
+        # The pre-roll is queued at once with the pair that moved: the fifo must hold it.
+        ({"pools": {"mono": {"gate": "motion", "policy": "fifo:5"}}},
+         r"expected fifo:N with N > gate.pre_roll = 5 for gate: motion, got fifo:5"),
+        ({"gate": {"pre_roll": 101}}, r"\$.gate.pre_roll"),
+        ({"gate": {"keepalive_s": 0}}, r"\$.gate.keepalive_s"),
         ({"normalizer": {"flush_interval_s": 5}}, r"\$.normalizer.flush_interval_s"),
         ({"network": {"host": "0.0.0.0"}}, "expected a loopback host"),
         ({"network": {"transport": "udp"}}, r"\$.network.transport"),

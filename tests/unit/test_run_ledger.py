@@ -217,3 +217,31 @@ def test_a_retired_broker_s_held_pairs_are_lost_in_the_live_ledger() -> None:
     assert (live["processed"], live["lost"], live["in_progress"]) == (33, 5, 2)
     text = totals_text(led.ledger({"vo": "ordered"}, {}, final=False))
     assert "lost 5, in progress 2," in text
+
+
+@pytest.mark.parametrize(("final", "kept", "gated", "lost", "in_progress"), [
+    (False, 2, 30, 0, 7),  # live: the kept pre-roll is in progress with pending and in flight
+    (True, 0, 32, 5, None),  # ended after a failure: the broker's finish gated what it kept
+])
+def test_gated_pairs_are_their_own_state(final: bool, kept: int, gated: int, lost: int,
+                                         in_progress: int | None) -> None:
+    """Pairs the motion gate withheld are counted gated, never dropped or lost: received =
+    processed + gated + pending + in flight + kept while the run goes on."""
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=100))
+    led.on_stats(_stats(100, received=100, processed=63, gated=gated, kept=kept, pending=3,
+                        in_flight=2))
+    pool = led.ledger({"vo": "fifo:8"}, {}, final=final)["pools"]["vo"]
+    assert (pool["gated"], pool["dropped_by_policy"], pool["lost"]) == (gated, 0, lost)
+    assert pool.get("in_progress") == in_progress
+    assert "gated" in totals_text(led.ledger({"vo": "fifo:8"}, {}))
+
+
+def test_a_dead_brokers_kept_pre_roll_counts_gated_not_lost() -> None:
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=50))
+    led.on_stats(_stats(50, received=50, processed=20, gated=25, kept=3, in_flight=2))
+    led.retire_broker()
+    led.on_stats(_stats(0))
+    pool = led.ledger({"vo": "fifo:8"}, {})["pools"]["vo"]
+    assert (pool["processed"], pool["gated"], pool["lost"]) == (20, 28, 2)

@@ -35,6 +35,7 @@ from trapflow.broker.state import (
 from trapflow.broker.tap import BrokerTap
 from trapflow.broker.trust import SUPERVISOR_IDENT, LocalMsg
 from trapflow.errors import ProtocolError, unreachable
+from trapflow.gate.policy import gated_pools
 from trapflow.runtime.node import ACTIVE, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog, wire
 from trapflow.wire import frame_msgs, messages, tap_msgs
@@ -80,7 +81,8 @@ class BrokerNode(Node):
             for name, p in self.cfg.pools.items()
             if p.count > 0 or p.remote
         }
-        self.state = BrokerState(pools, idle_liveness_s=self.cfg.supervisor.liveness_s)
+        self.state = BrokerState(pools, idle_liveness_s=self.cfg.supervisor.liveness_s,
+                                 gates=gated_pools(self.cfg))
         self.frames: dict[int, list[Any]] = {}
         # Shared-memory ring: the broker owns slot lifetime (frees a slot on Release).
         ring_name = spec.ring
@@ -217,7 +219,8 @@ class BrokerNode(Node):
             self.tap.publish(tap_msgs.TOPIC_META, frames[0])
         if self.tap.wanted.get(tap_msgs.TOPIC_IMAGE):
             self.tap.publish(tap_msgs.TOPIC_IMAGE, *self._payload(pair.seq, copy=True))
-        self._apply(self.state.pair_arrived(pair.seq, time.monotonic()))
+        self._apply(self.state.pair_arrived(pair.seq, time.monotonic(), pair.motion,
+                                            pair.motion_score))
 
     # --- local links ----------------------------------------------------------------
 

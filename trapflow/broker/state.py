@@ -5,7 +5,11 @@ Every pair that reaches a pool ends in exactly one counter (the loss ledger): pr
 failed (by kind), dropped (by the pool's policy), stale (it waited longer than the pool's
 max_pending_age_s), inactive (the pool was deactivated, `trapflow pool NAME --deactivate`),
 throttled (the degradation ladder gives the pool at most one pair per minimum interval),
-timed out (its worker held it too long) or lost (its worker died, or the run ended first).
+timed out (its worker held it too long), lost (its worker died, or the run ended first) or,
+in a pool with `gate: motion`, gated: the motion gate (trapflow.gate.policy) withheld it.
+Ungated pools take every pair as they always did; a gated pool takes what the gate feeds it
+(older pre-roll pairs first, in order) and holds a pair the gate keeps as pre-roll until it
+is fed or gated.
 
 A worker that leaves on purpose to be recycled (worker_gone with requeue) answered its last
 pair first; what was dispatched to it after that answer it never started, so those pairs go
@@ -19,6 +23,8 @@ from dataclasses import dataclass, field
 
 from trapflow.broker.policy import Pending
 from trapflow.config.schema import Policy, parse_policy
+from trapflow.errors import unreachable
+from trapflow.gate import policy as gate
 from trapflow.wire.messages import PoolStats
 
 # A worker that has said nothing for this long while idle is presumed dead.
@@ -113,6 +119,7 @@ class _Pool:
     inactive: int = 0
     throttled: int = 0
     stale: int = 0
+    gated: int = 0  # withheld by the motion gate
     active: bool = True
     min_interval_s: float = 0.0  # at most one dispatch per interval (0: no limit)
     next_at: float = 0.0  # earliest next dispatch under min_interval_s
@@ -122,10 +129,14 @@ class _Pool:
 
 
 class BrokerState:
-    """Pending buffers, worker credits and pair reference counts for every pool."""
+    """Pending buffers, worker credits and pair reference counts for every pool, and the
+    motion gate of the gated ones (`gates`: pool -> its rules; pools not named take all)."""
 
-    def __init__(self, pools: Mapping[str, PoolSpec], idle_liveness_s: float = IDLE_LIVENESS_S):
+    def __init__(self, pools: Mapping[str, PoolSpec], idle_liveness_s: float = IDLE_LIVENESS_S,
+                 gates: Mapping[str, gate.GateConfig] | None = None):
         self._pools = {n: _Pool(n, s, Pending(s.policy)) for n, s in pools.items()}
+        gated = {n: g for n, g in (gates or {}).items() if n in self._pools}
+        self._gate = gate.GateState(gated) if gated else None
         self._holders: dict[int, int] = {}  # seq -> number of pools holding it
         self._arrived: dict[int, float] = {}  # seq -> when it reached the broker
         self._idle_liveness = idle_liveness_s
@@ -137,8 +148,11 @@ class BrokerState:
 
     # --- events -------------------------------------------------------------------
 
-    def pair_arrived(self, seq: int, now: float) -> list[Action]:
-        """A new pair from capture: queue it in every pool, dispatch what can go."""
+    def pair_arrived(self, seq: int, now: float, motion: bool | None = None,
+                     score: float = 0.0) -> list[Action]:
+        """A new pair from capture: queue it in every ungated pool, let the gate say what
+        the gated ones get (motion: what capture's gate saw; None, no result, is taken as
+        motion: a gate that cannot see never withholds), dispatch what can go."""
         self.pairs_in += 1
         actions: list[Action] = []
         if not self._pools:
@@ -147,18 +161,11 @@ class BrokerState:
         self._arrived[seq] = now
         for pool in self._pools.values():
             pool.received += 1
-            if not pool.active:
-                pool.inactive += 1
-                actions.extend(self._unhold(seq))
-                continue
-            if pool.min_interval_s and now < pool.next_at:
-                pool.throttled += 1  # the level's doing, not the policy's
-                actions.extend(self._unhold(seq))
-                continue
-            for old in pool.pending.push(seq, now):
-                pool.dropped += 1
-                actions.extend(self._unhold(old))
-            actions.extend(self._dispatch(pool, now))
+            if self._gate is None or not self._gate.gates(pool.name):
+                actions.extend(self._enqueue(pool, seq, now, now))
+        if self._gate is not None:
+            seen = self._gate.pair(seq, True if motion is None else motion, score, now)
+            actions.extend(self._apply_gate(seen, now))
         return actions
 
     def worker_ready(self, ident: bytes, pool_name: str, credit: int, now: float) -> list[Action]:
@@ -232,8 +239,8 @@ class BrokerState:
 
     def tick(self, now: float) -> list[Action]:
         """Evict workers whose job timed out or who went silent while idle; drop pending
-        pairs older than their pool's max_pending_age_s (counted as stale)."""
-        actions: list[Action] = []
+        pairs older than their pool's max_pending_age_s (counted as stale); tick the gate."""
+        actions = self._apply_gate(self._gate.tick(now), now) if self._gate else []
         for pool in self._pools.values():
             max_age = pool.spec.max_pending_age_s
             if max_age > 0:
@@ -315,8 +322,9 @@ class BrokerState:
         return actions + self._dispatch(pool, now)
 
     def finish(self) -> list[Action]:
-        """The run ends: what is pending or in flight is lost; every pair is accounted for."""
-        actions: list[Action] = []
+        """The run ends: what the gate kept as pre-roll is gated, what is pending or in
+        flight is lost; every pair is accounted for."""
+        actions = self._apply_gate(self._gate.finish(), 0.0) if self._gate else []
         for pool in self._pools.values():
             for seq, _ in pool.pending.clear():
                 pool.lost += 1
@@ -337,6 +345,7 @@ class BrokerState:
 
     def pool_stats(self) -> dict[str, PoolStats]:
         """Counters of every pool."""
+        kept = {n: c.kept for n, c in self._gate.counts().items()} if self._gate else {}
         return {
             p.name: PoolStats(
                 workers=len(p.workers),
@@ -352,6 +361,8 @@ class BrokerState:
                 inactive=p.inactive,
                 throttled=p.throttled,
                 stale=p.stale,
+                gated=p.gated,
+                kept=kept.get(p.name, 0),
                 failures=dict(p.failures),
                 active=p.active,
                 min_interval_s=p.min_interval_s,
@@ -400,6 +411,38 @@ class BrokerState:
         self._holders.pop(seq, None)
         self._arrived.pop(seq, None)
         return [Release(seq)]
+
+    def _enqueue(self, pool: _Pool, seq: int, born: float, now: float) -> list[Action]:
+        """Queue a pair (arrived at `born`) in one pool under its state and policy."""
+        if not pool.active:
+            pool.inactive += 1
+            return self._unhold(seq)
+        if pool.min_interval_s and now < pool.next_at:
+            pool.throttled += 1  # the level's doing, not the policy's
+            return self._unhold(seq)
+        actions: list[Action] = []
+        for old in pool.pending.push(seq, born):
+            pool.dropped += 1
+            actions.extend(self._unhold(old))
+        return actions + self._dispatch(pool, now)
+
+    def _apply_gate(self, decided: list[gate.Action], now: float) -> list[Action]:
+        """The gate's actions: Feed queues the pair, Keep holds it on, Gated lets it go."""
+        actions: list[Action] = []
+        for a in decided:
+            if isinstance(a, gate.Feed):
+                pool = self._pools[a.pool]
+                actions.extend(self._enqueue(pool, a.seq, self._arrived.get(a.seq, now), now))
+            elif isinstance(a, gate.Keep):
+                pass  # the pool's hold on the pair stays: its slot stays in the ring
+            elif isinstance(a, gate.Gated):
+                self._pools[a.pool].gated += 1
+                actions.extend(self._unhold(a.seq))
+            elif isinstance(a, (gate.Rate, gate.Relearn, gate.Notice)):
+                pass  # duty cycling and the rig's motion are not told to this gate
+            else:
+                unreachable(a)
+        return actions
 
     def _pick(self, pool: _Pool) -> _Worker | None:
         ready = [w for w in pool.workers.values() if w.credit > 0]

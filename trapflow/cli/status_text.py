@@ -13,7 +13,7 @@ from trapflow.supervisor import ledger as run_ledger
 # broker restarts), workers are processes, rate is results per second lately.
 POOL_UNITS = {"workers": "procs", "received": "pairs", "processed": "pairs",
               "dropped": "pairs", "inactive": "pairs", "throttled": "pairs", "stale": "pairs",
-              "in_flight": "pairs",
+              "gated": "pairs", "in_flight": "pairs",
               "pending": "pairs",
               "errors": "pairs",
               "timed_out": "pairs", "lost": "pairs", "rate": "pairs/s"}

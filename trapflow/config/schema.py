@@ -149,12 +149,20 @@ class PoolConfig(_Section):
     """Pairs waiting in the pool's queue longer than this are dropped as stale (0: kept)."""
     params: dict[str, Any] = {}
     remote: bool = False  # workers on another host: the broker sends them the bytes
+    gate: Literal["always", "motion"] = "always"
+    """always: every pair; motion: only pairs the motion gate lets through (the `gate:`
+    section: motion, pre-roll, keep-alive, hold); the rest are counted `gated`."""
     debug: bool = False
     save: bool = False
     time: bool = False
 
     def __post_init__(self) -> None:
-        parse_policy(self.policy)  # raises ValueError, reported with the key path
+        policy = parse_policy(self.policy)  # raises ValueError, reported with the key path
+        if self.gate == "motion" and policy.kind == "ordered":
+            raise ValueError(
+                f"expected gate: always with policy {self.policy}, got gate: motion: an "
+                "ordered pool (visual odometry) needs every pair in sequence, and each "
+                "pair the gate withholds would reach it as a gap that resets it")
 
     @property
     def parsed_policy(self) -> Policy:
@@ -210,6 +218,21 @@ class EnergyConfig(_Section):
     """Battery capacity; with it, the estimate says how many days it lasts (0: not said)."""
     usable: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.8
     """Share of the battery that may be drawn."""
+
+
+class MotionGateConfig(_Section):
+    """The motion gate's rules for every pool with `gate: motion` (README "Motion gate")."""
+
+    pre_roll: Annotated[int, msgspec.Meta(ge=0, le=100)] = 5
+    """Withheld pairs kept in the frame ring and fed in order when motion begins; a
+    `latest` pool takes none (it would keep only the newest of them), a fifo:N pool needs
+    N > pre_roll."""
+    keepalive_s: Annotated[float, msgspec.Meta(gt=0, le=86400)] = 5.0
+    """One pair at least this often without motion: a still animal in view is still seen."""
+    hold_s: Annotated[float, msgspec.Meta(ge=0, le=3600)] = 3.0
+    """Pairs keep going for this long after the last motion (an animal pausing mid-walk)."""
+    min_score: Annotated[float, msgspec.Meta(ge=0, lt=1)] = 0.0
+    """Motion counts only with at least this score (share of the small image moving)."""
 
 
 class SupervisorConfig(_Section):
@@ -350,6 +373,7 @@ class Config(_Section):
     normalizer: NormalizerConfig = msgspec.field(default_factory=NormalizerConfig)
     observe: ObserveConfig = msgspec.field(default_factory=ObserveConfig)
     energy: EnergyConfig = msgspec.field(default_factory=EnergyConfig)
+    gate: MotionGateConfig = msgspec.field(default_factory=MotionGateConfig)
     supervisor: SupervisorConfig = msgspec.field(default_factory=SupervisorConfig)
     network: NetworkConfig = msgspec.field(default_factory=NetworkConfig)
     frames: FramesConfig = msgspec.field(default_factory=FramesConfig)
@@ -370,6 +394,13 @@ class Config(_Section):
                 raise ValueError(
                     f"pool {name!r}: the ordered policy takes count 0 or 1, got {pool.count}"
                 )
+            policy = pool.parsed_policy
+            pre_roll = self.gate.pre_roll
+            if pool.gate == "motion" and policy.kind == "fifo" and policy.bound <= pre_roll:
+                raise ValueError(
+                    f"pool {name!r}: expected fifo:N with N > gate.pre_roll = "
+                    f"{pre_roll} for gate: motion, got {pool.policy}: the pre-roll "
+                    "pairs are queued at once when motion begins, with the pair that moved")
 
     def validated(self) -> Config:
         """Re-run validation after programmatic changes."""

@@ -16,6 +16,8 @@ from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
+from trapflow.config.schema import Config
+
 # A track not said alive again for this long is taken as ended (its end was lost).
 TRACK_TTL_S = 10.0
 
@@ -54,6 +56,16 @@ class GateConfig:
             raise ValueError(f"gate hold_s: expected >= 0 s, got {self.hold_s}")
         if not 0 <= self.min_score < 1:
             raise ValueError(f"gate min_score: expected 0 <= score < 1, got {self.min_score}")
+
+
+def gated_pools(cfg: Config) -> dict[str, GateConfig]:
+    """Every pool with `gate: motion` and its rules, from the config's `gate` section. A
+    `latest` pool takes no pre-roll: of pairs queued at once it keeps only the newest, so
+    the pre-roll would only be counted dropped (and hold ring slots meanwhile)."""
+    g = cfg.gate
+    return {name: GateConfig(pre_roll=0 if p.parsed_policy.kind == "latest" else g.pre_roll,
+                             keepalive_s=g.keepalive_s, hold_s=g.hold_s, min_score=g.min_score)
+            for name, p in cfg.pools.items() if p.gate == "motion"}
 
 
 @dataclass(frozen=True)
@@ -221,6 +233,10 @@ class GateState:
         return {p.name: GateCounts(fed={r.value: n for r, n in p.fed.items()}, gated=p.gated,
                                    kept=len(p.kept))
                 for p in self._pools.values()}
+
+    def gates(self, pool_name: str) -> bool:
+        """Whether this gate decides what the pool gets."""
+        return pool_name in self._pools
 
     def open(self, pool_name: str, now: float) -> bool:
         """Whether the pool would get a still pair now (hold, track or gate off)."""

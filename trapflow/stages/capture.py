@@ -17,6 +17,7 @@ import msgspec
 import numpy as np
 import zmq
 
+from trapflow.gate.motion import MotionConfig, MotionDetector
 from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.sources.base import Frames, SkipPair, Source, SourceError
@@ -55,6 +56,11 @@ class CaptureNode(Node):
         # With the ring, descriptors go over a local link.
         self.link = LinkClient(self.endpoints.capture_link)
         self.ratelog = RateLimitedLog(log)
+        # With a gated pool, the motion gate looks at every left image here, once for all
+        # pools (a fraction of a millisecond on a small grey copy); its result rides on the
+        # pair's header to the broker, which decides what each gated pool gets.
+        gated = any(p.gate == "motion" for p in self.cfg.pools.values())
+        self.motion = MotionDetector(MotionConfig()) if gated else None
 
     def capture_counters(self) -> messages.CaptureCounters:
         """What the supervisor sums over capture's restarts."""
@@ -190,6 +196,7 @@ class CaptureNode(Node):
                 return
         seq = self.seq
         self.seq += 1
+        seen = self.motion.update(f.left) if self.motion is not None else None
         header = messages.StereoPair(
             seq=seq,
             # A recording's own capture time; a camera's is now (a label only).
@@ -202,6 +209,8 @@ class CaptureNode(Node):
             width=w,
             height=h,
             source=self.src_cfg.kind,
+            motion=seen.motion if seen is not None else None,
+            motion_score=seen.score if seen is not None else 0.0,
         )
         payload: list[Any] = [messages.encode(header)]
         payload += [left, right] if slot is None else [messages.encode(ref)]

@@ -4,7 +4,8 @@ one model the status line, `trapflow status` and ledger.json render.
 Each broker and each capture process counts only what it saw. When a broker dies, its
 last published counters are kept; what it still held (pending or in flight) can never
 finish, so it counts as lost. When a capture dies, its last reported counters are kept and
-its successor numbers pairs past them. verdict() reads the totals at the end: whether the
+its successor numbers pairs past them. A pair a pool's motion gate withheld is `gated`, a
+state of its own (never dropped, never lost). verdict() reads the totals at the end: whether the
 run failed (exit status 1) and the line that says why.
 """
 
@@ -99,13 +100,15 @@ def routes_of(counters: dict[str, int]) -> dict[str, str]:
             out[kind] = pool
     return out
 _SUMMED = ("received", "dispatched", "dropped", "processed", "errors", "timed_out", "lost",
-           "inactive", "throttled", "stale")
+           "inactive", "throttled", "stale", "gated")
 
 
 def retire(last: Stats) -> Stats:
-    """The final counters of a broker that died: what it held is lost."""
+    """The final counters of a broker that died: what it held is lost, but for what its
+    gate kept as pre-roll: withheld, and never given now, that is gated."""
     pools = {name: msgspec.structs.replace(
-        p, lost=p.lost + p.pending + p.in_flight, pending=0, in_flight=0, workers=0, rate=0.0)
+        p, lost=p.lost + p.pending + p.in_flight, pending=0, in_flight=0, workers=0, rate=0.0,
+        gated=p.gated + p.kept, kept=0)
         for name, p in last.pools.items()}
     return msgspec.structs.replace(last, pools=pools, rate_in=0.0)
 
@@ -230,7 +233,8 @@ class RunLedger:
             return self.capture().produced
         delivered = self.delivered.by_pool(self.routes)
         accounted = [delivered.get(n, p.processed) + p.dropped + p.timed_out + p.errors
-                     + p.inactive + p.throttled + p.stale for n, p in s.pools.items()]
+                     + p.inactive + p.throttled + p.stale + p.gated
+                     for n, p in s.pools.items()]
         return max(self.capture().produced, s.pairs_in, *accounted)
 
     def drained(self) -> bool:
@@ -271,9 +275,10 @@ class RunLedger:
             # routed); lost: whatever else is not in a state, as the brokers counted them.
             processed = delivered.get(name, p.processed)
             ended = (processed + p.dropped + p.timed_out + p.errors + p.inactive + p.throttled
-                     + p.stale)
+                     + p.stale + p.gated)
             rest = max(0, produced - ended)
             if not final:  # only what a broker counted lost is lost while the run goes on
+                # (pending, in flight, kept as the gate's pre-roll, on a link: in progress)
                 in_progress = rest - min(rest, p.lost)
             elif planned_stop:  # what no broker had counted lost when the stop began
                 lost = p.lost if self.lost_at_stop is None else self.lost_at_stop.get(name, 0)
@@ -284,7 +289,7 @@ class RunLedger:
                 "processed": processed, "dropped_by_policy": p.dropped,
                 "policy": policies.get(name, ""), "dropped_inactive": p.inactive,
                 "dropped_by_level": p.throttled,
-                "dropped_stale": p.stale, "timed_out": p.timed_out,
+                "dropped_stale": p.stale, "gated": p.gated, "timed_out": p.timed_out,
                 "failed": p.errors, "failures": p.failures,
                 "lost": rest - in_progress,
                 "restarts": restarts.get(name, 0),
@@ -355,6 +360,8 @@ def totals_text(ledger: dict[str, Any]) -> str:
             inactive += f", by level {p['dropped_by_level']}"
         if p.get("dropped_stale"):
             inactive += f", stale {p['dropped_stale']}"
+        if p.get("gated"):
+            inactive += f", gated {p['gated']}"
         recycled = sum(p.get("recycled", {}).values())
         lines.append(
             f"  {name}: processed {p['processed']}, dropped {p['dropped_by_policy']} "

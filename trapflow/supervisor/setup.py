@@ -20,6 +20,7 @@ from trapflow import registry
 from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import Config
 from trapflow.errors import StartupError, TrapflowError
+from trapflow.gate.policy import gated_pools
 from trapflow.runtime.logchannel import LogListener, PrivateRotatingFile
 from trapflow.runtime.ratelog import ConsoleOnce
 from trapflow.sources import rig
@@ -122,7 +123,10 @@ def create_ring(c: Config, stereo: StereoRig | None) -> FrameRing | None:
         return None
     # A remote pool's pending pairs hold slots too (its remote workers get copies).
     pools = [p for p in c.pools.values() if p.count > 0 or p.remote]
-    slots = ring_slots(pools, c.frames.preroll_slots, c.frames.spare_slots)
+    # A gated pool holds its pre-roll too: pairs the gate keeps until motion or gated.
+    kept = sum(g.pre_roll for n, g in gated_pools(c).items()
+               if c.pools[n].count > 0 or c.pools[n].remote)
+    slots = ring_slots(pools, c.frames.preroll_slots + kept, c.frames.spare_slots)
     # Sized from the rig: capture sends only pairs of the rig's size, so every one fits.
     w, h = stereo.size if stereo is not None else (c.source.width, c.source.height)
     ring = FrameRing.create(slots, slot_capacity(w, h))

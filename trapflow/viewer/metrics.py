@@ -35,8 +35,10 @@ POOL_COUNTERS = {
     "inactive": "inactive",  # dropped while the pool was deactivated (trapflow pool)
     "throttled": "throttled",  # dropped by the ladder's level (its minimum interval)
     "stale": "stale",  # dropped after waiting longer than the pool's max_pending_age_s
+    "gated": "gated",  # withheld by the pool's motion gate (gate: motion), by design
 }
-POOL_GAUGES = {"workers": "workers", "pending": "pending_pairs", "in_flight": "in_flight_pairs"}
+POOL_GAUGES = {"workers": "workers", "pending": "pending_pairs", "in_flight": "in_flight_pairs",
+               "kept": "kept_pairs"}
 
 
 def _temperature_c() -> float | None:

@@ -43,6 +43,8 @@ class StereoPair(Msg, frozen=True, tag="pair"):
     width: int
     height: int
     source: str = "synthetic"
+    motion: bool | None = None  # what the motion gate saw in the left image (None: no gate)
+    motion_score: float = 0.0  # share of the gate's small image that moved
 
 
 class Job(Msg, frozen=True, tag="job"):
@@ -401,6 +403,8 @@ class PoolStats(Msg, frozen=True):
     inactive: int = 0  # dropped because the pool was deactivated (trapflow pool --deactivate)
     throttled: int = 0  # dropped by the ladder's level: inside the pool's minimum interval
     stale: int = 0  # dropped after waiting longer than the pool's max_pending_age_s
+    gated: int = 0  # withheld by the motion gate (gate: motion): never given, by design
+    kept: int = 0  # withheld for now as the gate's pre-roll: fed on motion, else gated
     failures: dict[str, int] = {}
     rate: float = 0.0  # processed per second over the last interval
     active: bool = True

@@ -183,9 +183,57 @@ def test_counter_rules(name: str, payload: bytes, decision: type, count: str,
 def test_refusal_replies_are_rate_limited() -> None:
     """A replayed old frame must not spend the box's budget: one stale reply per interval."""
     guard = C.CommandGuard(KEY, SESSION, C.CounterState(session=SESSION.hex(), counter=9))
-    kinds = [type(guard.receive(cmd_payload(3), t)) for t in (0.0, 1.0, 2.0, 6.0)]
-    assert kinds == [C.Reply, C.Refuse, C.Refuse, C.Reply]
-    assert guard.counts["refused_old"] == 4
+    got = [guard.receive(cmd_payload(3), t) for t in (0.0, 1.0, 2.0, 6.0)]
+    assert [type(d) for d in got] == [C.Reply, C.Refuse, C.Refuse, C.Reply]
+    assert all(d.repeat for d in got if isinstance(d, C.Reply))
+    assert guard.counts["refused_old"] == 4 and guard.counts["replies_held"] == 2
+
+
+@pytest.mark.parametrize("name, reply_saved, times, want", [
+    # a replay 3 times a second: one answer per interval, the rest held and counted
+    ("cached, replayed 3/s", True, [0.0, 0.33, 0.66, 1.0, 4.9, 5.0, 5.3, 10.1],
+     [True, False, False, False, False, True, False, True]),
+    # the surface's own retransmissions (8 s apart at the soonest) are each answered
+    ("cached, surface retries", True, [0.0, 8.0, 20.0, 38.0], [True, True, True, True]),
+    # "reply lost" (taken before a restart) is limited the same way
+    ("lost, replayed 3/s", False, [0.0, 0.33, 0.66, 5.0], [True, False, False, True]),
+])
+def test_repeated_answers_are_rate_limited_per_command(
+        name: str, reply_saved: bool, times: list[float], want: list[bool]) -> None:
+    """Regression for issue 26 item 1: every replay of the last accepted command got its
+    cached reply, so a recorded frame replayed 3 times a second drained the hourly budget.
+    Now at most one answer per REPEAT_REPLY_INTERVAL_S per command, marked a repeat (the
+    sender gives repeats only a share of the budget), and the held ones are counted."""
+    state = C.CounterState(session=SESSION.hex(), counter=5, tag=split_signed(
+        COMMAND, cmd_payload(5)).tag.hex())
+    guard = C.CommandGuard(KEY, SESSION, state)
+    if reply_saved:
+        guard.finished(5, REPLY_OK, {"changed": "stereo", "change": "count 1 -> 2"})
+    got = [guard.receive(cmd_payload(5), t) for t in times]
+    assert [isinstance(d, C.Reply) for d in got] == want, name
+    assert all(d.repeat for d in got if isinstance(d, C.Reply)), name
+    assert guard.counts["duplicates"] == len(times)
+    assert guard.counts.get("replies_held", 0) == want.count(False)
+    status = REPLY_OK if reply_saved else REPLY_LOST
+    assert {reply_of(d.payload)[1] for d in got if isinstance(d, C.Reply)} == {status}
+
+
+def test_a_new_command_is_answered_at_once_after_replays_of_the_last() -> None:
+    """The replays' interval is per command: the next command's answer is fresh (not a
+    repeat), and its own retransmission gets the cached reply at once."""
+    guard = C.CommandGuard(KEY, SESSION, C.CounterState(session=SESSION.hex()))
+    assert isinstance(guard.receive(cmd_payload(1), 0.0), C.Execute)
+    guard.finished(1, REPLY_OK, {})
+    assert isinstance(guard.receive(cmd_payload(1), 0.1), C.Reply)
+    assert isinstance(guard.receive(cmd_payload(1), 0.2), C.Refuse)
+    assert isinstance(guard.receive(cmd_payload(2), 0.3), C.Execute)
+    payload, _ = guard.finished(2, REPLY_OK, {})
+    again = guard.receive(cmd_payload(2), 0.4)
+    assert isinstance(again, C.Reply) and again.payload == payload and again.repeat
+    busy_guard = C.CommandGuard(KEY, SESSION, C.CounterState(session=SESSION.hex()))
+    busy_guard.receive(cmd_payload(1), 0.0)
+    busy = busy_guard.receive(cmd_payload(2), 0.1)
+    assert isinstance(busy, C.Reply) and not busy.repeat  # only a new counter asks for it
 
 
 def test_busy_while_a_command_runs_and_retransmission_while_it_runs_is_dropped() -> None:

@@ -11,16 +11,20 @@ from typing import Any
 import pytest
 
 from trapflow.config.modem import BITS_PER_BYTE, ModemConfig
-from trapflow.modem.frame import DATA, OVERHEAD, REPLY, Deframer, parse_data
+from trapflow.modem.frame import DATA, OVERHEAD, REPLY, Deframer, frame, parse_data
 from trapflow.modem.outbox import Stored
 from trapflow.modem.schedule import (
     BIT_RATE,
     BUDGET_SPENT,
     HOUR_NS,
     IDLE_WAIT_S,
+    REPEAT_SHARE,
+    REPEAT_SHARE_SPENT,
     WINDOW_FULL,
     ClassQueue,
     Decision,
+    DropReply,
+    OutReply,
     Queued,
     Schedule,
     SendData,
@@ -64,6 +68,8 @@ def what(d: Decision) -> tuple[Any, ...]:
         return ("wait", d.blocked)
     if isinstance(d, SendReply):
         return ("reply",)
+    if isinstance(d, DropReply):
+        return ("drop", d.why)
     return ("data", [m.stored.seq for _, m in d.batch])
 
 
@@ -105,7 +111,7 @@ def test_what_goes_out_next(spec: Spec, replies: int, in_flight: int, busy: bool
     s = schedule(sent, bytes_per_hour=budget)
     if busy:
         s.on_air(30, NOW, WALL)
-    queued = [bytes([i]) * 8 for i in range(replies)]
+    queued = [OutReply(bytes([i]) * 8) for i in range(replies)]
     assert what(s.next(NOW, WALL, queued, in_flight, classes(spec), 0)) == want
 
 
@@ -122,7 +128,7 @@ def test_a_data_frame_carries_the_session_the_floor_and_the_batch() -> None:
 
 
 def test_a_reply_is_framed_whole() -> None:
-    d = schedule().next(NOW, WALL, [b"\x02" * 24, b"\x03"], 0, [], 0)
+    d = schedule().next(NOW, WALL, [OutReply(b"\x02" * 24), OutReply(b"\x03")], 0, [], 0)
     assert isinstance(d, SendReply) and list(Deframer().feed(d.wire)) == [(REPLY, b"\x02" * 24)]
 
 
@@ -140,7 +146,7 @@ def test_the_link_is_busy_for_each_frame_s_air_time_back_to_back() -> None:
     s.on_air(30, NOW, WALL)  # 30 bytes at 300 bit/s, 10 bits a byte: 1 s
     s.on_air(30, NOW + 0.5, WALL)  # written while the first is on the air: queued behind it
     assert s.link_free_at == pytest.approx(NOW + 2.0)
-    assert what(s.next(NOW + 1.9, WALL, [b"r"], 0, [], 0)) == ("wait", BIT_RATE)
+    assert what(s.next(NOW + 1.9, WALL, [OutReply(b"r")], 0, [], 0)) == ("wait", BIT_RATE)
     assert s.bytes_last_hour == 60
 
 
@@ -179,3 +185,63 @@ def test_overhead_counts_in_the_budget() -> None:
     short = schedule([(WALL, 1)], bytes_per_hour=payload + OVERHEAD)
     assert what(short.next(NOW, WALL, [], 0, classes([(0, [(1, 10)], [])]), 0)) == (
         "wait", BUDGET_SPENT)
+
+
+REPLY_WIRE = len(frame(REPLY, bytes(8)))  # an 8-byte reply payload, framed
+SHARE = int(B * REPEAT_SHARE)  # the repeats' bytes per hour
+
+
+@pytest.mark.parametrize(("repeat", "sent", "repeats", "want"), [
+    # a repeat within its share goes out before data
+    (True, [], [], ("reply",)),
+    # a repeat over its share is dropped: data and new replies keep the rest
+    (True, [(WALL, SHARE)], [(WALL, SHARE)], ("drop", REPEAT_SHARE_SPENT)),
+    # one that would just pass the share: dropped too
+    (True, [(WALL, SHARE - REPLY_WIRE + 1)], [(WALL, SHARE - REPLY_WIRE + 1)],
+     ("drop", REPEAT_SHARE_SPENT)),
+    # one that just fits the share goes out
+    (True, [(WALL, SHARE - REPLY_WIRE)], [(WALL, SHARE - REPLY_WIRE)], ("reply",)),
+    # repeats older than an hour leave the share
+    (True, [(WALL - HOUR_NS - 1, SHARE)], [(WALL - HOUR_NS - 1, SHARE)], ("reply",)),
+    # the answer to a new command is not held by the repeats' share ...
+    (False, [(WALL, SHARE)], [(WALL, SHARE)], ("reply",)),
+    # ... only by the whole budget
+    (False, [(WALL, B)], [], ("wait", BUDGET_SPENT)),
+    # a repeat within its share still waits for the whole budget
+    (True, [(WALL, B)], [], ("wait", BUDGET_SPENT)),
+])
+def test_repeated_replies_get_a_share_of_the_budget(
+        repeat: bool, sent: list[tuple[int, int]], repeats: list[tuple[int, int]],
+        want: tuple[Any, ...]) -> None:
+    """Regression for issue 26 item 1: a replayed command frame's cached replies went out
+    before data until the hourly budget was spent; now they take at most REPEAT_SHARE of it."""
+    s = schedule(sent, bytes_per_hour=B)
+    for wall, n in repeats:  # the repeats among what was sent
+        s._repeats.append((wall, n))
+        s.repeat_bytes_last_hour += n
+    got = s.next(NOW, WALL, [OutReply(bytes(8), repeat)], 0, classes([(0, [(1, 10)], [])]), 0)
+    assert what(got) == want
+
+
+def test_repeats_spend_their_share_then_data_goes_out() -> None:
+    """Replays 3 times a second against an 8000-byte budget (issue 26): the repeated replies
+    stop at their share, the data frames after them still fit."""
+    s = schedule(bytes_per_hour=8000)
+    cs = classes([(0, [(i, 10) for i in range(1, 200)], [])])
+    kinds: list[str] = []
+    t = NOW
+    for step in range(400):
+        t += 1 / 3
+        d = s.next(t, WALL + step, [OutReply(bytes(30), repeat=True)], 0, cs, 0)
+        if isinstance(d, DropReply):  # the sender drops it and asks again
+            kinds.append("DropReply")
+            d = s.next(t, WALL + step, [], 0, cs, 0)
+        if isinstance(d, SendData):
+            for c, _ in d.batch:
+                c.queue.popleft()
+        if not isinstance(d, Wait):
+            s.on_air(len(d.wire), t, WALL + step, isinstance(d, SendReply) and d.repeat)
+        kinds.append(type(d).__name__)
+    assert s.repeat_bytes_last_hour <= 8000 * REPEAT_SHARE
+    assert kinds.count("SendData") > 50 and kinds[-1] in ("SendData", "Wait")
+    assert kinds.count("SendReply") == s.repeat_bytes_last_hour // len(frame(REPLY, bytes(30)))

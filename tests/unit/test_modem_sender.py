@@ -171,6 +171,12 @@ def test_commands_come_in_and_replies_go_out_first_within_rate_and_budget(tmp_pa
         sender.send_reply(b"\x03" * 24)
         sender.step(t + 20)
         assert sender.blocked == "hourly byte budget spent" and len(sender.replies) == 1
+        # A repeat (an answer a replay can ask for) beyond its share is dropped and counted
+        # (issue 26): it must not wait for the budget ahead of the answers to new commands.
+        sender.replies.clear()
+        sender.send_reply(b"\x04" * 24, repeat=True)
+        sender.step(t + 30)
+        assert sender.stats()["replies_over_share"] == 1 and not sender.replies
     finally:
         sender.close()
         box.close()

@@ -149,6 +149,8 @@ def view(run_dir: Path, config_path: str | None, listen: tuple[str, int] | None,
     except OSError as exc:
         raise CommandFailed(f"cannot serve on {v.host}:{v.port}: {exc.strerror or exc}; "
                             "choose another with --listen [HOST:]PORT", EXIT_USAGE) from None
+    except TrapflowError as exc:  # the viewer's token file
+        raise CommandFailed(str(exc), EXIT_USAGE) from None
 
 
 @main.command()

@@ -352,6 +352,13 @@ class ViewerConfig(_Section):
     """node_exporter textfile written atomically every metrics_interval_s ("" = none)."""
     metrics_interval_s: Annotated[float, msgspec.Meta(ge=1, le=600)] = 5.0
     """Seconds between two writes of metrics_file."""
+    allowed_hosts: list[str] = []
+    """Host names the page may be reached by besides the loopback names (and, off loopback,
+    the bind address, this machine's name and IP addresses): any other Host is refused, so a
+    DNS-rebinding page cannot read or drive the viewer."""
+    token_file: str = ""
+    """File holding the token a non-loopback bind asks for (mode 600, at least 16
+    characters); "" = a new token each run, printed with the URL. Loopback needs none."""
 
 
 def _default_pools() -> dict[str, PoolConfig]:

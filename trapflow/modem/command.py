@@ -57,6 +57,10 @@ MIN_KEY_BYTES = 16
 REFUSAL_REPLY_INTERVAL_S = 5.0
 """At most one stale or wrong-session reply per this interval: each costs link time, and a
 replayed frame must not be able to spend the box's budget."""
+REPEAT_REPLY_INTERVAL_S = 5.0
+"""At most one cached (or "reply lost") answer per this interval for the last command: a
+recorded frame replayed 3 times a second once drained the hourly budget in 30 s (issue 26).
+The surface retries after 8 s at the soonest, so each of its retransmissions is answered."""
 MAX_REPLY_BODY = MAX_PAYLOAD - SESSION_BYTES - 5 - TAG_BYTES  # a counter takes at most 5
 
 
@@ -162,9 +166,12 @@ class Execute:
 
 @dataclass(frozen=True)
 class Reply:
-    """Send this REPLY payload (a cached reply, or a refusal the surface must hear)."""
+    """Send this REPLY payload (a cached reply, or a refusal the surface must hear).
+    `repeat`: a frame heard before can ask for it again (cached, lost, stale, session), so
+    the sender gives it only a share of the hourly budget."""
 
     payload: bytes
+    repeat: bool = False
 
 
 @dataclass(frozen=True)
@@ -189,6 +196,7 @@ class CommandGuard:
     disabled: str = ""  # why every command is refused (the counter file cannot be trusted)
     counts: dict[str, int] = field(default_factory=dict)
     _next_refusal_reply: float = 0.0
+    _next_repeat_reply: tuple[int, float] = (0, 0.0)  # (counter, when it may be answered again)
 
     def _count(self, kind: str) -> None:
         self.counts[kind] = self.counts.get(kind, 0) + 1
@@ -202,11 +210,38 @@ class CommandGuard:
     ) -> Decision:
         self._count(kind)
         if now < self._next_refusal_reply:
+            self._count("replies_held")
             return Refuse(
                 kind, f"{kind} (reply held back: at most one per {REFUSAL_REPLY_INTERVAL_S:g} s)"
             )
         self._next_refusal_reply = now + REFUSAL_REPLY_INTERVAL_S
-        return Reply(self.reply(counter, status, data))
+        return Reply(self.reply(counter, status, data), repeat=True)
+
+    def _repeat_reply(self, counter: int, now: float) -> Decision:
+        """The last command's answer again (its cached reply, or that it was lost), at most
+        once per REPEAT_REPLY_INTERVAL_S for that counter."""
+        self._count("duplicates")
+        held_counter, next_at = self._next_repeat_reply
+        if held_counter == counter and now < next_at:
+            self._count("replies_held")
+            return Refuse(
+                "duplicates",
+                f"command {counter} again (answered at most once per "
+                f"{REPEAT_REPLY_INTERVAL_S:g} s)",
+            )
+        self._next_repeat_reply = (counter, now + REPEAT_REPLY_INTERVAL_S)
+        if self.state.reply:
+            return Reply(bytes.fromhex(self.state.reply), repeat=True)
+        # Taken before a restart of the box, its reply unsaved: it never runs twice.
+        return Reply(
+            self.reply(
+                counter,
+                REPLY_LOST,
+                {"error": f"command {counter} was taken before the box restarted; its reply "
+                 "is lost"},
+            ),
+            repeat=True,
+        )
 
     def reply(self, counter: int, status: int, data: dict[str, Any]) -> bytes:
         """A signed REPLY payload for this counter."""
@@ -251,20 +286,7 @@ class CommandGuard:
         if frame.counter == last and frame.tag.hex() == self.state.tag:
             if self.running == frame.counter:
                 return self._refuse("duplicates", f"command {last} again while it runs")
-            self._count("duplicates")
-            if self.state.reply:
-                return Reply(bytes.fromhex(self.state.reply))
-            # Taken before a restart of the box, its reply unsaved: it never runs twice.
-            return Reply(
-                self.reply(
-                    last,
-                    REPLY_LOST,
-                    {
-                        "error": f"command {last} was taken "
-                        "before the box restarted; its reply is lost"
-                    },
-                )
-            )
+            return self._repeat_reply(last, now)
         if frame.counter <= last:
             return self._refusal_reply(
                 "refused_old",

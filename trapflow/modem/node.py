@@ -119,7 +119,7 @@ class ModemNode(Node):
             elif isinstance(d, Execute):
                 self._execute(d, now)
             elif isinstance(d, Reply):
-                self.sender.send_reply(d.payload)
+                self.sender.send_reply(d.payload, d.repeat)
             else:
                 unreachable(d)
         if self.running is not None:

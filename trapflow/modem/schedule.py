@@ -4,11 +4,13 @@ clock the hourly byte budget is counted in, as the outbox records what was sent)
 
 The rules, one per branch of `Schedule.next`, in order: nothing while the previous frame is
 still on the air (the bit rate); a queued REPLY above every class and outside the window (it
-gets no acknowledgement); at most `window` DATA frames waiting for their ACK; the classes
-with records queued and none in flight, by priority rank and then by the oldest head, each
-class's records in seq order while they fit the frame; and every frame within the hourly
-byte budget. A record's acknowledgement is awaited for the frame's air time, an ACK's, and
-the timeout backed off by the record's attempts (`ack_deadline`).
+gets no acknowledgement), but a repeated one (an answer a replayed frame can ask for again)
+only within REPEAT_SHARE of the hourly budget, dropped beyond it so data keeps the rest; at
+most `window` DATA frames waiting for their ACK; the classes with records queued and none in
+flight, by priority rank and then by the oldest head, each class's records in seq order
+while they fit the frame; and every frame within the hourly byte budget. A record's
+acknowledgement is awaited for the frame's air time, an ACK's, and the timeout backed off by
+the record's attempts (`ack_deadline`).
 
 The sender (trapflow.modem.sender) owns the port and the outbox: it writes what this
 decides, moves the records in flight, and reports each frame put on the air (`on_air`).
@@ -36,10 +38,25 @@ HOUR_NS = 3600 * 10**9
 ACK_BYTES = 24  # an ACK frame's air time is allowed for in every acknowledgement deadline
 IDLE_WAIT_S = 0.1  # longest wait between two steps of the sender
 
+REPEAT_SHARE = 0.1
+"""The share of `bytes_per_hour` that repeated replies (cached, lost, stale, wrong session)
+may take in any hour: a recorded command frame replayed over and over gets at most this,
+and data and the replies to new commands keep the rest (issue 26)."""
+
 # Why nothing goes out (the sender's `blocked`, in its stats).
 BIT_RATE = "bit rate"
 WINDOW_FULL = "window full"
 BUDGET_SPENT = "hourly byte budget spent"
+REPEAT_SHARE_SPENT = "repeated replies' share of the hourly budget spent"
+
+
+@dataclass(frozen=True)
+class OutReply:
+    """A REPLY payload waiting for the link; `repeat`: an answer a replayed frame can ask
+    for again (trapflow.modem.command.Reply.repeat)."""
+
+    payload: bytes
+    repeat: bool = False
 
 
 class Queued:
@@ -78,6 +95,15 @@ class SendReply:
     """The first queued REPLY, framed."""
 
     wire: bytes
+    repeat: bool = False
+
+
+@dataclass(frozen=True)
+class DropReply:
+    """The first queued REPLY is a repeat over its share of the budget: drop it (the surface
+    asks again if it still waits)."""
+
+    why: str
 
 
 @dataclass(frozen=True)
@@ -89,7 +115,7 @@ class SendData:
     batch: tuple[tuple[ClassQueue, Queued], ...]
 
 
-Decision = Wait | SendReply | SendData
+Decision = Wait | SendReply | DropReply | SendData
 
 
 def floor(last_known: int, classes: Iterable[ClassQueue]) -> int:
@@ -138,15 +164,23 @@ class Schedule:
         # Frames sent in the last hour: (wall ns, bytes), the oldest first.
         self._ledger: collections.deque[tuple[int, int]] = collections.deque(sent)
         self.bytes_last_hour = sum(b for _, b in self._ledger)
+        # Of those, the repeated replies (since this start: the outbox records no kind).
+        self._repeats: collections.deque[tuple[int, int]] = collections.deque()
+        self.repeat_bytes_last_hour = 0
 
-    def next(self, now: float, wall_ns: int, replies: Sequence[bytes], frames_in_flight: int,
+    def next(self, now: float, wall_ns: int, replies: Sequence[OutReply], frames_in_flight: int,
              classes: Collection[ClassQueue], last_known: int) -> Decision:
         """What to send now, or why nothing (`last_known`: the outbox's last seq seen)."""
         if now < self.link_free_at:
             return Wait(BIT_RATE)
         if replies:  # above every class; no acknowledgement, so outside the window
-            wire = frame(REPLY, replies[0])
-            return SendReply(wire) if self._fits(len(wire), wall_ns) else Wait(BUDGET_SPENT)
+            reply = replies[0]
+            wire = frame(REPLY, reply.payload)
+            if reply.repeat and not self._repeat_fits(len(wire), wall_ns):
+                return DropReply(REPEAT_SHARE_SPENT)
+            if not self._fits(len(wire), wall_ns):
+                return Wait(BUDGET_SPENT)
+            return SendReply(wire, reply.repeat)
         if frames_in_flight >= self.cfg.window:
             return Wait(WINDOW_FULL)
         order = ready(classes)
@@ -171,13 +205,23 @@ class Schedule:
         budget = self.cfg.bytes_per_hour
         return not budget or self.bytes_last_hour + nbytes <= budget
 
-    def on_air(self, nbytes: int, now: float, wall_ns: int) -> None:
+    def _repeat_fits(self, nbytes: int, wall_ns: int) -> bool:
+        """Whether a repeated reply of `nbytes` stays within REPEAT_SHARE of the budget."""
+        while self._repeats and self._repeats[0][0] < wall_ns - HOUR_NS:
+            self.repeat_bytes_last_hour -= self._repeats.popleft()[1]
+        budget = self.cfg.bytes_per_hour
+        return not budget or self.repeat_bytes_last_hour + nbytes <= budget * REPEAT_SHARE
+
+    def on_air(self, nbytes: int, now: float, wall_ns: int, repeat: bool = False) -> None:
         """A frame of `nbytes` was written: the link is busy for its air time, and it counts
-        in the hourly budget."""
+        in the hourly budget (and in the repeats' share when `repeat`)."""
         airtime = nbytes * BITS_PER_BYTE / self.cfg.bit_rate
         self.link_free_at = max(now, self.link_free_at) + airtime
         self._ledger.append((wall_ns, nbytes))
         self.bytes_last_hour += nbytes
+        if repeat:
+            self._repeats.append((wall_ns, nbytes))
+            self.repeat_bytes_last_hour += nbytes
 
     def ack_deadline(self, attempts: int) -> float:
         """When a record sent in the frame just put on the air, after `attempts` earlier

@@ -28,6 +28,8 @@ from trapflow.modem.port import LinkPort
 from trapflow.modem.schedule import (
     HOUR_NS,
     ClassQueue,
+    DropReply,
+    OutReply,
     Queued,
     Schedule,
     SendData,
@@ -79,7 +81,7 @@ class ModemSender:
         self.blocked = ""
         self._backlog = 0
         self.commands: collections.deque[bytes] = collections.deque()  # in, for the node
-        self.replies: collections.deque[bytes] = collections.deque()  # out, before any DATA
+        self.replies: collections.deque[OutReply] = collections.deque()  # out, before any DATA
         # Worst case around a body in a DATA payload: session, floor, id delta (5 bytes
         # each), length.
         self._max_body = self.cfg.max_frame_payload - 12 - SESSION_BYTES
@@ -303,15 +305,18 @@ class ModemSender:
         """Lowest seq the surface may still receive as new (everything below is settled)."""
         return floor(self._last_known, self.classes.values())
 
-    def send_reply(self, payload: bytes) -> None:
+    def send_reply(self, payload: bytes, repeat: bool = False) -> None:
         """Queue a REPLY payload: it goes out before any DATA, within the bit rate and the
-        hourly budget (the surface sends its command again until a reply arrives)."""
-        if payload in self.replies:
+        hourly budget, a `repeat` only within its share of it (the surface sends its command
+        again until a reply arrives)."""
+        if any(r.payload == payload for r in self.replies):
             return  # the same reply already waits (a retransmitted command)
         if len(self.replies) >= MAX_REPLIES:
-            self.replies.popleft()
+            # A repeat goes first: the answer to a new command must not give way to a replay.
+            old = next((r for r in self.replies if r.repeat), self.replies[0])
+            self.replies.remove(old)
             self.counters["replies_dropped"] += 1
-        self.replies.append(payload)
+        self.replies.append(OutReply(payload, repeat))
 
     def take_commands(self) -> list[bytes]:
         """COMMAND payloads received since the last call."""
@@ -328,16 +333,22 @@ class ModemSender:
             if d.blocked is not None:
                 self.blocked = d.blocked
             return False
+        if isinstance(d, DropReply):
+            self.replies.popleft()
+            self.counters["replies_over_share"] += 1
+            return self._send(now)  # at most MAX_REPLIES deep: each call drops one
         if not self.port.write(d.wire):
             self._requeue_all()
             return False
-        self.schedule.on_air(len(d.wire), now, wall)
         if isinstance(d, SendReply):
+            self.schedule.on_air(len(d.wire), now, wall, d.repeat)
             self.replies.popleft()
             self.queue.record_sent(len(d.wire), [], wall)
             self.counters["replies"] += 1
+            self.counters["replies_repeated"] += d.repeat
             self.counters["bytes"] += len(d.wire)
         elif isinstance(d, SendData):
+            self.schedule.on_air(len(d.wire), now, wall)
             self._in_flight(d, wall)
         else:
             unreachable(d)
@@ -378,6 +389,7 @@ class ModemSender:
             "session": self.session.hex(),
             "bytes_last_hour": self.schedule.bytes_last_hour,
             "bytes_per_hour": self.cfg.bytes_per_hour,
+            "repeat_bytes_last_hour": self.schedule.repeat_bytes_last_hour,
             "backlog": self._backlog,
             "in_flight": len(self.by_id),
             "queued": {c.name: len(c.queue) for c in self.classes.values() if c.queue},

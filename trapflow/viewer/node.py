@@ -11,6 +11,7 @@ import asyncio
 import logging
 import time
 
+from trapflow.errors import ConfigError
 from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.viewer.server import serve
 
@@ -35,9 +36,11 @@ class ViewerNode(Node):
         try:
             asyncio.run(serve(self.cfg, self.spec.run_dir, v.host, v.port, ready=self._ready,
                               beat=self.beat, stopping=lambda: self.stopping))
-        except OSError as exc:
-            self.set_state(INACTIVE, f"cannot serve on {v.host}:{v.port}: {exc.strerror or exc}; "
-                                     "choose another port with --view [HOST:]PORT")
+        except (OSError, ConfigError) as exc:
+            why = (str(exc) if isinstance(exc, ConfigError) else
+                   f"cannot serve on {v.host}:{v.port}: {exc.strerror or exc}; "
+                   "choose another port with --view [HOST:]PORT")
+            self.set_state(INACTIVE, why)
             self.beat()
             while not self.stopping:  # the supervisor reports the reason and stops the run
                 time.sleep(0.1)

@@ -1,4 +1,6 @@
 """The viewer's web server (aiohttp): the page, its JSON state, the shown pair, /metrics.
+Every request passes the Host allowlist and, off loopback, the token check first
+(trapflow.viewer.access decides).
 
 One asyncio loop in one process: a pump task drains the taps every PUMP_S and asks the
 supervisor for status every STATUS_S; requests only read the state. The page polls
@@ -11,7 +13,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from importlib import resources
 from pathlib import Path
 
@@ -20,8 +22,9 @@ import numpy as np
 from aiohttp import web
 
 from trapflow.config.schema import Config
-from trapflow.errors import ProtocolError
+from trapflow.errors import ProtocolError, unreachable
 from trapflow.viewer import metrics
+from trapflow.viewer.access import COOKIE, Allow, Deny, SetCookie, bearer_of, make_access
 from trapflow.viewer.state import Frame, ViewState
 from trapflow.viewer.taps import PipelineTaps
 from trapflow.wire import control_msgs, messages
@@ -38,9 +41,7 @@ _TYPES = {".html": "text/html", ".js": "text/javascript", ".css": "text/css"}
 # A POST that changes the pipeline must carry this header: a page of another site cannot
 # set it on a cross-site form post, so a link elsewhere cannot stop the trap.
 CONTROL_HEADER = "X-Trapflow-Control"
-# Served on loopback, a control request must also name a loopback host: a site that
-# rebinds its own name to 127.0.0.1 sends its own name in the Host header.
-LOOPBACK_NAMES = ("127.0.0.1", "localhost", "::1")
+Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
 
 def _jpeg(frame: Frame, side: str) -> bytes:
@@ -64,8 +65,9 @@ class Viewer:
         mf = cfg.viewer.metrics_file
         self.metrics_file = Path(mf) if mf else None
         self._jpeg_cache: dict[tuple[int, str], bytes] = {}
-        self.loopback_only = cfg.viewer.host in LOOPBACK_NAMES
-        self.app = web.Application()
+        v = cfg.viewer
+        self.access, self.token_generated = make_access(v.host, v.allowed_hosts, v.token_file)
+        self.app = web.Application(middlewares=[self._guard])
         self.app.add_routes([
             web.get("/", self._static), web.get("/static/{name}", self._static),
             web.get("/api/state", self._api_state),
@@ -108,10 +110,38 @@ class Viewer:
         log.info("viewer on http://%s:%d/ for %s", host, port, self.run_dir)
         return runner
 
+    def url(self, host: str, port: int) -> str:
+        """The page's address as printed: with the token when it was made for this run."""
+        base = f"http://{host}:{port}/"
+        if self.token_generated:
+            return f"{base}?token={self.access.token}"
+        if self.access.token:
+            return f"{base} (token: the contents of {self.cfg.viewer.token_file})"
+        return base
+
     def close(self) -> None:
         self.taps.close()
 
     # --- handlers -----------------------------------------------------------------------
+
+    @web.middleware
+    async def _guard(self, request: web.Request, handler: Handler) -> web.StreamResponse:
+        """Host allowlist and token before any handler, reads and writes alike."""
+        d = self.access.decide(request.headers.get("Host"), request.path,
+                               bearer_of(request.headers.get("Authorization")),
+                               request.cookies.get(COOKIE), request.query.get("token"))
+        if isinstance(d, Allow):
+            return await handler(request)
+        if isinstance(d, SetCookie):
+            resp = web.Response(status=303, headers={"Location": d.location,
+                                                     "Cache-Control": "no-store"})
+            resp.set_cookie(COOKIE, self.access.token, httponly=True, samesite="Strict",
+                            path="/")
+            return resp
+        if isinstance(d, Deny):
+            return web.Response(status=d.status, text=d.reason + "\n",
+                                headers={"Cache-Control": "no-store"})
+        unreachable(d)
 
     async def _static(self, request: web.Request) -> web.Response:
         name = request.match_info.get("name", "index.html")
@@ -155,10 +185,6 @@ class Viewer:
         if request.headers.get(CONTROL_HEADER) != what:
             raise web.HTTPForbidden(text=f"expected header {CONTROL_HEADER}: {what} "
                                          "(sent by the viewer's own page)")
-        host = (request.url.host or "").strip("[]")
-        if self.loopback_only and host not in LOOPBACK_NAMES:
-            raise web.HTTPForbidden(text=f"expected a request to 127.0.0.1 or localhost, "
-                                         f"got Host {request.host!r}")
 
     async def _stop(self, request: web.Request) -> web.Response:
         self._check_control(request, "stop")
@@ -192,7 +218,7 @@ async def serve(cfg: Config, run_dir: Path, host: str, port: int,
     try:
         runner = await viewer.start(host, port)
         if ready is not None:
-            ready(f"http://{host}:{port}/")
+            ready(viewer.url(host, port))
         await viewer.pump(beat, stopping)
     finally:
         if runner is not None:

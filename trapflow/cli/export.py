@@ -23,14 +23,22 @@ META_KEYS = {"latitude": "latitude", "longitude": "longitude", "deployment_id": 
 @click.argument("run_dir", type=click.Path(file_okay=False, path_type=Path))
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="HTML file to write (default: RUN_DIR/report.html).")
-def report(run_dir: Path, output: Path | None) -> None:
-    """Write one self-contained HTML page of a run: detections per class per hour, VO path,
-    pool rates over time, drops and losses, restarts, events."""
+@click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
+              help="The run's YAML config (observe and events file names; default: built-in "
+                   "defaults).")
+def report(run_dir: Path, output: Path | None, config_path: str | None) -> None:
+    """Write one self-contained HTML page of a run: detections per class per hour, visits and
+    MaxN per label per hour, length-frequency per label, VO path, pool rates over time, drops
+    and losses, restarts, events."""
+    from trapflow.config.schema import load
+    from trapflow.errors import ConfigError
     from trapflow.export.report import ReportError, write_report
 
     try:
-        path = write_report(run_dir, output)
-    except ReportError as exc:
+        cfg = load(config_path)
+        path = write_report(run_dir, output, cfg.events.folder, cfg.observe.counts_file,
+                            cfg.observe.tracks_file)
+    except (ConfigError, ReportError) as exc:
         raise bad_input(exc) from None
     click.echo(f"written: {path}")
 

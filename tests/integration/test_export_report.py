@@ -3,6 +3,7 @@ HTML file whose tables and charts say what the run's own files say."""
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 import subprocess
 import sys
@@ -24,6 +25,7 @@ class Page(HTMLParser):
         super().__init__()
         self.tables: list[list[list[str]]] = []
         self.polylines: list[dict[str, str]] = []
+        self.bars: list[dict[str, str]] = []
         self.urls: list[str] = []
         self._cell: list[str] | None = None
 
@@ -38,6 +40,8 @@ class Page(HTMLParser):
             self._cell = []
         elif tag == "polyline":
             self.polylines.append(a)
+        elif tag == "rect" and a.get("class") == "bar":
+            self.bars.append(a)
 
     def handle_endtag(self, tag: str) -> None:
         if tag in ("td", "th") and self._cell is not None:
@@ -47,6 +51,11 @@ class Page(HTMLParser):
     def handle_data(self, data: str) -> None:
         if self._cell is not None:
             self._cell.append(data)
+
+    def table(self, *head: str) -> list[list[str]]:
+        """The rows of the table whose header starts with these cells."""
+        (found,) = [t for t in self.tables if tuple(t[0][:len(head)]) == head]
+        return found[1:]
 
 
 @pytest.mark.timeout(150)
@@ -68,14 +77,14 @@ def test_report_of_a_real_run(spawn, run_dir: Path) -> None:
     want = Counter((x["mono_ir"]["timestamp"][:13] + ":00", x["mono_ir"]["label"])
                    for x in lines if "mono_ir" in x and x["mono_ir"]["label"] != "none")
     head, *rows = page.tables[0]
-    assert head[0] == "hour (UTC)" and head[-1] == "all"
+    assert head[0] == "hour (UTC)" and head[-1] == "all" and head[1] != "label"
     got = Counter({(r[0], c): int(v) for r in rows for c, v in zip(head[1:-1], r[1:-1],
                                                                     strict=True) if int(v)})
     assert got == want and sum(want.values()) > 0
 
     # Drops and losses: the ledger's numbers, pool by pool.
     ledger = json.loads((run_dir / "ledger.json").read_text())
-    pools = {r[0]: [int(v) for v in r[1:]] for r in page.tables[2][1:]}
+    pools = {r[0]: [int(v) for v in r[1:]] for r in page.table("pool", "processed")}
     assert pools == {name: [q["processed"], q["dropped_by_policy"], q["timed_out"],
                             q["failed"], q["lost"], q.get("unfinished_at_stop", 0)]
                      for name, q in ledger["pools"].items()}
@@ -85,6 +94,40 @@ def test_report_of_a_real_run(spawn, run_dir: Path) -> None:
     ok = sum(1 for x in lines if "stereo_vo" in x and x["stereo_vo"]["ok"])
     assert series["left camera"] == ok > 0
     assert {"mono_ir", "stereo_vo"} <= set(series)
+    check_observations(page, run_dir)
+
+
+def check_observations(page: Page, run_dir: Path) -> None:
+    """Visits and MaxN per label per hour as counts.jsonl has them, and a length-frequency
+    histogram per label holding every measured track of tracks.jsonl."""
+    counts = [json.loads(x)["counts"] for x in (run_dir / "counts.jsonl").read_text()
+              .splitlines()]
+    want: dict[tuple[str, str], list[int]] = {}
+    for c in counts:
+        hour = dt.datetime.fromtimestamp(c["start_s"], dt.timezone.utc).strftime(
+            "%Y-%m-%d %H:00")
+        for lb in c["labels"]:
+            v = want.setdefault((hour, lb["label"]), [0, 0])
+            v[:] = [v[0] + lb["visits"], max(v[1], lb["max_n"])]
+    got = {(r[0], r[1]): [int(r[2]), int(r[3])]
+           for r in page.table("hour (UTC)", "label", "visits", "MaxN")}
+    assert got == want and any(v[0] for v in want.values()), (got, want)
+
+    tracks = [json.loads(x)["track"] for x in (run_dir / "tracks.jsonl").read_text()
+              .splitlines()]
+    lengths = Counter(t["label"] for t in tracks if "length_m" in t)
+    assert lengths, "no track was measured"
+    bars = Counter[str]()
+    for b in page.bars:
+        bars[b["data-label"]] += int(b["data-count"])
+    assert bars == lengths
+    for t in tracks:  # each length lies in a bin of its label holding at least one track
+        if "length_m" in t:
+            assert any(float(b["data-from"]) - 5e-4 <= t["length_m"] < float(b["data-to"])
+                       + 5e-4 and int(b["data-count"]) for b in page.bars
+                       if b["data-label"] == t["label"])
+    rows = {r[0]: int(r[1]) for r in page.table("label", "tracks measured")}
+    assert rows == dict(lengths)
 
 
 @pytest.mark.parametrize(("make", "message"), [

@@ -23,14 +23,22 @@ META_KEYS = {"latitude": "latitude", "longitude": "longitude", "deployment_id": 
 @click.argument("run_dir", type=click.Path(file_okay=False, path_type=Path))
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="HTML file to write (default: RUN_DIR/report.html).")
-def report(run_dir: Path, output: Path | None) -> None:
-    """Write one self-contained HTML page of a run: detections per class per hour, VO path,
-    pool rates over time, drops and losses, restarts, events."""
+@click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
+              help="The run's YAML config (observe and events file names; default: built-in "
+                   "defaults).")
+def report(run_dir: Path, output: Path | None, config_path: str | None) -> None:
+    """Write one self-contained HTML page of a run: detections per class per hour, visits and
+    MaxN per label per hour, length-frequency per label, VO path, pool rates over time, drops
+    and losses, restarts, events."""
+    from trapflow.config.schema import load
+    from trapflow.errors import ConfigError
     from trapflow.export.report import ReportError, write_report
 
     try:
-        path = write_report(run_dir, output)
-    except ReportError as exc:
+        cfg = load(config_path)
+        path = write_report(run_dir, output, cfg.events.folder, cfg.observe.counts_file,
+                            cfg.observe.tracks_file)
+    except (ConfigError, ReportError) as exc:
         raise bad_input(exc) from None
     click.echo(f"written: {path}")
 
@@ -72,13 +80,27 @@ def _metadata(meta: Path | None) -> dict[str, Any]:
 @click.option("--habitat", default=None)
 @click.option("--taxon", "taxa", multiple=True, metavar="LABEL=NAME",
               help="Scientific name of a detector label, repeatable (crab='Cancer pagurus').")
+@click.option("--min-confidence", type=click.FloatRange(0, 1), default=None,
+              help="Least confidence of an observation (a track's best box); an image with no "
+                   "box at or above it is a blank (default: export.min_confidence).")
+@click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
+              help="The run's YAML config (export, observe and events file names; default: "
+                   "built-in defaults).")
 def camtrapdp(run_dir: Path, out: Path, meta: Path | None, latitude: float | None,
               longitude: float | None, depth: float | None, location_name: str | None,
               deployment_id: str | None, setup_by: str | None, habitat: str | None,
-              taxa: tuple[str, ...]) -> None:
-    """Write RUN_DIR's events as a Camtrap DP package in OUT (datapackage.json,
+              taxa: tuple[str, ...], min_confidence: float | None,
+              config_path: str | None) -> None:
+    """Write RUN_DIR's tracks and events as a Camtrap DP package in OUT (datapackage.json,
     deployments.csv, media.csv, observations.csv, media/)."""
+    from trapflow.config.schema import load
+    from trapflow.errors import ConfigError
     from trapflow.export.camtrapdp import Deployment, ExportError, write_package
+
+    try:
+        cfg = load(config_path)
+    except ConfigError as exc:
+        raise bad_input(exc) from None
 
     fields = _metadata(meta)
     flags = {"latitude": latitude, "longitude": longitude, "depth_m": depth,
@@ -97,7 +119,10 @@ def camtrapdp(run_dir: Path, out: Path, meta: Path | None, latitude: float | Non
         raise bad_input(f"export camtrapdp: Camtrap DP requires the deployment's "
                         f"{' and '.join(missing)}; pass --{missing[0]} or put it in --meta")
     try:
-        rows = write_package(run_dir, out, Deployment(**fields))
+        rows = write_package(
+            run_dir, out, Deployment(**fields), cfg.events.folder,
+            min_confidence=cfg.export.min_confidence if min_confidence is None
+            else min_confidence, tracks_file=cfg.observe.tracks_file)
     except ExportError as exc:
         raise bad_input(exc) from None
     except TypeError as exc:  # a metadata value of the wrong kind

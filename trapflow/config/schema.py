@@ -207,6 +207,14 @@ class ObserveConfig(_Section):
                              f"high={self.high}")
 
 
+class ExportConfig(_Section):
+    """Exports of a finished run (`trapflow export`)."""
+
+    min_confidence: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.5
+    """Camtrap DP: least confidence of an observation (a track's best box, or a box of a run
+    without tracks); a pair with no box at or above it is a blank (`--min-confidence`)."""
+
+
 class EnergyConfig(_Section):
     """The power model ledger.json's energy estimate uses (trapflow.gate.energy.BOARDS)."""
 
@@ -379,6 +387,7 @@ class Config(_Section):
     pools: dict[str, PoolConfig] = msgspec.field(default_factory=_default_pools)
     normalizer: NormalizerConfig = msgspec.field(default_factory=NormalizerConfig)
     observe: ObserveConfig = msgspec.field(default_factory=ObserveConfig)
+    export: ExportConfig = msgspec.field(default_factory=ExportConfig)
     energy: EnergyConfig = msgspec.field(default_factory=EnergyConfig)
     gate: MotionGateConfig = msgspec.field(default_factory=MotionGateConfig)
     supervisor: SupervisorConfig = msgspec.field(default_factory=SupervisorConfig)

@@ -1,13 +1,14 @@
-"""`trapflow export camtrapdp RUN_DIR OUT`: a run's events as a Camtrap DP 1.0 package.
+"""`trapflow export camtrapdp RUN_DIR OUT`: a run's observations as a Camtrap DP 1.0 package.
 
 Camtrap DP (the TDWG camera-trap data exchange format) is a Frictionless Data Package:
 datapackage.json (profile, project, spatial, temporal, taxonomic coverage) with three CSV
 tables. Here: deployments.csv holds the run as one deployment, with its location, depth and
 setup from a metadata file or flags; media.csv one row per left image of each event folder
-(the images are linked or copied into OUT/media/); observations.csv one media-level,
-machine-classified row per detection (mono_ir) in those images, boxes normalized to the
-image as Camtrap DP wants (bboxX, bboxY: top-left corner, 0..1). A run without events has
-no media, so no observations either: Camtrap DP ties every observation to its media.
+(the images are linked or copied into OUT/media/); observations.csv one event-level row per
+track of tracks.jsonl (the animal from its first to its last sighting, with its stereo
+position, speed and length), the media-level row of each track's best frame, and a blank
+per image without a box (camtrap_obs.py builds the rows). Boxes are normalized to the image
+as Camtrap DP wants (bboxX, bboxY: top-left corner, 0..1).
 
 build_rows is pure (run files in, rows out); write_package writes the files.
 """
@@ -27,6 +28,7 @@ import cv2
 import numpy as np
 
 from trapflow.errors import TrapflowError
+from trapflow.export import camtrap_obs as obs
 
 VERSION = "1.0.1"
 _BASE = f"https://raw.githubusercontent.com/tdwg/camtrap-dp/{VERSION}"
@@ -90,10 +92,6 @@ class Deployment:
                                   f"fix --{name} or `{name}` in the metadata file")
 
 
-def _iso(t: dt.datetime) -> str:
-    return t.strftime("%Y-%m-%dT%H:%M:%SZ")
-
-
 def _parse(label: str) -> dt.datetime:
     return dt.datetime.strptime(label, "%Y-%m-%d %H:%M:%S.%f").replace(tzinfo=dt.timezone.utc)
 
@@ -119,6 +117,29 @@ def _size(jpg: Path) -> tuple[int, int]:
     return int(img.shape[1]), int(img.shape[0])
 
 
+def _media(events: Path, times: dict[int, dt.datetime],
+           dep_id: str) -> tuple[list[dict[str, Any]], list[obs.Frame], list[tuple[Path, str]]]:
+    """media.csv's rows: the left image of every pair with a result in the event folders."""
+    media: list[dict[str, Any]] = []
+    frames: list[obs.Frame] = []
+    files: list[tuple[Path, str]] = []
+    for ev in sorted(p for p in events.glob("*") if (p / "left").is_dir()):
+        for jpg in sorted((ev / "left").glob("*.jpg")):
+            if not jpg.stem.isdigit() or int(jpg.stem) not in times:
+                continue  # a pair without a result: no time to give it
+            seq = int(jpg.stem)
+            media_id = f"{ev.name}-{seq}"
+            rel = f"media/{ev.name}/{jpg.name}"
+            files.append((jpg, rel))
+            media.append({"mediaID": media_id, "deploymentID": dep_id,
+                          "captureMethod": "activityDetection",
+                          "timestamp": obs.iso(times[seq]), "filePath": rel,
+                          "filePublic": "false", "fileName": jpg.name,
+                          "fileMediatype": "image/jpeg"})
+            frames.append(obs.Frame(media_id, ev.name, seq, times[seq], *_size(jpg)))
+    return media, frames, files
+
+
 @dataclass
 class Rows:
     """The three tables and what datapackage.json says about them."""
@@ -132,10 +153,10 @@ class Rows:
     labels: set[str]
 
 
-def build_rows(run_dir: Path, dep: Deployment, events_folder: str = "events") -> Rows:
-    """The package's rows from a run directory (results.jsonl and the event folders)."""
-    # Long on purpose: a package's rows built from one reading of the run (results and
-    # events), in the order its tables refer to each other (deployment, media, observations).
+def build_rows(run_dir: Path, dep: Deployment, events_folder: str = "events", *,
+               min_confidence: float = 0.0, tracks_file: str = "tracks.jsonl") -> Rows:
+    """The package's rows from a run directory (results.jsonl, tracks.jsonl, the event
+    folders): observations at or above min_confidence, blanks for the images below it."""
     run_results = _results(run_dir / "results.jsonl")
     if not (run_dir / "results.jsonl").is_file():
         raise ExportError(f"export: expected {run_dir / 'results.jsonl'} (a run directory), "
@@ -145,62 +166,50 @@ def build_rows(run_dir: Path, dep: Deployment, events_folder: str = "events") ->
         raise ExportError(f"export: {run_dir / 'results.jsonl'} holds no result; a run that "
                           "processed nothing has nothing to export")
     dep_id = dep.deployment_id or run_dir.name
-    # Every detection of the run (an event's own results.jsonl holds only its triggers).
-    detections: dict[int, list[dict[str, Any]]] = {}
-    for algo, body in run_results:
-        if algo == "mono_ir":
-            detections.setdefault(body["seq"], []).append(body)
-    start, end = min(times.values()), max(times.values())
-    media: list[dict[str, Any]] = []
+    # Every box of the run (an event's own results.jsonl holds only its triggers).
+    boxes = [d for algo, b in run_results if algo == "mono_ir" and b["seq"] in times
+             for d in [obs.detection(b, times[b["seq"]])] if d is not None]
+    media, frames, files = _media(run_dir / events_folder, times, dep_id)
+    tracks = obs.read_tracks(run_dir / tracks_file)
     observations: list[dict[str, Any]] = []
-    files: list[tuple[Path, str]] = []
     labels: set[str] = set()
-    for ev in sorted(p for p in (run_dir / events_folder).glob("*") if (p / "left").is_dir()):
-        jpgs = sorted((ev / "left").glob("*.jpg"))
-        seqs = [int(p.stem) for p in jpgs if p.stem.isdigit()]
-        ev_times = [times[s] for s in seqs if s in times]
-        if not ev_times:
+    best: dict[int, list[tuple[obs.Detection, dict[str, Any]]]] = {}  # seq -> tracks' best
+    for track in tracks or []:
+        if track["best_confidence"] < min_confidence:
             continue
-        ev_start, ev_end = min(ev_times), max(ev_times)
-        for jpg in jpgs:
-            if not jpg.stem.isdigit() or int(jpg.stem) not in times:
-                continue  # a pair without a result: no time to give it
-            seq = int(jpg.stem)
-            media_id = f"{ev.name}-{seq}"
-            rel = f"media/{ev.name}/{jpg.name}"
-            files.append((jpg, rel))
-            media.append({"mediaID": media_id, "deploymentID": dep_id,
-                          "captureMethod": "activityDetection", "timestamp": _iso(times[seq]),
-                          "filePath": rel, "filePublic": "false", "fileName": jpg.name,
-                          "fileMediatype": "image/jpeg"})
-            width, height = _size(jpg)
-            dets = detections.get(seq, [])
-            for k, b in enumerate(d for d in dets if len(d.get("box") or []) == 4):
-                x1, y1, x2, y2 = (float(v) for v in b["box"])
-                x1, x2 = max(0.0, min(x1, width)), max(0.0, min(x2, width))
-                y1, y2 = max(0.0, min(y1, height)), max(0.0, min(y2, height))
-                label = str(b.get("label", ""))
-                labels.add(label)
-                taxon = dep.taxa.get(label, "")
-                observations.append({
-                    "observationID": f"{media_id}-{k}", "deploymentID": dep_id,
-                    "mediaID": media_id, "eventID": ev.name, "eventStart": _iso(ev_start),
-                    "eventEnd": _iso(ev_end), "observationLevel": "media",
-                    "observationType": "animal" if taxon else "unclassified",
-                    "scientificName": taxon, "count": 1,
-                    "bboxX": round(x1 / width, 6), "bboxY": round(y1 / height, 6),
-                    "bboxWidth": round((x2 - x1) / width, 6),
-                    "bboxHeight": round((y2 - y1) / height, 6),
-                    "classificationMethod": "machine",
-                    "classifiedBy": f"trapflow mono_ir ({b['model']})" if b.get("model")
-                    else "trapflow mono_ir",
-                    "classificationTimestamp": _iso(times[seq]),
-                    "classificationProbability": round(float(b.get("confidence", 0.0)), 4),
-                    "observationComments": f"detector label: {label}"})
+        models = {d.model for d in boxes if d.track == track["id"]}
+        observations.append(obs.event_row(track, dep_id, dep.taxa, models))
+        labels.add(str(track.get("label", "")))
+        found = obs.best_detection(track, boxes)
+        if found is not None:
+            best.setdefault(found.seq, []).append((found, track))
+    by_seq: dict[int, list[obs.Detection]] = {}
+    for d in boxes:
+        by_seq.setdefault(d.seq, []).append(d)
+    spans: dict[str, list[dt.datetime]] = {}  # event folder -> its first and last image
+    for f in frames:
+        span = spans.setdefault(f.event, [f.time, f.time])
+        span[:] = [min(span[0], f.time), max(span[1], f.time)]
+    for f in frames:
+        kept = [d for d in by_seq.get(f.seq, []) if d.confidence >= min_confidence]
+        if not kept:
+            observations.append(obs.blank_row(f, dep_id, min_confidence))
+        elif tracks is not None:  # the best frame of each track, linked to its event
+            for k, (d, track) in enumerate(best.get(f.seq, [])):
+                observations.append(obs.media_row(
+                    d, f, dep_id, dep.taxa, f"{f.media_id}-{k}",
+                    (obs.event_id(track), obs.iso(f.time), obs.iso(f.time)), track))
+        else:  # no tracking in this run: every box of the image
+            for k, d in enumerate(kept):
+                labels.add(d.label)
+                observations.append(obs.media_row(
+                    d, f, dep_id, dep.taxa, f"{f.media_id}-{k}",
+                    (f.event, obs.iso(spans[f.event][0]), obs.iso(spans[f.event][1]))))
+    start, end = min(times.values()), max(times.values())
     deployment = {
         "deploymentID": dep_id, "locationID": dep.location_id, "locationName": dep.location_name,
         "latitude": dep.latitude, "longitude": dep.longitude,
-        "deploymentStart": _iso(start), "deploymentEnd": _iso(end), "setupBy": dep.setup_by,
+        "deploymentStart": obs.iso(start), "deploymentEnd": obs.iso(end), "setupBy": dep.setup_by,
         "cameraModel": dep.camera_model, "cameraDepth": dep.depth_m, "cameraHeight": dep.height_m,
         "cameraTilt": dep.tilt_deg, "cameraHeading": dep.heading_deg, "habitat": dep.habitat,
         "timestampIssues": "false", "deploymentComments": dep.comments}
@@ -212,13 +221,14 @@ def datapackage(rows: Rows, dep: Deployment, name: str) -> dict[str, Any]:
     taxa = sorted({dep.taxa[lb] for lb in rows.labels if lb in dep.taxa})
     return {
         "profile": PROFILE, "name": name, "id": name,
-        "created": _iso(dt.datetime.now(dt.timezone.utc)),
+        "created": obs.iso(dt.datetime.now(dt.timezone.utc)),
         "title": dep.project,
         "contributors": [{"title": dep.contributor or dep.setup_by or "trapflow",
                           "role": "contact"}],
         "project": {"title": dep.project, "samplingDesign": "targeted",
                     "captureMethod": ["activityDetection"], "individualAnimals": False,
-                    "observationLevel": ["media"]},
+                    "observationLevel": sorted({r["observationLevel"]
+                                                for r in rows.observations}) or ["media"]},
         "spatial": {"type": "Point", "coordinates": [dep.longitude, dep.latitude]},
         "temporal": {"start": rows.start.date().isoformat(), "end": rows.end.date().isoformat()},
         "taxonomic": [{"scientificName": t} for t in taxa],
@@ -236,13 +246,14 @@ def _csv(path: Path, fields: tuple[str, ...], rows: list[dict[str, Any]]) -> Non
             w.writerow({k: ("" if r.get(k) is None else r.get(k, "")) for k in fields})
 
 
-def write_package(run_dir: Path, out: Path, dep: Deployment,
-                  events_folder: str = "events") -> Rows:
+def write_package(run_dir: Path, out: Path, dep: Deployment, events_folder: str = "events",
+                  *, min_confidence: float = 0.0, tracks_file: str = "tracks.jsonl") -> Rows:
     """Write the package into OUT (created; refused when it exists and is not empty)."""
     dep.check()
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise ExportError(f"export: OUT {out} exists and is not an empty folder; name a new one")
-    rows = build_rows(run_dir, dep, events_folder)
+    rows = build_rows(run_dir, dep, events_folder, min_confidence=min_confidence,
+                      tracks_file=tracks_file)
     try:
         out.mkdir(parents=True, exist_ok=True)
         for src, rel in rows.files:

@@ -1,10 +1,12 @@
 """`trapflow report RUN_DIR`: one self-contained HTML page of a run, charts as inline SVG.
 
-Reads what a run leaves in its directory (results.jsonl, ledger.json, trapflow.log, the
-event folders' event.json) into a RunSummary (summarize, pure but for reading those files),
-then renders it (render_html, pure): detections per class per hour, the VO path seen from
-above, result rates per pool over time, drops and losses from the ledger, restarts and
-events. No JavaScript, no external file, no network: the page opens on a laptop at the dock.
+Reads what a run leaves in its directory (results.jsonl, counts.jsonl, tracks.jsonl,
+ledger.json, trapflow.log, the event folders' event.json) into a RunSummary (summarize, pure
+but for reading those files), then renders it (render_html, pure): detections per class per
+hour, visits and MaxN per label per hour, the length-frequency of each label's tracks, the VO
+path seen from above, result rates per pool over time, drops and losses from the ledger,
+restarts and events. No JavaScript, no external file, no network: the page opens on a laptop
+at the dock.
 """
 
 from __future__ import annotations
@@ -13,7 +15,9 @@ import datetime as dt
 import html
 import json
 import logging
+import math
 import re
+import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -47,13 +51,54 @@ class RunSummary:
     ledger: dict[str, Any] = field(default_factory=dict)
     restarts: list[tuple[str, str, int]] = field(default_factory=list)  # (time, node, count)
     events: list[dict[str, Any]] = field(default_factory=list)  # event.json + name
+    # hour -> label -> [visits, MaxN, dwell s] (counts.jsonl, by the interval's start)
+    counts_hour: dict[str, dict[str, list[float]]] = field(default_factory=dict)
+    lengths: dict[str, list[float]] = field(default_factory=dict)  # label -> tracks' length_m
 
 
 def _time(label: str) -> dt.datetime:
     return dt.datetime.strptime(label, TIME_FORMAT)
 
 
-def summarize(run_dir: Path, events_folder: str = "events") -> RunSummary:
+def _jsonl(path: Path, kind: str) -> list[dict[str, Any]]:
+    """The bodies of one kind of line of a JSON-lines file (none when it is absent)."""
+    out = []
+    if path.is_file():
+        for n, raw in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+            try:
+                body = json.loads(raw).get(kind)
+            except (ValueError, AttributeError):
+                body = None
+            if isinstance(body, dict):
+                out.append(body)
+            else:
+                log.warning("report: %s line %d is no %s line; skipped", path, n, kind)
+    return out
+
+
+def observations(s: RunSummary, counts: list[dict[str, Any]],
+                 tracks: list[dict[str, Any]]) -> None:
+    """Visits, MaxN and dwell per label per hour (an interval counts in the hour it starts;
+    MaxN of an hour is the largest of its intervals'), and each label's track lengths."""
+    for c in counts:
+        try:
+            hour = dt.datetime.fromtimestamp(float(c["start_s"]), dt.timezone.utc)
+            per = s.counts_hour.setdefault(hour.strftime("%Y-%m-%d %H:00"), {})
+            for lb in c["labels"]:
+                v = per.setdefault(str(lb["label"]), [0, 0, 0.0])
+                v[0] += int(lb["visits"])
+                v[1] = max(v[1], int(lb["max_n"]))
+                v[2] += float(lb["dwell_s"])
+        except (KeyError, TypeError, ValueError):
+            log.warning("report: a counts line without start_s and labels; skipped")
+    for t in tracks:
+        length = t.get("length_m")
+        if isinstance(length, (int, float)) and length > 0:
+            s.lengths.setdefault(str(t.get("label", "")), []).append(float(length))
+
+
+def summarize(run_dir: Path, events_folder: str = "events", counts_file: str = "counts.jsonl",
+              tracks_file: str = "tracks.jsonl") -> RunSummary:
     """Read a run directory; ReportError when it has no results.jsonl."""
     results = run_dir / "results.jsonl"
     if not results.is_file():
@@ -105,6 +150,8 @@ def summarize(run_dir: Path, events_folder: str = "events") -> RunSummary:
             m = _RESTART.match(line)
             if m:
                 s.restarts.append((m.group(1), m.group(2), int(m.group(3))))
+    observations(s, _jsonl(run_dir / counts_file, "counts"),
+                 _jsonl(run_dir / tracks_file, "track"))
     for info in sorted((run_dir / events_folder).glob("*/event.json")):
         try:
             s.events.append({"name": info.parent.name, **json.loads(info.read_text())})
@@ -168,6 +215,58 @@ def svg_lines(title: str, series: dict[str, list[tuple[float, float]]], xlabel: 
     return "".join(out)
 
 
+# Bin widths of a length-frequency histogram (metres): the narrowest giving at most MAX_BINS.
+BIN_WIDTHS_M = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
+MAX_BINS = 15
+
+
+def _bin(v: float, width: float) -> int:
+    return math.floor(v / width + 1e-9)  # 0.3 / 0.05 is 5.999999999999999
+
+
+def histogram(values: list[float]) -> tuple[float, int, list[int]]:
+    """Bin width, index of the first bin and counts of values (not empty) in bins aligned to
+    multiples of the width, the narrowest width giving at most MAX_BINS bins."""
+    lo, hi = min(values), max(values)
+    width = next((w for w in BIN_WIDTHS_M if _bin(hi, w) - _bin(lo, w) < MAX_BINS),
+                 BIN_WIDTHS_M[-1])
+    first = _bin(lo, width)
+    counts = [0] * (_bin(hi, width) - first + 1)
+    for v in values:
+        counts[_bin(v, width) - first] += 1
+    return width, first, counts
+
+
+def svg_bars(label: str, values: list[float]) -> str:
+    """A length-frequency histogram of one label (bars carry their bin and count)."""
+    width, first, counts = histogram(values)
+    e = html.escape
+    top = max(counts)
+    bar_w = (W - 2 * PAD) / len(counts)
+    bottom = H - PAD - PAD // 2  # the frame's lower edge (_axes)
+    sy = _scale(0, top, bottom, PAD // 2)
+    out = _axes(f"length-frequency of {label}", f"length (m), {width:g} m bins",
+                "tracks")
+    for i, n in enumerate(counts):
+        lo, hi = (first + i) * width, (first + i + 1) * width
+        out.append(f'<rect class="bar" data-label="{e(label)}" data-from="{lo:.3f}" '
+                   f'data-to="{hi:.3f}" data-count="{n}" x="{PAD + i * bar_w + 1:.1f}" '
+                   f'y="{sy(n):.1f}" width="{bar_w - 2:.1f}" height="{bottom - sy(n):.1f}" '
+                   f'fill="{COLOURS[0]}"><title>{lo:.3f}-{hi:.3f} m: {n}</title></rect>')
+    out.append(f'<text x="{PAD}" y="{H - PAD + 14}" font-size="10">{first * width:.3g}</text>'
+               f'<text x="{W - PAD}" y="{H - PAD + 14}" font-size="10" text-anchor="end">'
+               f'{(first + len(counts)) * width:.3g}</text><text x="{PAD - 4}" '
+               f'y="{PAD // 2 + 10}" font-size="10" text-anchor="end">{top}</text></svg>')
+    return "".join(out)
+
+
+def _lengths(s: RunSummary) -> list[str]:
+    rows = [[lb, len(v), f"{statistics.median(v):.3f}", f"{min(v):.3f}", f"{max(v):.3f}"]
+            for lb, v in sorted(s.lengths.items())]
+    return [_table(["label", "tracks measured", "median (m)", "min (m)", "max (m)"], rows),
+            *(svg_bars(lb, v) for lb, v in sorted(s.lengths.items()))]
+
+
 def _table(head: list[str], rows: list[list[Any]]) -> str:
     e = html.escape
     if not rows:
@@ -202,6 +301,15 @@ def render_html(s: RunSummary) -> str:
         f"<p>Results from {e(s.first or '-')} to {e(s.last or '-')} UTC: {s.lines} lines.</p>",
         "<h2>Detections per class per hour</h2>",
         _table(["hour (UTC)", *classes, "all"], per_hour),
+        "<h2>Visits and MaxN per label per hour</h2>",
+        "<p>From counts.jsonl: a visit is a track, MaxN the most tracks of a label seen at "
+        "one capture time.</p>",
+        _table(["hour (UTC)", "label", "visits", "MaxN", "dwell (s)"],
+               [[hour, lb, int(v[0]), int(v[1]), f"{v[2]:.1f}"]
+                for hour, per in sorted(s.counts_hour.items()) for lb, v in sorted(per.items())]),
+        "<h2>Length-frequency per label</h2>",
+        "<p>From tracks.jsonl: each measured track's length (median of its sharpest views).</p>",
+        *_lengths(s),
         "<h2>Result rates per pool</h2>",
         svg_lines("pairs processed per second", s.rates, f"seconds since the first result "
                   f"({RATE_BIN_S} s bins)", "pairs/s"),
@@ -222,9 +330,10 @@ def render_html(s: RunSummary) -> str:
     return "\n".join(parts) + "\n"
 
 
-def write_report(run_dir: Path, out: Path | None = None) -> Path:
+def write_report(run_dir: Path, out: Path | None = None, events_folder: str = "events",
+                 counts_file: str = "counts.jsonl", tracks_file: str = "tracks.jsonl") -> Path:
     """Summarize run_dir and write the page (default RUN_DIR/report.html); returns its path."""
-    page = render_html(summarize(run_dir))
+    page = render_html(summarize(run_dir, events_folder, counts_file, tracks_file))
     target = out or run_dir / "report.html"
     try:
         target.write_text(page, encoding="utf-8")

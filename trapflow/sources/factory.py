@@ -55,6 +55,14 @@ def _build(cfg: SourceConfig, rig: StereoRig) -> Source:
     raise ConfigError(f"source.kind: expected one of {', '.join(KINDS)}, got {cfg.kind!r}")
 
 
+def calibration_file(cfg: SourceConfig, rig_calibration: str | None) -> str | None:
+    """The calibration file that applies, or None: source.options.rectify wins over
+    rig.calibration. The one place this is decided (the rig at preflight, capture's
+    rectification)."""
+    path = cfg.options.get("rectify", rig_calibration)
+    return str(path) if path else None
+
+
 def open_source(cfg: SourceConfig, rig: StereoRig, calibration: str | None = None) -> Source:
     """Build (not yet open) the source the config names.
 
@@ -63,7 +71,7 @@ def open_source(cfg: SourceConfig, rig: StereoRig, calibration: str | None = Non
     `rig` is the run's rig (trapflow.sources.rig.resolve), which the source then delivers.
     """
     source = build_source(cfg, rig)
-    rectify = cfg.options.get("rectify", calibration)
+    rectify = calibration_file(cfg, calibration)
     if rectify:
         from trapflow.calibration.formats import load_calibration
         from trapflow.sources.rectify import RectifiedSource

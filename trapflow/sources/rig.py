@@ -17,7 +17,7 @@ from trapflow.calibration.formats import load_calibration
 from trapflow.config.schema import Config
 from trapflow.errors import ConfigError
 from trapflow.sources.base import Geometry
-from trapflow.sources.factory import build_source
+from trapflow.sources.factory import build_source, calibration_file
 
 log = logging.getLogger(__name__)
 
@@ -40,8 +40,7 @@ def from_config(cfg: Config, size: tuple[int, int] | None = None) -> StereoRig:
 
 def calibration_path(cfg: Config) -> str | None:
     """The calibration file the config names (source.options.rectify wins), or None."""
-    path = cfg.source.options.get("rectify", cfg.rig.calibration)
-    return str(path) if path else None
+    return calibration_file(cfg.source, cfg.rig.calibration)
 
 
 def mismatch(frames: tuple[int, int], where: str, rig: StereoRig, origin: str) -> str:

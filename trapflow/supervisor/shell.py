@@ -226,6 +226,7 @@ class Supervisor:
                 zmq.SUB, self.endpoints.tap, subscribe=(tap_msgs.TOPIC_STATS,), rcvhwm=4))
             self._install_signals()
             self.boot()
+            self.report.starting(len(self.children))
             self._wait_started()  # every consumer is ready before the first pair exists
             self._spawn(self._child("capture"), time.monotonic())
             self.started = True
@@ -358,7 +359,7 @@ class Supervisor:
                     self.ratelog.warning("stats", "bad stats message: %s", wire(str(exc)))
                     continue
                 if isinstance(msg, tap_msgs.TapStats):
-                    self.ledger_model.on_stats(msg.stats)
+                    self.ledger_model.on_stats(msg.stats, time.monotonic())
         if self.control.sock in events:
             self.control.on_request(self.control.sock.recv())
 

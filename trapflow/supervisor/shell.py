@@ -57,6 +57,7 @@ from trapflow.supervisor.report import NodeView, Report, Snapshot
 from trapflow.supervisor.sensors import Sensors
 from trapflow.supervisor.setup import (
     RunLogging,
+    clear_run_dir,
     create_ring,
     link_latest,
     lock_run_dir,
@@ -246,6 +247,8 @@ class Supervisor:
             self.ctx.destroy(linger=0)
             if self.ring is not None:
                 self.ring.close()  # unlinks the segment: nothing left in /dev/shm
+            if not any(c.alive() for c in self.children):
+                clear_run_dir(self.run_dir)  # sockets and lock: nothing runs here any more
             lock.close()
         return self.exit_code
 
@@ -413,6 +416,8 @@ class Supervisor:
                 c = self._named(a.name)
                 if a.recycled:  # planned: its pool's max_rss_mb or max_jobs
                     log.info("replacing %s, recycled (%s)", c.name, a.recycled)
+                elif a.restart == 0:  # a pool grew (trapflow pool, the viewer): no restart
+                    log.info("starting %s", c.name)
                 else:
                     log.warning("restarting %s (restart %d)", c.name, a.restart)
                 self._respawn(c, now)

@@ -156,17 +156,16 @@ def open_session(
     except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own unrelated exception types
         raise WorkerError(f"cannot load ONNX model {path}: {str(exc).strip()[:300]}") from None
     used = session.get_providers()[0]
-    if used != (wanted[0][0] if wanted else CPU):
-        # Said once on the console however many models and workers (ONCE, trapflow.log
-        # keeps every one); which model runs where is an info line.
-        log.warning(
-            "ONNX runs on %s (requested %s; not available here: %s)",
-            used,
-            ", ".join(p for p, _ in wanted),
-            ", ".join(skipped) or "none",
-            extra={CONSOLE_ONCE: True},
-        )
-    log.info("model %s runs on %s", path.name, used)
+    failed = [p for p, _ in usable if p != CPU and p not in session.get_providers()]
+    if failed:
+        # A provider this onnxruntime has would not start (driver, device, engine): said
+        # once on the console however many models and workers (ONCE, trapflow.log keeps
+        # every one).
+        log.warning("ONNX runs on %s: %s would not start (see onnxruntime's message above)",
+                    used, ", ".join(failed), extra={CONSOLE_ONCE: True})
+    # Providers this onnxruntime lacks (a CPU-only machine, the Pi) are expected: one line.
+    log.info("model %s runs on %s%s", path.name, used,
+             f" (not in this onnxruntime: {', '.join(skipped)})" if skipped else "")
     meta = session.get_modelmeta()
     return Session(
         session=session, path=path, provider=used, metadata=dict(meta.custom_metadata_map or {}),

@@ -83,3 +83,17 @@ def test_settings_give_the_same_outputs_on_a_real_model() -> None:
     x = np.random.default_rng(0).random(shape, dtype=np.float32)
     for a, b in zip(base.run({inp.name: x}), tuned.run({inp.name: x}), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4)
+
+
+def test_a_cpu_only_onnxruntime_falls_back_with_one_info_line(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """Regression (issue 22 item 9): every start on a CPU-only machine printed a
+    TensorRT/CUDA WARNING although CPU is what such a machine is expected to use."""
+    monkeypatch.setattr(ort, "get_available_providers", lambda: ["CPUExecutionProvider"])
+    with caplog.at_level("INFO", logger="trapflow_workers.onnx_session"):
+        s = open_session(MODEL, ("tensorrt", "cuda", "cpu"))
+    assert s.provider == "CPUExecutionProvider"
+    records = [r for r in caplog.records if r.name.endswith("onnx_session")]
+    assert [r.levelname for r in records] == ["INFO"], caplog.text
+    assert "not in this onnxruntime: TensorrtExecutionProvider, CUDAExecutionProvider" \
+        in records[0].getMessage()

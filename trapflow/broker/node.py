@@ -446,8 +446,9 @@ class BrokerNode(Node):
                     wire(action.pool), action.seq, action.reason)
             elif isinstance(action, Evicted):
                 self.remote.roster.evicted(action.worker, action.reason)
-                # A worker told to stop, or recycled, leaves on purpose; anything else is news.
-                level = (logging.INFO if messages.is_planned_goodbye(action.reason)
+                # A worker told to stop, or recycled, leaves on purpose (news for the debug
+                # log only); anything else is news.
+                level = (logging.DEBUG if messages.is_planned_goodbye(action.reason)
                          else logging.WARNING)
                 self.ratelog.log(
                     level, f"evicted:{level}", "evicted worker %s of pool %s (%s); pairs lost: %s",

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import tempfile
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -141,11 +141,15 @@ def calibrate(left_glob: str, right_glob: str, pattern: tuple[int, int], square:
                    "pairs, the normalizer's results tap for results.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="MCAP file to write.")
-def record(run_dir: Path, endpoints: tuple[str, ...], output: Path) -> None:
-    """Record image pairs and results from a running pipeline to an MCAP rosbag2 file."""
+@click.option("--duration", type=click.FloatRange(min=0, min_open=True),
+              help="Stop after this many seconds (default: when the pipeline ends).")
+def record(run_dir: Path, endpoints: tuple[str, ...], output: Path,
+           duration: float | None) -> None:
+    """Record image pairs and results from a running pipeline to an MCAP rosbag2 file,
+    until the pipeline in --run-dir ends (its last results written), --duration or Ctrl-C."""
     from trapflow.recording.recorder import record as record_tap
 
-    rig = None
+    rig, ended = None, None
     if not endpoints:  # pairs from the broker's tap, results from the normalizer's
         from trapflow.config.schema import Config
         from trapflow.wire.transport import Endpoints
@@ -153,12 +157,16 @@ def record(run_dir: Path, endpoints: tuple[str, ...], output: Path) -> None:
         ep = Endpoints.for_run(Config().network, run_dir)
         endpoints = (ep.tap, ep.results_tap)
         rig = _running_rig(run_dir)
+        ended = _pipeline_ended(run_dir)
     from trapflow.recording.recorder import RecorderError
 
     stop = stop_on_signals()
-    click.echo(f"recording {' + '.join(endpoints)} to {output}; Ctrl-C to stop", err=True)
+    until = "the pipeline ends" if ended is not None else "Ctrl-C"
+    if duration is not None:
+        until = f"{duration:g} s or {until}"
+    click.echo(f"recording {' + '.join(endpoints)} to {output} until {until}", err=True)
     try:
-        counts = record_tap(endpoints, output, stop, rig=rig)
+        counts = record_tap(endpoints, output, stop, rig=rig, duration_s=duration, ended=ended)
     except RecorderError as exc:  # the output cannot be written: fix -o
         raise bad_input(exc) from None
     except (TrapflowError, OSError) as exc:
@@ -166,6 +174,22 @@ def record(run_dir: Path, endpoints: tuple[str, ...], output: Path) -> None:
     per_algo = ", ".join(f"{k} {v}" for k, v in sorted(counts.results.items())) or "none"
     click.echo(f"{output}: {counts.pairs} pairs, results: {per_algo}, odometry "
                f"{counts.odometry}, malformed {counts.malformed}")
+
+
+def _pipeline_ended(run_dir: Path) -> Callable[[], bool]:
+    """Whether the pipeline of run_dir, once seen running, has ended (its supervisor gone,
+    every process of it stopped). One not started yet is waited for."""
+    from trapflow.supervisor.setup import supervisor_alive
+
+    seen = False
+
+    def ended() -> bool:
+        nonlocal seen
+        alive = supervisor_alive(run_dir)
+        seen = seen or alive
+        return seen and not alive
+
+    return ended
 
 
 def _running_rig(run_dir: Path) -> StereoRig | None:

@@ -22,7 +22,7 @@ import os
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -57,6 +57,10 @@ _EARLY_MAX = 4096  # result lines held for a pair not yet received
 # Each closed chunk costs a few hundred bytes of index and one fsync; at 1 s, nothing.
 FLUSH_INTERVAL_S = 1.0
 PART_SUFFIX = ".part"
+# How often record() asks whether the pipeline ended, and how long it then waits for the
+# last messages its processes published (ipc delivers them at once; this is slack).
+ENDED_CHECK_S = 0.5
+DRAIN_MS = 300
 
 TOPIC_LEFT_INFO = "/trapflow/left/camera_info"
 TOPIC_RIGHT_INFO = "/trapflow/right/camera_info"
@@ -322,7 +326,8 @@ def _is_pose(value: object) -> bool:
 
 def record(endpoint: str | Sequence[str], out: str | Path, stop: threading.Event,
            counts: RecordCounts | None = None, poll_ms: int = 100,
-           rig: StereoRig | None = None) -> RecordCounts:
+           rig: StereoRig | None = None, duration_s: float | None = None,
+           ended: Callable[[], bool] | None = None) -> RecordCounts:
     """Attach to the tap(s) at endpoint and record image pairs and results until stop is set.
 
     A pipeline publishes pairs on the broker's tap and results on the normalizer's: pass
@@ -330,8 +335,10 @@ def record(endpoint: str | Sequence[str], out: str | Path, stop: threading.Event
 
     counts (optional) is updated live so a caller can watch progress; it is also returned.
     rig (the pipeline's, from its status) is written as CameraInfo beside the images.
-    Malformed tap messages are counted and skipped. The file is closed cleanly however
-    the loop ends (stop, Ctrl-C, an error).
+    Malformed tap messages are counted and skipped. It ends at stop, after duration_s, or
+    once ended() holds (the pipeline is gone: checked every ENDED_CHECK_S), when what its
+    processes published last has been written. The file is closed cleanly however the loop
+    ends (stop, Ctrl-C, an error).
     """
     rec = Recorder(out, rig)
     if counts is not None:
@@ -344,27 +351,46 @@ def record(endpoint: str | Sequence[str], out: str | Path, stop: threading.Event
     except BaseException:
         rec.close()
         raise
+    now = time.monotonic()
+    until = now + duration_s if duration_s is not None else None
+    next_check = now + ENDED_CHECK_S
     try:
         while not stop.is_set():
+            now = time.monotonic()
+            if until is not None and now >= until:
+                log.info("record: duration of %g s reached", duration_s)
+                break
+            if ended is not None and now >= next_check:
+                next_check = now + ENDED_CHECK_S
+                if ended():  # its processes are gone: what they sent is queued here
+                    while sub.poll(DRAIN_MS):
+                        _take(rec, sub)
+                    log.info("record: the pipeline ended")
+                    break
             if not sub.poll(poll_ms):
                 rec.maybe_flush()  # a quiet pipeline: what came last is on disk all the same
                 continue
-            frames = sub.recv_multipart(copy=False)
-            try:
-                msg = decode_tap(frames)
-                if isinstance(msg, TapPair):
-                    rec.add_pair(msg.header, msg.left, msg.right)
-                elif isinstance(msg, TapResult):
-                    rec.add_result(msg.line)
-            except (ProtocolError, RecorderError) as exc:
-                if rec.counts.malformed == 0:
-                    log.warning("record: skipping malformed tap message: %s", exc)
-                rec.counts.malformed += 1
+            _take(rec, sub)
     finally:
         sub.close(linger=0)
         rec.close()
     log.info("record: %d pairs, %d results in %s", rec.counts.pairs, rec.counts.total_results, out)
     return rec.counts
+
+
+def _take(rec: Recorder, sub: zmq.Socket[bytes]) -> None:
+    """One tap message into the recording; a malformed one counted and skipped."""
+    frames = sub.recv_multipart(copy=False)
+    try:
+        msg = decode_tap(frames)
+        if isinstance(msg, TapPair):
+            rec.add_pair(msg.header, msg.left, msg.right)
+        elif isinstance(msg, TapResult):
+            rec.add_result(msg.line)
+    except (ProtocolError, RecorderError) as exc:
+        if rec.counts.malformed == 0:
+            log.warning("record: skipping malformed tap message: %s", exc)
+        rec.counts.malformed += 1
 
 
 def recovered_name(part: Path) -> Path:

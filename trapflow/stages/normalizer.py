@@ -49,6 +49,7 @@ class NormalizerNode(Node):
         super().__init__(spec)
         ep = self.endpoints
         self.link = LinkClient(ep.results_link)  # results from the broker
+        self.link_lost = False  # the link closed; said when it comes back
         # A tap that remembers only prefixes of its one topic (TapGate), whoever subscribes.
         self.pub = open_socket(self.ctx, SocketSpec(zmq.XPUB, ep.results_tap, bind=True,
                                                     sndhwm=256, rcvhwm=TAP_RCVHWM,
@@ -124,6 +125,9 @@ class NormalizerNode(Node):
         if link is None:  # the broker is not listening yet (or restarting)
             time.sleep(LINK_RETRY_S)
             return False
+        if self.link_lost:  # only a link that comes back says the broker restarted
+            self.link_lost = False
+            log.info("results link: reconnected to the broker")
         dirty = False
         written = 0
         try:
@@ -147,7 +151,10 @@ class NormalizerNode(Node):
             if written:  # one acknowledgement for all the batches written in this pass
                 link.send([messages.encode(messages.ResultsAck(count=written))])
         except LinkClosed as exc:  # a new broker will listen at the same path
-            self.ratelog.log(logging.INFO, "closed", "results link: %s; reconnecting", exc)
+            # At a normal stop the broker goes first: a closed link is news only once a
+            # new broker answers (above).
+            log.debug("results link: %s; reconnecting", exc)
+            self.link_lost = True
             self.link.drop()
         return dirty
 

@@ -17,6 +17,7 @@ from typing import Any
 
 import msgspec
 
+from trapflow.supervisor import status_line
 from trapflow.wire.messages import FAILED_PREFIX, CaptureCounters, PoolStats, Stats
 
 __all__ = ["FAILED_PREFIX", "Delivered", "RunLedger", "capture_failures", "combine", "retire",
@@ -175,11 +176,15 @@ class RunLedger:
     # Pairs the brokers had counted lost, per pool, when a planned stop began: what they
     # count lost after it (workers told to leave, a queue never served) is the stop's doing.
     lost_at_stop: dict[str, int] | None = None
+    stats_at: float | None = None  # monotonic time the last stats arrived
+    stats_seen: int = 0  # stats received so far
 
     # --- events ---------------------------------------------------------------------
 
-    def on_stats(self, stats: Stats) -> None:
+    def on_stats(self, stats: Stats, now: float | None = None) -> None:
         self._broker = stats
+        self.stats_at = now
+        self.stats_seen += 1
         self.stats = combine(self._retired, stats)
 
     def on_capture(self, counters: CaptureCounters) -> None:
@@ -305,42 +310,14 @@ class RunLedger:
         return out
 
     def status_text(self, up: float, restarts: dict[str, int], width: int = STATUS_WIDTH,
-                    level: str = "") -> str:
-        """One line of at most `width` columns: seconds up, pairs/s in (pairs in), then per
-        pool workers and results/s, with drops, failures, losses and restarts only when
-        there are any. The widest pools (most workers) come first; those that do not fit
-        are counted ("+2 pools"); `trapflow status` shows them all. A degraded ladder
+                    level: str = "", stale_s: float = 0.0) -> str:
+        """One line of at most `width` columns with every pool (trapflow.supervisor.
+        status_line); `stale_s`: seconds since the last stats arrived. A degraded ladder
         `level` is shown after the input rate."""
-        s = self.stats
-        if s is None:
+        if self.stats is None:
             return f"{up:6.1f}s | waiting for stats"[:width]
-        cap = self.capture()
-        head = f"{up:6.1f}s | in {s.rate_in:5.1f}/s ({s.pairs_in})"
-        if level:  # the ladder has stepped down: said before the pools
-            head += f" [{level}]"
-        if cap.dropped:
-            head += f" cap-drop {cap.dropped}"
-        if cap.failed:
-            head += f" cap-fail {cap.failed}"
-        pools = []
-        for name, p in sorted(s.pools.items(), key=lambda kv: (-kv[1].workers, kv[0])):
-            flags = "".join(f" {k} {n}" for k, n in (
-                ("drop", p.dropped + p.inactive + p.throttled + p.stale), ("err", p.errors),
-                ("lost", p.lost),
-                ("rst", restarts.get(name, 0))) if n)
-            state = "" if p.active else " (inactive)"
-            pools.append(f"{name}{state} {p.workers}w {p.rate:.1f}/s{flags}")
-        line = " | ".join([head, *pools])
-        if len(line) <= width:
-            return line
-        room = width - len(f" | +{len(pools)} pools")  # kept for counting those left out
-        line, left = head[:room], 0
-        for part in pools:
-            if len(line) + 3 + len(part) <= room:
-                line += " | " + part
-            else:
-                left += 1
-        return f"{line} | +{left} pools"
+        return status_line.render(self.stats, self.capture(), up, restarts, width,
+                                  level=level, stale_s=stale_s)
 
 
 def totals_text(ledger: dict[str, Any]) -> str:

@@ -19,6 +19,7 @@ from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import Config, EnergyConfig
 from trapflow.gate.energy import BOARDS, estimate
 from trapflow.supervisor import ledger as run_ledger
+from trapflow.supervisor import status_line
 from trapflow.supervisor import summary as run_summary
 from trapflow.supervisor.ledger import RunLedger
 from trapflow.supervisor.state import SupervisorState
@@ -95,6 +96,11 @@ class Report:
         self.core = core
         self.ledger_model = ledger_model
         self.snapshot = snapshot
+        self._shown: tuple[int, bool] | None = None  # the stats last printed, and stale
+
+    def starting(self, processes: int) -> None:
+        """The one line while the processes start (stats come seconds later)."""
+        self._write(f"{time.monotonic() - self.t0:6.1f}s | starting {processes} processes")
 
     def status(self) -> dict[str, Any]:
         """Everything `trapflow status` shows, as JSON-able builtins."""
@@ -141,16 +147,31 @@ class Report:
                 out[c.pool] = out.get(c.pool, 0) + self.core.node(c.name).restart_total
         return out
 
+    def _stale_s(self, now: float) -> float:
+        at = self.ledger_model.stats_at
+        return 0.0 if at is None else now - at
+
     def status_text(self) -> str:
         """One line: time, pairs/s in, per pool processed/s, dropped, restarts."""
         view = self.core.pools.ladder_view()
         level = view["level"] if view is not None and view["index"] else ""
-        return self.ledger_model.status_text(time.monotonic() - self.t0,
-                                             self._pool_restarts(self.snapshot()), level=level)
+        now = time.monotonic()
+        return self.ledger_model.status_text(now - self.t0,
+                                             self._pool_restarts(self.snapshot()), level=level,
+                                             stale_s=self._stale_s(now))
 
     def status_line(self) -> None:
-        """The status line on the console: rewritten in place on a terminal."""
-        line = self.status_text()
+        """The status line on the console: rewritten in place on a terminal; elsewhere a
+        line only when stats came since the last one (or they turned stale), so a line
+        never repeats rates that were not measured again."""
+        shown = (self.ledger_model.stats_seen,
+                 self._stale_s(time.monotonic()) > status_line.STALE_S)
+        if not self.out.isatty() and shown == self._shown:
+            return
+        self._shown = shown
+        self._write(self.status_text())
+
+    def _write(self, line: str) -> None:
         out = self.out
         if out.isatty():
             out.write("\r\x1b[K" + line)

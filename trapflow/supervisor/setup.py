@@ -67,6 +67,31 @@ def discard_run_dir(run_dir: Path) -> bool:
     return True
 
 
+def clear_run_dir(run_dir: Path) -> None:
+    """At an orderly end, no process of the run left: its socket files and its lock file
+    go (removed while still held, so no other start can slip in between). After a crash
+    they stay, and the next start in the directory replaces them."""
+    try:
+        for path in run_dir.iterdir():
+            if path.name == LOCK_FILE or stat.S_ISSOCK(path.lstat().st_mode):
+                path.unlink(missing_ok=True)
+    except OSError as exc:  # a tidy-up only: the run's results are written
+        log.debug("could not tidy up %s: %s", run_dir, exc)
+
+
+def supervisor_alive(run_dir: Path) -> bool:
+    """Whether the supervisor holding run_dir runs: its lock file names it (the file is
+    gone after an orderly end; after a crash its pid names no process)."""
+    try:
+        pid = int((run_dir / LOCK_FILE).read_text().strip())
+        if pid <= 0:  # a torn write; never a process group
+            return False
+        os.kill(pid, 0)
+    except (OSError, ValueError) as exc:
+        return isinstance(exc, PermissionError)  # another user's: alive
+    return True
+
+
 def lock_run_dir(run_dir: Path) -> IO[str]:
     """Hold the run directory for this process (its pid in the lock file) until closed;
     StartupError when another trapflow holds it."""

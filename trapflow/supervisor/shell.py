@@ -57,6 +57,7 @@ from trapflow.supervisor.report import NodeView, Report, Snapshot
 from trapflow.supervisor.sensors import Sensors
 from trapflow.supervisor.setup import (
     RunLogging,
+    clear_run_dir,
     create_ring,
     link_latest,
     lock_run_dir,
@@ -226,6 +227,7 @@ class Supervisor:
                 zmq.SUB, self.endpoints.tap, subscribe=(tap_msgs.TOPIC_STATS,), rcvhwm=4))
             self._install_signals()
             self.boot()
+            self.report.starting(len(self.children))
             self._wait_started()  # every consumer is ready before the first pair exists
             self._spawn(self._child("capture"), time.monotonic())
             self.started = True
@@ -245,6 +247,8 @@ class Supervisor:
             self.ctx.destroy(linger=0)
             if self.ring is not None:
                 self.ring.close()  # unlinks the segment: nothing left in /dev/shm
+            if not any(c.alive() for c in self.children):
+                clear_run_dir(self.run_dir)  # sockets and lock: nothing runs here any more
             lock.close()
         return self.exit_code
 
@@ -358,7 +362,7 @@ class Supervisor:
                     self.ratelog.warning("stats", "bad stats message: %s", wire(str(exc)))
                     continue
                 if isinstance(msg, tap_msgs.TapStats):
-                    self.ledger_model.on_stats(msg.stats)
+                    self.ledger_model.on_stats(msg.stats, time.monotonic())
         if self.control.sock in events:
             self.control.on_request(self.control.sock.recv())
 
@@ -412,6 +416,8 @@ class Supervisor:
                 c = self._named(a.name)
                 if a.recycled:  # planned: its pool's max_rss_mb or max_jobs
                     log.info("replacing %s, recycled (%s)", c.name, a.recycled)
+                elif a.restart == 0:  # a pool grew (trapflow pool, the viewer): no restart
+                    log.info("starting %s", c.name)
                 else:
                     log.warning("restarting %s (restart %d)", c.name, a.restart)
                 self._respawn(c, now)

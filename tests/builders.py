@@ -4,6 +4,7 @@ pairs a source gives."""
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import cv2
 import numpy as np
@@ -12,6 +13,25 @@ from trapflow.calibration.camera import StereoRig
 from trapflow.calibration.model import StereoCalibration
 from trapflow.sources.base import Frames, SkipPair, Source
 from trapflow.wire import messages
+
+
+def vo_line(reinit: bool = False, ok: bool = True) -> dict[str, Any]:
+    """A VO line as the normalizer writes it (trapflow.stages.result_json), with Rt (when ok)
+    and pose: a small step about a skew axis, a pose far from the start (a large turn, metres
+    away)."""
+    from trapflow.stages.result_json import normalize
+
+    step = cv2.Rodrigues(np.array([0.0031, -0.0122, 0.0007]))[0]
+    pose = np.hstack([cv2.Rodrigues(np.array([0.4, -1.9, 0.25]))[0],
+                      [[3.21987], [-0.75432], [12.3457]]])
+    body = messages.StereoVO(ok=ok, rotation=tuple(step.ravel()) if ok else (),
+                             translation=(0.0123456789, -0.0031234, 0.1987654321),
+                             pose=tuple(pose.ravel()), inliers=143 if ok else 3,
+                             reinit=reinit, calib="0a1b2c3d")
+    line = normalize(result(body, seq=1234567, t_wall_ns=1_764_000_000_123_000_000,
+                            pool="vo"))[0]
+    assert ("Rt" in line["stereo_vo"]) == ok and "pose" in line["stereo_vo"]
+    return line
 
 
 def pair_header(seq: int = 0, width: int = 64, height: int = 48,

@@ -1,5 +1,6 @@
 """Forged and hostile messages against a real pipeline: forged answers, a second
-normalizer, multi-frame control requests, log floods (issue 16 items 2, 5 and 8).
+normalizer, multi-frame control requests, log floods (issue 16 items 2, 5 and 8), a
+worker's result for another pair or pool (issue 26 item 4).
 
 Every forgery goes over the real socket or local link of a running pipeline; each test
 checks what reached results.jsonl against the run's own ledger.
@@ -126,6 +127,63 @@ def test_forged_answers_on_the_workers_socket_and_link_are_never_written(
     stranger.close()
     impostor.close()
     _stop_and_check_ledger(p, run_dir)
+
+
+@pytest.mark.timeout(120)
+def test_a_worker_cannot_attach_a_result_for_another_pair_or_pool(
+        spawn, run_dir: Path, zctx) -> None:
+    """Issue 26 item 4: the broker checked a Done but forwarded its result unread, so a
+    worker could answer a pair it was given with any result (pair 179 answered with a
+    stereo "scallop 0.99" for seq 123456789, written). Here a real worker-side DEALER joins
+    a pool, takes pairs, and answers them with results naming another seq or pool: none is
+    written, each is counted by reason; its one honest answer is written."""
+    # The pool's own worker is slow, so the broker gives the joined socket most pairs.
+    cfg = write_config(run_dir.parent / "attach.yaml", {"source": SMALL, "pools": only_pools(
+        {"fast": {"plugin": "slow", "policy": "fifo:64", "timeout_s": 60.0,
+                  "params": {"delay_s": 0.2}}})})
+    p: Pipeline = spawn(["--config", str(cfg)], run_dir)
+    p.wait_active()
+    poll_for(lambda: len(p.results()) > 3, 30, what="first results")
+    name = identity.worker_identity("fast", 9, os.getpid())  # a second worker of the pool
+    worker = zctx.socket(zmq.DEALER)
+    worker.setsockopt(zmq.IDENTITY, name.encode())
+    worker.connect(f"ipc://{run_dir.resolve() / 'workers.sock'}")
+    try:
+        worker.send_multipart([messages.encode(messages.Ready(worker=name, pool="fast",
+                                                              credit=7))])
+        given = [messages.decode_pair_header(recv(worker, 10)[1]).seq for _ in range(7)]
+        claims = [(123456789, "fast"), (given[1] + 1, "fast"), (-5, "fast"),  # another pair
+                  (given[3], "mono"), (given[4], "other"), (given[5], "")]  # another pool
+        for seq, (named, pool) in zip(given, claims, strict=False):
+            body = messages.Extra(name="slow", fields={FORGED: 1, "gap": 0})
+            worker.send_multipart([
+                messages.encode(messages.Done(worker=name, pool="fast", seq=seq)),
+                messages.encode(builders.result(body, seq=named, pool=pool))])
+        honest = messages.Extra(name="slow", fields={"honest": 1, "gap": 0})  # the way works
+        worker.send_multipart([
+            messages.encode(messages.Done(worker=name, pool="fast", seq=given[6])),
+            messages.encode(builders.result(honest, seq=given[6], pool="fast"))])
+
+        def counted() -> dict[str, int] | None:  # counters come with the broker's heartbeats
+            st = p.status()
+            c: dict[str, int] = _node(st, "broker")["counters"] if st else {}
+            done = c.get("rejected_result_seq", 0) == 3 and c.get("rejected_result_pool") == 3
+            return c if done else None
+
+        poll_for(counted, 15, what="6 foreign results counted")
+        poll_for(lambda: [r for r in p.results() if "honest" in json.dumps(r)], 15,
+                 what="the honest answer")
+    finally:
+        worker.close(linger=0)
+    code, _, err = p.stop(signal.SIGINT)
+    assert code == 0, err
+    rows = p.results()
+    assert not [r for r in rows if FORGED in json.dumps(r)], "a foreign result was written"
+    assert [r["slow"]["seq"] for r in rows if "honest" in r["slow"]] == [given[6]]
+    processed = json.loads((run_dir / "ledger.json").read_text())["pools"]["fast"]["processed"]
+    assert processed == len({r["slow"]["seq"] for r in rows}) == len(rows)
+    text = (run_dir / "trapflow.log").read_text()
+    assert "its result names pair 123456789 of pool 'fast'" in text
 
 
 @pytest.mark.timeout(120)

@@ -262,3 +262,51 @@ def test_late_answer_of_timed_out_worker_is_taken_once() -> None:
     assert s.late == 1
     again = s.job_done(W1, "p", 0, True, 11.6)
     assert [a.reason for a in again if isinstance(a, Rejected)] == ["not_dispatched"]
+
+
+@pytest.mark.parametrize(("who", "seq", "named", "reason"), [
+    (W1, 0, (0, "p"), None),  # the result of the pair W1 holds, in its pool: taken
+    (W1, 0, (123456789, "p"), "result_seq"),  # a result for a pair W1 was never given
+    (W1, 0, (1, "p"), "result_seq"),  # for a pair that exists but is pending, not W1's
+    (W1, 0, (0, "q"), "result_pool"),  # the right pair, another pool's result (W2's)
+    (W1, 0, (7, "q"), "result_seq"),  # both wrong: the seq is named first
+    (W1, 0, (-1, ""), "result_seq"),
+    (W1, 7, (0, "p"), "not_dispatched"),  # the Done itself is forged: that reason wins
+    (W2, 0, (0, "p"), "unknown_worker"),  # W2 is in pool q: its Done for p is refused first
+])
+def test_result_must_name_the_pair_and_pool_of_its_done(
+        who: bytes, seq: int, named: tuple[int, str], reason: str | None) -> None:
+    """Issue 26 item 4: a worker attached any result to a pair it was given (pair 179
+    answered with a "scallop 0.99" for seq 123456789, written): the broker checked the Done
+    but forwarded the result unread. A result must name the Done's seq and pool."""
+    s = state(p="latest", q="latest")
+    s.worker_ready(W1, "p", 1, 0.0)
+    s.worker_ready(W2, "q", 1, 0.0)
+    s.pair_arrived(0, 0.0)  # dispatched to W1 in p and to W2 in q
+    s.pair_arrived(1, 0.0)  # pending in p
+    before = (_answered(s), s.held())
+    acts = s.job_done(who, "p", seq, True, 0.5, named=named)
+    rejected = [(a.reason, a.named) for a in acts if isinstance(a, Rejected)]
+    if reason is None:
+        assert not rejected and _answered(s) == (1, 0, 1)  # pair 1 went to W1 at once
+        assert s.rejected == {}
+        return
+    assert rejected == [(reason, named if reason.startswith("result_") else None)]
+    assert not dispatched(acts) and not released(acts)  # no credit came back
+    assert (_answered(s), s.held()) == before
+    assert s.rejected == {reason: 1}
+
+
+def test_late_answer_with_a_foreign_result_is_rejected_and_the_true_one_still_taken() -> None:
+    """Issue 26 item 4: the late path (a timed-out worker answering once) checks the result
+    too, and a refused one does not use up the late answer."""
+    s = state(p="latest")
+    s.worker_ready(W1, "p", 1, 0.0)
+    s.pair_arrived(0, 0.0)
+    s.tick(11.0)  # W1 timed out holding pair 0
+    acts = s.job_done(W1, "p", 0, True, 11.5, named=(5, "p"))
+    assert [a.reason for a in acts if isinstance(a, Rejected)] == ["result_seq"]
+    assert s.late == 0
+    assert not [a for a in s.job_done(W1, "p", 0, True, 11.6, named=(0, "p"))
+                if isinstance(a, Rejected)]
+    assert s.late == 1

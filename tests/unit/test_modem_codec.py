@@ -9,6 +9,7 @@ from typing import Any
 import msgspec
 import pytest
 
+from tests import builders
 from trapflow.errors import ProtocolError
 from trapflow.modem.codec import GENERIC, LinkCodec
 from trapflow.modem.frame import (
@@ -225,3 +226,29 @@ def test_other_calib_values_still_round_trip(calib: Any) -> None:
                             "calib": calib}}
     codec = LinkCodec()
     assert codec.decode(codec.encode(record)) == record
+
+
+@pytest.mark.parametrize(("reinit", "ok"), [(False, True), (True, True), (False, False)])
+def test_a_vo_line_with_its_pose_fits_a_frame_and_round_trips(reinit: bool, ok: bool) -> None:
+    """Issue 26 item 5: the codec had no `pose` (nor `reinit`), so every VO line went GENERIC
+    at 320 bytes and the sender rejected it as too large: no VO result reached the surface.
+    `pose` rides like `Rt`: rotation vector at 1e-4 rad, translation at 1e-4 m; decoded,
+    rotation elements are within 2e-4 and translations within 5e-5 m of the line's."""
+    from trapflow.config.modem import ModemConfig
+    from trapflow.modem.frame import SESSION_BYTES
+
+    line = builders.vo_line(reinit, ok)
+    data = LinkCodec().encode(line)
+    assert data[0] == 3  # the stereo_vo kind, not GENERIC
+    max_body = ModemConfig().max_frame_payload - 12 - SESSION_BYTES  # the sender's limit
+    assert len(data) <= 48 <= max_body, len(data)  # 46 bytes measured for the first row
+    back = LinkCodec().decode(data)["stereo_vo"]
+    sent = line["stereo_vo"]
+    assert set(back) == set(sent)
+    for key in ("timestamp", "seq", "ok", "inliers", "calib", "v"):
+        assert back[key] == sent[key], key
+    assert back.get("reinit", False) is reinit
+    for key in ("Rt", "pose") if ok else ("pose",):
+        for got, want in zip(back[key], sent[key], strict=True):
+            assert max(abs(g - w) for g, w in zip(got[:3], want[:3], strict=True)) <= 2e-4, key
+            assert abs(got[3] - want[3]) <= 5e-5, key

@@ -290,6 +290,50 @@ def test_counter_survives_a_restart_and_a_lost_reply_is_never_run_again(tmp_path
         C.load_counter(path, SESSION)
 
 
+COUNT_3 = Command(CMD_POOL_COUNT, "stereo", count=3)
+LOST_CHANGE = "no longer applies"  # the words of a cached reply from an earlier start
+LOST_REPLY = "its reply is lost"
+
+
+@pytest.mark.parametrize("taken_in, now_in, cmd, replied, status, words", [
+    # the modem node restarted within one run of the box: the change still holds, "ok"
+    ("run-a", "run-a", COUNT_3, True, REPLY_OK, "count 1 -> 3"),
+    # a power cut: the box runs its configured count again, so "ok" would be false
+    ("run-a", "run-b", COUNT_3, True, REPLY_LOST, LOST_CHANGE),
+    # the same for any command: a status of a run that ended says nothing of this one
+    ("run-a", "run-b", Command(CMD_STATUS), True, REPLY_LOST, LOST_CHANGE),
+    # taken, then the power went before its reply was saved
+    ("run-a", "run-b", COUNT_3, False, REPLY_LOST, LOST_CHANGE),
+    # taken, then the modem node died before its reply was saved (the run goes on)
+    ("run-a", "run-a", COUNT_3, False, REPLY_LOST, LOST_REPLY),
+    # a counter file saved before runs were named predates this start too
+    ("", "run-b", COUNT_3, True, REPLY_LOST, LOST_CHANGE),
+])
+def test_a_cached_reply_after_a_restart_says_the_change_was_lost(
+        tmp_path: Path, taken_in: str, now_in: str, cmd: Command, replied: bool,
+        status: int, words: str) -> None:
+    """Issue 26 item 6: `pool stereo --count 3` ran, its reply was lost, the box lost power;
+    the retransmission got the cached "ok, count 1 -> 3" while the restarted box ran 1
+    worker. Runtime changes end with the run that made them: a cached reply is repeated only
+    in the run it was made in, and after a restart the surface hears the change was lost.
+    The command never runs twice either way."""
+    path = tmp_path / "commands.json"
+    before = C.CommandGuard(KEY, SESSION, C.load_counter(path, SESSION), run=taken_in)
+    d = before.receive(cmd_payload(3, cmd), 0.0)
+    assert isinstance(d, C.Execute)
+    C.save_counter(path, d.state)  # before it runs
+    if replied:
+        _, state = before.finished(3, REPLY_OK, {"changed": "stereo", "change": "count 1 -> 3"})
+        C.save_counter(path, state)
+    after = C.CommandGuard(KEY, SESSION, C.load_counter(path, SESSION), run=now_in)
+    again = after.receive(cmd_payload(3, cmd), 0.0)
+    assert isinstance(again, C.Reply) and again.repeat
+    counter, got, data = reply_of(again.payload)
+    assert (counter, got) == (3, status)
+    assert words in str(data), data
+    assert "accepted" not in after.counts  # never executed again
+
+
 def test_reply_body_fits_one_frame() -> None:
     long = {"error": "x" * 400}
     body = C.reply_body(REPLY_ERROR, long)

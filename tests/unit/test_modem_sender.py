@@ -9,6 +9,7 @@ from typing import Any
 import msgspec
 import pytest
 
+from tests import builders
 from tests.conftest import poll_for
 from trapflow.config.modem import HealthConfig, ModemConfig, OutboxConfig
 from trapflow.modem.codec import LinkCodec
@@ -177,6 +178,39 @@ def test_commands_come_in_and_replies_go_out_first_within_rate_and_budget(tmp_pa
         sender.send_reply(b"\x04" * 24, repeat=True)
         sender.step(t + 30)
         assert sender.stats()["replies_over_share"] == 1 and not sender.replies
+    finally:
+        sender.close()
+        box.close()
+        os.close(master)
+        os.close(slave)
+
+
+def test_unsendable_records_are_counted_and_logged_once_per_kind(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 26 item 5: every VO record was rejected as too large in silence (1,141 of 1,141
+    in a power-cut run). A VO line now goes out; a record too large even so is counted
+    (`too_large`, in the modem node's counters) and logged once per kind of record."""
+    import os
+    import tty
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    path = tmp_path / "outbox.sqlite"
+    box = Outbox(path, OutboxConfig())
+    for _ in range(3):
+        box.append(builders.vo_line())
+        box.append({"bulky": {"blob": "x" * 400}})
+    box.append({"huge": {"blob": "y" * 400}})
+    sender = ModemSender(path, os.ttyname(slave), ModemConfig(aggregate=[], ttl_s={}))
+    try:
+        with caplog.at_level("WARNING", logger="trapflow.modem.sender"):
+            sender.step(1000.0)
+        told = [r.getMessage() for r in caplog.records if "cannot be sent" in r.getMessage()]
+        assert sender.counters["too_large"] == 4
+        assert len(told) == 2, told  # one line per kind: bulky, huge
+        assert "(bulky)" in told[0] and "too_large" in told[0] and "bytes encoded" in told[0]
+        assert sender.stats()["too_large"] == 4
+        assert sender.stats()["queued"].get("stereo_vo") or sender.stats()["in_flight"] >= 1
     finally:
         sender.close()
         box.close()

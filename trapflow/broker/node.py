@@ -331,7 +331,10 @@ class BrokerNode(Node):
             if len(frames) != 3:
                 raise ProtocolError(
                     f"done: expected 3 frames [id, done, result], got {len(frames)}")
-            actions = self.state.job_done(ident, msg.pool, msg.seq, True, now)
+            # Read, not forwarded unread: its seq and pool must be the Done's (issue 26).
+            result = messages.decode_result(frames[2])
+            actions = self.state.job_done(ident, msg.pool, msg.seq, True, now,
+                                          named=(result.seq, result.pool))
             if not any(isinstance(a, Rejected) for a in actions):
                 self._out.append(frames[2])  # only an answer to a job this worker was given
                 self.remote.roster.processed(ident)
@@ -439,11 +442,15 @@ class BrokerNode(Node):
                 if ref is not None and self.ring is not None:
                     self.ring.free_ref(ref)
             elif isinstance(action, Rejected):
+                if action.named is None:
+                    why = "it was not dispatched to that worker or was answered already"
+                else:
+                    why = (f"its result names pair {action.named[0]} of pool "
+                           f"'{wire(action.named[1])}': expected that pair of that pool")
                 self.ratelog.warning(
                     "rejected:" + action.reason,
-                    "dropped an answer from worker '%s' for pool '%s' pair %d (%s): it was not "
-                    "dispatched to that worker or was answered already", wire(action.worker),
-                    wire(action.pool), action.seq, action.reason)
+                    "dropped an answer from worker '%s' for pool '%s' pair %d (%s): %s",
+                    wire(action.worker), wire(action.pool), action.seq, action.reason, why)
             elif isinstance(action, Evicted):
                 self.remote.roster.evicted(action.worker, action.reason)
                 # A worker told to stop, or recycled, leaves on purpose (news for the debug

@@ -41,6 +41,10 @@ MAX_LATE_WORKERS = 256
 REJECT_UNKNOWN_POOL = "unknown_pool"
 REJECT_UNKNOWN_WORKER = "unknown_worker"
 REJECT_NOT_DISPATCHED = "not_dispatched"
+# A Done for a pair its worker holds whose result names another pair or pool: a worker must
+# not attach any result to a pair it was given (issue 26 item 4).
+REJECT_RESULT_SEQ = "result_seq"
+REJECT_RESULT_POOL = "result_pool"
 
 
 @dataclass(frozen=True)
@@ -73,12 +77,14 @@ class Evicted:
 @dataclass(frozen=True)
 class Rejected:
     """An answer for a (worker, seq) that was never dispatched to that worker, or was
-    answered already: forged or confused. Nothing of it is applied; its result is dropped."""
+    answered already, or a Done whose result names another pair or pool: forged or confused.
+    Nothing of it is applied; its result is dropped (a pair it held ends as timed out)."""
 
     worker: bytes
     pool: str
     seq: int
     reason: str
+    named: tuple[int, str] | None = None  # (seq, pool) the result named, for result_* reasons
 
 
 Action = Dispatch | Release | Evicted | Rejected
@@ -190,25 +196,34 @@ class BrokerState:
         return self.worker_ready(ident, pool_name, free, now) if free > 0 else []
 
     def job_done(
-        self, ident: bytes, pool_name: str, seq: int, ok: bool, now: float, kind: str = "error"
+        self, ident: bytes, pool_name: str, seq: int, ok: bool, now: float, kind: str = "error",
+        named: tuple[int, str] | None = None,
     ) -> list[Action]:
         """A worker finished (ok) or failed (with a kind) a pair; one credit comes back.
+        `named`: the (seq, pool) that a Done's result says it answers.
 
         Only an answer for a pair dispatched to this very worker and not answered yet is
-        taken; anything else returns a single Rejected and changes nothing else. A worker
-        evicted while it held the pair (timed out, presumed dead) may still answer it once:
-        it rejoins with the credit, and the answer counts as late.
+        taken, and a Done only with a result for that pair and the worker's pool; anything
+        else returns a single Rejected and changes nothing else. A worker evicted while it
+        held the pair (timed out, presumed dead) may still answer it once: it rejoins with
+        the credit, and the answer counts as late.
         """
         pool = self._pools.get(pool_name)
         if pool is None:
             return self._reject(ident, pool_name, seq, REJECT_UNKNOWN_POOL)
         w = pool.workers.get(ident)
         actions: list[Action] = []
-        if w is None or seq not in w.in_flight:
-            late = self._late.get(ident)
-            if late is None or late.get(seq) != pool_name:
-                reason = REJECT_UNKNOWN_WORKER if w is None else REJECT_NOT_DISPATCHED
-                return self._reject(ident, pool_name, seq, reason)
+        given = w is not None and seq in w.in_flight
+        late = None if given else self._late.get(ident)
+        if not given and (late is None or late.get(seq) != pool_name):
+            reason = REJECT_UNKNOWN_WORKER if w is None else REJECT_NOT_DISPATCHED
+            return self._reject(ident, pool_name, seq, reason)
+        if named is not None and named != (seq, pool_name):
+            # The Done is for a pair this worker holds (pool_name is its pool); the result
+            # speaks of another pair or pool.
+            reason = REJECT_RESULT_SEQ if named[0] != seq else REJECT_RESULT_POOL
+            return self._reject(ident, pool_name, seq, reason, named)
+        if late is not None:
             del late[seq]  # its pair was counted when it was evicted; now it is answered
             if not late:
                 del self._late[ident]
@@ -216,6 +231,7 @@ class BrokerState:
             if w is None:  # evicted earlier; it is alive, so it rejoins
                 w = pool.workers.setdefault(ident, _Worker(ident, pool_name))
         else:
+            assert w is not None  # given
             del w.in_flight[seq]
             arrived = self._arrived.get(seq)
             if arrived is not None:
@@ -388,9 +404,10 @@ class BrokerState:
                              f"{', '.join(sorted(self._pools)) or 'none'})")
         return pool
 
-    def _reject(self, ident: bytes, pool: str, seq: int, reason: str) -> list[Action]:
+    def _reject(self, ident: bytes, pool: str, seq: int, reason: str,
+                named: tuple[int, str] | None = None) -> list[Action]:
         self.rejected[reason] = self.rejected.get(reason, 0) + 1
-        return [Rejected(ident, pool, seq, reason)]
+        return [Rejected(ident, pool, seq, reason, named)]
 
     def _remember_late(self, ident: bytes, pool: str, lost: tuple[int, ...]) -> None:
         if not lost:

@@ -3,7 +3,8 @@
 A body is one kind byte, a varint bitmask of the fields present, then each field in
 a fixed order with a fixed quantisation (confidence 0.005, pixels 0.1, rotation as a
 rotation vector at 1e-4 rad, translation 1e-4, timestamps in ms). A record that does
-not fit its kind's table is sent as msgpack (kind GENERIC), so nothing is refused.
+not fit its kind's table is sent as msgpack (kind GENERIC); one too large for a frame even
+so is refused by the sender, counted (`too_large`) and logged once per kind.
 """
 
 from __future__ import annotations
@@ -413,7 +414,12 @@ KINDS: dict[int, tuple[str, list[tuple[str, tuple[Enc, Dec]]]]] = {
     2: ("stereo_ir", [("timestamp", TS), ("seq", UINT), ("label", LABEL), ("confidence", CONF),
                       ("calib", CALIB), ("v", UINT), ("model", CALIB)]),
     3: ("stereo_vo", [("timestamp", TS), ("seq", UINT), ("ok", BOOL), ("Rt", (_enc_rt, _dec_rt)),
-                      ("inliers", UINT), ("calib", CALIB), ("v", UINT)]),
+                      ("inliers", UINT), ("calib", CALIB), ("v", UINT),
+                      # appended (issue 26): without them every VO line went GENERIC, 320
+                      # bytes, too large for a frame. The pose rides like Rt (rotation vector
+                      # 1e-4 rad, translation 0.1 mm): about 47 bytes a line in all, so the
+                      # surface reads the track itself, not composed from lines that may be lost.
+                      ("pose", (_enc_rt, _dec_rt)), ("reinit", BOOL)]),
     4: ("tags", [("timestamp", TS), ("seq", UINT), ("id", UINT),
                  ("corners", (_enc_corners, _dec_corners)),
                  ("rotation", (_enc_rotation, _dec_rotation)),

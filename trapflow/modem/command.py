@@ -125,6 +125,9 @@ class CounterState(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     counter: int = 0  # the highest accepted counter
     tag: str = ""  # hex tag of that command: a retransmission carries the same
     reply: str = ""  # hex reply payload sent for it ("" until it has run)
+    # The supervisor run it was taken in: runtime changes (pool counts, levels, parameters)
+    # live only as long as that run, so after a restart its cached "ok" no longer holds.
+    run: str = ""
 
 
 def load_counter(path: Path, session: bytes) -> CounterState:
@@ -192,6 +195,7 @@ class CommandGuard:
     key: bytes | None  # None: no key configured, every command is refused
     session: bytes
     state: CounterState
+    run: str = ""  # this start of the box (trapflow.runtime.node.NodeSpec.run_id)
     running: int | None = None  # counter of the command being executed
     disabled: str = ""  # why every command is refused (the counter file cannot be trusted)
     counts: dict[str, int] = field(default_factory=dict)
@@ -230,18 +234,18 @@ class CommandGuard:
                 f"{REPEAT_REPLY_INTERVAL_S:g} s)",
             )
         self._next_repeat_reply = (counter, now + REPEAT_REPLY_INTERVAL_S)
-        if self.state.reply:
+        if self.state.reply and self.state.run == self.run:
             return Reply(bytes.fromhex(self.state.reply), repeat=True)
-        # Taken before a restart of the box, its reply unsaved: it never runs twice.
-        return Reply(
-            self.reply(
-                counter,
-                REPLY_LOST,
-                {"error": f"command {counter} was taken before the box restarted; its reply "
-                 "is lost"},
-            ),
-            repeat=True,
-        )
+        if self.state.run != self.run:
+            # Taken in an earlier start of the box (a power cut): whatever it changed was
+            # runtime state, gone with that start, so its cached "ok" would now be false
+            # (issue 26). It never runs twice: the surface sends it again to apply it.
+            why = (f"command {counter} ran before the box restarted: what it changed no "
+                   "longer applies (runtime changes end with a restart); send it again")
+        else:
+            # Taken before the modem node restarted in this run, its reply unsaved.
+            why = f"command {counter} was taken before the box restarted; its reply is lost"
+        return Reply(self.reply(counter, REPLY_LOST, {"error": why}), repeat=True)
 
     def reply(self, counter: int, status: int, data: dict[str, Any]) -> bytes:
         """A signed REPLY payload for this counter."""
@@ -312,7 +316,7 @@ class CommandGuard:
             # reply says why, and a retransmission gets that reply.
             cmd = Command(0, text=str(exc))
         self.state = CounterState(
-            session=self.session.hex(), counter=frame.counter, tag=frame.tag.hex()
+            session=self.session.hex(), counter=frame.counter, tag=frame.tag.hex(), run=self.run
         )
         self.running = frame.counter
         self._count("accepted")

@@ -300,7 +300,7 @@ REPLY_ERROR = 1  # executed but the supervisor refused or could not answer; body
 REPLY_STALE = 2  # counter at or below the last accepted one; body: that counter
 REPLY_SESSION = 3  # addressed to another session; the reply carries the box's own
 REPLY_BUSY = 4  # another command is still running: send this one again later
-REPLY_LOST = 5  # executed before a restart of the box; its reply is lost
+REPLY_LOST = 5  # executed before a restart of the box; its reply (or its change) is lost
 REPLY_STATUSES = {REPLY_OK: "ok", REPLY_ERROR: "error", REPLY_STALE: "stale",
                   REPLY_SESSION: "session", REPLY_BUSY: "busy", REPLY_LOST: "lost"}  # fmt: skip
 

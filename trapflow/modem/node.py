@@ -14,6 +14,7 @@ the outbox, fsynced) before it runs; its reply goes out before any data.
 from __future__ import annotations
 
 import logging
+import secrets
 import time
 from typing import Any
 
@@ -79,7 +80,9 @@ class ModemNode(Node):
             # Results must still reach the surface: only commands stop, none can be replayed.
             log.error("surface commands refused: %s", exc)
             state, disabled = CounterState(session=self.sender.session.hex()), str(exc)
-        self.guard = CommandGuard(key, self.sender.session, state, disabled=disabled)
+        # A node started without a supervisor's run id is a start of its own.
+        run = spec.run_id or secrets.token_hex(8)
+        self.guard = CommandGuard(key, self.sender.session, state, run=run, disabled=disabled)
         self.control = ControlClient(self.ctx, self.endpoints.control)
         self.health_now = HealthMonitor(self.cfg.health, spec.run_dir, lambda: self.pools)
         self.running: tuple[int, Command] | None = None

@@ -23,7 +23,7 @@ from trapflow.config.modem import ModemConfig, OutboxConfig
 from trapflow.errors import ProtocolError, unreachable
 from trapflow.modem.codec import LinkCodec
 from trapflow.modem.frame import ACK, COMMAND, SESSION_BYTES, Deframer, parse_ack
-from trapflow.modem.outbox import ACKED, REJECTED, OutboxQueue
+from trapflow.modem.outbox import ACKED, REJECTED, OutboxQueue, Stored
 from trapflow.modem.port import LinkPort
 from trapflow.modem.schedule import (
     HOUR_NS,
@@ -37,6 +37,7 @@ from trapflow.modem.schedule import (
     Wait,
     floor,
 )
+from trapflow.runtime.ratelog import wire
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +46,7 @@ PURGE_INTERVAL_S = 60.0
 MAX_COMMANDS = 8  # COMMAND payloads held for the node between two steps; more are dropped
 MAX_REPLIES = 4  # REPLY payloads waiting for the link; the oldest goes first when more come
 BACKLOG_INTERVAL_S = 5.0
+MAX_TOLD = 64  # (reason, kind) pairs of unsendable records logged; more are only counted
 
 
 class ModemSender:
@@ -78,6 +80,7 @@ class ModemSender:
         self.schedule = Schedule(self.cfg, self.session,
                                  self.queue.sent_since(time.time_ns() - HOUR_NS))
         self.counters = collections.Counter[str]()
+        self._told: set[tuple[str, str]] = set()  # unsendable records logged, once per kind
         self.blocked = ""
         self._backlog = 0
         self.commands: collections.deque[bytes] = collections.deque()  # in, for the node
@@ -204,22 +207,33 @@ class ModemSender:
             if stored.seq in self.by_id:
                 continue  # in flight already (a reload after aggregation)
             if not stored.intact:
-                self.queue.resolve([stored.seq], REJECTED)
-                self.counters["corrupt"] += 1
+                self._unsendable(stored, "corrupt", stored.cls, "its checksum failed")
                 continue
             try:
-                body = self.codec.encode(stored.record())
-            except (ValueError, msgspec.DecodeError):
-                self.queue.resolve([stored.seq], REJECTED)
-                self.counters["undecodable"] += 1
+                record = stored.record()
+                body = self.codec.encode(record)
+            except (ValueError, msgspec.DecodeError) as exc:
+                self._unsendable(stored, "undecodable", stored.cls, str(exc))
                 continue
             if len(body) > self._max_body:
-                self.queue.resolve([stored.seq], REJECTED)
-                self.counters["too_large"] += 1
+                kind = next(iter(record), stored.cls) if len(record) == 1 else stored.cls
+                self._unsendable(stored, "too_large", kind, f"{len(body)} bytes encoded, a "
+                                 f"frame carries at most {self._max_body}")
                 continue
             msg = Queued(stored, body)
             msg.attempts = int(stored.seq in tried)  # sent before a restart: may be up there
             cls.queue.append(msg)
+
+    def _unsendable(self, stored: Stored, reason: str, kind: str, why: str) -> None:
+        """A record that can never be sent: settled as rejected, counted by reason, and
+        logged the first time a kind of record is refused for it (never in silence)."""
+        self.queue.resolve([stored.seq], REJECTED)
+        self.counters[reason] += 1
+        if (reason, kind) in self._told or len(self._told) >= MAX_TOLD:
+            return
+        self._told.add((reason, kind))
+        log.warning("outbox record %d (%s) cannot be sent: %s; counted as %s (logged once per "
+                    "kind of record)", stored.seq, wire(kind), wire(why), reason)
 
     def _housekeeping(self, now: float) -> None:
         last = self.queue.last_seq()

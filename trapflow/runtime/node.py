@@ -87,6 +87,9 @@ class NodeSpec:
     restarted: bool = False
     first_seq: int = 0  # capture numbers pairs from here (past a predecessor's numbers)
     join: JoinSpec | None = None  # a remote worker's way to the pipeline
+    # This start of the pipeline (the supervisor's), the same for a restarted node: state a
+    # node saved under another id predates a restart of the box (its runtime changes gone).
+    run_id: str = ""
 
     def the_rig(self) -> StereoRig:
         """The run's rig; a node spawned without one (a test, a benchmark) gets the config's."""

@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import os
+import secrets
 import signal
 import sys
 import time
@@ -138,6 +139,7 @@ class Supervisor:
         self.source_where = ""  # what the source reads (a recording's image topics)
         self.tag_size_m: float | None = None  # the tags the source lays, where it knows
         self.ring: FrameRing | None = None
+        self.run_id = secrets.token_hex(8)  # this start; the modem's cached replies name it
         self.notifier = sdnotify.Notifier()  # READY/WATCHDOG/STATUS under systemd, else no-op
         self.ratelog = RateLimitedLog(log)  # warnings about messages from sockets
         self.cpu = CpuMeter()  # CPU per role: the energy estimate in ledger.json
@@ -160,7 +162,8 @@ class Supervisor:
         ring = self.ring.name if self.ring is not None else ""
         self._add(NodeSpec("normalizer", "normalizer", cfg, run, ring=ring), sup.liveness_s)
         if cfg.modem.enabled:
-            self._add(NodeSpec("modem", "modem", cfg, run, ring=ring), sup.liveness_s)
+            self._add(NodeSpec("modem", "modem", cfg, run, ring=ring, run_id=self.run_id),
+                      sup.liveness_s)
         self._add(NodeSpec("broker", "broker", cfg, run, ring=ring, rig=self.rig),
                   sup.liveness_s)
         if cfg.events.enabled:

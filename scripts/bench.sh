@@ -24,6 +24,10 @@ Parts, in order, with their run time on a 2-core machine (full / --quick):
               2 s (stereo) and 100 ms (two mono workers) per pair ~1 min  / ~0.5 min
   decode      JPEG encode/decode of one image, OpenCV vs simplejpeg,
               colour, grey, 1/2 scale, 1280x720 and 1920x1080    ~1 min  / ~0.5 min
+  vo          stereo VO CPU per pair by stage at 1280x720 against the
+              plugin before issue 27 (ratio, same run), and drift of both
+              on the conformance scene (--quick: 40 pairs, no drift)
+                                                                  ~2 min  / ~0.5 min
   algorithms  decode and process time per algorithm; the detector
               fp32 vs int8, preallocated vs allocating input, JPEG
               decoded whole vs reduced (ratios, same run)          ~3 min  / skipped
@@ -40,7 +44,7 @@ Parts, in order, with their run time on a 2-core machine (full / --quick):
 
 Numbers go to OUT_DIR: one JSON (and Markdown) per part, and OUT_DIR/bench.md with all
 of them; the CPU table is what docs/benchmarks.md quotes. Nothing is asserted.
---quick runs the cpu, floor and decode parts only, with short windows.
+--quick runs the cpu, floor, decode and vo parts only, with short windows.
 TXT
 }
 QUICK=0
@@ -58,8 +62,10 @@ if [ "$QUICK" = 1 ]; then
   "$PY" scripts/bench_cpu.py --quick --out "$OUT" > /dev/null
   echo "[bench] JPEG decode (quick)" >&2
   "$PY" scripts/bench_decode.py --repeats 10 --out "$OUT" > /dev/null
+  echo "[bench] stereo VO against the plugin before issue 27 (quick)" >&2
+  "$PY" scripts/bench_vo.py --pairs 40 --no-drift --out "$OUT" > /dev/null
   { echo "# trapflow benchmark (quick), $(date -u '+%Y-%m-%d %H:%M UTC'), $(nproc) cores"
-    echo; cat "$OUT/cpu.md"; echo; cat "$OUT/decode.md"; } > "$OUT/bench.md"
+    echo; cat "$OUT/cpu.md"; echo; cat "$OUT/decode.md"; echo; cat "$OUT/bench_vo.md"; } > "$OUT/bench.md"
   echo "[bench] wrote $OUT/bench.md" >&2
   exit 0
 fi
@@ -79,6 +85,8 @@ echo "[bench] cpu per pair by role and the VO floor" >&2
 "$PY" scripts/bench_cpu.py --out "$OUT" > /dev/null
 echo "[bench] JPEG decode" >&2
 "$PY" scripts/bench_decode.py --out "$OUT" > /dev/null
+echo "[bench] stereo VO against the plugin before issue 27" >&2
+"$PY" scripts/bench_vo.py --out "$OUT" > /dev/null
 echo "[bench] algorithms" >&2
 "$PY" scripts/bench_algorithms.py --out "$OUT" > /dev/null
 echo "[bench] process (Dask LocalCluster vs one plain loop)" >&2
@@ -99,7 +107,7 @@ echo "[bench] worker recycling (health check per pair, replacement time)" >&2
   echo "# trapflow benchmark, $(date -u '+%Y-%m-%d %H:%M UTC'), $(nproc) cores"
   echo
   for md in "$OUT"/transport.md "$OUT"/peers.md "$OUT"/remote.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/cpu.md \
-            "$OUT"/decode.md "$OUT"/bench_algorithms.md "$OUT"/process.md "$OUT"/viewer.md; do
+            "$OUT"/decode.md "$OUT"/bench_vo.md "$OUT"/bench_algorithms.md "$OUT"/process.md "$OUT"/viewer.md; do
     [ -f "$md" ] && cat "$md" && echo
   done
   echo "## Modem link"

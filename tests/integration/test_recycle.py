@@ -80,7 +80,7 @@ def test_broker_reads_a_recycled_workers_goodbye_before_it_calls_a_send_news(
         broker._on_capture(builders.pair_frames(1))  # pending: its one credit is taken
         job = link.recv()
         assert job is not None and messages.decode_job(job[0]).pool == "noop"
-        result = builders.result(messages.Extra(name="noop", fields={}), seq=0)
+        result = builders.result(messages.Extra(name="noop", fields={}), seq=0, pool="noop")
         link.send([messages.encode(messages.Done(worker=ident, pool="noop", seq=0)),
                    messages.encode(result)])
         link.send([messages.encode(messages.Gone(
@@ -111,7 +111,7 @@ def test_the_supervisors_notice_of_a_recycle_does_not_overtake_the_workers_answe
         broker._drain_link(served)
         broker._on_capture(builders.pair_frames(0))
         assert link.recv() is not None
-        result = builders.result(messages.Extra(name="noop", fields={}), seq=0)
+        result = builders.result(messages.Extra(name="noop", fields={}), seq=0, pool="noop")
         link.send([messages.encode(messages.Done(worker=ident, pool="noop", seq=0)),
                    messages.encode(result)])
         link.send([messages.encode(messages.Gone(

@@ -21,11 +21,14 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
+import msgspec
+
 from trapflow.broker.policy import Pending
 from trapflow.config.schema import Policy, parse_policy
 from trapflow.errors import unreachable
 from trapflow.gate import policy as gate
 from trapflow.wire.messages import PoolStats
+from trapflow.wire.pool_counters import SUMMED
 
 # A worker that has said nothing for this long while idle is presumed dead.
 IDLE_LIVENESS_S = 5.0
@@ -115,6 +118,7 @@ class _Pool:
     pending: Pending
     workers: dict[bytes, _Worker] = field(default_factory=dict)
     last_seq: int = -1  # last seq dispatched (ordered pools report gaps from it)
+    # The counts since the broker started (pool_counters.SUMMED; a unit test holds them so)
     received: int = 0
     dispatched: int = 0
     dropped: int = 0
@@ -363,27 +367,16 @@ class BrokerState:
         """Counters of every pool."""
         kept = {n: c.kept for n, c in self._gate.counts().items()} if self._gate else {}
         return {
-            p.name: PoolStats(
+            p.name: msgspec.structs.replace(PoolStats(
                 workers=len(p.workers),
-                received=p.received,
-                dispatched=p.dispatched,
-                dropped=p.dropped,
                 in_flight=sum(len(w.in_flight) for w in p.workers.values()),
                 pending=len(p.pending),
-                processed=p.processed,
-                errors=p.errors,
-                timed_out=p.timed_out,
-                lost=p.lost,
-                inactive=p.inactive,
-                throttled=p.throttled,
-                stale=p.stale,
-                gated=p.gated,
                 kept=kept.get(p.name, 0),
                 failures=dict(p.failures),
                 active=p.active,
                 min_interval_s=p.min_interval_s,
                 latency_ms=round(p.latency_s * 1000, 1) if p.latency_s is not None else 0.0,
-            )
+            ), **{name: getattr(p, name) for name in SUMMED})
             for p in self._pools.values()
         }
 

@@ -8,18 +8,13 @@ import json
 from typing import Any
 
 from trapflow.supervisor import ledger as run_ledger
+from trapflow.wire.pool_counters import POOL_COUNTERS
 
 # The pool table's columns and their units: counts are pairs since the run started (over
 # broker restarts), workers are processes, rate is results per second lately.
-POOL_UNITS = {"workers": "procs", "received": "pairs", "processed": "pairs",
-              "dropped": "pairs", "inactive": "pairs", "throttled": "pairs", "stale": "pairs",
-              "gated": "pairs", "in_flight": "pairs",
-              "pending": "pairs",
-              "errors": "pairs",
-              "timed_out": "pairs", "lost": "pairs", "rate": "pairs/s"}
+POOL_UNITS = {c.name: c.unit for c in POOL_COUNTERS if c.column}
 # Give-ups and retries `trapflow status` lists (the newest); the JSON has them all.
 TIMELINE_SHOWN = 5
-
 
 
 def format_status(reply: dict[str, Any], as_json: bool = False) -> str:

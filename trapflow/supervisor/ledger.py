@@ -19,6 +19,7 @@ import msgspec
 
 from trapflow.supervisor import status_line
 from trapflow.wire.messages import FAILED_PREFIX, CaptureCounters, PoolStats, Stats
+from trapflow.wire.pool_counters import POOL_COUNTERS, SUMMED, settled
 
 __all__ = ["FAILED_PREFIX", "Delivered", "RunLedger", "capture_failures", "combine", "retire",
            "verdict"]
@@ -100,8 +101,6 @@ def routes_of(counters: dict[str, int]) -> dict[str, str]:
             pool, _, kind = key[len(ROUTE_PREFIX):].partition(":")
             out[kind] = pool
     return out
-_SUMMED = ("received", "dispatched", "dropped", "processed", "errors", "timed_out", "lost",
-           "inactive", "throttled", "stale", "gated")
 
 
 def retire(last: Stats) -> Stats:
@@ -121,7 +120,7 @@ def combine(base: Stats | None, cur: Stats) -> Stats:
     pools: dict[str, PoolStats] = {}
     for name in {*base.pools, *cur.pools}:
         a, b = base.pools.get(name, PoolStats()), cur.pools.get(name, PoolStats())
-        summed = {k: getattr(a, k) + getattr(b, k) for k in _SUMMED}
+        summed = {k: getattr(a, k) + getattr(b, k) for k in SUMMED}
         failures = dict(a.failures)
         for kind, n in b.failures.items():
             failures[kind] = failures.get(kind, 0) + n
@@ -237,9 +236,7 @@ class RunLedger:
         if s is None:
             return self.capture().produced
         delivered = self.delivered.by_pool(self.routes)
-        accounted = [delivered.get(n, p.processed) + p.dropped + p.timed_out + p.errors
-                     + p.inactive + p.throttled + p.stale + p.gated
-                     for n, p in s.pools.items()]
+        accounted = [settled(p, delivered.get(n)) for n, p in s.pools.items()]
         return max(self.capture().produced, s.pairs_in, *accounted)
 
     def drained(self) -> bool:
@@ -279,9 +276,7 @@ class RunLedger:
             # Processed: the results written for this pool (known once its results are
             # routed); lost: whatever else is not in a state, as the brokers counted them.
             processed = delivered.get(name, p.processed)
-            ended = (processed + p.dropped + p.timed_out + p.errors + p.inactive + p.throttled
-                     + p.stale + p.gated)
-            rest = max(0, produced - ended)
+            rest = max(0, produced - settled(p, processed))
             if not final:  # only what a broker counted lost is lost while the run goes on
                 # (pending, in flight, kept as the gate's pre-roll, on a link: in progress)
                 in_progress = rest - min(rest, p.lost)
@@ -290,13 +285,10 @@ class RunLedger:
                 in_progress = rest - min(rest, lost)
             else:
                 in_progress = 0
+            states = {c.ledger: getattr(p, c.name) for c in POOL_COUNTERS if c.ledger}
             out["pools"][name] = {
-                "processed": processed, "dropped_by_policy": p.dropped,
-                "policy": policies.get(name, ""), "dropped_inactive": p.inactive,
-                "dropped_by_level": p.throttled,
-                "dropped_stale": p.stale, "gated": p.gated, "timed_out": p.timed_out,
-                "failed": p.errors, "failures": p.failures,
-                "lost": rest - in_progress,
+                **states, "processed": processed, "lost": rest - in_progress,
+                "policy": policies.get(name, ""), "failures": p.failures,
                 "restarts": restarts.get(name, 0),
                 # Replaced on purpose (max_rss_mb, max_jobs), by why; not restarts.
                 "recycled": dict((supervision or {}).get("recycled", {}).get(name, {})),

@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from trapflow.wire.messages import CaptureCounters, PoolStats, Stats
+from trapflow.wire.pool_counters import DROPS, counts
 
 # No stats for this long (the broker publishes once a second): the figures are marked stale.
 STALE_S = 2.0
@@ -80,7 +81,7 @@ def _names(names: list[str], cap: int) -> dict[str, str]:
 
 
 def _pool(name: str, p: PoolStats, restarts: int, form: _Form, stale: str) -> str:
-    problems = (("drop", "d", p.dropped + p.inactive + p.throttled + p.stale),
+    problems = (("drop", "d", sum(counts(p, DROPS).values())),
                 ("err", "e", p.errors), ("lost", "l", p.lost), ("rst", "r", restarts))
     if form.flags == "long":
         state = "" if p.active else " (inactive)"

@@ -26,19 +26,17 @@ from prometheus_client.registry import Collector
 
 from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, UNCONFIGURED
 from trapflow.viewer.state import ViewState
+from trapflow.wire.pool_counters import POOL_COUNTERS, PoolCounter
 
 LIFECYCLE = (UNCONFIGURED, INACTIVE, ACTIVE, FINALIZED)
-# PoolStats field -> metric suffix of a per-pool counter.
-POOL_COUNTERS = {
-    "received": "received", "dispatched": "dispatched", "dropped": "dropped",
-    "processed": "processed", "errors": "failed", "timed_out": "timed_out", "lost": "lost",
-    "inactive": "inactive",  # dropped while the pool was deactivated (trapflow pool)
-    "throttled": "throttled",  # dropped by the ladder's level (its minimum interval)
-    "stale": "stale",  # dropped after waiting longer than the pool's max_pending_age_s
-    "gated": "gated",  # withheld by the pool's motion gate (gate: motion), by design
-}
-POOL_GAUGES = {"workers": "workers", "pending": "pending_pairs", "in_flight": "in_flight_pairs",
-               "kept": "kept_pairs"}
+# The per-pool counts (Prometheus counters) and the numbers of now (gauges); rate apart.
+POOL_COUNTS = tuple(c for c in POOL_COUNTERS if c.summed)
+POOL_GAUGES = tuple(c for c in POOL_COUNTERS if c.kind in ("procs", "held"))
+RATE = next(c for c in POOL_COUNTERS if c.kind == "rate")
+
+
+def _words(c: PoolCounter) -> str:
+    return (c.metric or c.name).replace("_", " ")
 
 
 def _temperature_c() -> float | None:
@@ -77,13 +75,11 @@ class PipelineCollector(Collector):
             rate_in.add_metric([], s.rate_in)
             malformed.add_metric([], s.malformed)
         yield from (pairs, rate_in, malformed)
-        counters = {k: CounterMetricFamily(f"trapflow_pool_{v}_pairs",
-                                           f"Pairs {v.replace('_', ' ')} per pool.",
-                                           labels=["pool"])
-                    for k, v in POOL_COUNTERS.items()}
-        gauges = {k: GaugeMetricFamily(f"trapflow_pool_{v}", f"{v.replace('_', ' ')} per pool.",
-                                       labels=["pool"]) for k, v in POOL_GAUGES.items()}
-        rate = GaugeMetricFamily("trapflow_pool_rate_pairs_per_second",
+        counters = {c.name: CounterMetricFamily(c.metric_name, f"Pairs {_words(c)} per pool.",
+                                                labels=["pool"]) for c in POOL_COUNTS}
+        gauges = {c.name: GaugeMetricFamily(c.metric_name, f"{_words(c)} per pool.",
+                                            labels=["pool"]) for c in POOL_GAUGES}
+        rate = GaugeMetricFamily(RATE.metric_name,
                                  "Pairs processed per second, last interval.", labels=["pool"])
         for name, p in (s.pools.items() if s is not None else ()):
             for k, fam in counters.items():

@@ -388,7 +388,7 @@ WorkerMsg = (Ready | Alive | Done | Failed | Gone | Hello | JoinRequest | HostAl
 
 
 class PoolStats(Msg, frozen=True):
-    """Counters of one pool, as the broker sees them."""
+    """Counters of one pool, as the broker sees them; wire.pool_counters lists them."""
 
     workers: int = 0
     received: int = 0

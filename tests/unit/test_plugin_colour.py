@@ -17,7 +17,7 @@ from tests import builders
 from tests.kits.context import make_pair
 from tests.unit.test_algo_stereo_vo import _frames, _vo
 from trapflow.errors import WorkerError
-from trapflow.stages.worker import decode_image
+from trapflow.stages.pair_path import decode_image
 
 
 def _jpeg(img: np.ndarray) -> bytes:

@@ -32,8 +32,8 @@ from trapflow.plugin import Context, Pair, Worker
 from trapflow.sources.base import SkipPair, Source
 from trapflow.sources.factory import open_source
 from trapflow.sources.rig import describe, mismatch
+from trapflow.stages.pair_path import Need, process_pair
 from trapflow.stages.result_json import dumps, normalize
-from trapflow.stages.worker import STAMPED, decode_pair
 from trapflow.wire import jpeg, messages
 
 log = logging.getLogger(__name__)
@@ -270,15 +270,12 @@ def run_chunk(task: ChunkTask) -> dict[str, Any]:
                 skew_ns=frames.right_minus_left_ns(), encoding=cfg.source.encoding,
                 width=w, height=h, source=cfg.source.kind)
             # Decoded as a worker decodes its job (colour, DCT reduction), once per need.
-            pairs: dict[tuple[bool, str, tuple[int, int] | None], Pair] = {}
+            decoded: dict[Need, Pair] = {}
             for pool, (plugin, calib) in plugins.items():
                 try:
-                    need = (plugin.needs_images, plugin.colour, plugin.max_size)
-                    pair = pairs.get(need) or pairs.setdefault(
-                        need, decode_pair(plugin, header, left_buf, right_buf))
-                    t_proc = time.monotonic_ns()
-                    body = plugin.process(pair)
-                    proc_ns = time.monotonic_ns() - t_proc
+                    got = process_pair(plugin, header, left_buf, right_buf, pool=pool,
+                                       worker=f"batch:{pool}:{os.getpid()}", calib=calib,
+                                        decoded=decoded)
                 except Exception as exc:  # noqa: BLE001 - one bad pair fails, the chunk goes on
                     reason = str(exc) if isinstance(exc, WorkerError) else (
                         f"{type(exc).__name__}: {exc}")
@@ -286,12 +283,7 @@ def run_chunk(task: ChunkTask) -> dict[str, Any]:
                         ledger.fail(pool, reason[:300])
                     continue
                 ledger.processed[pool] += own
-                if isinstance(body, STAMPED) and not body.calib:
-                    body = msgspec.structs.replace(body, calib=calib)
-                result = messages.Result(
-                    seq=pos, t_wall_ns=header.t_wall_ns, t_mono_ns=header.t_mono_ns, pool=pool,
-                    worker=f"batch:{pool}:{os.getpid()}", proc_ns=proc_ns, body=body)
-                out += [dumps(obj) for obj in normalize(result, cfg.normalizer.decimals)]
+                out += [dumps(obj) for obj in normalize(got.result, cfg.normalizer.decimals)]
     finally:
         _stop_plugins(plugins)
         source.close()

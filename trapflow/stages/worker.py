@@ -23,11 +23,12 @@ import zmq
 
 from trapflow import registry
 from trapflow.errors import ProtocolError, WorkerError
-from trapflow.plugin import Context, Pair, Worker
+from trapflow.plugin import Context, Worker
 from trapflow.runtime.lifecycle import EXIT_RECYCLED_JOBS, EXIT_RECYCLED_RSS
 from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec, freeze_heap
 from trapflow.runtime.ratelog import RateLimitedLog
-from trapflow.wire import frame_msgs, identity, jpeg, messages
+from trapflow.stages.pair_path import process_pair
+from trapflow.wire import frame_msgs, identity, messages
 from trapflow.wire.frame_ring import RingError, RingReader
 from trapflow.wire.transport import (
     LINK_RETRY_S,
@@ -45,51 +46,6 @@ SAVE_INTERVAL_S = 1.0
 # A worker taking a pair beats at once unless its last heartbeat is younger than this.
 TAKE_BEAT_S = 0.05
 SEND_WAIT_MS = 1000  # how long a Done may wait for room in a busy broker's queue
-# Result bodies that depend on the stereo geometry, stamped with the rig's id.
-STAMPED = (messages.StereoIR, messages.StereoVO, messages.Tags)
-
-
-def decode_image(frame: Any, pair: messages.StereoPair, side: str,
-                 grey: bool = False, reduce: int = 1) -> np.ndarray:
-    """A BGR uint8 image from a JPEG or raw frame (or ring view), grey (HxW) from a JPEG when
-    the plugin asks for grey, and a JPEG decoded at 1/reduce of its size (a raw frame stays
-    whole); ProtocolError if not one."""
-    buf = _as_bytes(frame)
-    if pair.encoding == "raw":
-        return buf.reshape(pair.height, pair.width, 3)
-    # libjpeg-turbo (simplejpeg), OpenCV as the fallback
-    img = jpeg.decode(buf, grey=grey, reduce=reduce)
-    if img is None:
-        raise ProtocolError(f"pair {pair.seq}: {side} image is not a decodable JPEG "
-                            f"({buf.size} bytes)")
-    width, height = jpeg.reduced_size((pair.width, pair.height), reduce)
-    if img.shape[:2] != (height, width):
-        at = f" (the header's {pair.width}x{pair.height} at 1/{reduce})" if reduce > 1 else ""
-        raise ProtocolError(
-            f"pair {pair.seq}: {side} image expected {width}x{height}{at}, "
-            f"got {img.shape[1]}x{img.shape[0]}"
-        )
-    return img
-
-
-def decode_pair(plugin: Worker, header: messages.StereoPair, left: Any, right: Any,
-                gap: int = 0) -> Pair:
-    """The pair as `plugin` wants it: decoded in its colour and, for a JPEG, at the largest
-    DCT reduction its max_size allows; the encoded bytes when it needs no images."""
-    if not plugin.needs_images:  # the encoded bytes, zero-copy: plugins that never look
-        return Pair(header=header, left=_as_bytes(left), right=_as_bytes(right), gap=gap)
-    grey = plugin.colour == "grey"
-    reduce = 1 if header.encoding == "raw" else jpeg.scale_for(
-        (header.width, header.height), plugin.max_size)
-    return Pair(header=header, left=decode_image(left, header, "left", grey, reduce),
-                right=decode_image(right, header, "right", grey, reduce), gap=gap,
-                reduction=reduce)
-
-
-def _as_bytes(frame: Any) -> np.ndarray:
-    if isinstance(frame, np.ndarray):
-        return frame.reshape(-1)  # a view of a contiguous frame
-    return np.frombuffer(frame.buffer if hasattr(frame, "buffer") else frame, dtype=np.uint8)
 
 
 def apply_priority(nice: int, affinity: list[int]) -> None:
@@ -280,12 +236,6 @@ class WorkerNode(Node):
         self.set_state(ACTIVE)
         log.info("%s: reconfigured in place with %s", self.ident, sorted(msg.params))
 
-    def _stamp(self, body: messages.Body) -> messages.Body:
-        """A stereo result carries the id of the rig it was computed with (`calib`)."""
-        if isinstance(body, STAMPED) and not body.calib:
-            return msgspec.structs.replace(body, calib=self.calib)
-        return body
-
     def _save(self, left: np.ndarray, right: np.ndarray, result: messages.Result) -> None:
         """Debug aid (`save: true`): at most one input pair and its result per second."""
         now = time.monotonic()
@@ -370,11 +320,8 @@ class WorkerNode(Node):
                 header = messages.check_pair_frames(frames[1:])
                 raw_left, raw_right = frames[2], frames[3]
             seq = header.seq
-            pair = decode_pair(self.plugin, header, raw_left, raw_right, job.gap)
-            t0, c0 = time.monotonic_ns(), time.process_time_ns()
-            body = self.plugin.process(pair)
-            proc_ns = time.monotonic_ns() - t0
-            self.proc_cpu_us += (time.process_time_ns() - c0) // 1000
+            done = process_pair(self.plugin, header, raw_left, raw_right, pool=self.pool,
+                                worker=self.ident, calib=self.calib, gap=job.gap)
             if ref is not None:
                 # The slot must still hold this pair, or the result came from other bytes.
                 self._ring().check(ref)
@@ -386,16 +333,13 @@ class WorkerNode(Node):
             self._send([messages.Failed(worker=self.ident, pool=self.pool, seq=seq,
                                         reason=reason[:300], kind=type(exc).__name__)])
             return
+        result, proc_ns = done.result, done.result.proc_ns
         self.processed += 1
         self.proc_us += proc_ns // 1000
-        body = self._stamp(body)
-        result = messages.Result(
-            seq=header.seq, t_wall_ns=header.t_wall_ns, t_mono_ns=header.t_mono_ns,
-            pool=self.pool, worker=self.ident, proc_ns=proc_ns, body=body,
-        )
+        self.proc_cpu_us += done.cpu_ns // 1000
         if self.pcfg.time:
             log.info("%s: pair %d in %.1f ms", self.ident, header.seq, proc_ns / 1e6)
         if self.pcfg.save and self.plugin.needs_images:
-            self._save(pair.left, pair.right, result)
+            self._save(done.pair.left, done.pair.right, result)
         self._send([messages.Done(worker=self.ident, pool=self.pool, seq=header.seq),
                     messages.encode(result)])

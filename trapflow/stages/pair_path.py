@@ -1,0 +1,100 @@
+"""What happens to one pair at a pool, with no process around it: decode the frames as the
+plugin wants them, run the plugin, build the result. A worker (trapflow.stages.worker) and
+a batch chunk (trapflow.batch.chunk) both call process_pair, so a result is made one way.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import msgspec
+import numpy as np
+
+from trapflow.errors import ProtocolError
+from trapflow.plugin import Pair, Worker
+from trapflow.wire import jpeg, messages
+
+# Result bodies that depend on the stereo geometry, stamped with the rig's id.
+STAMPED = (messages.StereoIR, messages.StereoVO, messages.Tags)
+# What a decoded pair depends on: images at all, their colour, the largest size wanted.
+Need = tuple[bool, str, tuple[int, int] | None]
+
+
+def decode_image(frame: Any, pair: messages.StereoPair, side: str,
+                 grey: bool = False, reduce: int = 1) -> np.ndarray:
+    """A BGR uint8 image from a JPEG or raw frame (or ring view), grey (HxW) from a JPEG when
+    the plugin asks for grey, and a JPEG decoded at 1/reduce of its size (a raw frame stays
+    whole); ProtocolError if not one."""
+    buf = _as_bytes(frame)
+    if pair.encoding == "raw":
+        return buf.reshape(pair.height, pair.width, 3)
+    # libjpeg-turbo (simplejpeg), OpenCV as the fallback
+    img = jpeg.decode(buf, grey=grey, reduce=reduce)
+    if img is None:
+        raise ProtocolError(f"pair {pair.seq}: {side} image is not a decodable JPEG "
+                            f"({buf.size} bytes)")
+    width, height = jpeg.reduced_size((pair.width, pair.height), reduce)
+    if img.shape[:2] != (height, width):
+        at = f" (the header's {pair.width}x{pair.height} at 1/{reduce})" if reduce > 1 else ""
+        raise ProtocolError(
+            f"pair {pair.seq}: {side} image expected {width}x{height}{at}, "
+            f"got {img.shape[1]}x{img.shape[0]}"
+        )
+    return img
+
+
+def decode_pair(plugin: Worker, header: messages.StereoPair, left: Any, right: Any,
+                gap: int = 0) -> Pair:
+    """The pair as `plugin` wants it: decoded in its colour and, for a JPEG, at the largest
+    DCT reduction its max_size allows; the encoded bytes when it needs no images."""
+    if not plugin.needs_images:  # the encoded bytes, zero-copy: plugins that never look
+        return Pair(header=header, left=_as_bytes(left), right=_as_bytes(right), gap=gap)
+    grey = plugin.colour == "grey"
+    reduce = 1 if header.encoding == "raw" else jpeg.scale_for(
+        (header.width, header.height), plugin.max_size)
+    return Pair(header=header, left=decode_image(left, header, "left", grey, reduce),
+                right=decode_image(right, header, "right", grey, reduce), gap=gap,
+                reduction=reduce)
+
+
+def _as_bytes(frame: Any) -> np.ndarray:
+    if isinstance(frame, np.ndarray):
+        return frame.reshape(-1)  # a view of a contiguous frame
+    return np.frombuffer(frame.buffer if hasattr(frame, "buffer") else frame, dtype=np.uint8)
+
+
+@dataclass(frozen=True)
+class Processed:
+    """A pair through a plugin: the pair as decoded, its result, and the CPU time (all
+    threads) the plugin spent on it."""
+
+    pair: Pair
+    result: messages.Result
+    cpu_ns: int
+
+
+def process_pair(plugin: Worker, header: messages.StereoPair, left: Any, right: Any, *,
+                 pool: str, worker: str, calib: str, gap: int = 0,
+                 decoded: dict[Need, Pair] | None = None) -> Processed:
+    """Decode the pair for `plugin` (or take it from `decoded`: this pair decoded already
+    for other plugins, by what they needed), run the plugin, and build the result; a
+    stereo result is stamped with `calib`, the id of the rig it was computed with. Raises
+    whatever decoding or the plugin raised: the caller fails that one pair."""
+    need = (plugin.needs_images, plugin.colour, plugin.max_size)
+    pair = decoded.get(need) if decoded is not None else None
+    if pair is None:
+        pair = decode_pair(plugin, header, left, right, gap)
+        if decoded is not None:
+            decoded[need] = pair
+    t0, c0 = time.monotonic_ns(), time.process_time_ns()
+    body = plugin.process(pair)
+    proc_ns = time.monotonic_ns() - t0
+    cpu_ns = time.process_time_ns() - c0
+    if isinstance(body, STAMPED) and not body.calib:
+        body = msgspec.structs.replace(body, calib=calib)
+    result = messages.Result(seq=header.seq, t_wall_ns=header.t_wall_ns,
+                             t_mono_ns=header.t_mono_ns, pool=pool, worker=worker,
+                             proc_ns=proc_ns, body=body)
+    return Processed(pair=pair, result=result, cpu_ns=cpu_ns)

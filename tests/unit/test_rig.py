@@ -80,6 +80,32 @@ def test_source_options_rectify_names_the_calibration(tmp_path: Path) -> None:
     assert rig.resolve(cfg, Geometry()).rig == CALIB_TXT
 
 
+@pytest.mark.parametrize(("in_rig", "in_options", "applies"), [
+    (None, None, None),  # no file: the source or the config decide the rig
+    ("a.yaml", None, "a.yaml"),  # rig.calibration
+    (None, "b.yaml", "b.yaml"),  # source.options.rectify
+    ("a.yaml", "b.yaml", "b.yaml"),  # both: the source's option wins
+])
+def test_which_calibration_file_applies(tmp_path: Path, in_rig: str | None,
+                                        in_options: str | None, applies: str | None) -> None:
+    """Regression: the supervisor (the run's rig) and capture (its rectification) each
+    decided which file applied; both now ask run_calibration, which reads that file."""
+    paths = {name: write_calibration(tmp_path / name, StereoRig.from_fov(
+        320, 240, 60.0 + i, 0.1)) for i, name in enumerate(("a.yaml", "b.yaml"))}
+    data: dict[str, object] = {"rig": {"calibration": paths[in_rig] if in_rig else None}}
+    if in_options:
+        data["source"] = {"options": {"rectify": paths[in_options]}}
+    cfg = config.from_data(data)
+    assert rig.calibration_path(cfg) == (paths[applies] if applies else None)
+    calib = rig.run_calibration(cfg)
+    if applies is None:
+        assert calib is None
+    else:
+        assert calib is not None
+        assert calib.rig() == rig.resolve(cfg, Geometry()).rig == StereoRig.from_fov(
+            320, 240, 60.0 + ("a.yaml", "b.yaml").index(applies), 0.1)
+
+
 def test_calibration_contradicting_the_frames_fails_in_one_line(tmp_path: Path) -> None:
     path = write_calibration(tmp_path / "c.yaml", StereoRig.from_fov(1280, 720, 70.0, 0.12))
     with pytest.raises(ConfigError) as err:

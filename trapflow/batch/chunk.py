@@ -31,7 +31,7 @@ from trapflow.errors import WorkerError
 from trapflow.plugin import Context, Pair, Worker
 from trapflow.sources.base import SkipPair, Source
 from trapflow.sources.factory import open_source
-from trapflow.sources.rig import describe, mismatch
+from trapflow.sources.rig import describe, mismatch, run_calibration
 from trapflow.stages.pair_path import Need, process_pair
 from trapflow.stages.result_json import dumps, normalize
 from trapflow.wire import jpeg, messages
@@ -64,7 +64,7 @@ def input_config(config: dict[str, Any], inp: Input) -> Config:
 def open_input(cfg: Config) -> Source:
     """The input's source, opened, with the run's rig (trapflow.sources.rig decides it)."""
     resolved = describe(cfg)
-    source = open_source(cfg.source, resolved.rig, cfg.rig.calibration)
+    source = open_source(cfg.source, resolved.rig, run_calibration(cfg))
     source.open()
     return source
 

@@ -1,9 +1,10 @@
 """Which source the config names: build_source() picks and builds it; open_source() adds
-rectification when a calibration file applies."""
+rectification with the run's calibration, when it has one."""
 
 from __future__ import annotations
 
 from trapflow.calibration.camera import StereoRig
+from trapflow.calibration.model import StereoCalibration
 from trapflow.config.schema import SourceConfig
 from trapflow.errors import ConfigError
 from trapflow.sources.base import Frames, Geometry, SkipPair, Source, SourceError
@@ -55,26 +56,17 @@ def _build(cfg: SourceConfig, rig: StereoRig) -> Source:
     raise ConfigError(f"source.kind: expected one of {', '.join(KINDS)}, got {cfg.kind!r}")
 
 
-def calibration_file(cfg: SourceConfig, rig_calibration: str | None) -> str | None:
-    """The calibration file that applies, or None: source.options.rectify wins over
-    rig.calibration. The one place this is decided (the rig at preflight, capture's
-    rectification)."""
-    path = cfg.options.get("rectify", rig_calibration)
-    return str(path) if path else None
-
-
-def open_source(cfg: SourceConfig, rig: StereoRig, calibration: str | None = None) -> Source:
+def open_source(cfg: SourceConfig, rig: StereoRig,
+                calibration: StereoCalibration | None = None) -> Source:
     """Build (not yet open) the source the config names.
 
-    A calibration file (the argument, i.e. rig.calibration, or source.options.rectify)
-    makes every pair rectified with maps computed once here; its rig replaces `rig`.
+    A calibration (the run's, trapflow.sources.rig.run_calibration decides which) makes every
+    pair rectified with maps computed once here; its rig replaces `rig`.
     `rig` is the run's rig (trapflow.sources.rig.resolve), which the source then delivers.
     """
     source = build_source(cfg, rig)
-    rectify = calibration_file(cfg, calibration)
-    if rectify:
-        from trapflow.calibration.formats import load_calibration
+    if calibration is not None:
         from trapflow.sources.rectify import RectifiedSource
 
-        source = RectifiedSource(source, load_calibration(str(rectify)))
+        source = RectifiedSource(source, calibration)
     return source

@@ -14,10 +14,11 @@ from dataclasses import dataclass, replace
 
 from trapflow.calibration.camera import StereoRig
 from trapflow.calibration.formats import load_calibration
+from trapflow.calibration.model import StereoCalibration
 from trapflow.config.schema import Config
 from trapflow.errors import ConfigError
 from trapflow.sources.base import Geometry
-from trapflow.sources.factory import build_source, calibration_file
+from trapflow.sources.factory import build_source
 
 log = logging.getLogger(__name__)
 
@@ -39,8 +40,20 @@ def from_config(cfg: Config, size: tuple[int, int] | None = None) -> StereoRig:
 
 
 def calibration_path(cfg: Config) -> str | None:
-    """The calibration file the config names (source.options.rectify wins), or None."""
-    return calibration_file(cfg.source, cfg.rig.calibration)
+    """The calibration file that applies, or None: source.options.rectify wins over
+    rig.calibration."""
+    path = cfg.source.options.get("rectify", cfg.rig.calibration)
+    return str(path) if path else None
+
+
+def run_calibration(cfg: Config) -> StereoCalibration | None:
+    """The calibration file that applies, read; None without one. The one place this is
+    decided: the supervisor's preflight (the run's rig, through resolve()) and capture (its
+    rectification, through open_source) both call it. Each reads the file in its own
+    process, a few kilobytes once at start, rather than passing a calibration over a
+    process boundary; both read the same file, so they agree."""
+    path = calibration_path(cfg)
+    return load_calibration(path) if path else None
 
 
 def mismatch(frames: tuple[int, int], where: str, rig: StereoRig, origin: str) -> str:
@@ -59,10 +72,9 @@ def resolve(cfg: Config, geometry: Geometry) -> Resolved:
 
     ConfigError when the source's frames contradict a calibration file's image size.
     """
-    path = calibration_path(cfg)
-    if path:
-        calib = load_calibration(path)
-        found = Resolved(calib.rig(), f"calibration file {path}")
+    calib = run_calibration(cfg)
+    if calib is not None:
+        found = Resolved(calib.rig(), f"calibration file {calibration_path(cfg)}")
         if geometry.size is not None and geometry.size != calib.size:
             raise ConfigError(mismatch(geometry.size, geometry.where or cfg.source.kind,
                                        found.rig, found.origin))

@@ -22,7 +22,7 @@ from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.sources.base import Frames, SkipPair, Source, SourceError
 from trapflow.sources.factory import open_source
-from trapflow.sources.rig import mismatch
+from trapflow.sources.rig import mismatch, run_calibration
 from trapflow.wire import jpeg, messages, tap_msgs
 from trapflow.wire.frame_ring import RingError, RingWriter
 from trapflow.wire.transport import LinkClient, LinkClosed, SocketSpec, open_socket
@@ -42,7 +42,8 @@ class CaptureNode(Node):
         )
         self.src_cfg = self.cfg.source
         self.rig = spec.the_rig()  # every pair sent must have its size
-        self.source: Source = open_source(self.src_cfg, self.rig, self.cfg.rig.calibration)
+        # The calibration file, read here again (sources.rig decides which, as at preflight).
+        self.source: Source = open_source(self.src_cfg, self.rig, run_calibration(self.cfg))
         # A restarted capture continues past its predecessor's numbers (the supervisor knows).
         self.seq = spec.first_seq
         self.produced = 0

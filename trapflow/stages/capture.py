@@ -17,12 +17,14 @@ import msgspec
 import numpy as np
 import zmq
 
+from trapflow.errors import unreachable
 from trapflow.gate.motion import MotionConfig, MotionDetector
 from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.sources.base import Frames, SkipPair, Source, SourceError
 from trapflow.sources.factory import open_source
 from trapflow.sources.rig import mismatch, run_calibration
+from trapflow.stages.capture_busy import Busy, Drop, Wait, when_busy
 from trapflow.wire import jpeg, messages, tap_msgs
 from trapflow.wire.frame_ring import RingError, RingWriter
 from trapflow.wire.transport import LinkClient, LinkClosed, SocketSpec, open_socket
@@ -151,10 +153,11 @@ class CaptureNode(Node):
     def _acquire(self) -> int | None:
         """A free ring slot; a finite source waits for one (back-pressure), a live one never."""
         assert self.ring is not None
-        slot = self.ring.acquire()
-        while slot is None and self.source.finite and not self.stopping:
-            self._wait(0.002)
-            slot = self.ring.acquire()
+        while (slot := self.ring.acquire()) is None:
+            choice = when_busy(Busy.RING, finite=self.source.finite, stopping=self.stopping)
+            if isinstance(choice, Drop):
+                return None
+            self._wait(choice.seconds)
         return slot
 
     def _wait(self, seconds: float) -> None:
@@ -184,7 +187,7 @@ class CaptureNode(Node):
         slot: int | None = None
         if self.ring is not None:
             slot = self._acquire()
-            if slot is None:  # every slot still held by some pool: drop, never wait
+            if slot is None:  # every slot still held by some pool, and no waiting
                 self.dropped += 1
                 return
             try:
@@ -215,16 +218,17 @@ class CaptureNode(Node):
         )
         payload: list[Any] = [messages.encode(header)]
         payload += [left, right] if slot is None else [messages.encode(ref)]
-        # A live camera never waits (its next frame is coming); a file or recording has no
-        # clock to keep, so it waits for the broker instead of dropping: lossless replay.
-        while not self._deliver(payload):
-            if self.source.finite and not self.stopping:
-                self._wait(0.002)
+        while not self._deliver(payload):  # the broker cannot take it now
+            choice = when_busy(Busy.BROKER, finite=self.source.finite, stopping=self.stopping)
+            if isinstance(choice, Wait):
+                self._wait(choice.seconds)
                 continue
-            self.dropped += 1
-            if self.ring is not None and slot is not None:
-                self.ring.release(slot)
-            return
+            if isinstance(choice, Drop):
+                self.dropped += 1
+                if choice.release and self.ring is not None and slot is not None:
+                    self.ring.release(slot)
+                return
+            unreachable(choice)
         self.produced += 1
         if self.produced == 1:
             self.beat(due=True)  # the supervisor times --duration from the first pair

@@ -8,7 +8,7 @@ import msgspec
 import pytest
 
 from trapflow.config import schema as config
-from trapflow.config.schema import Policy, parse_policy
+from trapflow.config.schema import Policy, SourceConfig, parse_policy
 from trapflow.errors import ConfigError
 
 CONFIGS = sorted((Path(__file__).resolve().parents[2] / "configs").glob("*.yaml"))
@@ -200,3 +200,20 @@ def test_config_is_a_leaf_that_imports_no_runtime_module() -> None:
                          check=True, timeout=60).stdout.split()
     assert out == ["trapflow", "trapflow.config", "trapflow.config.ladder",
                    "trapflow.config.modem", "trapflow.config.schema", "trapflow.errors"]
+
+
+@pytest.mark.parametrize(("kind", "loop", "options", "waits"), [
+    ("replay", False, {"rate": 0}, True),      # a replay as fast as it goes: paced by pools
+    ("replay", False, {"rate": 0.0}, True),
+    ("replay", False, {"rate": 1.0}, False),   # original timing: unchanged, pools may drop
+    ("replay", False, {}, False),              # rate 1 is the default
+    ("replay", True, {"rate": 0}, False),      # looped: endless, it keeps its clock
+    ("replay", False, {"rate": "x"}, False),   # the source itself refuses it, clearly
+    ("synthetic", False, {"rate": 0}, False),  # a live world is never held back
+    ("images", False, {}, False),              # paced by source.rate_hz
+])
+def test_waits_for_pools(kind: str, loop: bool, options: dict[str, object],
+                         waits: bool) -> None:
+    """Regression (issue 22, item 2): which sources the broker holds back instead of
+    dropping pairs in its pools."""
+    assert SourceConfig(kind=kind, loop=loop, options=options).waits_for_pools is waits

@@ -130,6 +130,11 @@ class BrokerNode(Node):
         ladder = self.cfg.ladder
         self.level = ladder.levels[0].name if ladder.enabled and not spec.restarted else ""
         self.level_reason = ""
+        # A replay at full speed waits for the slowest pool: capture is read only while
+        # every pool has room, and its links are not polled meanwhile (capture's sends then
+        # fail and it waits; a live source is never held back).
+        self.wait_for_pools = self.cfg.source.waits_for_pools
+        self._capture_held: set[Link] = set()
 
     def counters(self) -> dict[str, int]:
         return {"pairs_in": self.state.pairs_in, "malformed": self._malformed(),
@@ -155,6 +160,8 @@ class BrokerNode(Node):
                     self._drain_link(ready)
             if self.pull in socks:
                 self._drain_capture()
+            if self.wait_for_pools:
+                self._pace_capture()
             if self.tap.sock in socks:
                 self.tap.on_subscriptions()
             self._flush_results()
@@ -180,12 +187,36 @@ class BrokerNode(Node):
 
     # --- capture side ---------------------------------------------------------------
 
+    def _capture_full(self) -> bool:
+        """Back-pressure: a pair read now would make some pool drop one."""
+        return self.wait_for_pools and not self.state.has_room()
+
+    def _pace_capture(self) -> None:
+        """Stop polling capture's links while a pool is full; read them again when all have
+        room (a zmq capture socket is not read then either; its queue fills and capture
+        waits on its high-water mark)."""
+        full = self._capture_full()
+        for link, role in list(self.link_role.items()):
+            if role != "capture":
+                continue
+            if full and link not in self._capture_held:
+                self.poller.unregister(link)
+                self._capture_held.add(link)
+            elif not full and link in self._capture_held:
+                self._capture_held.discard(link)
+                self.poller.register(link)
+                self._drain_link(link)  # what waited while it was not polled
+        if not full:
+            self._drain_capture()
+
     def _drain_capture(self) -> None:
         # Take what is queued now, then go back to the workers: results never starve.
         # EVENTS before each recv: an empty socket costs no exception (this is the hot path).
+        if self._capture_full():
+            return  # not touched either: a held-back socket costs no pass
         self.poller.touch(self.pull)  # read its events again next pass: more may wait
         for _ in range(64):
-            if not zmq_readable(self.pull):
+            if self._capture_full() or not zmq_readable(self.pull):
                 return
             self._on_capture(self.pull.recv_multipart(copy=False))
 
@@ -246,6 +277,8 @@ class BrokerNode(Node):
         if role is None:  # dropped earlier in this pass (a failed send to it)
             return
         for _ in range(256):
+            if role == "capture" and self._capture_full():
+                return  # the rest waits in the link; _pace_capture reads it later
             try:
                 frames = link.recv()
                 if frames is None:
@@ -284,7 +317,10 @@ class BrokerNode(Node):
         """A local peer went away: a worker's jobs are settled now, not at a timeout."""
         if link not in self.link_role:
             return
-        self.poller.unregister(link)
+        if link in self._capture_held:
+            self._capture_held.discard(link)  # not polled while capture was held back
+        else:
+            self.poller.unregister(link)
         self.fds.pop(link.fileno(), None)
         self.link_role.pop(link, None)
         ident = self.link_ident.pop(link, None)

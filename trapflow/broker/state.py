@@ -391,6 +391,19 @@ class BrokerState:
         """Every worker the state knows (live), and its pool."""
         return {w: p.name for p in self._pools.values() for w in p.workers}
 
+    def has_room(self) -> bool:
+        """Whether a new pair would be queued without a drop in every pool that has workers
+        and takes pairs as they come (active, ungated, unthrottled): what capture of a
+        finite source read at full speed waits for (back-pressure to the source). A pool
+        with no worker does not hold the source back: nobody may ever come to empty it."""
+        for pool in self._pools.values():
+            if (not pool.active or pool.min_interval_s or not pool.workers
+                    or (self._gate is not None and self._gate.gates(pool.name))):
+                continue
+            if len(pool.pending) >= pool.spec.policy.bound:
+                return False
+        return True
+
     def drained(self) -> bool:
         """Nothing pending or in flight anywhere."""
         return not self._holders

@@ -246,7 +246,7 @@ def _replay_config(path: Path, config_path: str | None, loop: bool, opts: dict[s
 @click.command()
 @click.argument("path", type=click.Path(path_type=Path))
 @click.option("--rate", type=click.FloatRange(min=0), default=1.0, show_default=True,
-              help="Speed relative to the original timing; 0 = as fast as possible.")
+              help="Speed relative to the original timing; 0 = as fast as the slowest pool.")
 @click.option("--loop", is_flag=True, help="Start over at the end instead of stopping.")
 @click.option("--assert-lossless", is_flag=True,
               help="Fail (status 1) unless every pair read was processed by every pool.")

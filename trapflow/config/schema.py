@@ -121,6 +121,18 @@ class SourceConfig(_Section):
     loop: bool = False
     options: dict[str, Any] = {}
 
+    @property
+    def waits_for_pools(self) -> bool:
+        """A finite source read as fast as it goes (a replay at rate 0, not looped) has no
+        clock to keep: capture waits for the broker's room in every pool, so the run goes at
+        its slowest pool's speed and no pool drops a pair (issue 22, item 2)."""
+        if self.loop or self.kind != "replay":
+            return False
+        try:
+            return float(self.options.get("rate", 1.0)) == 0.0
+        except (TypeError, ValueError):
+            return False  # the source refuses it with its own message
+
 
 class RigConfig(_Section):
     """The stereo rig: baseline and field of view (or a calibration file)."""

@@ -344,3 +344,16 @@ def test_has_room_is_what_back_pressure_waits_for(policy: str, pending: int, wor
     """Regression (issue 22, item 2): a replay at rate 0 outran its pools, which dropped most
     pairs. Capture now waits while has_room() is false; every row says why it is or not."""
     assert _room_after(policy, pending, workers, active, interval_s) is room
+
+
+@pytest.mark.parametrize(("paced", "holds"), [
+    (True, True),    # a replay at rate 0: capture waits for room
+    (False, False),  # any other source: never held back, the policy drops (unchanged)
+])
+def test_only_a_paced_source_is_held_back(paced: bool, holds: bool) -> None:
+    s = BrokerState({"p": PoolSpec(parse_policy("latest"), timeout_s=10.0)}, paced=paced)
+    s.worker_ready(W1, "p", 1, 0.0)
+    s.pair_arrived(0, 0.0)  # at the worker
+    assert not s.holds_source()
+    s.pair_arrived(1, 0.0)  # pending: the next would replace it
+    assert s.holds_source() is holds

@@ -82,7 +82,8 @@ class BrokerNode(Node):
             if p.count > 0 or p.remote
         }
         self.state = BrokerState(pools, idle_liveness_s=self.cfg.supervisor.liveness_s,
-                                 gates=gated_pools(self.cfg))
+                                 gates=gated_pools(self.cfg),
+                                 paced=self.cfg.source.waits_for_pools)
         self.frames: dict[int, list[Any]] = {}
         # Shared-memory ring: the broker owns slot lifetime (frees a slot on Release).
         ring_name = spec.ring
@@ -130,11 +131,7 @@ class BrokerNode(Node):
         ladder = self.cfg.ladder
         self.level = ladder.levels[0].name if ladder.enabled and not spec.restarted else ""
         self.level_reason = ""
-        # A replay at full speed waits for the slowest pool: capture is read only while
-        # every pool has room, and its links are not polled meanwhile (capture's sends then
-        # fail and it waits; a live source is never held back).
-        self.wait_for_pools = self.cfg.source.waits_for_pools
-        self._capture_held: set[Link] = set()
+        self._capture_held: set[Link] = set()  # not polled: held back (_pace_capture)
 
     def counters(self) -> dict[str, int]:
         return {"pairs_in": self.state.pairs_in, "malformed": self._malformed(),
@@ -160,7 +157,7 @@ class BrokerNode(Node):
                     self._drain_link(ready)
             if self.pull in socks:
                 self._drain_capture()
-            if self.wait_for_pools:
+            if self.state.paced:
                 self._pace_capture()
             if self.tap.sock in socks:
                 self.tap.on_subscriptions()
@@ -187,15 +184,10 @@ class BrokerNode(Node):
 
     # --- capture side ---------------------------------------------------------------
 
-    def _capture_full(self) -> bool:
-        """Back-pressure: a pair read now would make some pool drop one."""
-        return self.wait_for_pools and not self.state.has_room()
-
     def _pace_capture(self) -> None:
-        """Stop polling capture's links while a pool is full; read them again when all have
-        room (a zmq capture socket is not read then either; its queue fills and capture
-        waits on its high-water mark)."""
-        full = self._capture_full()
+        """Capture's links are not polled while a pool is full, and read again once all have
+        room (nor is a zmq capture socket read: it fills to its high-water mark)."""
+        full = self.state.holds_source()
         for link, role in list(self.link_role.items()):
             if role != "capture":
                 continue
@@ -212,11 +204,11 @@ class BrokerNode(Node):
     def _drain_capture(self) -> None:
         # Take what is queued now, then go back to the workers: results never starve.
         # EVENTS before each recv: an empty socket costs no exception (this is the hot path).
-        if self._capture_full():
-            return  # not touched either: a held-back socket costs no pass
-        self.poller.touch(self.pull)  # read its events again next pass: more may wait
         for _ in range(64):
-            if self._capture_full() or not zmq_readable(self.pull):
+            if self.state.holds_source():
+                return  # held back, and not touched: it costs no pass until there is room
+            self.poller.touch(self.pull)  # read its events again next pass: more may wait
+            if not zmq_readable(self.pull):
                 return
             self._on_capture(self.pull.recv_multipart(copy=False))
 
@@ -277,7 +269,7 @@ class BrokerNode(Node):
         if role is None:  # dropped earlier in this pass (a failed send to it)
             return
         for _ in range(256):
-            if role == "capture" and self._capture_full():
+            if role == "capture" and self.state.holds_source():
                 return  # the rest waits in the link; _pace_capture reads it later
             try:
                 frames = link.recv()
@@ -317,10 +309,9 @@ class BrokerNode(Node):
         """A local peer went away: a worker's jobs are settled now, not at a timeout."""
         if link not in self.link_role:
             return
-        if link in self._capture_held:
-            self._capture_held.discard(link)  # not polled while capture was held back
-        else:
+        if link not in self._capture_held:  # a held-back capture link is not polled
             self.poller.unregister(link)
+        self._capture_held.discard(link)
         self.fds.pop(link.fileno(), None)
         self.link_role.pop(link, None)
         ident = self.link_ident.pop(link, None)

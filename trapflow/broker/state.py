@@ -139,7 +139,10 @@ class BrokerState:
     motion gate of the gated ones (`gates`: pool -> its rules; pools not named take all)."""
 
     def __init__(self, pools: Mapping[str, PoolSpec], idle_liveness_s: float = IDLE_LIVENESS_S,
-                 gates: Mapping[str, gate.GateConfig] | None = None):
+                 gates: Mapping[str, gate.GateConfig] | None = None, paced: bool = False):
+        # paced: the source waits for the pools (a replay at rate 0) instead of outrunning
+        # them; the broker then takes a pair only while holds_source() is false.
+        self.paced = paced
         self._pools = {n: _Pool(n, s, Pending(s.policy)) for n, s in pools.items()}
         gated = {n: g for n, g in (gates or {}).items() if n in self._pools}
         self._gate = gate.GateState(gated) if gated else None
@@ -403,6 +406,10 @@ class BrokerState:
             if len(pool.pending) >= pool.spec.policy.bound:
                 return False
         return True
+
+    def holds_source(self) -> bool:
+        """Whether capture must wait: paced, and a pair taken now would make a pool drop one."""
+        return self.paced and not self.has_room()
 
     def drained(self) -> bool:
         """Nothing pending or in flight anywhere."""

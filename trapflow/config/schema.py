@@ -18,7 +18,7 @@ import yaml
 
 from trapflow.config.ladder import LadderConfig
 from trapflow.config.modem import HealthConfig, ModemConfig, OutboxConfig
-from trapflow.errors import ConfigError
+from trapflow.errors import ConfigError, yaml_problem
 
 
 class _Section(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
@@ -227,6 +227,14 @@ class ExportConfig(_Section):
     without tracks); a pair with no box at or above it is a blank (`--min-confidence`)."""
 
 
+class RecordingConfig(_Section):
+    """Recordings (`trapflow record`)."""
+
+    vision_msgs: str = ""
+    """Folder of ROS 2 vision_msgs definitions (its msg/ folder, the package or a ROS
+    prefix) for detections as vision_msgs/Detection2DArray; empty: AMENT_PREFIX_PATH's."""
+
+
 class EnergyConfig(_Section):
     """The power model ledger.json's energy estimate uses (trapflow.gate.energy.BOARDS)."""
 
@@ -400,6 +408,7 @@ class Config(_Section):
     normalizer: NormalizerConfig = msgspec.field(default_factory=NormalizerConfig)
     observe: ObserveConfig = msgspec.field(default_factory=ObserveConfig)
     export: ExportConfig = msgspec.field(default_factory=ExportConfig)
+    recording: RecordingConfig = msgspec.field(default_factory=RecordingConfig)
     energy: EnergyConfig = msgspec.field(default_factory=EnergyConfig)
     gate: MotionGateConfig = msgspec.field(default_factory=MotionGateConfig)
     supervisor: SupervisorConfig = msgspec.field(default_factory=SupervisorConfig)
@@ -498,7 +507,7 @@ def load(path: str | Path | None = None) -> Config:
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{p}: not valid YAML: {exc}") from None
+        raise ConfigError(f"{p}: not valid YAML: {yaml_problem(exc)}") from None
     return from_data(data, str(p))
 
 
@@ -516,8 +525,8 @@ def parse_workers(text: str) -> dict[str, int]:
             count = int(num)
         except ValueError:
             raise ConfigError(f"{expected} with an integer COUNT, got {part!r}") from None
-        if count < 1:
-            raise ConfigError(f"worker count must be at least 1, got {part!r}")
+        if count < 0:  # 0: a remote pool with no local worker (checked by with_workers)
+            raise ConfigError(f"worker count must be 0 or more, got {part!r}")
         if name in counts:
             raise ConfigError(f"algorithm {name!r} given twice in {text!r}")
         counts[name] = count
@@ -527,8 +536,15 @@ def parse_workers(text: str) -> dict[str, int]:
 def with_workers(cfg: Config, counts: dict[str, int], known: list[str]) -> Config:
     """Run exactly the named pools with these counts; others are switched off.
 
-    A name that is not a configured pool but is a known plugin gets a default pool.
+    A name that is not a configured pool but is a known plugin gets a default pool. A count
+    of 0 names a remote pool that runs no local worker (its workers join from other hosts).
     """
+    for name, count in counts.items():
+        if count == 0 and not (name in cfg.pools and cfg.pools[name].remote):
+            raise ConfigError(
+                f"--workers {name}=0: a pool with no local worker needs workers from other "
+                f"hosts; set pools.{name}.remote: true in the config, or give {name} a count "
+                "of 1 or more, or leave it out")
     pools: dict[str, PoolConfig] = {}
     for name, pool in cfg.pools.items():
         pools[name] = msgspec.structs.replace(pool, count=counts.get(name, 0))

@@ -102,6 +102,13 @@ class Report:
         """The one line while the processes start (stats come seconds later)."""
         self._write(f"{time.monotonic() - self.t0:6.1f}s | starting {processes} processes")
 
+    def notice(self, line: str) -> None:
+        """A line that stays on the console (the viewer's address), not one rewritten."""
+        self._write(line)
+        if self.out.isatty():
+            self.out.write("\n")
+            self.out.flush()
+
     def status(self) -> dict[str, Any]:
         """Everything `trapflow status` shows, as JSON-able builtins."""
         h = self.snapshot()

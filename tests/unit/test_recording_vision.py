@@ -87,8 +87,8 @@ def _read_both(path: Path) -> tuple[list[Any], list[Any], list[int]]:
         by_rosbags = [reader.deserialize(raw, c.msgtype)
                       for c, _, raw in reader.messages(connections=conns)]
     with path.open("rb") as f:
-        by_mcap = [msg.decoded_message for msg in make_reader(f, decoder_factories=[DecoderFactory()])
-                   .iter_decoded_messages(topics=[TOPIC])]
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        by_mcap = [m.decoded_message for m in reader.iter_decoded_messages(topics=[TOPIC])]
     stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in by_rosbags]
     return by_rosbags, by_mcap, stamps
 

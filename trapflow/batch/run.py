@@ -111,8 +111,11 @@ def dask_client(opts: Options) -> Iterator[Any]:
             yield client
         return
     n = opts.local or os.cpu_count() or 1
+    # Dask's own logs stay quiet, errors included: a task that fails comes back to the
+    # client with its error, which the input's ledger.json keeps and the summary names
+    # (Dask logged each failure with its traceback once per retry: 23 lines for one error).
     with dd.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                      dashboard_address=":0", silence_logs=logging.ERROR) as cluster, \
+                      dashboard_address=":0", silence_logs=logging.CRITICAL) as cluster, \
             dd.Client(cluster) as client:
         yield client
 

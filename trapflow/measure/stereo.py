@@ -45,8 +45,13 @@ class MeasureParams(msgspec.Struct, frozen=True, kw_only=True):
     """Standard deviation of a box edge, pixels (a truth box is whole pixels: 0.3)."""
     disparity_sd_floor_px: float = 0.1
     """Disparity error that no fit removes (interpolation, rectification)."""
-    shape_rel_sd: float = 0.04
-    """Relative sd of how far a box's extent is from the body's longest chord."""
+    shape_rel_sd: float = 0.03
+    """Relative sd of how far a box's extent is from the body's longest chord, for a box
+    much longer than wide (the body can only lie along it)."""
+    diagonal_rel_sd: float = 0.05
+    """Added to shape_rel_sd per unit of the box's diagonal excess (diagonal / longer centre
+    line - 1): a squarer box may hold a body lying along its diagonal, longer than either
+    centre line (development seeds: crabs within 2 sd 0.87 with a flat 0.04, 0.92 so)."""
     relief_rel_sd: float = 0.05
     """Range sd from what a box holds besides the body's centre (floor between legs, the
     body's own height), as a fraction of the measured length."""
@@ -433,6 +438,8 @@ def _length(s: Surface, edges: Box, rig: StereoRig, cov: np.ndarray,
     plane = np.array([s.c, s.a, s.b])
     best = max((np.array(line) for line in lines), key=lambda q: chord(q, plane))
     length = chord(best, plane)
+    diagonal = max(chord(np.array(q), plane) for q in ((x1, y1, x2, y2), (x1, y2, x2, y1)))
+    shape = params.shape_rel_sd + params.diagonal_rel_sd * max(diagonal / length - 1.0, 0.0)
     var = 0.0
     for i in range(4):  # the end points' pixel coordinates: the box's own error
         step = np.zeros(4)
@@ -445,7 +452,7 @@ def _length(s: Surface, edges: Box, rig: StereoRig, cov: np.ndarray,
         step[i] = 1e-3 if i else 0.05
         grad[i] = (chord(best, plane + step) - chord(best, plane - step)) / (2 * step[i])
     var += float(grad @ cov @ grad)
-    var += (length * params.shape_rel_sd) ** 2 + (length * params.scale_rel_sd) ** 2
+    var += (length * shape) ** 2 + (length * params.scale_rel_sd) ** 2
     return length, math.sqrt(var)
 
 

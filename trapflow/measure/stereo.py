@@ -14,6 +14,7 @@ import msgspec
 import numpy as np
 
 from trapflow.calibration.camera import StereoRig
+from trapflow.measure.floor import FloorPlane, fit_floor, floor_slopes
 
 Reason = Literal["bad_box", "out_of_view", "textureless", "ambiguous", "low_score"]
 Matcher = Literal["ncc", "sgbm"]
@@ -57,6 +58,9 @@ class MeasureParams(msgspec.Struct, frozen=True, kw_only=True):
     body's own height), as a fraction of the measured length."""
     scale_rel_sd: float = 0.0
     """Relative sd of the calibration's focal length x baseline (0: known exactly)."""
+    floor_slope_sd: float = 0.004
+    """Sd of a body's disparity slope (px per px) about the floor plane's: the floor's relief
+    under it and how it lies."""
 
 
 class Measured(msgspec.Struct, frozen=True, kw_only=True):
@@ -116,12 +120,22 @@ def triangulate(rig: StereoRig, u: float, v: float, d: float) -> np.ndarray:
     return np.array([(u - rig.cx) * z / rig.fx, (v - rig.cy) * z / rig.fy, z])
 
 
+def pair_floor(left: np.ndarray, right: np.ndarray, rig: StereoRig,
+               params: MeasureParams | None = None) -> FloorPlane | None:
+    """The floor's disparity plane of a rectified grey pair (once per pair, for all its
+    boxes), or None where no plane holds the pair's matches."""
+    return fit_floor(left, right, rig, disparity_limits(rig, params or MeasureParams()))
+
+
 def measure(left: np.ndarray, right: np.ndarray, rig: StereoRig, box: Box,
-            params: MeasureParams | None = None, matcher: Matcher = "ncc") -> Measurement:
+            params: MeasureParams | None = None, matcher: Matcher = "ncc",
+            floor: FloorPlane | None = None) -> Measurement:
     """Measure the box's content: range, position and length with their uncertainties.
 
     `left`, `right`: the rectified pair, grey uint8, the rig's size. `box`: x1 y1 x2 y2 in
     left-image pixels (x2, y2 exclusive, as detectors and the synthetic truth give them).
+    `floor` (pair_floor's): the slant a body lying on the floor shares, combined with the
+    box's own.
     """
     p = params or MeasureParams()
     ints = _clip_box(box, left.shape[1], left.shape[0])
@@ -131,7 +145,32 @@ def measure(left: np.ndarray, right: np.ndarray, rig: StereoRig, box: Box,
              else match_sgbm(left, right, ints, rig, p))
     if isinstance(found, Unmeasured):
         return found
+    if floor is not None:
+        found = _on_floor(found, floor, p)
     return _result(found, box, rig, p, matcher)
+
+
+def _on_floor(s: Surface, floor: FloorPlane, params: MeasureParams) -> Surface:
+    """The box's disparity slopes combined with the floor's (scaled to the box's disparity),
+    each weighted by its inverse variance; a box too small for slopes of its own takes the
+    floor's."""
+    slopes = floor_slopes(floor, s.uc, s.vc, s.c)
+    if slopes is None:
+        return s
+    cov = np.array(s.cov).reshape(3, 3)
+    prior = params.floor_slope_sd ** 2
+    coef = [s.c, *slopes]
+    out = np.zeros((3, 3))
+    out[0, 0] = cov[0, 0]
+    for i, own in ((1, s.a), (2, s.b)):
+        var = cov[i, i]
+        if s.planar and var > 0:
+            coef[i] = (own / var + coef[i] / prior) / (1 / var + 1 / prior)
+            out[i, i] = 1 / (1 / var + 1 / prior)
+        else:
+            out[i, i] = prior
+    return Surface(uc=s.uc, vc=s.vc, c=s.c, a=float(coef[1]), b=float(coef[2]),
+                   cov=tuple(float(v) for v in out.ravel()), planar=True, score=s.score)
 
 
 # --- matchers ---------------------------------------------------------------------------

@@ -122,7 +122,7 @@ def score(seqs: list[tuple[dict[int, list[View]], dict[int, list[View]], RigPose
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", default=",".join(map(str, HELD_OUT_SEEDS)))
-    ap.add_argument("--pairs", type=int, default=400, help="pairs per sequence")
+    ap.add_argument("--pairs", type=int, default=300, help="pairs per sequence")
     ap.add_argument("--rate", type=float, default=10.0, help="pairs per second")
     ap.add_argument("--every", type=int, default=2, help="measure every N-th pair")
     ap.add_argument("--min-speed", type=float, default=0.02, help="m/s, true speed scored")

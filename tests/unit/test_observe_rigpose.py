@@ -7,8 +7,10 @@ import math
 import numpy as np
 import pytest
 
+from trapflow.batch.run import rig_poses
+from trapflow.config.schema import ObserveConfig
 from trapflow.observe.rigpose import RigPoses, ground_positions
-from trapflow.observe.stage import View, aggregate
+from trapflow.observe.stage import View, aggregate, track_pairs
 
 
 def _pose(x: float, yaw: float = 0.0) -> tuple[float, ...]:
@@ -109,3 +111,30 @@ def test_no_speed_without_the_views_poses() -> None:
     got = aggregate(views, poses)
     assert "speed_m_s" not in got and "speed_frame" not in got
     assert got["length_m"] == pytest.approx(0.2)
+
+
+def test_reanalysis_takes_vo_lines_poses() -> None:
+    """`trapflow process` tracks an input's lines as the live normalizer does: its VO lines'
+    poses (results.jsonl shape) take the rig's motion out of the tracks' speeds."""
+    lines: list[dict[str, object]] = []
+    pairs = []
+    for i in range(12):
+        t = 0.2 * i
+        stamp = f"2026-11-25 14:00:{t:06.3f}"
+        pose = np.array(_pose(0.15 * t)).reshape(3, 4)  # the rig drifts 0.15 m/s along x
+        animal = np.array([0.1 * t, 0.2, 1.5])  # the animal walks 0.1 m/s along x too
+        cam = animal - pose[:, 3]
+        lines.append({"stereo_vo": {"timestamp": stamp, "seq": i, "ok": True,
+                                    "pose": pose.tolist(), **({"reinit": True} if i == 0
+                                                              else {})}})
+        item = {"timestamp": stamp, "seq": i, "label": "crab", "confidence": 0.9,
+                "box": [300.0 - 5 * i, 100.0, 340.0 - 5 * i, 130.0], "xyz": cam.tolist(),
+                "length_m": 0.1, "length_sd_m": 0.01}
+        lines.append({"mono_ir": item})
+        pairs.append((1795615200 * 10**9 + int(round(t * 1e9)), [item]))
+    poses = rig_poses(lines)
+    assert poses.at(1795615200.4) is not None
+    got = track_pairs(pairs, ObserveConfig(interval_s=3600), poses).tracks
+    assert len(got) == 1
+    assert got[0]["track"]["speed_frame"] == "ground"
+    assert got[0]["track"]["speed_m_s"] == pytest.approx(0.1, abs=0.005)

@@ -156,11 +156,12 @@ class Observations:
 
 
 def track_pairs(pairs: Iterable[tuple[int, list[dict[str, Any]]]],
-                cfg: ObserveConfig) -> Observations:
+                cfg: ObserveConfig, poses: RigPoses | None = None) -> Observations:
     """Re-analysis: one input's detection lines, pair by pair in capture order as
     (capture time ns, that pair's mono_ir items), tracked as the live normalizer tracks
-    them (their `track` keys set in place); returns every track and count."""
-    obs = Observer(cfg)
+    them (their `track` keys set in place), VO's poses (`poses`) taken out of their
+    speeds; returns every track and count."""
+    obs = Observer(cfg, poses)
     out = Observations()
     for got in [*(obs.feed(t_ns, items) for t_ns, items in pairs), obs.finish()]:
         out.tracks += got.tracks

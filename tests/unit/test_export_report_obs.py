@@ -51,13 +51,19 @@ def test_visits_and_max_n_per_hour() -> None:
         {"start_s": HOUR + 3600, "end_s": HOUR + 4200, "pairs": 9, "labels": []},
         {"bogus": 1},  # skipped
     ]
-    tracks = [{"label": "crab", "length_m": 0.23}, {"label": "crab"},
+    tracks = [{"label": "crab", "length_m": 0.23, "range_m": 1.52, "speed_m_s": 0.071},
+              {"label": "crab", "range_m": 2.1},
               {"label": "fish", "length_m": 1.2}, {"label": "fish", "length_m": "x"}]
     observations(s, counts, tracks)
     assert s.counts_hour == {"2026-11-25 15:00": {"crab": [3, 3, 15.5], "fish": [1, 1, 3.0]},
                              "2026-11-25 16:00": {}}
     assert s.lengths == {"crab": [0.23], "fish": [1.2]}
+    assert s.ranges == {"crab": [1.52, 2.1]} and s.speeds == {"crab": [0.071]}
     page = render_html(s)
+    # label, tracks measured, median, min, max length, median range, median speed
+    assert ("<td>crab</td><td>1</td><td>0.230</td><td>0.230</td><td>0.230</td><td>1.81</td>"
+            "<td>0.071</td>") in page
+    assert "<td>fish</td><td>1</td><td>1.200</td><td>1.200</td><td>1.200</td><td>-</td>" in page
     assert "<td>2026-11-25 15:00</td><td>crab</td><td>3</td><td>3</td><td>15.5</td>" in page
     assert page.count('class="bar"') == 2
 

@@ -56,6 +56,8 @@ class RunSummary:
     counts_hour: dict[str, dict[str, list[float]]] = field(default_factory=dict)
     lengths: dict[str, list[float]] = field(default_factory=dict)  # label -> tracks' length_m
     meta: dict[str, Any] = field(default_factory=dict)  # run.json: config, versions, rig
+    ranges: dict[str, list[float]] = field(default_factory=dict)  # label -> tracks' range_m
+    speeds: dict[str, list[float]] = field(default_factory=dict)  # label -> tracks' speed_m_s
 
 
 def _time(label: str) -> dt.datetime:
@@ -81,7 +83,8 @@ def _jsonl(path: Path, kind: str) -> list[dict[str, Any]]:
 def observations(s: RunSummary, counts: list[dict[str, Any]],
                  tracks: list[dict[str, Any]]) -> None:
     """Visits, MaxN and dwell per label per hour (an interval counts in the hour it starts;
-    MaxN of an hour is the largest of its intervals'), and each label's track lengths."""
+    MaxN of an hour is the largest of its intervals'), and each label's track lengths,
+    ranges at first sighting and speeds."""
     for c in counts:
         try:
             hour = dt.datetime.fromtimestamp(float(c["start_s"]), dt.timezone.utc)
@@ -94,9 +97,11 @@ def observations(s: RunSummary, counts: list[dict[str, Any]],
         except (KeyError, TypeError, ValueError):
             log.warning("report: a counts line without start_s and labels; skipped")
     for t in tracks:
-        length = t.get("length_m")
-        if isinstance(length, (int, float)) and length > 0:
-            s.lengths.setdefault(str(t.get("label", "")), []).append(float(length))
+        for key, into in (("length_m", s.lengths), ("range_m", s.ranges),
+                          ("speed_m_s", s.speeds)):
+            got = t.get(key)
+            if isinstance(got, (int, float)) and (got > 0 or got == 0 and key == "speed_m_s"):
+                into.setdefault(str(t.get("label", "")), []).append(float(got))
 
 
 def summarize(run_dir: Path, events_folder: str = "events", counts_file: str = "counts.jsonl",
@@ -292,9 +297,14 @@ def svg_bars(label: str, values: list[float]) -> str:
 
 
 def _lengths(s: RunSummary) -> list[str]:
-    rows = [[lb, len(v), f"{statistics.median(v):.3f}", f"{min(v):.3f}", f"{max(v):.3f}"]
+    def median(values: list[float] | None, digits: int) -> str:
+        return f"{statistics.median(values):.{digits}f}" if values else "-"
+
+    rows = [[lb, len(v), f"{statistics.median(v):.3f}", f"{min(v):.3f}", f"{max(v):.3f}",
+             median(s.ranges.get(lb), 2), median(s.speeds.get(lb), 3)]
             for lb, v in sorted(s.lengths.items())]
-    return [_table(["label", "tracks measured", "median (m)", "min (m)", "max (m)"], rows),
+    return [_table(["label", "tracks measured", "median (m)", "min (m)", "max (m)",
+                    "median range (m)", "median speed (m/s)"], rows),
             *(svg_bars(lb, v) for lb, v in sorted(s.lengths.items()))]
 
 
@@ -360,7 +370,8 @@ def render_html(s: RunSummary) -> str:
                [[hour, lb, int(v[0]), int(v[1]), f"{v[2]:.1f}"]
                 for hour, per in sorted(s.counts_hour.items()) for lb, v in sorted(per.items())]),
         "<h2>Length-frequency per label</h2>",
-        "<p>From tracks.jsonl: each measured track's length (median of its sharpest views).</p>",
+        "<p>From tracks.jsonl: each measured track's length (median of its sharpest views), "
+        "its range at first sighting and its speed over the ground.</p>",
         *_lengths(s),
         "<h2>Result rates per pool</h2>",
         svg_lines("pairs processed per second", s.rates, f"seconds since the first result "

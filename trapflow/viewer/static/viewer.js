@@ -28,8 +28,8 @@ function drawPair(frame) {
     }
     const ctx = $("left").getContext("2d");
     ctx.font = "13px sans-serif";
-    ctx.lineWidth = 1;
-    ctx.setLineDash([4, 3]);
+    ctx.lineWidth = 2;
+    ctx.setLineDash([6, 4]);
     ctx.strokeStyle = "#ff66cc"; // what the motion gate saw moving
     for (const [x1, y1, x2, y2] of frame.motion) ctx.strokeRect(x1 * scale, y1 * scale, (x2 - x1) * scale, (y2 - y1) * scale);
     ctx.setLineDash([]);

@@ -31,8 +31,12 @@ from trapflow.wire import control_msgs, messages
 
 log = logging.getLogger(__name__)
 
-PUMP_S = 0.05  # tap drain period: 20 wake-ups a second
+PUMP_S = 0.05  # tap drain period while a page is open: 20 wake-ups a second
+# With no page open: fewer wake-ups (the result latency of /metrics is taken when a line
+# is drained, so at most this late) and status less often (node states for /metrics).
+PUMP_IDLE_S = 0.1
 STATUS_S = 1.0
+STATUS_IDLE_S = 5.0
 # The page polls twice a second (a background tab of Chromium once a second): a page that
 # asked nothing for this long is closed, and previews are no longer asked for.
 PAGE_OPEN_S = 3.0
@@ -79,12 +83,16 @@ class Viewer:
         next_status = next_events = next_file = 0.0
         while not stopping():
             now = time.monotonic()
-            self.taps.want_previews(now - self._page_seen < PAGE_OPEN_S)
+            page = now - self._page_seen < PAGE_OPEN_S
+            if page and not self.taps.previews:  # a page opened: fresh status at once
+                next_status = now
+            self.taps.want_previews(page)
             self.taps.drain(now)
             self.state.tick(now)
             if now >= next_status:
                 self.taps.poll_status(now)
-                next_status = now + (PUMP_S if self.taps.busy() else STATUS_S)
+                next_status = now + (PUMP_S if self.taps.busy() else
+                                     STATUS_S if page else STATUS_IDLE_S)
             if now >= next_events:
                 self.taps.scan_events()
                 next_events = now + EVENTS_S
@@ -93,7 +101,7 @@ class Viewer:
                 next_file = now + self.cfg.viewer.metrics_interval_s
             if beat is not None:
                 beat()
-            await asyncio.sleep(PUMP_S)
+            await asyncio.sleep(PUMP_S if page or self.taps.busy() else PUMP_IDLE_S)
 
     async def start(self, host: str, port: int) -> web.AppRunner:
         """Bind the HTTP server; OSError if the address is taken."""

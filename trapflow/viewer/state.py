@@ -7,6 +7,7 @@ and the Prometheus numbers are tested without a pipeline. The taps feed it; the 
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 from collections import OrderedDict, deque
 from dataclasses import dataclass, field
@@ -24,13 +25,13 @@ LATENCY_BUCKETS = (0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
 
 def parse_timestamp(text: str) -> float:
     """Seconds since the epoch of a normalizer timestamp ('2025-07-07 12:52:43.120', UTC)."""
-    fmt = "%Y-%m-%d %H:%M:%S.%f" if "." in text else "%Y-%m-%d %H:%M:%S"
-    try:
-        t = dt.datetime.strptime(text, fmt).replace(tzinfo=dt.timezone.utc)
-    except ValueError:
-        raise ValueError(f"result timestamp: expected 'YYYY-MM-DD HH:MM:SS[.mmm]', "
-                         f"got {text[:40]!r}") from None
-    return t.timestamp()
+    # fromisoformat is about 6x faster than strptime (every result line is parsed); the
+    # shape is checked first, as it also takes dates alone, a 'T' and time zones.
+    if len(text) in (19, 23) and text[10:11] == " " and text[19:20] in ("", "."):
+        with contextlib.suppress(ValueError):
+            return dt.datetime.fromisoformat(text).replace(tzinfo=dt.timezone.utc).timestamp()
+    raise ValueError(f"result timestamp: expected 'YYYY-MM-DD HH:MM:SS[.mmm]', "
+                     f"got {text[:40]!r}")
 
 
 @dataclass

@@ -31,6 +31,7 @@ from trapflow.wire.transport import (
     new_context,
     open_socket,
     set_subscribed,
+    zmq_readable,
 )
 
 log = logging.getLogger(__name__)
@@ -77,11 +78,8 @@ class PipelineTaps:
         n = 0
         for sub in self.subs:
             budget = n + MAX_DRAIN
-            while n < budget:
-                try:
-                    frames = sub.recv_multipart(zmq.NOBLOCK, copy=True)
-                except zmq.Again:
-                    break
+            while n < budget and zmq_readable(sub):  # no exception per empty socket
+                frames = sub.recv_multipart(zmq.NOBLOCK, copy=True)
                 n += 1
                 try:
                     self._feed(frames, now)

@@ -172,16 +172,16 @@ def test_page_shows_tracks_measures_counts_motion_and_gate(spawn, run_dir: Path,
     assert int(row.locator(".maxn").inner_text()) >= 1
     # The gate's moving regions drawn on the left image: its pixels read in the same tick
     # as the number of regions it was drawn with (the page redraws twice a second).
-    drawn = page.wait_for_function("""() => {
+    drawn = page.wait_for_function("""(rgb) => {
         const c = document.getElementById('left');
         if (!(Number(c.dataset.motion) > 0)) return false;
         const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
         let n = 0;
         for (let i = 0; i < d.length; i += 4)
-          if (Math.abs(d[i] - %d) < 40 && Math.abs(d[i + 1] - %d) < 40 &&
-              Math.abs(d[i + 2] - %d) < 40) n++;
+          if (Math.abs(d[i] - rgb[0]) < 40 && Math.abs(d[i + 1] - rgb[1]) < 40 &&
+              Math.abs(d[i + 2] - rgb[2]) < 40) n++;
         return n > 20 && n;
-    }""" % tuple(MOTION_RGB), timeout=60_000).json_value()
+    }""", arg=list(MOTION_RGB), timeout=60_000).json_value()
     assert drawn > 20, "no motion region drawn on the left image"
     # The gated pool says whether its gate withholds pairs now, with the broker's count.
     page.wait_for_function("!document.querySelector('#pool-stereo .gate')?.hidden",

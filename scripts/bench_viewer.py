@@ -131,25 +131,34 @@ def _http_client(base: str) -> Callable[[float], dict[str, Any]]:
     return run
 
 
-def _chromium_client(base: str) -> Callable[[float], dict[str, Any]]:
+@contextlib.contextmanager
+def _chromium_page(base: str) -> Iterator[Any]:
+    """The page open in headless Chromium (launched before the window, so that the
+    browser's start is not in it)."""
+    import shutil
+
+    from playwright.sync_api import sync_playwright
+
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=exe, headless=True,
+                                     args=["--no-sandbox", "--disable-gpu"])
+        try:
+            page = browser.new_page()
+            page.goto(base + "/")
+            page.wait_for_function("window.trapflow.frames > 0", timeout=60_000)
+            yield page
+        finally:
+            browser.close()
+
+
+def _page_open(page: Any) -> Callable[[float], dict[str, Any]]:
     def run(seconds: float) -> dict[str, Any]:
-        import shutil
-
-        from playwright.sync_api import sync_playwright
-
-        exe = shutil.which("chromium") or shutil.which("chromium-browser")
-        with sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=exe, headless=True,
-                                         args=["--no-sandbox", "--disable-gpu"])
-            try:
-                page = browser.new_page()
-                page.goto(base + "/")
-                time.sleep(seconds)
-                done = page.evaluate("({polls: window.trapflow.polls, "
-                                     "frames: window.trapflow.frames})")
-            finally:
-                browser.close()
-        return {"client_polls": done["polls"], "client_pairs": done["frames"]}
+        before = page.evaluate("({polls: window.trapflow.polls, frames: window.trapflow.frames})")
+        time.sleep(seconds)  # the page polls and draws by itself
+        after = page.evaluate("({polls: window.trapflow.polls, frames: window.trapflow.frames})")
+        return {"client_polls": after["polls"] - before["polls"],
+                "client_pairs": after["frames"] - before["frames"]}
     return run
 
 
@@ -165,8 +174,11 @@ def bench(seconds: float, warmup: float, client: str) -> dict[str, Any]:
         procs = {"viewer": viewer, "broker": broker}
         time.sleep(warmup)
         closed = _window(procs, run, seconds)
-        make = _http_client if client == "http" else _chromium_client
-        opened = _window(procs, run, seconds, make(url))
+        if client == "http":
+            opened = _window(procs, run, seconds, _http_client(url))
+        else:
+            with _chromium_page(url) as page:
+                opened = _window(procs, run, seconds, _page_open(page))
         final = json.loads(_get(f"{url}/api/state"))
     out: dict[str, Any] = {"client": client, "load_average": os.getloadavg(),
                            "baseline": base_w,

@@ -128,6 +128,6 @@ def decode_tap(frames: Sequence[Buffer]) -> TapMessage:
         return TapMeta(decode_pair_header(frames[1]))
     if topic == TOPIC_TRUTH and n == 2:
         return TapTruth(decode_truth(frames[1]))
-    raise ProtocolError(f"tap: expected image or preview [topic, header, left, right] or meta, "
-                        f"stats, result, truth [topic, body], got topic {topic[:20]!r} with "
+    raise ProtocolError(f"tap: expected image [topic, header, left, right] (preview alike) or "
+                        f"meta, stats, result, truth [topic, body], got topic {topic[:20]!r} with "
                         f"{n} frames")

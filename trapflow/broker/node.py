@@ -222,10 +222,9 @@ class BrokerNode(Node):
             self.tap.publish(tap_msgs.TOPIC_META, frames[0])
         if self.tap.wanted.get(tap_msgs.TOPIC_IMAGE):
             self.tap.publish(tap_msgs.TOPIC_IMAGE, *self._payload(pair.seq, copy=True))
-        now = time.monotonic()
-        if self.tap.preview.wanted and self.tap.preview.on_arrival(now):
-            self._preview(pair.seq)
-        self._apply(self.state.pair_arrived(pair.seq, now, pair.motion, pair.motion_score))
+        self._preview(pair.seq, None)
+        self._apply(self.state.pair_arrived(pair.seq, time.monotonic(), pair.motion,
+                                            pair.motion_score))
 
     # --- local links ----------------------------------------------------------------
 
@@ -410,6 +409,8 @@ class BrokerNode(Node):
     # --- actions --------------------------------------------------------------------
 
     def _apply(self, actions: list[Action]) -> None:
+        # Over 60 lines: one branch per action kind, each the socket work of that kind;
+        # the exhaustive chain (ending in unreachable) reads best in one place.
         for action in actions:
             if isinstance(action, Dispatch):
                 key = (action.pool, action.gap)
@@ -431,9 +432,7 @@ class BrokerNode(Node):
                         payload = (self.remote.jpeg_payload(action.seq) if remote
                                    else self._payload(action.seq, copy=False))
                         self.router.send_multipart([action.worker, job, *payload], copy=False)
-                    preview = self.tap.preview
-                    if preview.wanted and preview.on_dispatch(action.pool, time.monotonic()):
-                        self._preview(action.seq)
+                    self._preview(action.seq, action.pool)
                 except (zmq.ZMQError, LinkClosed) as exc:  # EHOSTUNREACH: the worker vanished
                     self.unroutable += 1
                     self._unreachable("route", action.worker, link, exc,
@@ -561,9 +560,14 @@ class BrokerNode(Node):
         row = self.ring.payload(ref)
         return [frames[0], bytes(row[0]), bytes(row[1])]
 
-    def _preview(self, seq: int) -> None:
-        """The viewer's preview of a pair: views of the ring (encoded before this returns,
-        while the broker still holds the slot) or the frames as received."""
+    def _preview(self, seq: int, pool: str | None) -> None:
+        """The viewer's preview of a pair that arrived (pool None) or was given to pool,
+        if it is the one due (trapflow.broker.preview): from views of the ring (encoded
+        before this returns, while the broker still holds the slot) or the frames."""
+        clock = self.tap.preview
+        if not clock.wanted or not (clock.on_arrival(time.monotonic()) if pool is None
+                                    else clock.on_dispatch(pool, time.monotonic())):
+            return  # no page open (the usual case: one attribute read per pair)
         frames, ref = self.frames[seq], self.refs.get(seq)
         sides = self.ring.payload(ref) if ref is not None and self.ring is not None else frames[1:]
         self.tap.publish_preview(frames[0], *sides)

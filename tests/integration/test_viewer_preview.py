@@ -4,6 +4,9 @@ page is gone. Real pipeline, real sockets, the broker's own counter read from it
 
 from __future__ import annotations
 
+import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -12,8 +15,9 @@ import cv2
 import numpy as np
 import pytest
 
-from tests.conftest import Pipeline, poll_for
+from tests.conftest import REPO, Pipeline, poll_for
 from tests.integration.viewer_util import free_port, get, get_json
+from trapflow.broker.preview import LEASE_S
 from trapflow.viewer.server import PAGE_OPEN_S
 
 pytestmark = pytest.mark.slow  # starts a whole pipeline
@@ -78,5 +82,34 @@ def test_no_preview_is_made_without_a_page(spawn, run_dir: Path) -> None:
     poll_for(lambda: _broker(p)["pairs_in"] >= moved + 20, 60, interval=1.0,
              what="20 more pairs through the broker")
     assert _broker(p)["previews"] == closed
+    code, _, err = p.stop()
+    assert code == 0, err
+
+
+@pytest.mark.timeout(180)
+def test_a_viewer_killed_with_its_page_open_leaves_no_previews(spawn, run_dir: Path,
+                                                               started_procs) -> None:
+    """Regression: a subscriber that dies sends no unsubscription, so a `trapflow view`
+    killed (-9) while a page was open left the broker making previews for nobody; its
+    lease now ends them."""
+    p: Pipeline = spawn(["--size", "640x360"], run_dir)
+    p.wait_active(90)
+    port = free_port()
+    view = subprocess.Popen(
+        [sys.executable, "-m", "trapflow", "view", "--run-dir", str(run_dir), "--listen",
+         f"127.0.0.1:{port}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO)
+    started_procs.append(view)
+    poll_for(lambda: get_json(f"http://127.0.0.1:{port}/api/state"), 40, interval=0.5,
+             what="the viewer answering")
+    _, seqs = _poll_as_the_page(f"http://127.0.0.1:{port}", 2.0 + 2 * 2.0)  # renewals too
+    assert seqs and _broker(p)["previews"] >= 2
+    view.send_signal(signal.SIGKILL)
+    view.wait(10)
+    time.sleep(LEASE_S + 2.0)  # the lease runs out; the broker checks it every second
+    ended = _broker(p)["previews"]
+    moved = _broker(p)["pairs_in"]
+    poll_for(lambda: _broker(p)["pairs_in"] >= moved + 20, 60, interval=1.0,
+             what="20 more pairs through the broker")
+    assert _broker(p)["previews"] == ended
     code, _, err = p.stop()
     assert code == 0, err

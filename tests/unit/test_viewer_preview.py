@@ -55,15 +55,6 @@ PREVIEW_ROWS = [
     ([("want", "", 0.0), ("dispatch", "mono", 0.0), ("unwant", "", 0.1),
       ("dispatch", "mono", 2.0), ("arrive", "", 9.0)],
      [True, False, False], False),
-    # A viewer killed with its page open sends no unsubscription: its lease ends the
-    # previews LEASE_S after the last renewal; a renewal in time keeps them going.
-    ([("want", "", 0.0), ("dispatch", "mono", 0.0), ("tick", "", 5.9),
-      ("dispatch", "mono", 5.9), ("tick", "", 6.0), ("dispatch", "mono", 6.5),
-      ("arrive", "", 9.0)],
-     [True, True, False, False], False),
-    ([("want", "", 0.0), ("want", "", 4.0), ("tick", "", 9.9), ("dispatch", "mono", 9.9),
-      ("tick", "", 10.0), ("dispatch", "mono", 10.5)],
-     [True, False], False),
 ]
 
 
@@ -71,15 +62,10 @@ PREVIEW_ROWS = [
 def test_preview_clock(events: list[tuple[str, str, float]], expected: list[bool],
                        wanted_at_end: bool) -> None:
     clock = PreviewClock(0.5, {"mono"})
-    got, renewals = [], 0
+    got = []
     for what, pool, now in events:
-        if what == "want":  # a (renewed) subscription: the gate counts one more
-            renewals += 1
-            clock.subscriptions(True, renewals, now)
-        elif what == "unwant":  # the last reader unsubscribed
-            clock.subscriptions(False, renewals, now)
-        elif what == "tick":
-            clock.tick(now)
+        if what in ("want", "unwant"):
+            clock.want(what == "want", now)
         elif what == "arrive":
             got.append(clock.on_arrival(now))
         else:
@@ -90,7 +76,7 @@ def test_preview_clock(events: list[tuple[str, str, float]], expected: list[bool
 
 def test_preview_clock_without_drawn_pools_takes_arrivals_at_the_rate() -> None:
     clock = PreviewClock(0.5, ())
-    clock.subscriptions(True, 1, 0.0)
+    clock.want(True, 0.0)
     assert [clock.on_arrival(t) for t in (0.0, 0.2, 0.5, 0.6, 1.0)] == [
         True, False, True, False, True]
     with pytest.raises(ValueError, match="expected more than 0 s"):

@@ -7,12 +7,6 @@ one given to a pool whose results the page draws on the left image (the mono det
 the tag finder), so that its boxes arrive for the very pair shown; where no such pool took
 a pair for a whole extra interval (none configured, switched off, gated on a still scene),
 the next pair to arrive is taken instead, so the page never freezes.
-
-A subscription is a lease: a viewer renews it (unsubscribes and subscribes again) every
-few seconds while its page is open. A subscriber that dies sends no unsubscription (a
-manual XPUB is told of none when a peer goes), so a viewer killed with its page open
-would otherwise keep the broker making previews for nobody; the lease ends them LEASE_S
-after the last renewal.
 """
 
 from __future__ import annotations
@@ -22,9 +16,6 @@ from typing import Protocol
 
 # Plugins whose results the page draws on the left image (boxes, tag outlines).
 DRAWN_PLUGINS = ("mono", "tags")
-# A preview subscription not renewed for this long is taken as gone (the viewer renews
-# every trapflow.viewer.taps.PREVIEW_RENEW_S).
-LEASE_S = 6.0
 
 
 class _Pool(Protocol):
@@ -48,24 +39,11 @@ class PreviewClock:
         self.drawn = frozenset(drawn)
         self.wanted = False
         self._due = 0.0  # the next preview may go from this time on
-        self._readers = False
-        self._renewals = 0
-        self._lease = 0.0
         self.published = 0
 
-    def subscriptions(self, readers: bool, renewals: int, now: float) -> None:
-        """What the tap's subscriptions say: whether a preview reader is counted, and how
-        many preview subscriptions came so far (a new one renews the lease)."""
-        if renewals != self._renewals:
-            self._renewals = renewals
-            self._lease = now + LEASE_S
-        self._readers = readers
-        self.tick(now)
-
-    def tick(self, now: float) -> None:
-        """Wanted while a reader is counted and its lease runs; a page that opens gets its
-        first preview with the next pair, not an interval later."""
-        wanted = self._readers and now < self._lease
+    def want(self, wanted: bool, now: float) -> None:
+        """A viewer subscribed (a page opened) or the last one left: the first preview goes
+        with the next pair, not an interval later."""
         if wanted and not self.wanted:
             self._due = now
         self.wanted = wanted

@@ -57,9 +57,7 @@ class BrokerTap:
         self._poller.touch(self.sock)
         if self.gate.drain():
             self.wanted = {t: self.gate.wanted(t) for t in tap_msgs.TAP_TOPICS}
-            self.preview.subscriptions(self.wanted[tap_msgs.TOPIC_PREVIEW],
-                                       self.gate.subscribed.get(tap_msgs.TOPIC_PREVIEW, 0),
-                                       time.monotonic())
+            self.preview.want(self.wanted[tap_msgs.TOPIC_PREVIEW], time.monotonic())
 
     def publish(self, topic: bytes, *frames: Any) -> None:
         """Send now, or lose it: a slow subscriber never holds the broker."""
@@ -90,7 +88,6 @@ class BrokerTap:
         """The broker's Stats, with rates since the last ones."""
         dt = now - self._last_stats
         self._last_stats = now
-        self.preview.tick(now)  # a preview lease not renewed ends here
         state = self._state
         pools = state.pool_stats()
         for name, ps in pools.items():

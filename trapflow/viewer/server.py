@@ -88,7 +88,7 @@ class Viewer:
             page = now - self._page_seen < PAGE_OPEN_S
             if page and not self.taps.previews:  # a page opened: fresh status at once
                 next_status = now
-            self.taps.want_previews(page, now)
+            self.taps.want_previews(page)
             self.taps.drain(now)
             self.state.tick(now)
             if now >= next_status:

@@ -41,10 +41,6 @@ MAX_DRAIN = 256
 # Previews come at the viewer's rate (at most 15 Hz): a few per drain at most.
 TAP_RCVHWM = 16
 STATUS_TIMEOUT_S = 2.0
-# While a page is open the preview subscription is renewed this often (unsubscribe and
-# subscribe again): the broker takes it as a lease (trapflow.broker.preview.LEASE_S), so
-# a viewer that dies with its page open does not leave the broker making previews.
-PREVIEW_RENEW_S = 2.0
 EVENTS_SHOWN = 6
 
 
@@ -74,7 +70,6 @@ class PipelineTaps:
         self._control_out = False  # the request out is a queued one (its reply is no status)
         self.ratelog = RateLimitedLog(log)
         self.previews = False
-        self._renewed = 0.0
 
     # --- taps ------------------------------------------------------------------------
 
@@ -93,16 +88,12 @@ class PipelineTaps:
                     self.ratelog.warning("tap", "malformed tap message dropped: %s", exc)
         return n
 
-    def want_previews(self, on: bool, now: float) -> None:
-        """Ask the broker for previews (a page is open; renewed every PREVIEW_RENEW_S) or
-        stop asking (none is)."""
-        if on and self.previews and now - self._renewed >= PREVIEW_RENEW_S:
-            set_subscribed(self.subs[0], tap_msgs.TOPIC_PREVIEW, False)  # then at once again
-            self.previews = False
+    def want_previews(self, on: bool) -> None:
+        """Ask the broker for previews (a page is open) or stop asking (none is)."""
         if on != self.previews:
             set_subscribed(self.subs[0], tap_msgs.TOPIC_PREVIEW, on)
             self.previews = on
-            self._renewed = now
+            log.debug("viewer: previews %s", "asked for" if on else "no longer asked for")
 
     def _feed(self, frames: list[bytes], now: float) -> None:
         msg = tap_msgs.decode_tap(frames)
@@ -213,7 +204,4 @@ class PipelineTaps:
         return path
 
     def close(self) -> None:
-        if self.previews:  # previews end at once, not when the lease runs out
-            set_subscribed(self.subs[0], tap_msgs.TOPIC_PREVIEW, False)
-            self.subs[0].close(linger=100)
         self.ctx.destroy(linger=0)

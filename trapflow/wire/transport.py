@@ -262,7 +262,6 @@ class TapGate:
         self.topics = tuple(topics)
         self._valid = {t[:i] for t in self.topics for i in range(len(t) + 1)}
         self.readers: dict[bytes, int] = {}
-        self.subscribed: dict[bytes, int] = {}  # subscriptions taken so far (renewals too)
         self.refused = 0
 
     def drain(self) -> bool:
@@ -280,7 +279,6 @@ class TapGate:
             if msg[:1] == b"\x01":
                 self.sock.setsockopt(zmq.SUBSCRIBE, prefix)  # for the peer that sent it
                 self.readers[prefix] = self.readers.get(prefix, 0) + 1
-                self.subscribed[prefix] = self.subscribed.get(prefix, 0) + 1
             else:
                 self.sock.setsockopt(zmq.UNSUBSCRIBE, prefix)
                 left = self.readers.get(prefix, 0) - 1

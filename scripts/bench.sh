@@ -32,7 +32,8 @@ Parts, in order, with their run time on a 2-core machine (full / --quick):
               fp32 vs int8, preallocated vs allocating input, JPEG
               decoded whole vs reduced (ratios, same run)          ~3 min  / skipped
   process     Dask LocalCluster vs one plain loop                 ~2 min  / skipped
-  viewer      live viewer against the default pipeline            ~1 min  / skipped
+  viewer      live viewer's CPU (viewer + broker beyond a pipeline
+              without viewer) with no page open and with one     ~3 min  / skipped
   modem       modem link                                          ~1 min  / skipped
   tracking    trapflow's tracker vs greedy IoU and ByteTrack (trackers, if
               installed) on held-out synthetic sequences, HOTA (TrackEval),
@@ -93,7 +94,7 @@ echo "[bench] algorithms" >&2
 "$PY" scripts/bench_algorithms.py --out "$OUT" > /dev/null
 echo "[bench] process (Dask LocalCluster vs one plain loop)" >&2
 "$PY" scripts/bench_process.py --out "$OUT" > /dev/null
-echo "[bench] live viewer (30 s against the default pipeline)" >&2
+echo "[bench] live viewer (no page, a page open, no viewer: 30 s each)" >&2
 "$PY" scripts/bench_viewer.py --out "$OUT" > /dev/null
 echo "[bench] modem link" >&2
 "$PY" scripts/bench_modem.py --out "$OUT/modem.json" > "$OUT/modem.txt"

@@ -1,9 +1,18 @@
-"""Benchmark of the live viewer: CPU of the viewer process over a window while a client
-polls it as the page does, against the default pipeline (1280x720 JPEG at 15 Hz).
+"""Benchmark of the live viewer: what it costs the pipeline, with a page open and with none,
+against the same pipeline without a viewer, in one run (default pipeline: the synthetic
+source at 1280x720, raw pairs in the shared-memory ring, 15 pairs/s asked).
 
-CPU share = CPU seconds (user + system) of the viewer node over the window / the window.
-Usage: python scripts/bench_viewer.py [--seconds 30 --warmup 15 --out bench-results]
-       [--baseline: also the broker's share in the same pipeline without a viewer]
+Three windows of the same length: (1) a pipeline without viewer: the broker's CPU per pair
+(the baseline); (2) a pipeline with `--view` and no page open; (3) the same pipeline with a
+page open: a client polling /api/state twice a second and fetching both images of each new
+pair, as viewer.js does (`--client http`, the default), or the page itself in headless
+Chromium (`--client chromium`; the browser's own CPU is not counted).
+
+Cost of the viewer in a window = the viewer process's CPU + the broker's CPU beyond the
+baseline (the broker's CPU per pair above the baseline's, times the pairs it took), as a
+share of one core over the window. CPU = user + system time of the process (psutil).
+Usage: python scripts/bench_viewer.py [--seconds 30 --warmup 15 --client http|chromium
+       --out bench-results]
 """
 
 from __future__ import annotations
@@ -11,6 +20,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import signal
 import socket
 import subprocess
@@ -18,13 +28,14 @@ import sys
 import tempfile
 import time
 import urllib.request
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import psutil
 
 POLL_S = 0.5  # what the page does: /api/state twice a second, both images when they change
+BUDGET_OPEN, BUDGET_CLOSED = 0.03, 0.005  # issue 22 item 5: share of one core
 
 
 def _free_port() -> int:
@@ -51,12 +62,13 @@ def _node(pipeline: subprocess.Popen[bytes], title: str) -> psutil.Process | Non
 
 
 @contextlib.contextmanager
-def _pipeline(titles: tuple[str, ...], *args: str) -> Iterator[list[psutil.Process]]:
+def _pipeline(titles: tuple[str, ...], *args: str) -> Iterator[tuple[list[psutil.Process], Path]]:
     """A default pipeline started with `args` (stopped with SIGINT on leaving), once its
-    nodes named by `titles` are up: those nodes' processes."""
+    nodes named by `titles` are up: those nodes' processes and the run directory."""
     run = Path(tempfile.mkdtemp(prefix="tf-bench-")) / "run"
     pipeline = subprocess.Popen(
-        [sys.executable, "-m", "trapflow", "start", "--run-dir", str(run), *args],
+        [sys.executable, "-m", "trapflow", "start", "--run-dir", str(run), "--size",
+         "1280x720", *args],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         deadline = time.monotonic() + 120
@@ -64,7 +76,7 @@ def _pipeline(titles: tuple[str, ...], *args: str) -> Iterator[list[psutil.Proce
             if time.monotonic() > deadline or pipeline.poll() is not None:
                 raise SystemExit(f"the pipeline did not start {', '.join(titles)} within 120 s")
             time.sleep(0.5)
-        yield [n for n in nodes if n is not None]
+        yield [n for n in nodes if n is not None], run
     finally:
         pipeline.send_signal(signal.SIGINT)
         try:
@@ -73,26 +85,38 @@ def _pipeline(titles: tuple[str, ...], *args: str) -> Iterator[list[psutil.Proce
             pipeline.kill()
 
 
-def baseline(seconds: float, warmup: float) -> float:
-    """The broker's CPU share in the same pipeline without a viewer (no image tap)."""
-    with _pipeline(("trapflow:broker",)) as (broker,):
-        time.sleep(warmup)
-        t0, b0 = time.monotonic(), broker.cpu_times()
-        time.sleep(seconds)
-        b1 = broker.cpu_times()
-        share: float = ((b1.user + b1.system) - (b0.user + b0.system)) / (time.monotonic() - t0)
-        return share
+def _cpu(p: psutil.Process) -> float:
+    t = p.cpu_times()
+    return float(t.user + t.system)
 
 
-def bench(seconds: float, warmup: float) -> dict[str, Any]:
-    port = _free_port()
-    base = f"http://127.0.0.1:{port}"
-    with _pipeline(("trapflow:viewer", "trapflow:broker"), "--view", str(port)) as nodes:
-        viewer, broker = nodes
-        time.sleep(warmup)
-        in0 = json.loads(_get(f"{base}/api/state"))["pairs_in"]
-        t0, c0, b0 = time.monotonic(), viewer.cpu_times(), broker.cpu_times()
-        seq, polls, pairs = None, 0, 0
+def _pairs_in(run: Path) -> int:
+    """Pairs the broker took so far, from the pipeline's status (its own counter)."""
+    out = subprocess.run([sys.executable, "-m", "trapflow", "status", "--json", "--run-dir",
+                          str(run), "--timeout", "5"], capture_output=True, text=True,
+                         timeout=30, check=True)
+    n: int = json.loads(out.stdout)["stats"]["pairs_in"]
+    return n
+
+
+def _window(procs: dict[str, psutil.Process], run: Path, seconds: float,
+            during: Callable[[float], dict[str, Any]] | None = None) -> dict[str, Any]:
+    """CPU seconds of each process and pairs through the broker over one window; `during`
+    runs for the window (a client) and returns what it did."""
+    n0 = _pairs_in(run)
+    c0 = {k: _cpu(p) for k, p in procs.items()}
+    t0 = time.monotonic()
+    extra = during(seconds) if during is not None else (time.sleep(seconds) or {})
+    dt = time.monotonic() - t0
+    c1 = {k: _cpu(p) for k, p in procs.items()}
+    pairs = _pairs_in(run) - n0
+    return {"window_s": round(dt, 1), "pairs": pairs, "rate_hz": round(pairs / dt, 2),
+            **{f"{k}_cpu_s": round(c1[k] - c0[k], 3) for k in procs}, **extra}
+
+
+def _http_client(base: str) -> Callable[[float], dict[str, Any]]:
+    def run(seconds: float) -> dict[str, Any]:
+        t0, seq, polls, shown = time.monotonic(), None, 0, 0
         while time.monotonic() - t0 < seconds:
             state = json.loads(_get(f"{base}/api/state"))
             polls += 1
@@ -101,45 +125,116 @@ def bench(seconds: float, warmup: float) -> dict[str, Any]:
                 seq = frame["seq"]
                 for side in ("left", "right"):
                     _get(f"{base}/frame/{seq}/{side}.jpg")
-                pairs += 1
+                shown += 1
             time.sleep(POLL_S)
-        dt = time.monotonic() - t0
-        c1, b1 = viewer.cpu_times(), broker.cpu_times()
-        final = json.loads(_get(f"{base}/api/state"))
-    cpu = (c1.user + c1.system) - (c0.user + c0.system)
-    bcpu = (b1.user + b1.system) - (b0.user + b0.system)
-    return {"window_s": round(dt, 1), "viewer_cpu_s": round(cpu, 3),
-            "viewer_cpu_share": round(cpu / dt, 4), "broker_cpu_share": round(bcpu / dt, 4),
-            "capture_rate_hz": round((final["pairs_in"] - in0) / dt, 2),
-            "pairs_tapped": final["frames"]["received"],
-            "pairs_shown": final["frames"]["shown"], "client_polls": polls,
-            "client_pairs": pairs}
+        return {"client_polls": polls, "client_pairs": shown}
+    return run
+
+
+@contextlib.contextmanager
+def _chromium_page(base: str) -> Iterator[Any]:
+    """The page open in headless Chromium (launched before the window, so that the
+    browser's start is not in it)."""
+    import shutil
+
+    from playwright.sync_api import sync_playwright
+
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=exe, headless=True,
+                                     args=["--no-sandbox", "--disable-gpu"])
+        try:
+            page = browser.new_page()
+            page.goto(base + "/")
+            page.wait_for_function("window.trapflow.frames > 0", timeout=60_000)
+            yield page
+        finally:
+            browser.close()
+
+
+def _page_open(page: Any) -> Callable[[float], dict[str, Any]]:
+    def run(seconds: float) -> dict[str, Any]:
+        before = page.evaluate("({polls: window.trapflow.polls, frames: window.trapflow.frames})")
+        time.sleep(seconds)  # the page polls and draws by itself
+        after = page.evaluate("({polls: window.trapflow.polls, frames: window.trapflow.frames})")
+        return {"client_polls": after["polls"] - before["polls"],
+                "client_pairs": after["frames"] - before["frames"]}
+    return run
+
+
+def bench(seconds: float, warmup: float, client: str) -> dict[str, Any]:
+    with _pipeline(("trapflow:broker",)) as ((broker,), run):
+        time.sleep(warmup)
+        base_w = _window({"broker": broker}, run, seconds)
+    per_pair = base_w["broker_cpu_s"] / max(1, base_w["pairs"])
+    port = _free_port()
+    url = f"http://127.0.0.1:{port}"
+    with _pipeline(("trapflow:viewer", "trapflow:broker"), "--view", str(port)) as (
+            (viewer, broker), run):
+        procs = {"viewer": viewer, "broker": broker}
+        time.sleep(warmup)
+        closed = _window(procs, run, seconds)
+        if client == "http":
+            opened = _window(procs, run, seconds, _http_client(url))
+        else:
+            with _chromium_page(url) as page:
+                opened = _window(procs, run, seconds, _page_open(page))
+        final = json.loads(_get(f"{url}/api/state"))
+    out: dict[str, Any] = {"client": client, "load_average": os.getloadavg(),
+                           "baseline": base_w,
+                           "broker_cpu_s_per_pair_baseline": round(per_pair, 5)}
+    for name, w in (("no_page", closed), ("page_open", opened)):
+        extra = w["broker_cpu_s"] - per_pair * w["pairs"]
+        w["broker_extra_cpu_s"] = round(extra, 3)
+        w["viewer_share"] = round(w["viewer_cpu_s"] / w["window_s"], 4)
+        w["broker_extra_share"] = round(extra / w["window_s"], 4)
+        w["cost_share"] = round((w["viewer_cpu_s"] + extra) / w["window_s"], 4)
+        out[name] = w
+    out["pairs_shown"] = final["frames"]["shown"]
+    out["previews_received"] = final["frames"]["received"]
+    return out
+
+
+def _markdown(r: dict[str, Any]) -> str:
+    b, c, o = r["baseline"], r["no_page"], r["page_open"]
+
+    def row(name: str, w: dict[str, Any], budget: float) -> str:
+        return (f"| {name} | {w['window_s']} | {w['rate_hz']} | {100 * w['viewer_share']:.2f} | "
+                f"{100 * w['broker_cpu_s'] / w['window_s']:.2f} | "
+                f"{100 * w['broker_extra_share']:.2f} | **{100 * w['cost_share']:.2f}** | "
+                f"{100 * budget:g} |")
+    load = ", ".join(f"{x:.2f}" for x in r["load_average"])
+    return (
+        "## Live viewer\n\n"
+        f"Default pipeline (1280x720 raw pairs, 15 pairs/s asked), load average {load} at the "
+        f"end; page client: {r['client']}. Shares of one core; the viewer's cost is the "
+        "viewer process plus the broker's CPU beyond its baseline per pair "
+        f"({1000 * r['broker_cpu_s_per_pair_baseline']:.2f} ms per pair without a viewer, "
+        f"{b['rate_hz']} pairs/s, {100 * b['broker_cpu_s'] / b['window_s']:.2f} % of a core).\n\n"
+        "| window | s | pairs/s | viewer % | broker % | broker beyond baseline % | "
+        "viewer cost % | budget % |\n|---|---|---|---|---|---|---|---|\n"
+        + row("no page open", c, BUDGET_CLOSED) + "\n"
+        + row("page open", o, BUDGET_OPEN) + "\n\n"
+        f"With the page open the client made {o['client_polls']} polls and fetched "
+        f"{o['client_pairs']} pairs; the viewer received {r['previews_received']} previews.\n")
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--seconds", type=float, default=30.0, help="measurement window")
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seconds", type=float, default=30.0, help="length of each window")
     ap.add_argument("--warmup", type=float, default=15.0, help="seconds after start-up")
+    ap.add_argument("--client", choices=("http", "chromium"), default="http",
+                    help="the open page: a client polling as it does, or headless Chromium")
     ap.add_argument("--out", default="bench-results", help="folder for viewer.json, viewer.md")
     ap.add_argument("--baseline", action="store_true",
-                    help="also measure the broker without a viewer (another run as long)")
+                    help="accepted for older command lines: the baseline is always measured")
     args = ap.parse_args()
-    r = bench(args.seconds, args.warmup)
-    if args.baseline:
-        r["broker_cpu_share_without_viewer"] = round(baseline(args.seconds, args.warmup), 4)
+    r = bench(args.seconds, args.warmup, args.client)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "viewer.json").write_text(json.dumps(r, indent=1) + "\n")
-    (out / "viewer.md").write_text(
-        "## Live viewer\n\n"
-        f"Default pipeline ({r['capture_rate_hz']} pairs/s reached the broker), a client "
-        f"polling as the page does for {r['window_s']} s: the viewer used "
-        f"{r['viewer_cpu_s']} CPU s, "
-        f"{100 * r['viewer_cpu_share']:.2f} % of a core (budget 3 %); it took "
-        f"{r['pairs_tapped']} pairs from the tap and showed {r['pairs_shown']}. "
-        f"Broker: {100 * r['broker_cpu_share']:.1f} % of a core"
-        + (f" ({100 * r['broker_cpu_share_without_viewer']:.1f} % without a viewer)"
-           if "broker_cpu_share_without_viewer" in r else "") + ".\n")
+    (out / "viewer.md").write_text(_markdown(r))
     print(json.dumps(r))
 
 

@@ -141,3 +141,56 @@ def test_pool_buttons_drive_runtime_control(spawn, run_dir: Path, page: Any) -> 
     assert sup["pools"]["mono"]["state"] == "active"
     assert sup["pools"]["mono"]["count"] == count + 1
     assert "pool change requested" in (run_dir / "trapflow.log").read_text()
+
+
+MOTION_RGB = (255, 102, 204)  # the page draws moving regions in #ff66cc
+
+
+@pytest.mark.timeout(180)
+def test_page_shows_tracks_measures_counts_motion_and_gate(spawn, run_dir: Path,
+                                                           page: Any) -> None:
+    """Issues 23-25 on the page: each box with its track's id and what the stereo pair
+    measured (range and length, or why not), a live count per label, the motion gate's
+    moving regions and whether a gated pool is withheld pairs now."""
+    cfg = write_config(run_dir.parent / "gated.yaml", {"pools": {"stereo": {"gate": "motion"}}})
+    p, url = _start(spawn, run_dir, "--config", str(cfg))
+    page.goto(url)
+    page.wait_for_function("window.trapflow.tracks.length > 0", timeout=90_000)
+    tracked = page.locator("#boxes li.det:not([data-track=''])").first
+    track = int(tracked.get_attribute("data-track"))
+    assert tracked.inner_text().startswith(f"#{track} ")
+    # A measured box says its range and length with their sd (or why it is unmeasured).
+    page.wait_for_function("[...document.querySelectorAll('#boxes .measure')]"
+                           ".some(m => /^range \\d+\\.\\d\\d m ± \\d/.test(m.textContent))",
+                           timeout=60_000)
+    measures = page.locator("#boxes .measure").all_inner_texts()
+    assert all(m.startswith(("range ", "unmeasured: ")) for m in measures), measures
+    # A live count per label, with visits and MaxN.
+    page.wait_for_function("document.querySelector('#counts tr[data-label]')", timeout=10_000)
+    row = page.locator("#counts tr[data-label]").first
+    assert int(row.locator(".visits").inner_text()) >= 1
+    assert int(row.locator(".maxn").inner_text()) >= 1
+    # The gate's moving regions drawn on the left image: its pixels read in the same tick
+    # as the number of regions it was drawn with (the page redraws twice a second).
+    drawn = page.wait_for_function("""(rgb) => {
+        const c = document.getElementById('left');
+        if (!(Number(c.dataset.motion) > 0)) return false;
+        const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+        let n = 0;
+        for (let i = 0; i < d.length; i += 4)
+          if (Math.abs(d[i] - rgb[0]) < 40 && Math.abs(d[i + 1] - rgb[1]) < 40 &&
+              Math.abs(d[i + 2] - rgb[2]) < 40) n++;
+        return n > 20 && n;
+    }""", arg=list(MOTION_RGB), timeout=60_000).json_value()
+    assert drawn > 20, "no motion region drawn on the left image"
+    # The gated pool says whether its gate withholds pairs now, with the broker's count.
+    page.wait_for_function("!document.querySelector('#pool-stereo .gate')?.hidden",
+                           timeout=30_000)
+    gate = page.locator("#pool-stereo .gate")
+    assert gate.get_attribute("data-gated") in ("now", "open")
+    assert "withheld" in gate.inner_text()
+    assert page.locator("#pool-vo .gate").is_hidden()  # VO is never gated
+    # The ids the page drew are the normalizer's: the same track on a written line.
+    code, _, err = p.stop()
+    assert code == 0, err
+    assert any(r.get("mono_ir", {}).get("track") == track for r in p.results())

@@ -194,23 +194,6 @@ def test_exposition_parses_and_follows_naming(tmp_path: Path) -> None:
     assert not list(out.parent.glob("*.tmp*"))  # written to a temporary name, then renamed
 
 
-def test_raw_pair_is_served_as_jpeg() -> None:
-    """A raw-encoded pipeline's pair becomes a JPEG only when the page asks for it."""
-    import cv2
-    import numpy as np
-
-    from trapflow.viewer.server import _jpeg
-    from trapflow.viewer.state import Frame
-
-    img = np.zeros((48, 64, 3), np.uint8)
-    img[10:30, 20:40] = (0, 0, 255)
-    frame = Frame(seq=1, width=64, height=48, encoding="raw", left=img.tobytes(),
-                  right=b"\x00" * img.size, t_wall_ns=0)
-    out = cv2.imdecode(np.frombuffer(_jpeg(frame, "left"), np.uint8), cv2.IMREAD_COLOR)
-    assert out.shape == (48, 64, 3)
-    assert out[20, 30, 2] > 200 and out[5, 5].max() < 30
-
-
 @pytest.mark.parametrize(("rel", "served"), [
     ("ev1/left/00000001.jpg", True),
     ("ev1/left/../left/00000001.jpg", True),

@@ -22,6 +22,7 @@ from typing import Any
 import zmq
 
 from trapflow.broker import trust
+from trapflow.broker.preview import PreviewClock, drawn_pools
 from trapflow.broker.remote import BrokerHooks, RemoteWorkersSide, frame_bytes
 from trapflow.broker.state import (
     Action,
@@ -105,7 +106,8 @@ class BrokerNode(Node):
             BrokerHooks(apply=self._apply, refuse=self._refuse, goodbye=self._goodbye,
                         on_worker_msg=self._on_worker_msg, payload=self._payload))
         self.tap = BrokerTap(self.ctx, ep.tap, self.poller, self.state, self.remote.roster,
-                             started=time.monotonic())
+                             started=time.monotonic(), preview=PreviewClock(
+                                 1.0 / self.cfg.viewer.frame_hz, drawn_pools(self.cfg.pools)))
         for listener in self.listeners:
             self.poller.register(listener)
             self.fds[listener.fileno()] = listener
@@ -138,6 +140,7 @@ class BrokerNode(Node):
                 "held": self.state.held(), "results_waiting": len(self._out) + len(self._unacked),
                 "results_dropped": self.results_dropped, "late_answers": self.state.late,
                 "refused_subscriptions": self.tap.gate.refused,
+                "previews": self.tap.preview.published, "previews_failed": self.tap.preview_failed,
                 **{f"rejected_{k}": n for k, n in self.state.rejected.items()},
                 **{f"refused_{k}": n for k, n in self.refused.items()}}
 
@@ -242,6 +245,7 @@ class BrokerNode(Node):
             self.tap.publish(tap_msgs.TOPIC_META, frames[0])
         if self.tap.wanted.get(tap_msgs.TOPIC_IMAGE):
             self.tap.publish(tap_msgs.TOPIC_IMAGE, *self._payload(pair.seq, copy=True))
+        self._preview(pair.seq, None)
         self._apply(self.state.pair_arrived(pair.seq, time.monotonic(), pair.motion,
                                             pair.motion_score))
 
@@ -432,6 +436,8 @@ class BrokerNode(Node):
     # --- actions --------------------------------------------------------------------
 
     def _apply(self, actions: list[Action]) -> None:
+        # Over 60 lines: one branch per action kind, each the socket work of that kind;
+        # the exhaustive chain (ending in unreachable) reads best in one place.
         for action in actions:
             if isinstance(action, Dispatch):
                 key = (action.pool, action.gap)
@@ -453,6 +459,7 @@ class BrokerNode(Node):
                         payload = (self.remote.jpeg_payload(action.seq) if remote
                                    else self._payload(action.seq, copy=False))
                         self.router.send_multipart([action.worker, job, *payload], copy=False)
+                    self._preview(action.seq, action.pool)
                 except (zmq.ZMQError, LinkClosed) as exc:  # EHOSTUNREACH: the worker vanished
                     self.unroutable += 1
                     self._unreachable("route", action.worker, link, exc,
@@ -579,6 +586,18 @@ class BrokerNode(Node):
         assert self.ring is not None
         row = self.ring.payload(ref)
         return [frames[0], bytes(row[0]), bytes(row[1])]
+
+    def _preview(self, seq: int, pool: str | None) -> None:
+        """The viewer's preview of a pair that arrived (pool None) or was given to pool,
+        if it is the one due (trapflow.broker.preview): from views of the ring (encoded
+        before this returns, while the broker still holds the slot) or the frames."""
+        clock = self.tap.preview
+        if not clock.wanted or not (clock.on_arrival(time.monotonic()) if pool is None
+                                    else clock.on_dispatch(pool, time.monotonic())):
+            return  # no page open (the usual case: one attribute read per pair)
+        frames, ref = self.frames[seq], self.refs.get(seq)
+        sides = self.ring.payload(ref) if ref is not None and self.ring is not None else frames[1:]
+        self.tap.publish_preview(frames[0], *sides)
 
     def _reclaim_held(self) -> None:
         """A new broker knows of no pair: slots a previous broker held are free again."""

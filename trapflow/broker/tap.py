@@ -1,20 +1,27 @@
-"""The broker's tap: the XPUB it publishes pair metadata, images and stats on (once a
-second), taking only subscriptions that are prefixes of its topics, so nothing is sent
-that no tap reads. Stats are built here from BrokerState's counters.
+"""The broker's tap: the XPUB it publishes pair metadata, images, the viewer's previews
+(trapflow.broker.preview decides when) and stats on (once a second), taking only
+subscriptions that are prefixes of its topics, so nothing is sent or encoded that no tap
+reads. Stats are built here from BrokerState's counters.
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from typing import Any
 
 import msgspec
 import zmq
 
+from trapflow.broker.preview import PreviewClock
 from trapflow.broker.remote_state import RemoteWorkers
 from trapflow.broker.state import BrokerState
-from trapflow.wire import messages, tap_msgs
+from trapflow.errors import ProtocolError
+from trapflow.runtime.ratelog import RateLimitedLog
+from trapflow.wire import jpeg, messages, tap_msgs
 from trapflow.wire.transport import TAP_RCVHWM, Poller, SocketSpec, TapGate, open_socket
+
+log = logging.getLogger(__name__)
 
 _NOBLOCK = int(zmq.NOBLOCK)  # a plain int: zmq's enum flags cost a conversion per call
 
@@ -24,7 +31,8 @@ class BrokerTap:
     trapflow.broker.node.BrokerNode, which reads the rest from the state and roster given."""
 
     def __init__(self, ctx: zmq.Context[zmq.Socket[bytes]], endpoint: str, poller: Poller,
-                 state: BrokerState, roster: RemoteWorkers, started: float) -> None:
+                 state: BrokerState, roster: RemoteWorkers, started: float,
+                 preview: PreviewClock) -> None:
         # XPUB tells us what taps subscribe to, so nothing is published that nobody reads;
         # a small high-water mark: a slow tap loses messages instead of holding the broker.
         # Manual: only prefixes of the tap's topics are taken (TapGate), nothing else is kept.
@@ -39,6 +47,9 @@ class BrokerTap:
         self._last_in = 0
         self._last_processed: dict[str, int] = {}
         self._last_stats = started
+        self.preview = preview
+        self.preview_failed = 0
+        self._ratelog = RateLimitedLog(log)
         poller.register(self.sock)
 
     def on_subscriptions(self) -> None:
@@ -46,6 +57,7 @@ class BrokerTap:
         self._poller.touch(self.sock)
         if self.gate.drain():
             self.wanted = {t: self.gate.wanted(t) for t in tap_msgs.TAP_TOPICS}
+            self.preview.want(self.wanted[tap_msgs.TOPIC_PREVIEW], time.monotonic())
 
     def publish(self, topic: bytes, *frames: Any) -> None:
         """Send now, or lose it: a slow subscriber never holds the broker."""
@@ -54,6 +66,19 @@ class BrokerTap:
             self.sock.send_multipart([topic, *frames], _NOBLOCK, copy=False)
         except zmq.Again:
             pass  # a slow subscriber loses tap messages; the pipeline never waits
+
+    def publish_preview(self, header: Any, left: Any, right: Any) -> None:
+        """The viewer's preview of a pair: its header frame as received and both sides
+        (views of the ring or received frames: encoded before this returns)."""
+        try:
+            pair = messages.decode_pair_header(header)
+            lj, rj = jpeg.preview_pair(pair, getattr(left, "buffer", left),
+                                       getattr(right, "buffer", right))
+        except (ProtocolError, ValueError) as exc:  # the pair itself still goes its way
+            self.preview_failed += 1
+            self._ratelog.warning("preview", "no preview of a pair: %s", exc)
+            return
+        self.publish(tap_msgs.TOPIC_PREVIEW, header, lj, rj)
 
     def stats_due(self, now: float, interval_s: float) -> bool:
         """Whether interval_s passed since the last stats."""

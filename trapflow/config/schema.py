@@ -375,7 +375,8 @@ class ViewerConfig(_Section):
     port: Annotated[int, msgspec.Meta(ge=1, le=65535)] = 8090
     """TCP port of the web page and of /metrics."""
     frame_hz: Annotated[float, msgspec.Meta(gt=0, le=15)] = 2.0
-    """Pairs per second shown in the page (the rest of the tap's images are dropped)."""
+    """Pairs per second shown in the page: the broker makes a small preview this often,
+    and only while a page is open."""
     metrics_file: str = ""
     """node_exporter textfile written atomically every metrics_interval_s ("" = none)."""
     metrics_interval_s: Annotated[float, msgspec.Meta(ge=1, le=600)] = 5.0

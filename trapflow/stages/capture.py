@@ -34,6 +34,9 @@ from trapflow.wire.transport import LinkClient, LinkClosed, SocketSpec, open_soc
 log = logging.getLogger(__name__)
 
 RETRY_BACKOFF_S = (0.5, 1.0, 2.0, 5.0, 10.0)
+# Motion regions carried on a header, largest first: the rest are specks beside them, and
+# the header stays a few hundred bytes for every pool it goes to.
+MOTION_REGIONS = 16
 
 
 class CaptureNode(Node):
@@ -217,6 +220,7 @@ class CaptureNode(Node):
             source=self.src_cfg.kind,
             motion=seen.motion if seen is not None else None,
             motion_score=seen.score if seen is not None else 0.0,
+            motion_regions=seen.regions[:MOTION_REGIONS] if seen is not None else (),
         )
         payload: list[Any] = [messages.encode(header)]
         payload += [left, right] if slot is None else [messages.encode(ref)]

@@ -1,10 +1,11 @@
 """The viewer's side of a pipeline: its taps, its control socket and its event folders.
 
-Owns a SUB on the broker's tap (images, stats), a SUB on the normalizer's (results; each
-tap takes only subscriptions to its own topics), and a REQ to the supervisor's control
-socket. Everything is non-blocking and polled by the server's loop: PUB sockets drop for
-a slow subscriber, so the pipeline never waits for the viewer; a small receive high-water
-mark drops old pairs here, not upstream.
+Owns a SUB on the broker's tap (stats; previews only while a page is open), a SUB on the
+normalizer's (results; each tap takes only subscriptions to its own topics), and a REQ to
+the supervisor's control socket. Everything is non-blocking and polled by the server's
+loop: PUB sockets drop for a slow subscriber, so the pipeline never waits for the viewer.
+The preview subscription is how the viewer tells the broker a page is open: the broker
+makes previews (at the viewer's rate) only while somebody subscribes to them.
 """
 
 from __future__ import annotations
@@ -24,13 +25,20 @@ from trapflow.errors import ProtocolError
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.viewer.state import ViewState
 from trapflow.wire import control_msgs, messages, tap_msgs
-from trapflow.wire.transport import Endpoints, SocketSpec, new_context, open_socket
+from trapflow.wire.transport import (
+    Endpoints,
+    SocketSpec,
+    new_context,
+    open_socket,
+    set_subscribed,
+    zmq_readable,
+)
 
 log = logging.getLogger(__name__)
 
 # Tap messages taken per drain: a burst never keeps the web server from answering.
 MAX_DRAIN = 256
-# A pipeline's images at 15 Hz are a few per drain; older ones would be dropped anyway.
+# Previews come at the viewer's rate (at most 15 Hz): a few per drain at most.
 TAP_RCVHWM = 16
 STATUS_TIMEOUT_S = 2.0
 EVENTS_SHOWN = 6
@@ -47,8 +55,7 @@ class PipelineTaps:
         self.ctx = new_context()
         self.subs = [
             open_socket(self.ctx, SocketSpec(zmq.SUB, self.endpoints.tap, rcvhwm=TAP_RCVHWM,
-                                             subscribe=(tap_msgs.TOPIC_IMAGE,
-                                                        tap_msgs.TOPIC_STATS))),
+                                             subscribe=(tap_msgs.TOPIC_STATS,))),
             open_socket(self.ctx, SocketSpec(zmq.SUB, self.endpoints.results_tap,
                                              subscribe=(tap_msgs.TOPIC_RESULT,))),
         ]
@@ -62,6 +69,7 @@ class PipelineTaps:
         self._refresh = False  # a change was answered: ask for status at once
         self._control_out = False  # the request out is a queued one (its reply is no status)
         self.ratelog = RateLimitedLog(log)
+        self.previews = False
 
     # --- taps ------------------------------------------------------------------------
 
@@ -70,11 +78,8 @@ class PipelineTaps:
         n = 0
         for sub in self.subs:
             budget = n + MAX_DRAIN
-            while n < budget:
-                try:
-                    frames = sub.recv_multipart(zmq.NOBLOCK, copy=True)
-                except zmq.Again:
-                    break
+            while n < budget and zmq_readable(sub):  # no exception per empty socket
+                frames = sub.recv_multipart(zmq.NOBLOCK, copy=True)
                 n += 1
                 try:
                     self._feed(frames, now)
@@ -83,16 +88,23 @@ class PipelineTaps:
                     self.ratelog.warning("tap", "malformed tap message dropped: %s", exc)
         return n
 
+    def want_previews(self, on: bool) -> None:
+        """Ask the broker for previews (a page is open) or stop asking (none is)."""
+        if on != self.previews:
+            set_subscribed(self.subs[0], tap_msgs.TOPIC_PREVIEW, on)
+            self.previews = on
+            log.debug("viewer: previews %s", "asked for" if on else "no longer asked for")
+
     def _feed(self, frames: list[bytes], now: float) -> None:
         msg = tap_msgs.decode_tap(frames)
         if isinstance(msg, tap_msgs.TapResult):
             self.state.on_result(msg.kind, msg.fields, time.time())
-        elif isinstance(msg, tap_msgs.TapPair):
-            self.state.on_image(msg.header, bytes(msg.left), bytes(msg.right))
+        elif isinstance(msg, tap_msgs.TapPreview):
+            self.state.on_image(msg.header, msg.left, msg.right)
         elif isinstance(msg, tap_msgs.TapStats):
             self.state.on_stats(msg.stats, now)
         else:
-            raise ProtocolError(f"tap: expected image, stats or result, got {msg!r:.60}")
+            raise ProtocolError(f"tap: expected preview, stats or result, got {msg!r:.60}")
 
     # --- control ---------------------------------------------------------------------
 

@@ -45,6 +45,7 @@ class StereoPair(Msg, frozen=True, tag="pair"):
     source: str = "synthetic"
     motion: bool | None = None  # what the motion gate saw in the left image (None: no gate)
     motion_score: float = 0.0  # share of the gate's small image that moved
+    motion_regions: tuple[tuple[int, int, int, int], ...] = ()  # x1 y1 x2 y2 px, largest first
 
 
 class Job(Msg, frozen=True, tag="job"):

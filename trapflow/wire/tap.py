@@ -35,11 +35,11 @@ def describe(msg: tap_msgs.TapMessage, frames: list[bytes]) -> str:
     """One printable line for a tap message."""
     if isinstance(msg, tap_msgs.TapResult):
         return "result " + msg.line.decode("utf-8", "replace")
-    if isinstance(msg, (tap_msgs.TapMeta, tap_msgs.TapPair)):
+    if isinstance(msg, (tap_msgs.TapMeta, tap_msgs.TapPair, tap_msgs.TapPreview)):
         p = msg.header
         lat_ms = (time.monotonic_ns() - p.t_mono_ns) / 1e6
-        sizes = (f" {len(frames[2])}+{len(frames[3])} B" if isinstance(msg, tap_msgs.TapPair)
-                 else "")
+        sizes = (f" {len(frames[2])}+{len(frames[3])} B"
+                 if isinstance(msg, (tap_msgs.TapPair, tap_msgs.TapPreview)) else "")
         return (f"frame seq={p.seq} {p.width}x{p.height} {p.encoding}{sizes} "
                 f"skew={p.skew_ns / 1e6:.2f}ms age={lat_ms:.1f}ms source={p.source}")
     if isinstance(msg, tap_msgs.TapStats):

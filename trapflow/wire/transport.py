@@ -239,6 +239,11 @@ def open_socket(ctx: zmq.Context[zmq.Socket[bytes]], spec: SocketSpec) -> zmq.So
     return sock
 
 
+def set_subscribed(sock: zmq.Socket[bytes], topic: bytes, on: bool) -> None:
+    """Subscribe a SUB socket to topic, or unsubscribe it (the publisher hears either)."""
+    sock.setsockopt(zmq.SUBSCRIBE if on else zmq.UNSUBSCRIBE, topic)
+
+
 TAP_RCVHWM = 64  # subscription messages queued from one peer before libzmq stops reading it
 
 

@@ -4,7 +4,7 @@
 "use strict";
 
 const POLL_MS = 500;
-const view = { seq: null, boxes: 0, tags: 0, frames: 0, polls: 0, loading: false, busy: false };
+const view = { seq: null, boxes: 0, tags: 0, motion: 0, tracks: [], frames: 0, polls: 0, loading: false, busy: false };
 window.trapflow = view; // read by the browser tests
 
 const $ = (id) => document.getElementById(id);
@@ -27,14 +27,20 @@ function drawPair(frame) {
       c.getContext("2d").drawImage(img, 0, 0, c.width, c.height);
     }
     const ctx = $("left").getContext("2d");
-    ctx.lineWidth = 2;
     ctx.font = "13px sans-serif";
+    ctx.lineWidth = 2;
+    ctx.setLineDash([6, 4]);
+    ctx.strokeStyle = "#ff66cc"; // what the motion gate saw moving
+    for (const [x1, y1, x2, y2] of frame.motion) ctx.strokeRect(x1 * scale, y1 * scale, (x2 - x1) * scale, (y2 - y1) * scale);
+    ctx.setLineDash([]);
+    ctx.lineWidth = 2;
     for (const d of frame.detections) {
       const [x1, y1, x2, y2] = d.box.map((v) => v * scale);
       ctx.strokeStyle = "#ffdd33";
       ctx.strokeRect(x1, y1, x2 - x1, y2 - y1);
       ctx.fillStyle = "#ffdd33";
-      ctx.fillText(`${d.label} ${(d.confidence * 100).toFixed(0)}%`, x1 + 2, Math.max(12, y1 - 3));
+      ctx.fillText(`${trackText(d)}${d.label} ${(d.confidence * 100).toFixed(0)}%`, x1 + 2, Math.max(12, y1 - 3));
+      ctx.fillText(measureText(d, true), x1 + 2, y2 + 13);
     }
     for (const t of frame.tags) {
       ctx.strokeStyle = "#33e0ff";
@@ -49,10 +55,42 @@ function drawPair(frame) {
     view.frames += 1;
     view.boxes = frame.detections.length;
     view.tags = frame.tags.length;
+    view.motion = frame.motion.length;
+    view.tracks = frame.detections.filter((d) => d.track !== undefined && d.track !== null).map((d) => d.track);
+    $("boxes").innerHTML = frame.detections.map((d) =>
+      `<li class="det" data-track="${d.track ?? ""}">${esc(trackText(d))}${esc(d.label)} ${(d.confidence * 100).toFixed(0)}%: <span class="measure">${esc(measureText(d, false))}</span></li>`).join("");
+    $("left").dataset.motion = frame.motion.length;
     $("left").dataset.seq = frame.seq;
     $("left").dataset.boxes = frame.detections.length;
     $("seq").textContent = `seq ${frame.seq}, ${frame.detections.length} detections, ${frame.tags.length} tags`;
   }).catch(() => {}).finally(() => { view.loading = false; });
+}
+
+// A detection's track id as drawn on its box ("#12 "), empty while the track is unconfirmed.
+function trackText(d) {
+  return d.track !== undefined && d.track !== null ? `#${d.track} ` : "";
+}
+
+// What the stereo pair measured of a detection: range and length with their sd, or why not.
+function measureText(d, short) {
+  const m = (v) => `${v.toFixed(2)} m`;
+  const sd = (v) => (v !== undefined && v !== null ? ` ± ${v.toFixed(2)}` : "");
+  if (d.range_m !== undefined && d.range_m !== null) {
+    const range = `range ${m(d.range_m)}${sd(d.range_sd_m)}`;
+    const length = d.length_m !== undefined && d.length_m !== null
+      ? `, length ${m(d.length_m)}${sd(d.length_sd_m)}${!short && d.length_method ? ` (${d.length_method})` : ""}` : "";
+    return range + length;
+  }
+  return d.unmeasured ? `unmeasured: ${d.unmeasured}` : (short ? "" : "not measured");
+}
+
+// Live counts of the current interval per label: visits and MaxN (counts.jsonl has the record).
+function drawCounts(c) {
+  const start = c.start_s === null ? "" : new Date(c.start_s * 1000).toISOString().slice(11, 16);
+  $("counts-when").textContent = c.start_s === null ? "(no tracked detection yet)"
+    : `(interval from ${start} UTC, ${c.interval_s / 60} min)`;
+  $("counts").tBodies[0].innerHTML = c.labels.map((l) =>
+    `<tr data-label="${esc(l.label)}"><td>${esc(l.label)}</td><td class="visits">${l.visits}</td><td class="maxn">${l.max_n}</td></tr>`).join("");
 }
 
 function sparkline(canvas, values, color, label, unit) {
@@ -90,6 +128,12 @@ function drawPools(pools, control) {
     const l = p.last || {};
     el.querySelector(".txt").textContent =
       `processed ${l.processed || 0}, dropped ${l.dropped || 0}, failed ${l.errors || 0}, lost ${l.lost || 0}`;
+    // A pool behind the motion gate (it withheld or keeps pairs): is it withholding now?
+    const gate = el.querySelector(".gate") || el.insertBefore(Object.assign(document.createElement("div"), { className: "gate" }), el.querySelector("canvas"));
+    gate.hidden = !(l.gated || l.kept);
+    gate.dataset.gated = p.gated_now ? "now" : "open";
+    gate.textContent = p.gated_now ? `gated now: nothing moves (${l.gated} withheld)` : `gate open (${l.gated || 0} withheld)`;
+    gate.className = `gate ${p.gated_now ? "shut" : "open"}`;
     drawControl(el, name, (control || {})[name]);
     sparkline(el.querySelector(".rate"), p.rate, "#7fdc8a", "rate", "/s");
     sparkline(el.querySelector(".drops"), p.drops, "#ff7b6b", "drops", "/s");
@@ -220,6 +264,7 @@ async function poll() {
     $("stereo").textContent = s.stereo ? `stereo: ${s.stereo.label} ${(s.stereo.confidence * 100).toFixed(0)}%` : "";
     if (s.frame) drawPair(s.frame);
     drawPools(s.pools, s.control);
+    drawCounts(s.counts);
     drawLevel(s.level, s.level_reason, s.level_forced);
     drawVO(s.vo);
     drawTables(s);

@@ -97,23 +97,6 @@ def observations(s: RunSummary, counts: list[dict[str, Any]],
             s.lengths.setdefault(str(t.get("label", "")), []).append(float(length))
 
 
-def _rates(ts: list[float]) -> list[tuple[float, float]]:
-    """Pairs per second in bins of RATE_BIN_S, from seconds since the first result."""
-    bins: dict[int, int] = {}
-    for x in ts:
-        bins[int(x // RATE_BIN_S)] = bins.get(int(x // RATE_BIN_S), 0) + 1
-    return [(b * RATE_BIN_S, bins.get(b, 0) / RATE_BIN_S) for b in range(max(bins) + 1)]
-
-
-def _restarts(logfile: Path) -> list[tuple[str, str, int]]:
-    """(time, node, count) of every restart the run's log tells of."""
-    if not logfile.is_file():
-        return []
-    found = (_RESTART.match(line) for line in
-             logfile.read_text(encoding="utf-8", errors="replace").splitlines())
-    return [(m.group(1), m.group(2), int(m.group(3))) for m in found if m]
-
-
 def summarize(run_dir: Path, events_folder: str = "events", counts_file: str = "counts.jsonl",
               tracks_file: str = "tracks.jsonl") -> RunSummary:
     """Read a run directory; ReportError when it has no results.jsonl."""
@@ -152,11 +135,21 @@ def summarize(run_dir: Path, events_folder: str = "events", counts_file: str = "
             if isinstance(seq, int) and seq not in seqs.setdefault(algo, set()):
                 seqs[algo].add(seq)  # a pair processed: one per pair, not one per detection
                 times.setdefault(algo, []).append((t - t0).total_seconds())
-    s.rates = {algo: _rates(ts) for algo, ts in times.items()}
+    for algo, ts in times.items():
+        bins: dict[int, int] = {}
+        for x in ts:
+            bins[int(x // RATE_BIN_S)] = bins.get(int(x // RATE_BIN_S), 0) + 1
+        last = max(bins)
+        s.rates[algo] = [(b * RATE_BIN_S, bins.get(b, 0) / RATE_BIN_S) for b in range(last + 1)]
     ledger = run_dir / "ledger.json"
     if ledger.is_file():
         s.ledger = json.loads(ledger.read_text(encoding="utf-8"))
-    s.restarts = _restarts(run_dir / "trapflow.log")
+    logfile = run_dir / "trapflow.log"
+    if logfile.is_file():
+        for line in logfile.read_text(encoding="utf-8", errors="replace").splitlines():
+            m = _RESTART.match(line)
+            if m:
+                s.restarts.append((m.group(1), m.group(2), int(m.group(3))))
     observations(s, _jsonl(run_dir / counts_file, "counts"),
                  _jsonl(run_dir / tracks_file, "track"))
     for info in sorted((run_dir / events_folder).glob("*/event.json")):

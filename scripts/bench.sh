@@ -39,6 +39,8 @@ Parts, in order, with their run time on a 2-core machine (full / --quick):
               IDF1 and MOTA (py-motmetrics), full rate and 1 pair in 3 ~4 min / skipped
   measure     stereo range and length against the synthetic truth per range
               bin, honesty of the stated sd, cost per box          ~2 min  / skipped
+              track speeds over the ground, rig still and moving,
+              VO's poses against the truth (bench_speed.py)        ~5 min  / skipped
   gate        motion gate: cost per pair per method, pairs fed, animals
               missed, empty water withheld                         ~3 min  / skipped
 
@@ -99,6 +101,7 @@ echo "[bench] tracking (held-out synthetic sequences)" >&2
 "$PY" scripts/bench_tracking.py --out "$OUT/tracking.json" > "$OUT/tracking.txt"
 echo "[bench] stereo measurement (held-out synthetic sequences)" >&2
 "$PY" scripts/bench_measure.py --out "$OUT/measure.json" > "$OUT/measure.txt"
+"$PY" scripts/bench_speed.py --out "$OUT/speed.json" >> "$OUT/measure.txt"
 echo "[bench] motion gate" >&2
 "$PY" scripts/bench_gate.py --out "$OUT" > "$OUT/gate.txt"
 echo "[bench] worker recycling (health check per pair, replacement time)" >&2

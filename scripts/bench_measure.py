@@ -3,7 +3,9 @@
 Boxes come from the truth (animals at most 10 % hidden, wholly inside the image), so the
 numbers are the measurement's alone, not the detector's. Per range bin: how many boxes were
 measured, median absolute length and range errors (%), and honesty (the share of true values
-within 2 sd). Also CPU ms per measurement beside the packaged detector's process() per pair.
+within 2 sd). Each matcher with the floor's plane (fitted once per pair, as the detector
+does) and without. Also CPU ms per detection (its box, and its share of its pair's floor)
+beside the packaged detector's process() per pair, in the same run.
 Seeds given with --seeds; the defaults are held out (never used while developing).
 
 Writes bench-results/measure.json (or --out).
@@ -17,6 +19,7 @@ import math
 import sys
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.kits
 
 from trapflow.calibration.camera import StereoRig
-from trapflow.measure.stereo import Matcher, Measured, MeasureParams, measure
+from trapflow.measure.stereo import Matcher, Measured, MeasureParams, measure, pair_floor
 from trapflow.synth.options import SynthOptions
 from trapflow.synth.render import World
 from trapflow.wire.messages import TruthObject
@@ -34,6 +37,7 @@ from trapflow.wire.messages import TruthObject
 HELD_OUT_SEEDS = (9101, 9102, 9103, 9104, 9105, 9106)
 BINS = ((0.5, 1.0), (1.0, 1.5), (1.5, 2.0), (2.0, 2.5), (2.5, 4.0))
 MAX_OCCLUDED = 0.1
+Detect = Callable[[np.ndarray, np.ndarray, int], object]
 
 
 def usable(o: TruthObject, rig: StereoRig) -> bool:
@@ -43,12 +47,16 @@ def usable(o: TruthObject, rig: StereoRig) -> bool:
             and x1 > 1 and y1 > 1 and x2 < rig.width - 1 and y2 < rig.height - 1)
 
 
-def collect(seeds: list[int], pairs: int, step: int, matcher: Matcher,
-            params: MeasureParams) -> tuple[list[dict[str, Any]], list[float]]:
-    """One row per usable truth box: truth, measurement or reason; and CPU ms per call."""
+def collect(seeds: list[int], pairs: int, step: int, matcher: Matcher, params: MeasureParams,
+            floor: bool) -> tuple[list[dict[str, Any]], list[float], list[float]]:
+    """One row per usable truth box: truth, measurement or reason; CPU ms per detection (its
+    call, and its share of the pair's floor fit); and the detector's CPU ms per pair on the
+    same pairs, interleaved, so that the ratio of the two comes from one run."""
     rig = StereoRig.from_fov(640, 360, 70.0, 0.12)
+    detect = detector(rig)
     rows: list[dict[str, Any]] = []
     cpu: list[float] = []
+    det_ms: list[float] = []
     for seed in seeds:
         for moving in (False, True):
             opts = SynthOptions(density=2.0, empty_fraction=0.0, episode_s=12.0)
@@ -57,12 +65,20 @@ def collect(seeds: list[int], pairs: int, step: int, matcher: Matcher,
                 left, right, truth = world.render(i)
                 gl = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY)
                 gr = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY)
-                for o in truth.objects:
-                    if not usable(o, rig):
-                        continue
+                boxes = [o for o in truth.objects if usable(o, rig)]
+                if not boxes:
+                    continue
+                if detect is not None:
                     t0 = time.process_time()
-                    m = measure(gl, gr, rig, o.box, params, matcher)
-                    cpu.append((time.process_time() - t0) * 1000)
+                    detect(left, right, i)
+                    det_ms.append((time.process_time() - t0) * 1000)
+                t0 = time.process_time()
+                plane = pair_floor(gl, gr, rig, params) if floor else None
+                share = (time.process_time() - t0) * 1000 / len(boxes)
+                for o in boxes:
+                    t0 = time.process_time()
+                    m = measure(gl, gr, rig, o.box, params, matcher, plane)
+                    cpu.append((time.process_time() - t0) * 1000 + share)
                     assert o.xyz is not None
                     row: dict[str, Any] = {"seed": seed, "moving": moving, "pair": i,
                                            "label": o.label, "range": math.dist(o.xyz, (0, 0, 0)),
@@ -73,7 +89,7 @@ def collect(seeds: list[int], pairs: int, step: int, matcher: Matcher,
                     else:
                         row["reason"] = m.reason
                     rows.append(row)
-    return rows, cpu
+    return rows, cpu, det_ms
 
 
 def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -101,8 +117,9 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def detector_ms(n: int = 30) -> float | None:
-    """CPU ms per pair of the packaged detector's process() on 640x360 synthetic frames."""
+def detector(rig: StereoRig) -> Detect | None:
+    """The packaged detector's process() on a pair, its own measuring off (so that it is the
+    detector's cost alone); None where the detector or its model is not installed."""
     try:
         from trapflow_workers.common import MODELS_DIR
         from trapflow_workers.crab_detector import CrabDetector
@@ -112,17 +129,9 @@ def detector_ms(n: int = 30) -> float | None:
         return None
     from tests.kits.context import make_context, make_pair
 
-    rig = StereoRig.from_fov(640, 360, 70.0, 0.12)
-    world = World(rig, seed=1, moving=True, rate_hz=5.0)
-    frames = [world.render(i)[0] for i in range(n)]
     det = CrabDetector()
-    det.configure({}, make_context(rig, pool="mono"))
-    times = []
-    for i, f in enumerate(frames):
-        t0 = time.process_time()
-        det.process(make_pair(f, seq=i))
-        times.append((time.process_time() - t0) * 1000)
-    return float(np.median(times[3:]))
+    det.configure({"measure": False}, make_context(rig, pool="mono"))
+    return lambda left, right, seq: det.process(make_pair(left, right, seq=seq))
 
 
 def main() -> None:
@@ -139,18 +148,21 @@ def main() -> None:
     result: dict[str, Any] = {"seeds": seeds, "pairs_per_sequence": args.pairs,
                               "rig": "640x360, hfov 70 deg, baseline 0.12 m",
                               "params": {k: getattr(params, k) for k in params.__struct_fields__}}
-    det = detector_ms()
-    result["detector_process_ms"] = det
     matchers: list[Matcher] = ["ncc", "sgbm"] if args.matcher == "both" else [args.matcher]
     for matcher in matchers:
-        rows, cpu = collect(seeds, args.pairs, args.step, matcher, params)
-        ms = float(np.median(cpu))
-        result[matcher] = {"cpu_ms_median": round(ms, 3),
+        for floor in (True, False):
+            rows, cpu, det_ms = collect(seeds, args.pairs, args.step, matcher, params, floor)
+            ms = float(np.median(cpu))
+            det = float(np.median(det_ms)) if det_ms else None
+            key = matcher + ("" if floor else "_no_floor")
+            result[key] = {"cpu_ms_per_detection_median": round(ms, 3),
+                           "cpu_ms_per_detection_mean": round(float(np.mean(cpu)), 3),
                            "cpu_ms_p90": round(float(np.percentile(cpu, 90)), 3),
+                           "detector_process_ms_median": round(det, 3) if det else None,
                            "cost_vs_detector": round(ms / det, 3) if det else None,
                            "bins": summarise(rows)}
-        print(matcher, json.dumps(result[matcher], indent=1))
-    print("detector process() ms:", det)
+            print(key, json.dumps({k: v for k, v in result[key].items() if k != "bins"}))
+            print(json.dumps(result[key]["bins"]["all 0.5-2.5 m"]))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
 

@@ -42,3 +42,19 @@ def unreachable(value: NoReturn) -> NoReturn:
     lacks): mypy rejects a call it can still reach, so a member added to the union without
     a branch fails the type check; at run time it names the type that had no branch."""
     raise TypeError(f"no branch for {type(value).__name__}: {value!r}")
+
+
+def yaml_problem(exc: Exception) -> str:
+    """A YAML parser error in one line: what it expected and where (line and column,
+    counted from 1), without the echoed source lines PyYAML adds (8 lines for one error)."""
+    problem = getattr(exc, "problem", None)
+    mark = getattr(exc, "problem_mark", None)
+    if problem is None:
+        return " ".join(str(exc).split())
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    context = getattr(exc, "context", None)
+    if not context:
+        return f"{where}{problem}"
+    start = getattr(exc, "context_mark", None)
+    since = f" at line {start.line + 1}, column {start.column + 1}" if start is not None else ""
+    return f"{where}{problem} ({context}{since})"

@@ -17,7 +17,7 @@ import numpy as np
 from trapflow.calibration.camera import StereoRig
 from trapflow.calibration.rig_files import YAML_FIELDS, read_rig_file
 from trapflow.errors import ConfigError, WorkerError
-from trapflow.measure.stereo import Measured, Unmeasured, measure
+from trapflow.measure.stereo import Measured, Unmeasured, measure, pair_floor
 from trapflow.runtime.ratelog import CONSOLE_ONCE
 from trapflow.wire.jpeg import reduced_size
 from trapflow.wire.messages import (
@@ -35,7 +35,8 @@ from trapflow.wire.messages import (
 __all__ = [
     "CONSOLE_ONCE", "YAML_FIELDS", "Body", "ConfigError", "Context", "Detection", "Extra",
     "Measured", "MonoIR", "Pair", "StereoIR", "StereoPair", "StereoRig", "StereoVO", "Tag",
-    "Tags", "Unmeasured", "Worker", "WorkerError", "measure", "read_rig_file", "reduced_size",
+    "Tags", "Unmeasured", "Worker", "WorkerError", "measure", "pair_floor", "read_rig_file",
+    "reduced_size",
 ]
 
 

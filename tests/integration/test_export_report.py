@@ -76,7 +76,7 @@ def test_report_of_a_real_run(spawn, run_dir: Path) -> None:
     # Detections per class per hour, counted here from the lines themselves.
     want = Counter((x["mono_ir"]["timestamp"][:13] + ":00", x["mono_ir"]["label"])
                    for x in lines if "mono_ir" in x and x["mono_ir"]["label"] != "none")
-    head, *rows = page.tables[0]
+    head, *rows = next(t for t in page.tables if t[0][0] == "hour (UTC)")  # the first
     assert head[0] == "hour (UTC)" and head[-1] == "all" and head[1] != "label"
     got = Counter({(r[0], c): int(v) for r in rows for c, v in zip(head[1:-1], r[1:-1],
                                                                     strict=True) if int(v)})
@@ -95,6 +95,18 @@ def test_report_of_a_real_run(spawn, run_dir: Path) -> None:
     assert series["left camera"] == ok > 0
     assert {"mono_ir", "stereo_vo"} <= set(series)
     check_observations(page, run_dir)
+
+    # The run itself (issue 22, item 11): run.json, as the supervisor wrote it, on the page.
+    meta = json.loads((run_dir / "run.json").read_text())
+    assert 12 <= meta["duration_s"] < 120
+    assert meta["config"]["pools"].keys() == {"mono", "vo"}
+    assert meta["config"]["source"]["size"] == "320x240"
+    assert meta["rig"]["calib"] and meta["versions"]["trapflow"]
+    run = {r[0]: r[1] for r in page.table("run")}
+    assert f"{meta['duration_s']} s" in run["ran"]
+    assert f"digest {meta['config']['digest']}" in run["config"]
+    assert meta["rig"]["calib"] in run["rig"]
+    assert f"trapflow {meta['versions']['trapflow']}" in run["versions"]
 
 
 def check_observations(page: Page, run_dir: Path) -> None:

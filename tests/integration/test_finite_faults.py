@@ -137,7 +137,9 @@ def test_assert_lossless_fails_on_dropped_or_failed_pairs(run_dir: Path) -> None
                        flaky={"plugin": "flaky", "policy": "ordered:64", "params": {"every": 3}},
                        lagging={"plugin": "slow", "policy": "latest",
                                 "params": {"delay_s": 0.2}})
-    bad = replay([str(rec), "--rate", "0", "--assert-lossless", "-c", str(cfg),
+    # At the recorded pace (20 pairs/s) the 0.2 s pool drops; at --rate 0 the replay would
+    # wait for it instead (issue 22, item 2: lossless by default).
+    bad = replay([str(rec), "--rate", "1", "--assert-lossless", "-c", str(cfg),
                   "--workers", "every=1,flaky=1,lagging=1", "--size", f"{W}x{H}",
                   "--run-dir", str(work / "lossy")])
     assert bad.returncode == 1, bad.stderr + bad.stdout

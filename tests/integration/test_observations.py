@@ -82,3 +82,32 @@ def test_a_run_tracks_counts_and_measures(tmp_path: Path, run_dir: Path,
     # The stereo rig measured the animals: ranges on the lines, a length per track.
     assert any("range_m" in d for d in boxes)
     assert any("length_m" in t for t in tracks)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_a_moving_rigs_tracks_take_vos_poses(tmp_path: Path, run_dir: Path,
+                                              spawn: Callable[..., Pipeline]) -> None:
+    """With a VO pool in the run, the normalizer hands VO's poses to the trackers: every
+    track's speed is over the ground (the rig's own motion removed), none against the rig.
+    Speed accuracy against the truth: scripts/bench_speed.py."""
+    data = tmp_path / "synth"
+    subprocess.run([sys.executable, "-m", "trapflow", "dataset", "synth", str(data),
+                    "--frames", str(FRAMES), "--seed", str(SEED), "--moving", "--rate", "10",
+                    "--width", "640", "--height", "360"],
+                   check=True, cwd=REPO, capture_output=True, timeout=120)
+    cfg = write_config(tmp_path / "c.yaml", {
+        "pools": {"mono": {"count": 1, "policy": "fifo:256"}, "stereo": {"count": 0},
+                  "vo": {"count": 1, "policy": "ordered:256"}},
+        "observe": {"interval_s": 3600}})
+    p = spawn(["--config", str(cfg), "--source", f"images:{data}"], run_dir)
+    code, _out, err = p.wait(250)
+    assert code == 0, err
+    results = [json.loads(line) for line in (run_dir / "results.jsonl").read_text().splitlines()]
+    vo = [r["stereo_vo"] for r in results if "stereo_vo" in r]
+    assert sum("Rt" in r for r in vo) >= FRAMES // 2, "VO placed too few pairs"
+    tracks = [json.loads(t)["track"] for t in
+              (run_dir / "tracks.jsonl").read_text().splitlines()]
+    with_speed = [t for t in tracks if "speed_m_s" in t]
+    assert with_speed, tracks
+    assert {t["speed_frame"] for t in with_speed} == {"ground"}

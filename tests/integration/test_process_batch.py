@@ -80,6 +80,10 @@ def test_process_equals_the_live_pipeline_pair_for_pair(spawn, run_dir: Path) ->
     assert boxes and all("track" in b for b in boxes)
     tracks = read_lines(out / "scene" / "tracks.jsonl")
     assert {b["track"] for b in boxes} - {None} <= {t["track"]["id"] for t in tracks}
+    # VO's chained poses reach the re-analysis' tracks as the live normalizer's: speeds
+    # over the ground.
+    frames = {t["track"].get("speed_frame") for t in tracks} - {None}
+    assert frames <= {"ground"}
     assert "; dashboard " in err and "pairs/s" in err and "ETA" in err
     ledger = json.loads((out / "scene" / "ledger.json").read_text())
     assert ledger["read"] == N and ledger["processed"] == dict.fromkeys(pools, N)

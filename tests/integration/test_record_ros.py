@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import signal
 import subprocess
 import sys
@@ -24,6 +25,7 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
 
+from tests.conformance.conftest import realdata_root
 from tests.conftest import REPO, Pipeline, poll_for
 from trapflow.stages.result_json import SCHEMA_VERSION
 
@@ -73,9 +75,17 @@ def test_recording_of_a_running_pipeline_decodes_and_matches_its_ledger(
                          "--moving"], run_dir)
     p.wait_active()
     rec = work / "field.mcap"
+    # vision_msgs as a sourced ROS 2 has it: a prefix whose share/vision_msgs is the kit's
+    # copy (in place); without the kit, no prefix and no Detection2DArray topic.
+    env = {k: v for k, v in os.environ.items() if k != "AMENT_PREFIX_PATH"}
+    kit = realdata_root() / "vision_msgs" / "4.1.1"
+    if kit.is_dir():
+        (work / "ros" / "share").mkdir(parents=True)
+        (work / "ros" / "share" / "vision_msgs").symlink_to(kit)
+        env["AMENT_PREFIX_PATH"] = str(work / "ros")
     recorder = subprocess.Popen(
         [sys.executable, "-m", "trapflow", "record", "--run-dir", str(run_dir), "-o", str(rec)],
-        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     part = work / "field.mcap.part"
 
     def vo_pairs() -> int:
@@ -116,6 +126,8 @@ def test_recording_of_a_running_pipeline_decodes_and_matches_its_ledger(
         "/trapflow/vo/odometry": "nav_msgs/msg/Odometry",
         "/trapflow/vo/path": "nav_msgs/msg/Path",
         "/trapflow/left/annotations/mono_ir": "foxglove_msgs/msg/ImageAnnotations",
+        **({"/trapflow/left/detections/mono_ir": "vision_msgs/msg/Detection2DArray"}
+           if kit.is_dir() else {}),
     }
     n = len(seqs)
     for topic in ("/trapflow/left/image/compressed", "/trapflow/right/image/compressed",
@@ -192,3 +204,14 @@ def test_recording_of_a_running_pipeline_decodes_and_matches_its_ledger(
             assert [(pt.x, pt.y) for pt in pa.points] == [(x1, y1), (x2, y1), (x2, y2), (x1, y2)]
             boxes_drawn += 1
     assert boxes_drawn > 0, "the synthetic crabs were never detected while recording"
+    if kit.is_dir():  # Detection2DArray: one per pair, each box as its centre and size
+        dets = msgs["/trapflow/left/detections/mono_ir"]
+        assert len(dets) == len(by_seq)
+        for d, (seq, boxes) in zip(dets, by_seq.items(), strict=True):
+            if seq in stamp_of:
+                assert (d.header.stamp.sec, d.header.stamp.nanosec) == stamp_of[seq]
+            got = [v for x in d.detections for v in (
+                x.bbox.center.position.x, x.bbox.center.position.y, x.bbox.size_x,
+                x.bbox.size_y)]
+            assert got == pytest.approx([v for x1, y1, x2, y2 in boxes for v in (
+                (x1 + x2) / 2, (y1 + y2) / 2, x2 - x1, y2 - y1)])

@@ -69,6 +69,13 @@ def test_metrics_scrape_and_textfile(spawn, run_dir: Path) -> None:
             assert second[key] >= first[key], key
     assert second[("trapflow_node_state", (("node", "viewer"), ("state", "active")))] == 1
     assert second[("trapflow_pipeline_up", ())] == 1
+    # CPU and memory by role (issue 22, item 12): every role of this run, the supervisor too.
+    for role in ("supervisor", "broker", "capture", "normalizer", "viewer", *kinds):
+        assert second[("trapflow_process_resident_memory_bytes", (("role", role),))] > 1 << 20
+        assert second[("trapflow_process_cpu_seconds_total", (("role", role),))] >= \
+            first.get(("trapflow_process_cpu_seconds_total", (("role", role),)), 0.0)
+    assert second[("trapflow_process_count", (("role", "mono"),))] == 1
+    assert second[("trapflow_process_cpu_seconds_total", (("role", "vo"),))] > 0
     # The textfile: there, parseable, the same families, and rewritten on its interval.
     first_text = poll_for(
         lambda: prom.exists() and 'processed_pairs_total{pool="mono"}' in (t := prom.read_text())

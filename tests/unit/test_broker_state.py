@@ -310,3 +310,50 @@ def test_late_answer_with_a_foreign_result_is_rejected_and_the_true_one_still_ta
     assert not [a for a in s.job_done(W1, "p", 0, True, 11.6, named=(0, "p"))
                 if isinstance(a, Rejected)]
     assert s.late == 1
+
+
+def _room_after(policy: str, pending: int, workers: int = 1, active: bool = True,
+                interval_s: float = 0.0) -> bool:
+    """has_room() of one pool whose only worker is busy with pair 0 and `pending` more wait."""
+    s = state(p=policy, fast="latest")
+    s.worker_ready(b"f", "fast", 8, 0.0)  # a pool that always has room
+    for i in range(workers):
+        s.worker_ready(b"w%d" % i, "p", 1, 0.0)
+    for seq in range(workers + pending):  # the first `workers` pairs are taken at once
+        s.pair_arrived(seq, 0.0)
+    if not active:
+        s.set_active("p", False, 0.0)
+    if interval_s:
+        s.set_interval("p", interval_s, 0.0)
+    return s.has_room()
+
+
+@pytest.mark.parametrize(("policy", "pending", "workers", "active", "interval_s", "room"), [
+    ("latest", 0, 1, True, 0.0, True),      # its worker is busy, nothing waits: one more fits
+    ("latest", 1, 1, True, 0.0, False),     # one waits: the next would replace (drop) it
+    ("fifo:3", 2, 1, True, 0.0, True),
+    ("fifo:3", 3, 1, True, 0.0, False),     # full: the next would drop the oldest
+    ("ordered:2", 2, 1, True, 0.0, False),  # full: the next would be dropped (a gap for VO)
+    ("latest", 1, 0, True, 0.0, True),      # no worker at all: it never holds the source
+    ("latest", 1, 1, False, 0.0, True),     # deactivated: its pairs count inactive anyway
+    ("latest", 1, 1, True, 5.0, True),      # throttled by the ladder: dropped by design
+])
+def test_has_room_is_what_back_pressure_waits_for(policy: str, pending: int, workers: int,
+                                                  active: bool, interval_s: float,
+                                                  room: bool) -> None:
+    """Regression (issue 22, item 2): a replay at rate 0 outran its pools, which dropped most
+    pairs. Capture now waits while has_room() is false; every row says why it is or not."""
+    assert _room_after(policy, pending, workers, active, interval_s) is room
+
+
+@pytest.mark.parametrize(("paced", "holds"), [
+    (True, True),    # a replay at rate 0: capture waits for room
+    (False, False),  # any other source: never held back, the policy drops (unchanged)
+])
+def test_only_a_paced_source_is_held_back(paced: bool, holds: bool) -> None:
+    s = BrokerState({"p": PoolSpec(parse_policy("latest"), timeout_s=10.0)}, paced=paced)
+    s.worker_ready(W1, "p", 1, 0.0)
+    s.pair_arrived(0, 0.0)  # at the worker
+    assert not s.holds_source()
+    s.pair_arrived(1, 0.0)  # pending: the next would replace it
+    assert s.holds_source() is holds

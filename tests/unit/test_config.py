@@ -8,7 +8,7 @@ import msgspec
 import pytest
 
 from trapflow.config import schema as config
-from trapflow.config.schema import Policy, parse_policy
+from trapflow.config.schema import Policy, SourceConfig, parse_policy
 from trapflow.errors import ConfigError
 
 CONFIGS = sorted((Path(__file__).resolve().parents[2] / "configs").glob("*.yaml"))
@@ -84,8 +84,8 @@ def test_load_reports_file_problems(tmp_path: Path) -> None:
         ("mono=2,stereo=1,vo=1", {"mono": 2, "stereo": 1, "vo": 1}, None),
         (" mono=1 ", {"mono": 1}, None),
         ("mono=x", None, "expected NAME=COUNT.*got 'mono=x'"),
-        ("mono=0", None, "at least 1, got 'mono=0'"),
-        ("mono=-2", None, "at least 1, got 'mono=-2'"),
+        ("mono=0", {"mono": 0}, None),  # a remote pool with no local worker (with_workers)
+        ("mono=-1", None, "0 or more, got 'mono=-1'"),
         ("mono", None, "got 'mono'"),
         ("=3", None, "got '=3'"),
         ("mono=1,,vo=1", None, "got ''"),
@@ -106,6 +106,23 @@ def test_with_workers_switches_off_unnamed_pools_and_adds_known_plugins() -> Non
     assert cfg.pools["mono"].count == 2
     assert cfg.pools["stereo"].count == 0
     assert cfg.pools["noop"].count == 1
+
+
+@pytest.mark.parametrize(("remote", "error"), [
+    (True, None),                      # the README's Jetson case: every worker is remote
+    (False, "pools.mono.remote: true"),  # nobody would ever process its pairs: said why
+])
+def test_with_workers_takes_0_for_a_remote_pool(remote: bool, error: str | None) -> None:
+    """Regression (issue 22, item 8): `--workers mono=0` was refused although the README
+    says a remote pool may run no local worker."""
+    cfg = config.from_data({"pools": {"mono": {"remote": remote}},
+                            "network": {"remote": {"bind": "tcp://127.0.0.1:5560"}}})
+    if error is None:
+        assert config.with_workers(cfg, {"mono": 0, "vo": 1}, ["mono", "vo"]).pools[
+            "mono"].count == 0
+    else:
+        with pytest.raises(ConfigError, match=error):
+            config.with_workers(cfg, {"mono": 0, "vo": 1}, ["mono", "vo"])
 
 
 def test_with_workers_rejects_unknown_algorithm() -> None:
@@ -200,3 +217,20 @@ def test_config_is_a_leaf_that_imports_no_runtime_module() -> None:
                          check=True, timeout=60).stdout.split()
     assert out == ["trapflow", "trapflow.config", "trapflow.config.ladder",
                    "trapflow.config.modem", "trapflow.config.schema", "trapflow.errors"]
+
+
+@pytest.mark.parametrize(("kind", "loop", "options", "waits"), [
+    ("replay", False, {"rate": 0}, True),      # a replay as fast as it goes: paced by pools
+    ("replay", False, {"rate": 0.0}, True),
+    ("replay", False, {"rate": 1.0}, False),   # original timing: unchanged, pools may drop
+    ("replay", False, {}, False),              # rate 1 is the default
+    ("replay", True, {"rate": 0}, False),      # looped: endless, it keeps its clock
+    ("replay", False, {"rate": "x"}, False),   # the source itself refuses it, clearly
+    ("synthetic", False, {"rate": 0}, False),  # a live world is never held back
+    ("images", False, {}, False),              # paced by source.rate_hz
+])
+def test_waits_for_pools(kind: str, loop: bool, options: dict[str, object],
+                         waits: bool) -> None:
+    """Regression (issue 22, item 2): which sources the broker holds back instead of
+    dropping pairs in its pools."""
+    assert SourceConfig(kind=kind, loop=loop, options=options).waits_for_pools is waits

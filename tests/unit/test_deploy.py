@@ -12,6 +12,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import click
 import pytest
@@ -159,3 +160,75 @@ def test_compose_has_a_pi_and_a_jetson_service() -> None:
         _check_vars(set(svc["environment"]), f"compose service {svc['image']}")
     assert services["jetson"]["runtime"] == "nvidia"
     assert services["jetson"]["environment"]["TRAPFLOW_WORKER_CONNECT"].startswith("tcp://")
+
+
+def _compose() -> dict[str, Any]:
+    doc: dict[str, Any] = yaml.safe_load((DEPLOY / "compose.yaml").read_text())
+    return doc
+
+
+def _mounts(svc: dict[str, Any]) -> dict[str, Path]:
+    """A service's bind mounts: container path -> host path (relative to deploy/)."""
+    out = {}
+    for vol in svc.get("volumes", []):
+        host, _, rest = vol.partition(":")
+        if host.startswith("."):
+            out[rest.split(":")[0]] = DEPLOY / host
+    return out
+
+
+def _host_path(mounts: dict[str, Path], inside: str) -> Path | None:
+    """Where a path inside the container comes from on the host (None: not mounted)."""
+    for target, source in mounts.items():
+        if inside == target or inside.startswith(target.rstrip("/") + "/"):
+            return source / Path(inside).relative_to(target)
+    return None
+
+
+def test_compose_ports_keys_and_images_agree() -> None:
+    """Regression (issue 22, item 4): the trap published 5555 while the Jetson connected to
+    5560, the trap mounted no CURVE keys although its config may not bind beyond 127.0.0.1
+    without them, and the Jetson's base image and GPU wheel defaults could not build."""
+    from trapflow.config.schema import load
+
+    services = _compose()["services"]
+    trap, jetson = services["trap"], services["jetson"]
+    trap_mounts = _mounts(trap)
+    config = _host_path(trap_mounts, trap["environment"]["TRAPFLOW_START_CONFIG"])
+    assert config is not None and config.is_file(), "the trap's config is not shipped"
+    remote = load(config).network.remote  # validates: a non-loopback bind needs keys
+    bind_port = int(remote.bind.rpartition(":")[2])
+    published = {int(p.split(":")[1]): int(p.split(":")[0]) for p in trap["ports"]}
+    connect = jetson["environment"]["TRAPFLOW_WORKER_CONNECT"]
+    assert published.get(bind_port) == int(connect.rpartition(":")[2]) == bind_port
+    # The key files the trap's config names are inside read-only mounts of the trap.
+    for key in (remote.server_key, remote.authorized_keys):
+        assert key and _host_path(trap_mounts, key) is not None, key
+        assert any(v.endswith(":ro") and key.startswith(v.split(":")[1])
+                   for v in trap["volumes"]), key
+    # The Jetson's keys folder (its image's TRAPFLOW_WORKER_KEYS) is mounted.
+    jetson_env = " ".join(v for k, v in _instructions(DEPLOY / "Dockerfile.jetson")
+                          if k == "ENV")
+    keys = re.search(r"TRAPFLOW_WORKER_KEYS=(\S+)", jetson_env)
+    assert keys and _host_path(_mounts(jetson), keys.group(1)) is not None
+    # Images: local ones are built, never pulled; bases have a tag or come from the env file
+    # (the JetPack image and the GPU wheel, which have no default that could work).
+    for svc in services.values():
+        assert svc["pull_policy"] == "build" and "build" in svc
+    assert jetson["build"]["args"] == {"L4T_BASE": "${L4T_BASE:-}", "ORT_GPU": "${ORT_GPU:-}"}
+    env = dict(line.split("=", 1) for line in (DEPLOY / "jetson.env").read_text().splitlines()
+               if line and not line.startswith("#"))
+    assert set(env) == {"TRAP_HOST", "L4T_BASE", "ORT_GPU"}
+    base = [v for k, v in _instructions(DEPLOY / "Dockerfile") if k == "FROM"]
+    assert len(base) == 1 and re.fullmatch(r"[a-z0-9.-]+:[\w.-]+", base[0]), base
+    jetson_ins = _instructions(DEPLOY / "Dockerfile.jetson")
+    assert ("ARG", "L4T_BASE") in jetson_ins and ("ARG", "ORT_GPU") in jetson_ins
+    assert any(k == "RUN" and 'test -n "${ORT_GPU}"' in v for k, v in jetson_ins)
+
+
+@pytest.mark.parametrize("path", DOCKERFILES, ids=lambda p: p.name)
+def test_keys_never_enter_an_image_or_the_repository(path: Path) -> None:
+    """compose mounts deploy/keys/ (secret keys among them): the build context skips it."""
+    ignored = (path.parent / f"{path.name}.dockerignore").read_text().splitlines()
+    assert "deploy/keys" in ignored
+    assert "deploy/keys/" in (DEPLOY.parent / ".gitignore").read_text().splitlines()

@@ -40,7 +40,7 @@ def test_bad_plugins(name: str, error: str) -> None:
     ("args", "error"),
     [
         (["start", "--workers", "mono=x"], "expected NAME=COUNT"),
-        (["start", "--workers", "mono=0"], "at least 1, got 'mono=0'"),
+        (["start", "--workers", "mono=0"], "needs workers from other hosts; set pools.mono.remote"),
         (["start", "--workers", "sonar=1", "--duration", "1"], "unknown algorithm 'sonar'"),
         (["start", "--size", "big"], "expected WIDTHxHEIGHT"),
         (["start", "--size", "4x4", "--duration", "1"], r"\$.source.width"),

@@ -35,6 +35,7 @@ from trapflow.batch.plan import (
 )
 from trapflow.config.schema import Config
 from trapflow.errors import ConfigError
+from trapflow.observe.rigpose import RigPoses
 from trapflow.observe.stage import track_pairs
 from trapflow.stages.result_json import dumps, parse_timestamp
 
@@ -111,8 +112,11 @@ def dask_client(opts: Options) -> Iterator[Any]:
             yield client
         return
     n = opts.local or os.cpu_count() or 1
+    # Dask's own logs stay quiet, errors included: a task that fails comes back to the
+    # client with its error, which the input's ledger.json keeps and the summary names
+    # (Dask logged each failure with its traceback once per retry: 23 lines for one error).
     with dd.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                      dashboard_address=":0", silence_logs=logging.ERROR) as cluster, \
+                      dashboard_address=":0", silence_logs=logging.CRITICAL) as cluster, \
             dd.Client(cluster) as client:
         yield client
 
@@ -314,7 +318,8 @@ def _write_input(folder: Path, report: InputReport, opts: Options, cfg: Config) 
     lines.sort(key=lambda t: (t[0], t[1]))
     folder.mkdir(parents=True, exist_ok=True)
     if cfg.observe.enabled:  # tracks across chunks: the whole input, in capture order
-        obs = track_pairs(_detections_by_pair([x for _s, _r, x in lines]), cfg.observe)
+        objs = [x for _s, _r, x in lines]
+        obs = track_pairs(_detections_by_pair(objs), cfg.observe, rig_poses(objs))
         for name, objs in ((cfg.observe.tracks_file, obs.tracks),
                            (cfg.observe.counts_file, obs.counts)):
             atomic_write(folder / name, b"".join(dumps(o) + b"\n" for o in objs))
@@ -329,6 +334,20 @@ def _detections_by_pair(objs: list[dict[str, Any]]) -> list[tuple[int, list[dict
         if (item := obj.get("mono_ir")) is not None:
             pairs.setdefault(item["seq"], []).append(item)
     return [(parse_timestamp(items[0]["timestamp"]), items) for items in pairs.values()]
+
+
+def rig_poses(objs: list[dict[str, Any]]) -> RigPoses:
+    """VO's poses (chained across chunks) by capture time, for the tracks' speeds over the
+    ground."""
+    poses = RigPoses(keep_s=float("inf"))  # the whole input is at hand: nothing to forget
+    for obj in objs:
+        vo = obj.get("stereo_vo")
+        if vo is None or len(vo.get("pose", ())) != 3:
+            continue
+        rows = [float(v) for row in vo["pose"] for v in row]
+        poses.add(parse_timestamp(vo["timestamp"]) / 1e9, tuple(rows), bool(vo.get("ok")),
+                  bool(vo.get("reinit", False)))
+    return poses
 
 
 def input_line(report: InputReport, opts: Options) -> str:

@@ -85,7 +85,8 @@ class BrokerNode(Node):
             if p.count > 0 or p.remote
         }
         self.state = BrokerState(pools, idle_liveness_s=self.cfg.supervisor.liveness_s,
-                                 gates=gated_pools(self.cfg))
+                                 gates=gated_pools(self.cfg),
+                                 paced=self.cfg.source.waits_for_pools)
         self.frames: dict[int, list[Any]] = {}
         # Shared-memory ring: the broker owns slot lifetime (frees a slot on Release).
         ring_name = spec.ring
@@ -133,6 +134,7 @@ class BrokerNode(Node):
         ladder = self.cfg.ladder
         self.level = ladder.levels[0].name if ladder.enabled and not spec.restarted else ""
         self.level_reason = ""
+        self._capture_held: set[Link] = set()  # not polled: held back (_pace_capture)
 
     def counters(self) -> dict[str, int]:
         return {"pairs_in": self.state.pairs_in, "malformed": self._malformed(),
@@ -158,6 +160,8 @@ class BrokerNode(Node):
                     self._drain_link(ready)
             if self.pull in socks:
                 self._drain_capture()
+            if self.state.paced:
+                self._pace_capture()
             if self.tap.sock in socks:
                 self.tap.on_subscriptions()
             self._flush_results()
@@ -183,11 +187,30 @@ class BrokerNode(Node):
 
     # --- capture side ---------------------------------------------------------------
 
+    def _pace_capture(self) -> None:
+        """Capture's links are not polled while a pool is full, and read again once all have
+        room (nor is a zmq capture socket read: it fills to its high-water mark)."""
+        full = self.state.holds_source()
+        for link, role in list(self.link_role.items()):
+            if role != "capture":
+                continue
+            if full and link not in self._capture_held:
+                self.poller.unregister(link)
+                self._capture_held.add(link)
+            elif not full and link in self._capture_held:
+                self._capture_held.discard(link)
+                self.poller.register(link)
+                self._drain_link(link)  # what waited while it was not polled
+        if not full:
+            self._drain_capture()
+
     def _drain_capture(self) -> None:
         # Take what is queued now, then go back to the workers: results never starve.
         # EVENTS before each recv: an empty socket costs no exception (this is the hot path).
-        self.poller.touch(self.pull)  # read its events again next pass: more may wait
         for _ in range(64):
+            if self.state.holds_source():
+                return  # held back, and not touched: it costs no pass until there is room
+            self.poller.touch(self.pull)  # read its events again next pass: more may wait
             if not zmq_readable(self.pull):
                 return
             self._on_capture(self.pull.recv_multipart(copy=False))
@@ -249,6 +272,8 @@ class BrokerNode(Node):
         if role is None:  # dropped earlier in this pass (a failed send to it)
             return
         for _ in range(256):
+            if role == "capture" and self.state.holds_source():
+                return  # the rest waits in the link; _pace_capture reads it later
             try:
                 frames = link.recv()
                 if frames is None:
@@ -287,7 +312,9 @@ class BrokerNode(Node):
         """A local peer went away: a worker's jobs are settled now, not at a timeout."""
         if link not in self.link_role:
             return
-        self.poller.unregister(link)
+        if link not in self._capture_held:  # a held-back capture link is not polled
+            self.poller.unregister(link)
+        self._capture_held.discard(link)
         self.fds.pop(link.fileno(), None)
         self.link_role.pop(link, None)
         ident = self.link_ident.pop(link, None)

@@ -143,7 +143,10 @@ class BrokerState:
     motion gate of the gated ones (`gates`: pool -> its rules; pools not named take all)."""
 
     def __init__(self, pools: Mapping[str, PoolSpec], idle_liveness_s: float = IDLE_LIVENESS_S,
-                 gates: Mapping[str, gate.GateConfig] | None = None):
+                 gates: Mapping[str, gate.GateConfig] | None = None, paced: bool = False):
+        # paced: the source waits for the pools (a replay at rate 0) instead of outrunning
+        # them; the broker then takes a pair only while holds_source() is false.
+        self.paced = paced
         self._pools = {n: _Pool(n, s, Pending(s.policy)) for n, s in pools.items()}
         gated = {n: g for n, g in (gates or {}).items() if n in self._pools}
         self._gate = gate.GateState(gated) if gated else None
@@ -383,6 +386,23 @@ class BrokerState:
     def worker_pools(self) -> dict[bytes, str]:
         """Every worker the state knows (live), and its pool."""
         return {w: p.name for p in self._pools.values() for w in p.workers}
+
+    def has_room(self) -> bool:
+        """Whether a new pair would be queued without a drop in every pool that has workers
+        and takes pairs as they come (active, ungated, unthrottled): what capture of a
+        finite source read at full speed waits for (back-pressure to the source). A pool
+        with no worker does not hold the source back: nobody may ever come to empty it."""
+        for pool in self._pools.values():
+            if (not pool.active or pool.min_interval_s or not pool.workers
+                    or (self._gate is not None and self._gate.gates(pool.name))):
+                continue
+            if len(pool.pending) >= pool.spec.policy.bound:
+                return False
+        return True
+
+    def holds_source(self) -> bool:
+        """Whether capture must wait: paced, and a pair taken now would make a pool drop one."""
+        return self.paced and not self.has_room()
 
     def drained(self) -> bool:
         """Nothing pending or in flight anywhere."""

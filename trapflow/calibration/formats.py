@@ -23,7 +23,7 @@ import yaml
 
 from trapflow.calibration.model import StereoCalibration, from_extrinsics
 from trapflow.calibration.rectify import MODELS, Model
-from trapflow.errors import ConfigError
+from trapflow.errors import ConfigError, yaml_problem
 
 log = logging.getLogger(__name__)
 
@@ -136,7 +136,7 @@ def load_doc(path: Path) -> dict[str, Any]:
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise fail(path, f"not valid YAML: {exc}") from None
+        raise fail(path, f"not valid YAML: {yaml_problem(exc)}") from None
     if not isinstance(data, dict):
         raise fail(path, f"expected a mapping of fields, got {type(data).__name__}")
     return data

@@ -9,6 +9,7 @@ import click
 import yaml
 
 from trapflow.cli.exit import bad_input
+from trapflow.errors import yaml_problem
 
 # Metadata file keys (YAML) -> Deployment fields; flags of the same name override them.
 META_KEYS = {"latitude": "latitude", "longitude": "longitude", "deployment_id": "deployment_id",
@@ -53,8 +54,10 @@ def _metadata(meta: Path | None) -> dict[str, Any]:
         return {}
     try:
         data = yaml.safe_load(meta.read_text(encoding="utf-8")) or {}
-    except (OSError, yaml.YAMLError) as exc:
-        raise bad_input(f"--meta {meta}: expected a readable YAML mapping, got {exc}") from None
+    except OSError as exc:
+        raise bad_input(f"--meta {meta}: cannot read it: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise bad_input(f"--meta {meta}: not valid YAML: {yaml_problem(exc)}") from None
     if not isinstance(data, dict):
         raise bad_input(f"--meta {meta}: expected a YAML mapping of deployment keys, got "
                         f"{type(data).__name__}")

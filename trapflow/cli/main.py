@@ -20,15 +20,36 @@ def _fail(exc: TrapflowError) -> NoReturn:
     raise failed(exc) from None
 
 
+# click 8.2+ asks for help with an error of its own (a bare `trapflow`): help, not an error.
+_HELP: type[Exception] | tuple[()] = getattr(click.exceptions, "NoArgsIsHelpError", ())
+
+
+def _usage(exc: click.UsageError) -> click.ClickException:
+    """click's usage error (4 lines: usage, hint, blank, error) as one line, status 2."""
+    if isinstance(exc, _HELP):
+        return exc  # a UsageError: click prints the help
+    where = exc.ctx.command_path if exc.ctx is not None else "trapflow"
+    return CommandFailed(f"{where}: {exc.format_message()} (see '{where} --help')", EXIT_USAGE)
+
+
 class TrapflowGroup(click.Group):
     """Any trapflow error a command lets through ends it by the exit-code policy, never
-    with a traceback (modem and dataset commands included)."""
+    with a traceback (modem and dataset commands included); a usage error is one line too."""
+
+    def make_context(self, info_name: str | None, args: list[str],
+                     parent: click.Context | None = None, **extra: Any) -> click.Context:
+        try:
+            return super().make_context(info_name, args, parent, **extra)
+        except click.UsageError as exc:  # an option of `trapflow` itself
+            raise _usage(exc) from None
 
     def invoke(self, ctx: click.Context) -> Any:
         try:
             return super().invoke(ctx)
         except TrapflowError as exc:
             raise failed(exc) from None
+        except click.UsageError as exc:  # a command's options or arguments, or no command
+            raise _usage(exc) from None
 
 
 # Every option can come from the environment as TRAPFLOW_<COMMAND>_<OPTION> (a systemd

@@ -143,12 +143,19 @@ def calibrate(left_glob: str, right_glob: str, pattern: tuple[int, int], square:
               help="MCAP file to write.")
 @click.option("--duration", type=click.FloatRange(min=0, min_open=True),
               help="Stop after this many seconds (default: when the pipeline ends).")
+@click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False), default=None,
+              help="YAML config whose recording section applies (recording.vision_msgs).")
 def record(run_dir: Path, endpoints: tuple[str, ...], output: Path,
-           duration: float | None) -> None:
+           duration: float | None, config_path: str | None) -> None:
     """Record image pairs and results from a running pipeline to an MCAP rosbag2 file,
     until the pipeline in --run-dir ends (its last results written), --duration or Ctrl-C."""
+    from trapflow.config.schema import load
     from trapflow.recording.recorder import record as record_tap
 
+    try:
+        vision_msgs = load(config_path).recording.vision_msgs
+    except TrapflowError as exc:
+        raise bad_input(exc) from None
     rig, ended = None, None
     if not endpoints:  # pairs from the broker's tap, results from the normalizer's
         from trapflow.config.schema import Config
@@ -166,14 +173,16 @@ def record(run_dir: Path, endpoints: tuple[str, ...], output: Path,
         until = f"{duration:g} s or {until}"
     click.echo(f"recording {' + '.join(endpoints)} to {output} until {until}", err=True)
     try:
-        counts = record_tap(endpoints, output, stop, rig=rig, duration_s=duration, ended=ended)
+        counts = record_tap(endpoints, output, stop, rig=rig, duration_s=duration, ended=ended,
+                            vision_msgs=vision_msgs)
     except RecorderError as exc:  # the output cannot be written: fix -o
         raise bad_input(exc) from None
     except (TrapflowError, OSError) as exc:
         raise failed(str(exc)) from None
     per_algo = ", ".join(f"{k} {v}" for k, v in sorted(counts.results.items())) or "none"
     click.echo(f"{output}: {counts.pairs} pairs, results: {per_algo}, odometry "
-               f"{counts.odometry}, malformed {counts.malformed}")
+               f"{counts.odometry}, detections {counts.detections}, malformed "
+               f"{counts.malformed}")
 
 
 def _pipeline_ended(run_dir: Path) -> Callable[[], bool]:
@@ -246,7 +255,7 @@ def _replay_config(path: Path, config_path: str | None, loop: bool, opts: dict[s
 @click.command()
 @click.argument("path", type=click.Path(path_type=Path))
 @click.option("--rate", type=click.FloatRange(min=0), default=1.0, show_default=True,
-              help="Speed relative to the original timing; 0 = as fast as possible.")
+              help="Speed relative to the original timing; 0 = as fast as the slowest pool.")
 @click.option("--loop", is_flag=True, help="Start over at the end instead of stopping.")
 @click.option("--assert-lossless", is_flag=True,
               help="Fail (status 1) unless every pair read was processed by every pool.")

@@ -18,7 +18,7 @@ import yaml
 
 from trapflow.config.ladder import LadderConfig
 from trapflow.config.modem import HealthConfig, ModemConfig, OutboxConfig
-from trapflow.errors import ConfigError
+from trapflow.errors import ConfigError, yaml_problem
 
 
 class _Section(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
@@ -121,6 +121,18 @@ class SourceConfig(_Section):
     loop: bool = False
     options: dict[str, Any] = {}
 
+    @property
+    def waits_for_pools(self) -> bool:
+        """A finite source read as fast as it goes (a replay at rate 0, not looped) has no
+        clock to keep: capture waits for the broker's room in every pool, so the run goes at
+        its slowest pool's speed and no pool drops a pair (issue 22, item 2)."""
+        if self.loop or self.kind != "replay":
+            return False
+        try:
+            return float(self.options.get("rate", 1.0)) == 0.0
+        except (TypeError, ValueError):
+            return False  # the source refuses it with its own message
+
 
 class RigConfig(_Section):
     """The stereo rig: baseline and field of view (or a calibration file)."""
@@ -213,6 +225,14 @@ class ExportConfig(_Section):
     min_confidence: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.5
     """Camtrap DP: least confidence of an observation (a track's best box, or a box of a run
     without tracks); a pair with no box at or above it is a blank (`--min-confidence`)."""
+
+
+class RecordingConfig(_Section):
+    """Recordings (`trapflow record`)."""
+
+    vision_msgs: str = ""
+    """Folder of ROS 2 vision_msgs definitions (its msg/ folder, the package or a ROS
+    prefix) for detections as vision_msgs/Detection2DArray; empty: AMENT_PREFIX_PATH's."""
 
 
 class EnergyConfig(_Section):
@@ -388,6 +408,7 @@ class Config(_Section):
     normalizer: NormalizerConfig = msgspec.field(default_factory=NormalizerConfig)
     observe: ObserveConfig = msgspec.field(default_factory=ObserveConfig)
     export: ExportConfig = msgspec.field(default_factory=ExportConfig)
+    recording: RecordingConfig = msgspec.field(default_factory=RecordingConfig)
     energy: EnergyConfig = msgspec.field(default_factory=EnergyConfig)
     gate: MotionGateConfig = msgspec.field(default_factory=MotionGateConfig)
     supervisor: SupervisorConfig = msgspec.field(default_factory=SupervisorConfig)
@@ -486,7 +507,7 @@ def load(path: str | Path | None = None) -> Config:
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{p}: not valid YAML: {exc}") from None
+        raise ConfigError(f"{p}: not valid YAML: {yaml_problem(exc)}") from None
     return from_data(data, str(p))
 
 
@@ -504,8 +525,8 @@ def parse_workers(text: str) -> dict[str, int]:
             count = int(num)
         except ValueError:
             raise ConfigError(f"{expected} with an integer COUNT, got {part!r}") from None
-        if count < 1:
-            raise ConfigError(f"worker count must be at least 1, got {part!r}")
+        if count < 0:  # 0: a remote pool with no local worker (checked by with_workers)
+            raise ConfigError(f"worker count must be 0 or more, got {part!r}")
         if name in counts:
             raise ConfigError(f"algorithm {name!r} given twice in {text!r}")
         counts[name] = count
@@ -515,8 +536,15 @@ def parse_workers(text: str) -> dict[str, int]:
 def with_workers(cfg: Config, counts: dict[str, int], known: list[str]) -> Config:
     """Run exactly the named pools with these counts; others are switched off.
 
-    A name that is not a configured pool but is a known plugin gets a default pool.
+    A name that is not a configured pool but is a known plugin gets a default pool. A count
+    of 0 names a remote pool that runs no local worker (its workers join from other hosts).
     """
+    for name, count in counts.items():
+        if count == 0 and not (name in cfg.pools and cfg.pools[name].remote):
+            raise ConfigError(
+                f"--workers {name}=0: a pool with no local worker needs workers from other "
+                f"hosts; set pools.{name}.remote: true in the config, or give {name} a count "
+                "of 1 or more, or leave it out")
     pools: dict[str, PoolConfig] = {}
     for name, pool in cfg.pools.items():
         pools[name] = msgspec.structs.replace(pool, count=counts.get(name, 0))

@@ -28,6 +28,7 @@ log = logging.getLogger(__name__)
 
 TIME_FORMAT = "%Y-%m-%d %H:%M:%S.%f"
 RATE_BIN_S = 10  # seconds per point of the result-rate chart
+MIN_LAST_BIN_S = 2.0  # a last, partial rate bin shorter than this is left out
 _RESTART = re.compile(r"^(\S+ \S+) .*restarting (\S+) \(restart (\d+)\)")
 
 
@@ -54,6 +55,9 @@ class RunSummary:
     # hour -> label -> [visits, MaxN, dwell s] (counts.jsonl, by the interval's start)
     counts_hour: dict[str, dict[str, list[float]]] = field(default_factory=dict)
     lengths: dict[str, list[float]] = field(default_factory=dict)  # label -> tracks' length_m
+    meta: dict[str, Any] = field(default_factory=dict)  # run.json: config, versions, rig
+    ranges: dict[str, list[float]] = field(default_factory=dict)  # label -> tracks' range_m
+    speeds: dict[str, list[float]] = field(default_factory=dict)  # label -> tracks' speed_m_s
 
 
 def _time(label: str) -> dt.datetime:
@@ -79,7 +83,8 @@ def _jsonl(path: Path, kind: str) -> list[dict[str, Any]]:
 def observations(s: RunSummary, counts: list[dict[str, Any]],
                  tracks: list[dict[str, Any]]) -> None:
     """Visits, MaxN and dwell per label per hour (an interval counts in the hour it starts;
-    MaxN of an hour is the largest of its intervals'), and each label's track lengths."""
+    MaxN of an hour is the largest of its intervals'), and each label's track lengths,
+    ranges at first sighting and speeds."""
     for c in counts:
         try:
             hour = dt.datetime.fromtimestamp(float(c["start_s"]), dt.timezone.utc)
@@ -92,9 +97,11 @@ def observations(s: RunSummary, counts: list[dict[str, Any]],
         except (KeyError, TypeError, ValueError):
             log.warning("report: a counts line without start_s and labels; skipped")
     for t in tracks:
-        length = t.get("length_m")
-        if isinstance(length, (int, float)) and length > 0:
-            s.lengths.setdefault(str(t.get("label", "")), []).append(float(length))
+        for key, into in (("length_m", s.lengths), ("range_m", s.ranges),
+                          ("speed_m_s", s.speeds)):
+            got = t.get(key)
+            if isinstance(got, (int, float)) and (got > 0 or got == 0 and key == "speed_m_s"):
+                into.setdefault(str(t.get("label", "")), []).append(float(got))
 
 
 def summarize(run_dir: Path, events_folder: str = "events", counts_file: str = "counts.jsonl",
@@ -135,15 +142,14 @@ def summarize(run_dir: Path, events_folder: str = "events", counts_file: str = "
             if isinstance(seq, int) and seq not in seqs.setdefault(algo, set()):
                 seqs[algo].add(seq)  # a pair processed: one per pair, not one per detection
                 times.setdefault(algo, []).append((t - t0).total_seconds())
-    for algo, ts in times.items():
-        bins: dict[int, int] = {}
-        for x in ts:
-            bins[int(x // RATE_BIN_S)] = bins.get(int(x // RATE_BIN_S), 0) + 1
-        last = max(bins)
-        s.rates[algo] = [(b * RATE_BIN_S, bins.get(b, 0) / RATE_BIN_S) for b in range(last + 1)]
+    end = max((ts[-1] for ts in times.values()), default=0.0)
+    s.rates = {algo: rate_bins(ts, end) for algo, ts in times.items()}
     ledger = run_dir / "ledger.json"
     if ledger.is_file():
         s.ledger = json.loads(ledger.read_text(encoding="utf-8"))
+    meta = run_dir / "run.json"
+    if meta.is_file():
+        s.meta = json.loads(meta.read_text(encoding="utf-8"))
     logfile = run_dir / "trapflow.log"
     if logfile.is_file():
         for line in logfile.read_text(encoding="utf-8", errors="replace").splitlines():
@@ -160,9 +166,41 @@ def summarize(run_dir: Path, events_folder: str = "events", counts_file: str = "
     return s
 
 
+def rate_bins(times: list[float], end: float, width: float = RATE_BIN_S
+              ) -> list[tuple[float, float]]:
+    """Pairs per second in bins of `width` s from 0 (seconds since the first result) to the
+    run's last result at `end`, each at its bin's start. The last bin is cut short by the
+    run's end: its count is divided by the time it really covers (its start to `end`), not
+    by the whole width, so the rate does not dive there; covering less than MIN_LAST_BIN_S
+    it is dropped (too few pairs for a rate), unless it is the only one."""
+    if not times:
+        return []
+    counts: dict[int, int] = {}
+    for t in times:
+        counts[int(t // width)] = counts.get(int(t // width), 0) + 1
+    last = int(end // width)
+    out = [(b * width, counts.get(b, 0) / width) for b in range(last)]
+    covered = end - last * width
+    if covered >= MIN_LAST_BIN_S or not out:
+        out.append((last * width, counts.get(last, 0) / max(covered, MIN_LAST_BIN_S)))
+    return out
+
+
 # --- rendering ---------------------------------------------------------------------------
 
 W, H, PAD = 640, 240, 40
+# The frame every chart draws in (_axes): PLOT_W x PLOT_H pixels, its lower edge at PLOT_BOTTOM.
+PLOT_W, PLOT_H, PLOT_BOTTOM = W - 2 * PAD, H - 2 * PAD, H - PAD - PAD // 2
+
+
+def equal_extent(x0: float, x1: float, y0: float, y1: float, aspect: float
+                 ) -> tuple[float, float, float, float]:
+    """The data ranges around (x0..x1, y0..y1), centred, widened so that x span / y span is
+    the frame's aspect (width / height in pixels): a metre is as long along x as along y."""
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    half_y = max((x1 - x0) / aspect, y1 - y0, 1e-6) / 2
+    half_x = half_y * aspect
+    return cx - half_x, cx + half_x, cy - half_y, cy + half_y
 COLOURS = ("#d95f02", "#1b9e77", "#7570b3", "#e7298a", "#66a61e", "#e6ab02")
 
 
@@ -191,12 +229,10 @@ def svg_lines(title: str, series: dict[str, list[tuple[float, float]]], xlabel: 
         return f"<p>{html.escape(title)}: no data.</p>"
     xs, ys = [p[0] for p in pts], [p[1] for p in pts]
     x0, x1, y0, y1 = min(xs), max(xs), min(ys), max(ys)
-    if equal:  # a path seen from above: one metre is as long both ways
-        half = max(x1 - x0, y1 - y0, 1e-6) / 2
-        cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
-        x0, x1, y0, y1 = cx - half, cx + half, cy - half, cy + half
+    if equal:  # a path seen from above: one metre as many pixels both ways (issue 22)
+        x0, x1, y0, y1 = equal_extent(x0, x1, y0, y1, PLOT_W / PLOT_H)
     sx = _scale(x0, x1, PAD, W - PAD)
-    sy = _scale(y0, y1, H - PAD, PAD // 2)
+    sy = _scale(y0, y1, PLOT_BOTTOM, PAD // 2)
     out = _axes(title, xlabel, ylabel)
     out.append(f'<text x="{PAD}" y="{H - PAD + 14}" font-size="10">{x0:.3g}</text>'
                f'<text x="{W - PAD}" y="{H - PAD + 14}" font-size="10" text-anchor="end">'
@@ -243,7 +279,7 @@ def svg_bars(label: str, values: list[float]) -> str:
     e = html.escape
     top = max(counts)
     bar_w = (W - 2 * PAD) / len(counts)
-    bottom = H - PAD - PAD // 2  # the frame's lower edge (_axes)
+    bottom = PLOT_BOTTOM
     sy = _scale(0, top, bottom, PAD // 2)
     out = _axes(f"length-frequency of {label}", f"length (m), {width:g} m bins",
                 "tracks")
@@ -261,10 +297,35 @@ def svg_bars(label: str, values: list[float]) -> str:
 
 
 def _lengths(s: RunSummary) -> list[str]:
-    rows = [[lb, len(v), f"{statistics.median(v):.3f}", f"{min(v):.3f}", f"{max(v):.3f}"]
+    def median(values: list[float] | None, digits: int) -> str:
+        return f"{statistics.median(values):.{digits}f}" if values else "-"
+
+    rows = [[lb, len(v), f"{statistics.median(v):.3f}", f"{min(v):.3f}", f"{max(v):.3f}",
+             median(s.ranges.get(lb), 2), median(s.speeds.get(lb), 3)]
             for lb, v in sorted(s.lengths.items())]
-    return [_table(["label", "tracks measured", "median (m)", "min (m)", "max (m)"], rows),
+    return [_table(["label", "tracks measured", "median (m)", "min (m)", "max (m)",
+                    "median range (m)", "median speed (m/s)"], rows),
             *(svg_bars(lb, v) for lb, v in sorted(s.lengths.items()))]
+
+
+def _run_table(meta: dict[str, Any]) -> str:
+    """run.json as rows: when and how long, the config, the rig, the versions."""
+    if not meta:
+        return "<p>no run.json (a run of an older trapflow, or one that did not end)</p>"
+    cfg, rig = meta.get("config", {}), meta.get("rig") or {}
+    src = cfg.get("source", {})
+    pools = ", ".join(f"{n} x{p.get('count')} {p.get('plugin')} ({p.get('policy')})"
+                      for n, p in sorted(cfg.get("pools", {}).items()))
+    vers = ", ".join(f"{k} {v}" for k, v in meta.get("versions", {}).items() if v)
+    return _table(["run", "as run.json has it"], [
+        ["ran", f"{meta.get('started', '?')} to {meta.get('ended', '?')} UTC, "
+                f"{meta.get('duration_s', '?')} s"],
+        ["config", f"digest {cfg.get('digest', '?')}; source {src.get('kind', '?')} "
+                   f"{src.get('uri', '')} {src.get('size', '')} at {src.get('rate_hz', '?')} "
+                   f"pairs/s; pools {pools or 'none'}"],
+        ["rig", f"{rig.get('describe', 'unknown')} from {rig.get('origin', '?')}"
+         if rig else "unknown"],
+        ["versions", vers]])
 
 
 def _table(head: list[str], rows: list[list[Any]]) -> str:
@@ -299,6 +360,7 @@ def render_html(s: RunSummary) -> str:
         "padding:2px 8px;text-align:right}th{background:#eee}</style></head><body>",
         f"<h1>trapflow run {e(s.run)}</h1>",
         f"<p>Results from {e(s.first or '-')} to {e(s.last or '-')} UTC: {s.lines} lines.</p>",
+        "<h2>Run</h2>", _run_table(s.meta),
         "<h2>Detections per class per hour</h2>",
         _table(["hour (UTC)", *classes, "all"], per_hour),
         "<h2>Visits and MaxN per label per hour</h2>",
@@ -308,11 +370,12 @@ def render_html(s: RunSummary) -> str:
                [[hour, lb, int(v[0]), int(v[1]), f"{v[2]:.1f}"]
                 for hour, per in sorted(s.counts_hour.items()) for lb, v in sorted(per.items())]),
         "<h2>Length-frequency per label</h2>",
-        "<p>From tracks.jsonl: each measured track's length (median of its sharpest views).</p>",
+        "<p>From tracks.jsonl: each measured track's length (median of its sharpest views), "
+        "its range at first sighting and its speed over the ground.</p>",
         *_lengths(s),
         "<h2>Result rates per pool</h2>",
         svg_lines("pairs processed per second", s.rates, f"seconds since the first result "
-                  f"({RATE_BIN_S} s bins)", "pairs/s"),
+                  f"({RATE_BIN_S} s bins; the last divided by the time it covers)", "pairs/s"),
         "<h2>Visual odometry</h2>", f"<p>{e(vo)}.</p>",
         svg_lines("VO path from above", {"left camera": s.vo_path} if s.vo_path else {},
                   "x (m)", "z (m)", equal=True),

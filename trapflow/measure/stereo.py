@@ -14,6 +14,7 @@ import msgspec
 import numpy as np
 
 from trapflow.calibration.camera import StereoRig
+from trapflow.measure.floor import FloorPlane, fit_floor, floor_slopes
 
 Reason = Literal["bad_box", "out_of_view", "textureless", "ambiguous", "low_score"]
 Matcher = Literal["ncc", "sgbm"]
@@ -45,13 +46,21 @@ class MeasureParams(msgspec.Struct, frozen=True, kw_only=True):
     """Standard deviation of a box edge, pixels (a truth box is whole pixels: 0.3)."""
     disparity_sd_floor_px: float = 0.1
     """Disparity error that no fit removes (interpolation, rectification)."""
-    shape_rel_sd: float = 0.04
-    """Relative sd of how far a box's extent is from the body's longest chord."""
+    shape_rel_sd: float = 0.03
+    """Relative sd of how far a box's extent is from the body's longest chord, for a box
+    much longer than wide (the body can only lie along it)."""
+    diagonal_rel_sd: float = 0.05
+    """Added to shape_rel_sd per unit of the box's diagonal excess (diagonal / longer centre
+    line - 1): a squarer box may hold a body lying along its diagonal, longer than either
+    centre line (development seeds: crabs within 2 sd 0.87 with a flat 0.04, 0.92 so)."""
     relief_rel_sd: float = 0.05
     """Range sd from what a box holds besides the body's centre (floor between legs, the
     body's own height), as a fraction of the measured length."""
     scale_rel_sd: float = 0.0
     """Relative sd of the calibration's focal length x baseline (0: known exactly)."""
+    floor_slope_sd: float = 0.004
+    """Sd of a body's disparity slope (px per px) about the floor plane's: the floor's relief
+    under it and how it lies."""
 
 
 class Measured(msgspec.Struct, frozen=True, kw_only=True):
@@ -111,12 +120,22 @@ def triangulate(rig: StereoRig, u: float, v: float, d: float) -> np.ndarray:
     return np.array([(u - rig.cx) * z / rig.fx, (v - rig.cy) * z / rig.fy, z])
 
 
+def pair_floor(left: np.ndarray, right: np.ndarray, rig: StereoRig,
+               params: MeasureParams | None = None) -> FloorPlane | None:
+    """The floor's disparity plane of a rectified grey pair (once per pair, for all its
+    boxes), or None where no plane holds the pair's matches."""
+    return fit_floor(left, right, rig, disparity_limits(rig, params or MeasureParams()))
+
+
 def measure(left: np.ndarray, right: np.ndarray, rig: StereoRig, box: Box,
-            params: MeasureParams | None = None, matcher: Matcher = "ncc") -> Measurement:
+            params: MeasureParams | None = None, matcher: Matcher = "ncc",
+            floor: FloorPlane | None = None) -> Measurement:
     """Measure the box's content: range, position and length with their uncertainties.
 
     `left`, `right`: the rectified pair, grey uint8, the rig's size. `box`: x1 y1 x2 y2 in
     left-image pixels (x2, y2 exclusive, as detectors and the synthetic truth give them).
+    `floor` (pair_floor's): the slant a body lying on the floor shares, combined with the
+    box's own.
     """
     p = params or MeasureParams()
     ints = _clip_box(box, left.shape[1], left.shape[0])
@@ -126,7 +145,32 @@ def measure(left: np.ndarray, right: np.ndarray, rig: StereoRig, box: Box,
              else match_sgbm(left, right, ints, rig, p))
     if isinstance(found, Unmeasured):
         return found
+    if floor is not None:
+        found = _on_floor(found, floor, p)
     return _result(found, box, rig, p, matcher)
+
+
+def _on_floor(s: Surface, floor: FloorPlane, params: MeasureParams) -> Surface:
+    """The box's disparity slopes combined with the floor's (scaled to the box's disparity),
+    each weighted by its inverse variance; a box too small for slopes of its own takes the
+    floor's."""
+    slopes = floor_slopes(floor, s.uc, s.vc, s.c)
+    if slopes is None:
+        return s
+    cov = np.array(s.cov).reshape(3, 3)
+    prior = params.floor_slope_sd ** 2
+    coef = [s.c, *slopes]
+    out = np.zeros((3, 3))
+    out[0, 0] = cov[0, 0]
+    for i, own in ((1, s.a), (2, s.b)):
+        var = cov[i, i]
+        if s.planar and var > 0:
+            coef[i] = (own / var + coef[i] / prior) / (1 / var + 1 / prior)
+            out[i, i] = 1 / (1 / var + 1 / prior)
+        else:
+            out[i, i] = prior
+    return Surface(uc=s.uc, vc=s.vc, c=s.c, a=float(coef[1]), b=float(coef[2]),
+                   cov=tuple(float(v) for v in out.ravel()), planar=True, score=s.score)
 
 
 # --- matchers ---------------------------------------------------------------------------
@@ -433,6 +477,8 @@ def _length(s: Surface, edges: Box, rig: StereoRig, cov: np.ndarray,
     plane = np.array([s.c, s.a, s.b])
     best = max((np.array(line) for line in lines), key=lambda q: chord(q, plane))
     length = chord(best, plane)
+    diagonal = max(chord(np.array(q), plane) for q in ((x1, y1, x2, y2), (x1, y2, x2, y1)))
+    shape = params.shape_rel_sd + params.diagonal_rel_sd * max(diagonal / length - 1.0, 0.0)
     var = 0.0
     for i in range(4):  # the end points' pixel coordinates: the box's own error
         step = np.zeros(4)
@@ -445,7 +491,7 @@ def _length(s: Surface, edges: Box, rig: StereoRig, cov: np.ndarray,
         step[i] = 1e-3 if i else 0.05
         grad[i] = (chord(best, plane + step) - chord(best, plane - step)) / (2 * step[i])
     var += float(grad @ cov @ grad)
-    var += (length * params.shape_rel_sd) ** 2 + (length * params.scale_rel_sd) ** 2
+    var += (length * shape) ** 2 + (length * params.scale_rel_sd) ** 2
     return length, math.sqrt(var)
 
 

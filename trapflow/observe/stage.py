@@ -20,6 +20,7 @@ import numpy as np
 
 from trapflow.config.schema import ObserveConfig
 from trapflow.observe.counts import Counter, IntervalCounts
+from trapflow.observe.rigpose import RigPoses, ground_positions
 from trapflow.observe.tracker import Det, TrackEnd, Tracker, TrackerConfig
 
 # Labels a detector writes for "nothing here" (a line that keeps the pair in the ledger).
@@ -40,16 +41,21 @@ MIN_SPEED_VIEWS = 4
 class View:
     """One stereo measurement of a tracked animal."""
 
-    t_s: float
+    t_s: float  # its pair's capture time
     xyz: tuple[float, float, float]
     length_m: float | None
     length_sd_m: float | None
 
 
-def aggregate(views: list[View]) -> dict[str, Any]:
+def aggregate(views: list[View], poses: RigPoses | None = None) -> dict[str, Any]:
     """A track's measurements: its length (median of the sharpest half of its views, their
     spread, how many), range and Camtrap DP position at first sighting, and its speed (a
-    straight line fitted to its 3-D positions over time; the rig's own motion is not removed)."""
+    straight line fitted to its 3-D positions over time).
+
+    With VO's poses (`poses` not empty) the positions are taken in VO's world frame, so the
+    rig's own motion is removed (`speed_frame` "ground"); a track none of whose views has a
+    pose then gets no speed rather than one against the moving rig. Without VO the rig is
+    taken to stand still (`speed_frame` "camera")."""
     if not views:
         return {}
     first = views[0]
@@ -67,15 +73,28 @@ def aggregate(views: list[View]) -> dict[str, Any]:
         out["length_m"] = round(float(np.median(best)), 3)
         out["length_spread_m"] = round(float(np.std(best)), 3)
         out["length_views"] = len(best)
-    if len(views) >= MIN_SPEED_VIEWS and views[-1].t_s > views[0].t_s:
-        t = np.array([v.t_s - first.t_s for v in views])
-        pos = np.array([v.xyz for v in views])
-        slope = np.polyfit(t, pos, 1)[0]  # m/s along x, y, z
-        out["speed_m_s"] = round(float(np.linalg.norm(slope)), 3)
+    out.update(_speed(views, poses))
     return out
 
 
-def track_record(end: TrackEnd, views: list[View] | None = None) -> dict[str, Any]:
+def _speed(views: list[View], poses: RigPoses | None) -> dict[str, Any]:
+    """speed_m_s and speed_frame of a track's views, or nothing (too few views or poses)."""
+    times = [v.t_s for v in views]
+    if poses:
+        got = ground_positions(times, [v.xyz for v in views], poses)
+        if got is None:
+            return {}
+        t, pos, frame = got[0], got[1], "ground"
+    else:
+        t, pos, frame = np.array(times), np.array([v.xyz for v in views]), "camera"
+    if len(t) < MIN_SPEED_VIEWS or t[-1] <= t[0]:
+        return {}
+    slope = np.polyfit(t - t[0], pos, 1)[0]  # m/s along x, y, z
+    return {"speed_m_s": round(float(np.linalg.norm(slope)), 3), "speed_frame": frame}
+
+
+def track_record(end: TrackEnd, views: list[View] | None = None,
+                 poses: RigPoses | None = None) -> dict[str, Any]:
     """A finished track as one tracks.jsonl object (times in UTC seconds, 3 decimals)."""
     out: dict[str, Any] = msgspec.to_builtins(end)
     for key in ("first_s", "last_s", "label_share", "best_confidence"):
@@ -83,7 +102,7 @@ def track_record(end: TrackEnd, views: list[View] | None = None) -> dict[str, An
     out["duration_s"] = round(end.last_s - end.first_s, 3)
     out["best_box"] = [round(v, 1) for v in end.best_box]
     out["path"] = [[round(t, 3), round(x, 1), round(y, 1)] for t, x, y in end.path]
-    out.update(aggregate(views or []))
+    out.update(aggregate(views or [], poses))
     return {"track": out}
 
 
@@ -137,11 +156,12 @@ class Observations:
 
 
 def track_pairs(pairs: Iterable[tuple[int, list[dict[str, Any]]]],
-                cfg: ObserveConfig) -> Observations:
+                cfg: ObserveConfig, poses: RigPoses | None = None) -> Observations:
     """Re-analysis: one input's detection lines, pair by pair in capture order as
     (capture time ns, that pair's mono_ir items), tracked as the live normalizer tracks
-    them (their `track` keys set in place); returns every track and count."""
-    obs = Observer(cfg)
+    them (their `track` keys set in place), VO's poses (`poses`) taken out of their
+    speeds; returns every track and count."""
+    obs = Observer(cfg, poses)
     out = Observations()
     for got in [*(obs.feed(t_ns, items) for t_ns, items in pairs), obs.finish()]:
         out.tracks += got.tracks
@@ -152,8 +172,9 @@ def track_pairs(pairs: Iterable[tuple[int, list[dict[str, Any]]]],
 class Observer:
     """Tracks one detector's boxes across pairs by capture time, and counts them."""
 
-    def __init__(self, cfg: ObserveConfig) -> None:
+    def __init__(self, cfg: ObserveConfig, poses: RigPoses | None = None) -> None:
         self.tracker = Tracker(tracker_config(cfg))
+        self.poses = poses  # the rig's motion from VO, shared by every detector's observer
         self.counter = Counter(cfg.interval_s)
         self.views: dict[int, list[View]] = {}  # stereo measurements of live tracks
         self.t_s: float | None = None  # newest capture time fed
@@ -162,7 +183,7 @@ class Observer:
     def feed(self, t_wall_ns: int, items: list[dict[str, Any]]) -> Observations:
         """One pair's mono_ir items (dicts with label, confidence, box): each gets `track`,
         its confirmed track's id or None; returns what ended."""
-        t_s = t_wall_ns / 1e9
+        t_s = own_s = t_wall_ns / 1e9
         if self.t_s is not None and t_s < self.t_s:
             self.late += 1
             t_s = self.t_s
@@ -177,14 +198,14 @@ class Observer:
             if "v" in it:  # the shape's version stays the line's last key
                 it["v"] = it.pop("v")
             if tid is not None and "xyz" in it:
-                self.views.setdefault(tid, []).append(View(
-                    t_s, tuple(it["xyz"]), it.get("length_m"), it.get("length_sd_m")))
+                self.views.setdefault(tid, []).append(View(  # positions at their own time
+                    own_s, tuple(it["xyz"]), it.get("length_m"), it.get("length_sd_m")))
         self.counter.ended(upd.ended)
         closed = self.counter.observe(t_s, upd.seen)
         return Observations(self._records(upd.ended), [count_record(c) for c in closed])
 
     def _records(self, ended: tuple[TrackEnd, ...]) -> list[dict[str, Any]]:
-        return [track_record(e, self.views.pop(e.id, None)) for e in ended]
+        return [track_record(e, self.views.pop(e.id, None), self.poses) for e in ended]
 
     def finish(self) -> Observations:
         """At the end of a run: every track still alive ends, the open interval closes."""

@@ -5,8 +5,9 @@ sensor_msgs/msg/CameraInfo and the left-to-right transform on /tf_static (when t
 known); pair headers and results are std_msgs/msg/String JSON (one results topic per
 algorithm); VO poses are nav_msgs/msg/Odometry, and the trajectory one nav_msgs/msg/Path at
 the end; detections and tags are foxglove_msgs/msg/ImageAnnotations on the left image, one
-message per pair (with foxglove-schemas-protobuf installed). No installable package
-carries vision_msgs (docs/recordings.md), so there is no Detection2DArray. Every message is
+message per pair (with foxglove-schemas-protobuf installed); mono_ir detections are also
+vision_msgs/msg/Detection2DArray, one per pair, where that package's definitions are found
+on the machine (recording.vision_msgs or ROS 2; else the recording says so once). Every message is
 stamped with its pair's capture time; definitions come from recording.msgs. The file is
 written as OUT.part and renamed on close, so an interrupted recording never leaves a
 half-written OUT behind. Every second the chunk in progress is closed and the file synced,
@@ -38,7 +39,7 @@ from mcap_ros2.writer import Writer
 from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import DEFAULT_JPEG_QUALITY
 from trapflow.errors import ProtocolError, TrapflowError
-from trapflow.recording import msgs
+from trapflow.recording import msgs, vision
 from trapflow.wire.messages import StereoPair, to_builtins
 from trapflow.wire.tap_msgs import TOPIC_IMAGE, TOPIC_RESULT, TapPair, TapResult, decode_tap
 from trapflow.wire.transport import SocketSpec, open_socket
@@ -69,6 +70,8 @@ TOPIC_ODOMETRY = "/trapflow/vo/odometry"
 TOPIC_PATH = "/trapflow/vo/path"
 ANNOTATIONS_PREFIX = "/trapflow/left/annotations/"
 ANNOTATED = ("mono_ir", "tags")  # results drawn on the left image in Foxglove
+DETECTIONS_PREFIX = "/trapflow/left/detections/"
+DETECTED = "mono_ir"  # results written as vision_msgs/Detection2DArray too
 VO_ALGO = "stereo_vo"
 # rosbag2's record of a reliable, transient-local (latched) publisher, as it writes /tf_static.
 _NEVER = "    sec: 2147483647\n    nsec: 4294967295\n"
@@ -91,6 +94,7 @@ class RecordCounts:
     malformed: int = 0
     odometry: int = 0  # nav_msgs/Odometry messages: VO results with a pose
     annotations: dict[str, int] = field(default_factory=dict)  # per algorithm: one per pair
+    detections: int = 0  # vision_msgs/Detection2DArray messages: one per pair of DETECTED
 
     @property
     def total_results(self) -> int:
@@ -101,7 +105,8 @@ class RecordCounts:
 class Recorder:
     """Writes pairs and results to an MCAP recording; close() finishes and publishes the file."""
 
-    def __init__(self, out: str | Path, rig: StereoRig | None = None) -> None:
+    def __init__(self, out: str | Path, rig: StereoRig | None = None,
+                 vision_msgs: str = "") -> None:
         self.out = Path(out)
         self.rig = rig  # the run's rig: written as CameraInfo beside each pair's images
         self.part = self.out.with_name(self.out.name + ".part")
@@ -117,6 +122,18 @@ class Recorder:
             log.info("record: foxglove-schemas-protobuf is not installed; no ImageAnnotations"
                      " (pip install 'trapflow[foxglove]')")
             self._annotations_type = None
+        self._defs = {t: msgs.foxglove_msgdef()[1] for t in [self._annotations_type] if t}
+        try:  # vision_msgs from the machine (vision_msgs: the config's folder) or nowhere
+            found = vision.find(vision_msgs)
+            why = f"no vision_msgs definitions found ({vision.WHERE})"
+        except ValueError as exc:
+            found, why = None, str(exc)
+        if found is None:
+            log.warning("record: %s; detections are not written as %s (the other topics "
+                        "are)", why, vision.DETECTION_ARRAY)
+        else:
+            self._defs[vision.DETECTION_ARRAY] = found.msgdef
+        self._vision = found is not None
         self._seq_time: OrderedDict[int, int] = OrderedDict()
         self._pending: dict[str, tuple[int, list[dict[str, Any]]]] = {}  # algo -> seq, items
         self._early: dict[int, list[tuple[str, str, Any]]] = {}  # results ahead of their pair
@@ -132,8 +149,7 @@ class Recorder:
         """Write one message of a ROS 2 type (its definition registered on first use)."""
         schema = self._schemas.get(typename)
         if schema is None:
-            text = (msgs.foxglove_msgdef()[1] if typename == self._annotations_type
-                    else msgs.ros_msgdef(typename))
+            text = self._defs.get(typename) or msgs.ros_msgdef(typename)
             schema = self._schemas[typename] = self._writer.register_msgdef(typename, text)
         if topic == TOPIC_TF_STATIC and topic not in self._writer._channel_ids:
             # Latched, as a static transform publisher offers it: rosbag2 keeps the QoS in
@@ -266,7 +282,8 @@ class Recorder:
             self._write(TOPIC_ODOMETRY, "nav_msgs/msg/Odometry",
                         msgs.odometry(body["pose"], t, FRAME_LEFT), t, seq)
             self.counts.odometry += 1
-        if algo in ANNOTATED and self._annotations_type is not None:
+        if algo in ANNOTATED and (self._annotations_type is not None
+                                  or (algo == DETECTED and self._vision)):
             pending = self._pending.get(algo)
             if pending is not None and pending[0] != seq:
                 self._annotate(algo)
@@ -274,11 +291,15 @@ class Recorder:
 
     def _annotate(self, algo: str) -> None:
         seq, items = self._pending.pop(algo)
-        assert self._annotations_type is not None
         t = self._seq_time.get(seq) or _stamp_of(items[0])
-        self._write(ANNOTATIONS_PREFIX + algo, self._annotations_type,
-                    msgs.image_annotations(algo, items, t), t, seq)
-        self.counts.annotations[algo] = self.counts.annotations.get(algo, 0) + 1
+        if self._annotations_type is not None:
+            self._write(ANNOTATIONS_PREFIX + algo, self._annotations_type,
+                        msgs.image_annotations(algo, items, t), t, seq)
+            self.counts.annotations[algo] = self.counts.annotations.get(algo, 0) + 1
+        if algo == DETECTED and self._vision:
+            self._write(DETECTIONS_PREFIX + algo, vision.DETECTION_ARRAY,
+                        vision.detection_array(items, t, FRAME_LEFT), t, seq)
+            self.counts.detections += 1
 
     def close(self) -> None:
         """Write the MCAP summary and footer, then move OUT.part to OUT. Idempotent."""
@@ -327,20 +348,21 @@ def _is_pose(value: object) -> bool:
 def record(endpoint: str | Sequence[str], out: str | Path, stop: threading.Event,
            counts: RecordCounts | None = None, poll_ms: int = 100,
            rig: StereoRig | None = None, duration_s: float | None = None,
-           ended: Callable[[], bool] | None = None) -> RecordCounts:
+           ended: Callable[[], bool] | None = None, vision_msgs: str = "") -> RecordCounts:
     """Attach to the tap(s) at endpoint and record image pairs and results until stop is set.
 
     A pipeline publishes pairs on the broker's tap and results on the normalizer's: pass
     both (Endpoints.tap and Endpoints.results_tap) to record both.
 
     counts (optional) is updated live so a caller can watch progress; it is also returned.
-    rig (the pipeline's, from its status) is written as CameraInfo beside the images.
+    rig (the pipeline's, from its status) is written as CameraInfo beside the images;
+    vision_msgs names a folder of vision_msgs definitions (recording.vision_msgs).
     Malformed tap messages are counted and skipped. It ends at stop, after duration_s, or
     once ended() holds (the pipeline is gone: checked every ENDED_CHECK_S), when what its
     processes published last has been written. The file is closed cleanly however the loop
     ends (stop, Ctrl-C, an error).
     """
-    rec = Recorder(out, rig)
+    rec = Recorder(out, rig, vision_msgs)
     if counts is not None:
         rec.counts = counts
     ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context.instance()

@@ -1,8 +1,10 @@
 """The capture process: reads stereo frames from a source, encodes them once, pushes them.
 
 Owns a PUSH to the broker (with the shared-memory ring, a local link carrying
-descriptors). Capture never waits for an algorithm: when the broker is not
-reading, the pair is dropped here and counted. A pair it cannot read or place (a bad
+descriptors). A live source never waits for an algorithm: when the broker is not
+reading, the pair is dropped here and counted. A finite one waits instead (a replay at
+rate 0 is held back by the broker until every pool has room: lossless, at the slowest
+pool's pace). A pair it cannot read or place (a bad
 file, an undecodable message, too large for the ring) is counted as failed, by kind,
 and skipped; a finite source that fails otherwise ends the run (live ones are retried).
 """

@@ -1,5 +1,6 @@
 """The normalizer process: every result becomes JSON lines in results.jsonl and on its tap;
-detections are tracked on the way (track ids on their lines, tracks.jsonl, counts.jsonl).
+detections are tracked on the way (track ids on their lines, tracks.jsonl, counts.jsonl),
+with the rig's motion from VO's poses taken out of their speeds.
 
 Owns a local link that brings batches of results from the broker and a PUB of JSON
 lines (`result` topic).
@@ -19,6 +20,7 @@ import zmq
 
 from trapflow.errors import ProtocolError
 from trapflow.modem.outbox import Outbox, OutboxFull
+from trapflow.observe.rigpose import RigPoses
 from trapflow.observe.stage import Observations, Observer
 from trapflow.runtime.node import ACTIVE, FINALIZED, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog
@@ -67,6 +69,10 @@ class NormalizerNode(Node):
             self.outbox = Outbox(spec.run_dir / self.cfg.outbox.path, self.cfg.outbox)
         # One tracker per detector pool; finished tracks and counts go to their own files.
         self.observers: dict[str, Observer] = {}
+        # VO's poses, which every tracker uses for its tracks' speed over the ground; one
+        # VO pool's chain only (two pools' worlds are not the same frame).
+        self.rig_poses = RigPoses()
+        self.vo_pool: str | None = None
         self.obs_files: dict[str, IO[bytes]] = {}
         if self.cfg.observe.enabled:
             for name in (self.cfg.observe.tracks_file, self.cfg.observe.counts_file):
@@ -167,10 +173,15 @@ class NormalizerNode(Node):
             self.malformed += 1
             self.ratelog.warning("result", "dropped malformed result: %s", exc)
             return False
+        if (self.obs_files and isinstance(res.body, messages.StereoVO)
+                and self.vo_pool in (None, res.pool)):
+            self.vo_pool = res.pool
+            b = res.body
+            self.rig_poses.add(res.t_wall_ns / 1e9, b.pose, b.ok, b.reinit)
         if self.obs_files and isinstance(res.body, messages.MonoIR):
             observer = self.observers.get(res.pool)
             if observer is None:
-                observer = self.observers[res.pool] = Observer(self.cfg.observe)
+                observer = self.observers[res.pool] = Observer(self.cfg.observe, self.rig_poses)
             items = [obj["mono_ir"] for obj in objs]
             self._write_observations(observer.feed(res.t_wall_ns, items))
         if self.outbox is not None:

@@ -7,6 +7,7 @@ as a Snapshot the supervisor builds on demand, so the report knows nothing of it
 from __future__ import annotations
 
 import json
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -19,7 +20,7 @@ from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import Config, EnergyConfig
 from trapflow.gate.energy import BOARDS, estimate
 from trapflow.supervisor import ledger as run_ledger
-from trapflow.supervisor import status_line
+from trapflow.supervisor import run_meta, status_line
 from trapflow.supervisor import summary as run_summary
 from trapflow.supervisor.ledger import RunLedger
 from trapflow.supervisor.state import SupervisorState
@@ -93,6 +94,7 @@ class Report:
         self.run_dir = run_dir
         self.out = out
         self.t0 = t0
+        self.started_ns = time.time_ns()  # wall clock: run.json's label of the start
         self.core = core
         self.ledger_model = ledger_model
         self.snapshot = snapshot
@@ -101,6 +103,13 @@ class Report:
     def starting(self, processes: int) -> None:
         """The one line while the processes start (stats come seconds later)."""
         self._write(f"{time.monotonic() - self.t0:6.1f}s | starting {processes} processes")
+
+    def notice(self, line: str) -> None:
+        """A line that stays on the console (the viewer's address), not one rewritten."""
+        self._write(line)
+        if self.out.isatty():
+            self.out.write("\n")
+            self.out.flush()
 
     def status(self) -> dict[str, Any]:
         """Everything `trapflow status` shows, as JSON-able builtins."""
@@ -117,6 +126,7 @@ class Report:
                           "counters": c.counters})
         return {
             "run_dir": str(self.run_dir),
+            "supervisor_pid": os.getpid(),  # for /metrics' memory by role
             "uptime_s": round(now - self.t0, 1),
             "nodes": nodes,
             "stats": _full_stats(h.stats) if h.stats else None,
@@ -211,6 +221,9 @@ class Report:
                 break
         ledger = self.ledger(snap=snap)
         (run_dir / "ledger.json").write_text(json.dumps(ledger, indent=1) + "\n")
+        meta = run_meta.run_metadata(self.cfg, snap.rig, snap.rig_origin, self.started_ns,
+                                     time.time_ns(), run_meta.versions())
+        (run_dir / "run.json").write_text(json.dumps(meta, indent=1) + "\n")
         if snap.stats is not None:
             out.write(run_ledger.totals_text(ledger))
         out.write(energy_text(ledger["energy"]))

@@ -232,6 +232,8 @@ class Supervisor:
             self.boot()
             self.report.starting(len(self.children))
             self._wait_started()  # every consumer is ready before the first pair exists
+            if self.cfg.viewer.enabled and (url := self.core.node("viewer").reason):
+                self.report.notice(f"viewer: {url}")  # its address, with its token if any
             self._spawn(self._child("capture"), time.monotonic())
             self.started = True
             if self.latest:

@@ -3,7 +3,8 @@
 One collector turns ViewState (broker stats, status reply, result latencies) into metric
 families; /metrics serves them and write_textfile() leaves them for node_exporter's
 textfile collector. Names follow Prometheus conventions: `trapflow_` prefix, base units
-in the name, `_total` on counters.
+in the name, `_total` on counters; rates are left to PromQL's rate() over counters (a rate
+computed here would depend on when and how often it is scraped).
 """
 
 from __future__ import annotations
@@ -25,14 +26,16 @@ from prometheus_client.core import (
 from prometheus_client.registry import Collector
 
 from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, UNCONFIGURED
+from trapflow.viewer import proc_metrics
 from trapflow.viewer.state import ViewState
 from trapflow.wire.pool_counters import POOL_COUNTERS, PoolCounter
 
 LIFECYCLE = (UNCONFIGURED, INACTIVE, ACTIVE, FINALIZED)
-# The per-pool counts (Prometheus counters) and the numbers of now (gauges); rate apart.
+# The per-pool counts (Prometheus counters) and the numbers of now (gauges); rates are
+# left to PromQL's rate() over the counters.
 POOL_COUNTS = tuple(c for c in POOL_COUNTERS if c.summed)
 POOL_GAUGES = tuple(c for c in POOL_COUNTERS if c.kind in ("procs", "held"))
-RATE = next(c for c in POOL_COUNTERS if c.kind == "rate")
+BUSY_CPU_TIMES = ("user", "nice", "system", "irq", "softirq", "steal")
 
 
 def _words(c: PoolCounter) -> str:
@@ -62,34 +65,28 @@ class PipelineCollector(Collector):
         yield from self._latency()
         yield from self._nodes()
         yield from self._health()
+        yield from proc_metrics.families(self.state.status or {})
 
     def _pools(self) -> Iterator[Metric]:
         s = self.state.stats
         pairs = CounterMetricFamily("trapflow_pairs_received", "Pairs the broker received.")
-        rate_in = GaugeMetricFamily("trapflow_capture_rate_pairs_per_second",
-                                    "Pairs per second reaching the broker, last interval.")
         malformed = CounterMetricFamily("trapflow_malformed_messages",
                                         "Messages the broker could not decode.")
         if s is not None:
             pairs.add_metric([], s.pairs_in)
-            rate_in.add_metric([], s.rate_in)
             malformed.add_metric([], s.malformed)
-        yield from (pairs, rate_in, malformed)
+        yield from (pairs, malformed)
         counters = {c.name: CounterMetricFamily(c.metric_name, f"Pairs {_words(c)} per pool.",
                                                 labels=["pool"]) for c in POOL_COUNTS}
         gauges = {c.name: GaugeMetricFamily(c.metric_name, f"{_words(c)} per pool.",
                                             labels=["pool"]) for c in POOL_GAUGES}
-        rate = GaugeMetricFamily(RATE.metric_name,
-                                 "Pairs processed per second, last interval.", labels=["pool"])
         for name, p in (s.pools.items() if s is not None else ()):
             for k, fam in counters.items():
                 fam.add_metric([name], getattr(p, k))
             for k, gfam in gauges.items():
                 gfam.add_metric([name], getattr(p, k))
-            rate.add_metric([name], p.rate)
         yield from counters.values()
         yield from gauges.values()
-        yield rate
         level = GaugeMetricFamily("trapflow_ladder_level", "The degradation ladder's level "
                                   "(1 for the level it is at).", labels=["level"])
         if s is not None and s.level:
@@ -154,9 +151,10 @@ class PipelineCollector(Collector):
         yield uptime
 
     def _health(self) -> Iterator[Metric]:
-        cpu = GaugeMetricFamily("trapflow_host_cpu_usage_ratio",
-                                "Host CPU busy fraction since the last scrape (0..1).")
-        cpu.add_metric([], psutil.cpu_percent(interval=None) / 100.0)
+        cpu = CounterMetricFamily("trapflow_host_cpu_busy_seconds",
+                                  "Host CPU time not idle, all cores (rate() / cores: busy).")
+        times = psutil.cpu_times()._asdict()  # guest time is inside user time on Linux
+        cpu.add_metric([], sum(times.get(k, 0.0) for k in BUSY_CPU_TIMES))
         yield cpu
         temp = _temperature_c()
         if temp is not None:

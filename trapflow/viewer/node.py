@@ -27,8 +27,8 @@ class ViewerNode(Node):
 
     def _ready(self, url: str) -> None:
         self.url = url
-        log.info("viewer: %s", url)
-        self.set_state(ACTIVE)
+        # The address rides on the state to the supervisor, which prints it (`--view`).
+        self.set_state(ACTIVE, url, normal=True)
         self.beat()
 
     def run(self) -> int:

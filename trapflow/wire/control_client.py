@@ -4,6 +4,8 @@ runtime changes `trapflow pool` and `trapflow param`."""
 from __future__ import annotations
 
 import json
+import os
+import pwd
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +25,7 @@ def request(run_dir: Path, what: str | messages.Msg, timeout_s: float = 3.0,
     if not run_dir.exists():
         raise StartupError(f"no run directory {run_dir}: is a pipeline running there?")
     ep = Endpoints.for_run(cfg.network, run_dir).control
+    _check_reachable(run_dir, ep)
     ctx = new_context()
     try:
         sock = open_socket(ctx, SocketSpec(zmq.REQ, ep))
@@ -36,6 +39,26 @@ def request(run_dir: Path, what: str | messages.Msg, timeout_s: float = 3.0,
         return reply
     finally:
         ctx.destroy(linger=0)
+
+
+def _check_reachable(run_dir: Path, endpoint: str) -> None:
+    """A control socket in a run directory this user may not enter (0700, another user's,
+    as a systemd unit's) is refused by the system, which zmq only shows as no answer."""
+    if not endpoint.startswith("ipc://"):
+        return
+    try:
+        os.stat(endpoint.removeprefix("ipc://"))
+    except PermissionError:
+        try:
+            owner = pwd.getpwuid(run_dir.stat().st_uid).pw_name
+        except (OSError, KeyError):
+            owner = "its owner"
+        raise StartupError(
+            f"cannot reach the pipeline in {run_dir}: permission denied (the run directory "
+            f"is private to {owner}); run the command as that user, e.g. `sudo -u {owner} "
+            f"trapflow status --run-dir {run_dir}`") from None
+    except OSError:
+        pass  # no socket (yet): the request says that no pipeline answers
 
 
 class ControlClient:

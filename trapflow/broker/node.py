@@ -65,9 +65,7 @@ class BrokerNode(Node):
     """Distributes pairs to worker pools with back-pressure and per-pool policies."""
 
     def __init__(self, spec: NodeSpec) -> None:
-        # Long on purpose: every socket, link and table the broker holds is made here, in
-        # the order they depend on each other (the state before the remote side and the tap
-        # that read it, the listeners polled after them), so one place shows all its state.
+        # Long on purpose: all the broker holds, made in the order each depends on the other.
         super().__init__(spec)
         ep = self.endpoints
         self.poller = Poller()

@@ -7,6 +7,7 @@ import json
 import os
 import secrets
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -281,3 +282,63 @@ def only_pools(pools: dict[str, Any]) -> dict[str, Any]:
     from trapflow.config.schema import Config
 
     return {**{name: {"count": 0} for name in Config().pools if name not in pools}, **pools}
+
+
+def run_process(args: list[str], timeout: float = 90) -> tuple[int, str, str]:
+    """`trapflow process ARGS` in its own session; every process it started must be gone
+    after it exits (the LocalCluster's nannies and workers included)."""
+    proc = subprocess.Popen([sys.executable, "-m", "trapflow", "process", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True, cwd=REPO)
+    seen: dict[int, psutil.Process] = {}
+    deadline = time.monotonic() + timeout
+    try:
+        while proc.poll() is None:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"trapflow process still running after {timeout} s")
+            try:
+                for kid in psutil.Process(proc.pid).children(recursive=True):
+                    seen.setdefault(kid.pid, kid)
+            except psutil.NoSuchProcess:
+                pass
+            time.sleep(0.1)
+        out, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(5)
+    _gone, alive = psutil.wait_procs(list(seen.values()), timeout=5)
+    left = [p.pid for p in alive if p.status() != psutil.STATUS_ZOMBIE]
+    for p in alive:
+        p.kill()
+    assert not left, f"processes left behind by trapflow process: {left}"
+    assert seen, "trapflow process started no worker process"
+    return proc.returncode, out, err
+
+
+def read_lines(path: Path) -> list[dict[str, Any]]:
+    """The JSON lines of a results file."""
+    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+
+
+def free_base_port() -> int:
+    """A base port whose seven consecutive ports are free now."""
+    for _ in range(50):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            base = s.getsockname()[1]
+        if base + 7 > 65000 or base < 1024:
+            continue
+        try:
+            held = []
+            for off in range(7):
+                t = socket.socket()
+                held.append(t)
+                t.bind(("127.0.0.1", base + off))
+            return base
+        except OSError:
+            continue
+        finally:
+            for t in held:
+                t.close()
+    pytest.skip("no range of 7 free TCP ports on the loopback")

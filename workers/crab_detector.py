@@ -241,10 +241,14 @@ class CrabDetector(Worker):
         # the DCT scale that still covers it (1280x720 into 320x320: 320x180, 1/4).
         fitted = fit(ctx.rig.height, ctx.rig.width, self.input_hw, spec.placement)
         self.max_size = (fitted.width, fitted.height)
+        self._log_setup(path.name, spec, self.max_size)
+
+    def _log_setup(self, model: str, spec: InputSpec, covered: tuple[int, int]) -> None:
+        """One line of what configure() settled on."""
         log.info(
             "detector %s: layout %s, input %dx%d, letterbox %s pad %d, %s, scale %.6g, "
             "%s NMS, %d classes, JPEG decoded to cover %dx%d",
-            path.name,
+            model,
             self.layout,
             self.input_hw[1],
             self.input_hw[0],
@@ -254,7 +258,7 @@ class CrabDetector(Worker):
             spec.scale,
             "class-agnostic" if self.agnostic else "per-class",
             self.nc,
-            *self.max_size,
+            *covered,
         )
 
     def _probe_layout(

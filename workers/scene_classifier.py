@@ -10,7 +10,7 @@ Input arrangements (params `arrangement`, else model metadata `arrangement`, els
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Annotated, Any, Literal
 
 import cv2
@@ -47,6 +47,26 @@ class ClassifierParams(ModelParams):
     std: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
 
+def _arrangement(configured: str, meta: Mapping[str, str], inputs: Sequence[Any],
+                 model: str) -> str:
+    """How the model takes a pair: as configured, else as its metadata says, else guessed
+    from its inputs (two inputs, six channels, or one image of both side by side)."""
+    arrangement = configured if configured != "auto" else meta.get("arrangement", "auto")
+    if arrangement == "auto":
+        if len(inputs) == 2:
+            arrangement = "two_inputs"
+        elif len(inputs[0].shape) == 4 and inputs[0].shape[1] == 6:
+            arrangement = "concat_channels"
+        else:
+            arrangement = "side_by_side"
+    if arrangement not in ("concat_channels", "side_by_side", "two_inputs"):
+        raise WorkerError(
+            f"model {model}: metadata arrangement {arrangement!r} is not "
+            "concat_channels, side_by_side or two_inputs"
+        )
+    return arrangement
+
+
 class SceneClassifier(Worker):
     """Resize both images, arrange them as the model expects, classify the pair."""
 
@@ -57,19 +77,7 @@ class SceneClassifier(Worker):
         self.session: Session = open_session(path, p.providers, p.threads, settings=p)
         meta = self.session.metadata
         inputs = self.session.inputs
-        arrangement = p.arrangement if p.arrangement != "auto" else meta.get("arrangement", "auto")
-        if arrangement == "auto":
-            if len(inputs) == 2:
-                arrangement = "two_inputs"
-            elif len(inputs[0].shape) == 4 and inputs[0].shape[1] == 6:
-                arrangement = "concat_channels"
-            else:
-                arrangement = "side_by_side"
-        if arrangement not in ("concat_channels", "side_by_side", "two_inputs"):
-            raise WorkerError(
-                f"model {path.name}: metadata arrangement {arrangement!r} is not "
-                "concat_channels, side_by_side or two_inputs"
-            )
+        arrangement = _arrangement(p.arrangement, meta, inputs, path.name)
         self.arrangement: str = arrangement
         want = {"concat_channels": (1, 6), "side_by_side": (1, 3), "two_inputs": (2, 3)}[
             arrangement

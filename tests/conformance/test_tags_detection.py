@@ -17,32 +17,19 @@ import numpy as np
 import pytest
 from trapflow_workers.apriltags import C_PIXEL_CENTRE, AprilTags, c_library_detector
 
-from tests.conformance.conftest import kit_path
-from tests.kits.context import make_context, make_pair
-from trapflow.calibration.camera import StereoRig
+from tests.conformance.conftest import PHOTOS, grey_render, kit_path, worker_for
+from tests.kits.context import make_pair
 
 # The reference: pupil-apriltags, the AprilTag C library (its detectors are made through
 # c_library_detector only so that none is freed: its free crashes, see workers/apriltags.py).
 pytest.importorskip("pupil_apriltags", reason="pupil-apriltags is the reference")
 
-PHOTOS = ["33369213973_9d9bb4cc96_c", "34085369442_304b6bafd9_c", "34139872896_defdb2f8d9_c"]
 SINGLE = [0, 1, 7, 42, 100, 586]
 CORNER_TOL_PX = 0.2  # the expectations come from another JPEG decoder (~0.1 px, see MANIFEST)
 
 
 def tags_dir(realdata: Path, *parts: str) -> Path:
     return kit_path(realdata, "02_apriltag36h11", *parts)
-
-
-def worker_for(width: int, height: int, **params: Any) -> AprilTags:
-    """The tags worker on a rig of this image size with the C library's pose-test intrinsics
-    (fx = fy = 600, cx = w/2, cy = h/2 on its pixel grid, whose pixel centres sit at +0.5:
-    trapflow's grid, OpenCV's, has them at 0, so the same camera has cx = w/2 - 0.5 there)."""
-    rig = StereoRig(width=width, height=height, fx=600.0, fy=600.0, cx=width / 2 - C_PIXEL_CENTRE,
-                    cy=height / 2 - C_PIXEL_CENTRE, baseline_m=0.1)  # fmt: skip
-    w = AprilTags()
-    w.configure({"tag_size_m": 0.16, **params}, make_context(rig, pool="tags"))
-    return w
 
 
 def expected_tags(txt: Path) -> list[tuple[int, np.ndarray]]:
@@ -53,18 +40,6 @@ def expected_tags(txt: Path) -> list[tuple[int, np.ndarray]]:
         if len(nums) == 9:
             out.append((int(nums[0]), np.array(nums[1:], float).reshape(4, 2)))
     return out
-
-
-def grey_render(path: Path, scale: int, pad: int = 40) -> np.ndarray:
-    """An official tag image (RGBA, transparent = white) scaled up by nearest neighbour."""
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    assert img is not None, f"cannot read {path}"
-    grey = img[..., :3].mean(axis=2) if img.ndim == 3 else img.astype(float)
-    if img.ndim == 3 and img.shape[2] == 4:
-        grey = np.where(img[..., 3] == 0, 255, grey)
-    big = cv2.resize(grey.astype(np.uint8), None, fx=scale, fy=scale,
-                     interpolation=cv2.INTER_NEAREST)  # fmt: skip
-    return cv2.copyMakeBorder(big, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=255)
 
 
 def run(worker: AprilTags, grey: np.ndarray) -> list[Any]:

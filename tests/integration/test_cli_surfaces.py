@@ -7,8 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import Pipeline
-from tests.integration.test_process_batch import run_process
+from tests.conftest import Pipeline, run_process
 from tests.integration.viewer_util import free_port
 
 

@@ -10,8 +10,10 @@ from pathlib import Path
 
 import pytest
 
+from tests.builders import NOISE_H as H
+from tests.builders import NOISE_W as W
+from tests.builders import write_recording
 from tests.conftest import Pipeline, write_config
-from tests.integration.test_finite_faults import H, W, write_recording
 from trapflow.recording.recorder import TOPIC_LEFT, TOPIC_RIGHT
 from trapflow.supervisor.ledger import STATUS_WIDTH, UNFINISHED
 

@@ -11,28 +11,14 @@ from pathlib import Path
 from typing import Any
 
 import cv2
-import numpy as np
 import pytest
 
+from tests.builders import NOISE_H as H
+from tests.builders import NOISE_W as W
+from tests.builders import noise, write_folder, write_recording
 from tests.conftest import REPO, Pipeline, write_config
-from trapflow.recording.recorder import Recorder
-from trapflow.wire.messages import StereoPair
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
-
-W, H = 96, 64
-
-
-def noise(i: int, side: int, w: int = W, h: int = H) -> np.ndarray:
-    return np.random.default_rng(1000 * side + i).integers(0, 255, (h, w, 3), np.uint8)
-
-
-def write_folder(root: Path, n: int) -> None:
-    for side, name in ((0, "left"), (1, "right")):
-        (root / name).mkdir(parents=True)
-        for i in range(n):
-            cv2.imwrite(str(root / name / f"{i:06d}.jpg"), noise(i, side))
-
 
 def digest(left: Path, right: Path) -> str:
     """The Digest plugin's hash, computed here from the files by OpenCV's own reader."""
@@ -113,18 +99,6 @@ def test_a_pool_that_fails_every_pair_fails_the_run(spawn, run_dir: Path) -> Non
     assert errors(err) == ["trapflow: error: pool broken failed every pair it was given "
                            "(6: WorkerError 6); see trapflow.log"]
     assert len(p.results()) == 6  # the healthy pool's results are all there
-
-
-def write_recording(path: Path, n: int, chunk: int = 0) -> None:
-    """A trapflow recording of n noise pairs; with chunk, a chunk is closed every chunk pairs."""
-    with Recorder(path) as rec:
-        for i in range(n):
-            h = StereoPair(seq=i, t_wall_ns=10**18 + i * 50_000_000, t_mono_ns=i, t_left_ns=i,
-                           t_right_ns=i, skew_ns=0, encoding="jpeg", width=W, height=H)
-            rec.add_pair(h, cv2.imencode(".jpg", noise(i, 0))[1].tobytes(),
-                         cv2.imencode(".jpg", noise(i, 1))[1].tobytes())
-            if chunk and i % chunk == chunk - 1:
-                rec._writer._writer.flush()
 
 
 @pytest.mark.timeout(90)

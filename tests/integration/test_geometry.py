@@ -307,16 +307,3 @@ def test_a_plugins_own_calibration_wins_and_its_id_is_reported(
     assert code == 0, err
     vo = [r["stereo_vo"] for r in p.results() if "stereo_vo" in r]
     assert len(vo) == 4 and {r["calib"] for r in vo} == {own.id} and own.id != KITTI.id
-
-
-def test_a_custom_stereo_message_tells_its_frame_size(tmp_path: Path) -> None:
-    """A bag of one user-defined stereo message: the rig takes the size of its first images."""
-    from tests.unit.test_sources_replay import H, W, write_stereo_msg_bag
-
-    msg_def = write_stereo_msg_bag(tmp_path, 2)
-    found = describe(from_data({"source": {"kind": "replay", "uri": str(tmp_path / "bag"),
-                                           "options": {
-                                               "msg_type": "trap_msgs/msg/StereoImage",
-                                               "msg_def": str(msg_def)}}}))
-    assert found.rig == StereoRig.from_fov(W, H, 70.0, 0.12)
-    assert "trap_msgs/msg/StereoImage" in found.origin

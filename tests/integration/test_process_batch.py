@@ -18,7 +18,7 @@ import psutil
 import pytest
 
 from tests.builders import floor_scene
-from tests.conftest import REPO, Pipeline, only_pools, write_config
+from tests.conftest import REPO, Pipeline, only_pools, read_lines, run_process, write_config
 from trapflow.calibration.camera import StereoRig
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
@@ -39,38 +39,6 @@ def write_scene(root: Path, n: int = N) -> Path:
     return root
 
 
-def run_process(args: list[str], timeout: float = 90) -> tuple[int, str, str]:
-    """`trapflow process ARGS` in its own session; every process it started must be gone
-    after it exits (the LocalCluster's nannies and workers included)."""
-    proc = subprocess.Popen([sys.executable, "-m", "trapflow", "process", *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True, cwd=REPO)
-    seen: dict[int, psutil.Process] = {}
-    deadline = time.monotonic() + timeout
-    try:
-        while proc.poll() is None:
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"trapflow process still running after {timeout} s")
-            try:
-                for kid in psutil.Process(proc.pid).children(recursive=True):
-                    seen.setdefault(kid.pid, kid)
-            except psutil.NoSuchProcess:
-                pass
-            time.sleep(0.1)
-        out, err = proc.communicate(timeout=10)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(5)
-    _gone, alive = psutil.wait_procs(list(seen.values()), timeout=5)
-    left = [p.pid for p in alive if p.status() != psutil.STATUS_ZOMBIE]
-    for p in alive:
-        p.kill()
-    assert not left, f"processes left behind by trapflow process: {left}"
-    assert seen, "trapflow process started no worker process"
-    return proc.returncode, out, err
-
-
 def by_pair(lines: list[dict[str, Any]]) -> dict[int, list[str]]:
     """Result lines per pair, without what differs between runs by design: the time label,
     and the track ids, which follow from capture times (the live run's wall clock, the
@@ -81,10 +49,6 @@ def by_pair(lines: list[dict[str, Any]]) -> dict[int, list[str]]:
         body = {k: v for k, v in body.items() if k not in ("timestamp", "track")}
         out[body["seq"]].append(json.dumps({name: body}, sort_keys=True))
     return {seq: sorted(v) for seq, v in out.items()}
-
-
-def read_lines(path: Path) -> list[dict[str, Any]]:
-    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
 
 
 @pytest.mark.timeout(180)
@@ -318,7 +282,7 @@ def test_a_folder_tree_of_a_bag_and_a_recording_each_chunk_reads_its_own_pairs(
 
     from rosbags.rosbag2 import StoragePlugin
 
-    from tests.unit.test_sources_replay import img, write_bag, write_trapflow
+    from tests.builders import img, write_bag, write_trapflow
 
     tree = tmp_path / "deploy"
     (tree / "day1").mkdir(parents=True)

@@ -14,8 +14,15 @@ from typing import Any
 import pytest
 from rosbags.highlevel import AnyReader
 
-from tests.conftest import REPO, Pipeline, only_pools, record_until, write_config
-from tests.integration.test_process_batch import read_lines, run_process
+from tests.conftest import (
+    REPO,
+    Pipeline,
+    only_pools,
+    read_lines,
+    record_until,
+    run_process,
+    write_config,
+)
 from trapflow.stages.result_json import timestamp
 
 LEFT = "/trapflow/left/image/compressed"

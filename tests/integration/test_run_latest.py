@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.builders import write_folder
 from tests.conftest import REPO, only_pools, write_config
-from tests.integration.test_finite_faults import write_folder
 
 
 @pytest.mark.timeout(120)

@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 
 from tests.builders import small_source
-from tests.conftest import REPO, Pipeline, only_pools, poll_for, write_config
+from tests.conftest import REPO, Pipeline, free_base_port, only_pools, poll_for, write_config
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
 
@@ -133,33 +133,10 @@ def test_modes_hold_under_umask_000_and_another_uid_cannot_connect(spawn, run_di
     assert code == 0, err
 
 
-def _free_base_port() -> int:
-    """A base port whose seven consecutive ports are free now."""
-    for _ in range(50):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            base = s.getsockname()[1]
-        if base + 7 > 65000 or base < 1024:
-            continue
-        try:
-            held = []
-            for off in range(7):
-                t = socket.socket()
-                held.append(t)
-                t.bind(("127.0.0.1", base + off))
-            return base
-        except OSError:
-            continue
-        finally:
-            for t in held:
-                t.close()
-    pytest.skip("no range of 7 free TCP ports on the loopback")
-
-
 @pytest.mark.timeout(120)
 def test_tcp_mode_keeps_control_in_the_run_directory_and_status_finds_it(
         spawn, run_dir: Path) -> None:
-    base = _free_base_port()
+    base = free_base_port()
     cfg = write_config(run_dir.parent / "t.yaml", {
         "source": SMALL, "pools": POOLS,
         "network": {"transport": "tcp", "base_port": base}})

@@ -11,12 +11,14 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import Pipeline, only_pools, write_config
-from tests.reliability.test_hygiene_modes import SMALL, _free_base_port
+from tests.builders import small_source
+from tests.conftest import Pipeline, free_base_port, only_pools, write_config
 from trapflow.errors import EXIT_USAGE
 from trapflow.wire.frame_ring import PREFIX, list_segments
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
+
+SMALL = small_source(10, kind="synthetic")
 
 
 @pytest.mark.timeout(60)
@@ -29,7 +31,7 @@ pytestmark = pytest.mark.slow  # starts whole pipelines
 def test_used_tcp_port_ends_start_in_one_line_with_nothing_left(
         spawn, run_dir: Path, offset: int, what: str) -> None:
     """`what` names the socket on that port (for the reader; the message names the port)."""
-    base = _free_base_port()
+    base = free_base_port()
     cfg = write_config(run_dir.parent / "p.yaml", {
         "source": SMALL, "pools": only_pools({"vo": {"count": 1}}),
         "network": {"transport": "tcp", "base_port": base}})

@@ -2,40 +2,17 @@
 
 from __future__ import annotations
 
-from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 import pytest
-from trapflow_workers.stereo_vo import StereoOdometry
 from trapflow_workers.vo_metrics import as_4x4, drift_percent
 
-from tests.kits.context import make_context, make_pair
-from tests.kits.scenes import FloorWorld, circle_path
-from trapflow.calibration.camera import StereoRig
+from tests.builders import vo_circle, vo_plugin
+from tests.kits.context import make_pair
 from trapflow.errors import WorkerError
-
-RIG = StereoRig.from_fov(640, 480, 70.0, 0.12)
-PATH_M, STEPS, RADIUS = 2.0, 60, 3.0
-
-
-@lru_cache(maxsize=1)
-def _world() -> FloorWorld:
-    return FloorWorld.square(RIG, 2 * RADIUS + 4, res_m=0.004, seed=3)
-
-
-@lru_cache(maxsize=1)
-def _frames() -> tuple[list[np.ndarray], list[tuple[np.ndarray, np.ndarray]]]:
-    poses = list(circle_path(PATH_M, STEPS, RADIUS))
-    return poses, [_world().render(p) for p in poses]
-
-
-def _vo(params: dict[str, Any] | None = None) -> StereoOdometry:
-    vo = StereoOdometry()
-    vo.configure(params or {}, make_context(RIG, pool="vo"))
-    return vo
 
 
 def _rel(truth: list[np.ndarray], i: int, j: int) -> np.ndarray:
@@ -43,8 +20,8 @@ def _rel(truth: list[np.ndarray], i: int, j: int) -> np.ndarray:
 
 
 def test_drift_is_bounded_on_a_short_path() -> None:
-    truth, frames = _frames()
-    vo = _vo()
+    truth, frames = vo_circle()
+    vo = vo_plugin()
     results = [vo.process(make_pair(left, right, seq=i)) for i, (left, right) in enumerate(frames)]
     assert all(r.ok for r in results)
     assert results[0].reinit and not any(r.reinit for r in results[1:])
@@ -65,8 +42,8 @@ def test_drift_is_bounded_on_a_short_path() -> None:
 
 
 def test_gap_reinitialises_instead_of_integrating() -> None:
-    truth, frames = _frames()
-    vo = _vo()
+    truth, frames = vo_circle()
+    vo = vo_plugin()
     for i in range(10):
         vo.process(make_pair(*frames[i], seq=i))
     before = vo.process(make_pair(*frames[10], seq=10))
@@ -80,8 +57,8 @@ def test_gap_reinitialises_instead_of_integrating() -> None:
 
 @pytest.mark.parametrize("spoil", ["blank", "blur", "noise"])
 def test_unusable_frame_is_not_ok_and_tracking_recovers(spoil: str) -> None:
-    truth, frames = _frames()
-    vo = _vo()
+    truth, frames = vo_circle()
+    vo = vo_plugin()
     for i in range(20):
         last = vo.process(make_pair(*frames[i], seq=i))
     left, right = frames[20]
@@ -106,7 +83,7 @@ def test_unusable_frame_is_not_ok_and_tracking_recovers(spoil: str) -> None:
 
 
 def test_wrong_frame_size_is_a_worker_error() -> None:
-    vo = _vo()
+    vo = vo_plugin()
     small = np.zeros((240, 320, 3), np.uint8)
     with pytest.raises(WorkerError, match="frame is 320x240, expected 640x480"):
         vo.process(make_pair(small, small))
@@ -133,7 +110,7 @@ def test_configure_rejects(
         (tmp_path / params["calibration"].split("/")[-1]).write_text(calib)
     params = {k: v.format(tmp=tmp_path) if isinstance(v, str) else v for k, v in params.items()}
     with pytest.raises(WorkerError, match=error):
-        _vo(params)
+        vo_plugin(params)
 
 
 def test_kitti_calibration_and_yaml_calibration(tmp_path: Path) -> None:
@@ -142,7 +119,7 @@ def test_kitti_calibration_and_yaml_calibration(tmp_path: Path) -> None:
     p1 = list(p0)
     p1[3] = -386.14
     kitti.write_text(f"P0: {' '.join(map(str, p0))}\nP1: {' '.join(map(str, p1))}\n")
-    vo = _vo({"calibration": str(kitti)})
+    vo = vo_plugin({"calibration": str(kitti)})
     assert vo.rig.fx == pytest.approx(718.856) and vo.rig.cy == pytest.approx(185.22)
     assert vo.rig.baseline_m == pytest.approx(386.14 / 718.856)
     assert (vo.rig.width, vo.rig.height) == (640, 480)  # calib.txt has no size: the source's
@@ -150,9 +127,9 @@ def test_kitti_calibration_and_yaml_calibration(tmp_path: Path) -> None:
     yml.write_text(
         "fx: 600\nfy: 601\ncx: 330\ncy: 250\nbaseline_m: 0.15\nwidth: 1280\nheight: 720\n"
     )
-    vo = _vo({"calibration": str(yml)})
+    vo = vo_plugin({"calibration": str(yml)})
     assert (vo.rig.fx, vo.rig.fy, vo.rig.baseline_m, vo.rig.width) == (600, 601, 0.15, 1280)
-    vo = _vo({"intrinsics": [500, 500, 320, 240], "baseline_m": 0.2})
+    vo = vo_plugin({"intrinsics": [500, 500, 320, 240], "baseline_m": 0.2})
     assert (vo.rig.fx, vo.rig.baseline_m) == (500, 0.2)
 
 
@@ -160,8 +137,8 @@ def test_low_contrast_water_still_gives_corners() -> None:
     """Regression: FAST's absolute threshold (12 grey levels) found no usable corner once the
     contrast fell to a quarter, as in hazy water, and VO never started. Shi-Tomasi's threshold
     is relative to the image's strongest corner."""
-    truth, frames = _frames()
-    vo = _vo()
+    truth, frames = vo_circle()
+    vo = vo_plugin()
     results = []
     for i, (left, right) in enumerate(frames[:10]):
         dim_l, dim_r = ((img * 0.25 + 96).astype(np.uint8) for img in (left, right))

@@ -1,6 +1,7 @@
 """The package's shape stays as built: no import cycle between modules or between concerns
 (trapflow's sub-packages), counting imports inside functions and under TYPE_CHECKING, few
-modules at the top, and no module past the style guide's size.
+modules at the top, no module past the style guide's size, and no long function that does
+not say why it is long.
 
 Regression: three module cycles were hidden by lazy imports (calibration <-> its formats;
 rig -> sources -> sources.images -> rig; supervisor <-> its report via TYPE_CHECKING), and
@@ -14,8 +15,11 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[2] / "trapflow"
+PLUGINS = PACKAGE.parent / "workers"
 MAX_TOP_LEVEL_MODULES = 12
 MAX_LINES = 600
+MAX_FUNCTION_LINES = 60  # beyond, a "# Long on purpose: ..." comment near the top says why
+WHY = "# Long on purpose"
 
 
 def _modules() -> dict[str, Path]:
@@ -126,3 +130,32 @@ def test_no_module_past_the_size_guide() -> None:
     long = {str(p.relative_to(PACKAGE)): n for p in PACKAGE.rglob("*.py")
             if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_LINES}
     assert long == {}
+
+
+def long_functions_without_why(root: Path) -> list[str]:
+    """Functions over MAX_FUNCTION_LINES lines with no WHY comment in their first lines."""
+    out = []
+    for path in sorted(root.rglob("*.py")):
+        lines = path.read_text(encoding="utf-8").splitlines()
+        for node in ast.walk(ast.parse("\n".join(lines))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                assert node.end_lineno is not None
+                if node.end_lineno - node.lineno + 1 <= MAX_FUNCTION_LINES:
+                    continue
+                head = lines[node.lineno - 1:node.lineno + 15]
+                if not any(line.strip().startswith(WHY) for line in head):
+                    out.append(f"{path.relative_to(root.parent)}:{node.lineno} {node.name}")
+    return out
+
+
+def test_the_long_function_check_finds_one(tmp_path: Path) -> None:
+    body = "".join(f"    x{i} = {i}\n" for i in range(MAX_FUNCTION_LINES))
+    (tmp_path / "m.py").write_text(f"def long():\n{body}\n\ndef short():\n    return 1\n")
+    assert long_functions_without_why(tmp_path) == [f"{tmp_path.name}/m.py:1 long"]
+    (tmp_path / "m.py").write_text(f"def long():\n    {WHY}: a reason.\n{body}")
+    assert long_functions_without_why(tmp_path) == []
+
+
+@pytest.mark.parametrize("root", [PACKAGE, PLUGINS], ids=["trapflow", "workers"])
+def test_a_long_function_says_why(root: Path) -> None:
+    assert long_functions_without_why(root) == []

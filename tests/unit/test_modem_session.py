@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.unit.test_modem_surface_state import BytePort, data, receive, scallop, seqs
+from tests.builders import BytePort, data, receive, scallop, seqs
 from trapflow.config.modem import ModemConfig, OutboxConfig
 from trapflow.modem.codec import LinkCodec
 from trapflow.modem.frame import (

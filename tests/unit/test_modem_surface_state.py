@@ -6,57 +6,13 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import Any
 
 import msgspec
 import pytest
 
-from trapflow.modem.codec import LinkCodec
-from trapflow.modem.frame import ACK, DATA, Deframer, data_payload, frame, parse_ack
+from tests.builders import SESSION, data, receive, scallop, seqs
 from trapflow.modem.surface import SurfaceReceiver
 from trapflow.modem.surface_state import SessionState, SurfaceState, load_state
-
-SESSION = bytes.fromhex("5e551011")
-
-
-class BytePort:
-    """A serial-port stand-in: bytes put in are read by the receiver, writes are kept."""
-
-    port = "byteport"
-
-    def __init__(self) -> None:
-        self.incoming = bytearray()
-        self.sent = bytearray()
-
-    @property
-    def in_waiting(self) -> int:
-        return len(self.incoming)
-
-    def read(self, n: int) -> bytes:
-        data = bytes(self.incoming[:n])
-        del self.incoming[:n]
-        return data
-
-    def write(self, data: bytes) -> int:
-        self.sent += data
-        return len(data)
-
-    def flush(self) -> None:
-        pass
-
-    def acked(self) -> list[int]:
-        return [i for kind, p in Deframer().feed(bytes(self.sent)) if kind == ACK
-                for i in parse_ack(p)[1]]  # fmt: skip
-
-
-def scallop(i: int) -> dict[str, Any]:
-    return {"stereo_ir": {"timestamp": "2025-07-07 12:00:00.000", "seq": i, "label": "scallop",
-                          "confidence": 0.9}}  # fmt: skip
-
-
-def data(floor: int, ids: list[int], session: bytes = SESSION) -> bytes:
-    codec = LinkCodec()
-    return frame(DATA, data_payload(session, floor, [(i, codec.encode(scallop(i))) for i in ids]))
 
 
 def memory(rx: SurfaceReceiver, session: bytes = SESSION) -> tuple[int, set[int]]:
@@ -68,21 +24,6 @@ def saved(state: Path, session: bytes = SESSION) -> tuple[int, list[int]]:
     """(floor, seen) the state file keeps for a session."""
     (one,) = [s for s in load_state(state).sessions if s.id == session.hex()]
     return one.floor, one.seen
-
-
-def receive(out_path: Path, state: Path | None, *frames: bytes) -> tuple[SurfaceReceiver, BytePort]:
-    """A fresh receiver (a fresh surface process) fed these frames, its output closed after."""
-    port = BytePort()
-    with open(out_path, "ab") as out:
-        rx = SurfaceReceiver(port, out, state_path=state)
-        for f in frames:
-            port.incoming += f
-            rx.step()
-    return rx, port
-
-
-def seqs(path: Path) -> list[int]:
-    return [json.loads(line)["stereo_ir"]["seq"] for line in path.read_text().splitlines()]
 
 
 def test_retransmission_after_restart_is_not_written_again(tmp_path: Path) -> None:

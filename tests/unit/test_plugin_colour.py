@@ -14,8 +14,8 @@ from trapflow_workers.stereo_vo import StereoOdometry
 from trapflow_workers.vo_metrics import as_4x4, drift_percent
 
 from tests import builders
+from tests.builders import vo_circle, vo_plugin
 from tests.kits.context import make_pair
-from tests.unit.test_algo_stereo_vo import _frames, _vo
 from trapflow.errors import WorkerError
 from trapflow.stages.pair_path import decode_image
 
@@ -41,11 +41,11 @@ def test_grey_decoding_is_libjpegs_own_grey_and_raw_stays_bgr() -> None:
 
 
 def test_vo_on_grey_decoded_jpeg_matches_vo_on_bgr_decoded_jpeg() -> None:
-    truth, frames = _frames()
+    truth, frames = vo_circle()
     header = builders.pair_header(0, frames[0][0].shape[1], frames[0][0].shape[0], "jpeg")
     poses: dict[bool, list[np.ndarray]] = {}
     for grey in (False, True):
-        vo = _vo()
+        vo = vo_plugin()
         out = []
         for i, (left, right) in enumerate(frames):
             lj, rj = _jpeg(left), _jpeg(right)

@@ -9,78 +9,38 @@ import cv2
 import numpy as np
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from tests.builders import drain, drain_skipping
+from tests.builders import (
+    PERIOD,
+    T0,
+    TS,
+    H,
+    W,
+    drain,
+    drain_skipping,
+    img,
+    level,
+    ros_header,
+    write_bag,
+    write_stereo_msg_bag,
+    write_trapflow,
+)
 from trapflow.calibration.camera import StereoRig
-from trapflow.config.schema import SourceConfig
+from trapflow.config.schema import SourceConfig, from_data
 from trapflow.recording.recorder import Recorder
+from trapflow.sources import rig
 from trapflow.sources.base import SkipPair, Source, SourceError
 from trapflow.sources.factory import open_source
 from trapflow.sources.replay import ReplaySource
 from trapflow.wire.messages import StereoPair
 
-W, H = 64, 48
 RIG = StereoRig.from_fov(W, H, 70.0, 0.12)
-T0 = 1_700_000_000_000_000_000
-PERIOD = 50_000_000
-TS = get_typestore(Stores.ROS2_HUMBLE)
-
-
-def img(i: int, side: int) -> np.ndarray:
-    return np.full((H, W, 3), (10 + 20 * i + 100 * side, 40, 200 - 10 * i), np.uint8)
-
-
-def level(im: np.ndarray, side: int) -> int:
-    return int(round((float(im[:, :, 0].mean()) - 10 - 100 * side) / 20))
 
 
 def make(path: Path, **options: Any) -> Source:
     loop = options.pop("loop", False)
     return open_source(SourceConfig(kind="replay", uri=str(path), loop=loop,
                                     options={"rate": 0, **options}), RIG)
-
-
-def write_trapflow(path: Path, n: int) -> None:
-    with Recorder(path) as rec:
-        for i in range(n):
-            t_mono = 10**9 + i * PERIOD
-            h = StereoPair(seq=i, t_wall_ns=T0 + i * PERIOD, t_mono_ns=t_mono, t_left_ns=t_mono,
-                           t_right_ns=t_mono + 3_000_000, skew_ns=3_000_000, encoding="jpeg",
-                           width=W, height=H)
-            jl = cv2.imencode(".jpg", img(i, 0))[1].tobytes()
-            jr = cv2.imencode(".jpg", img(i, 1))[1].tobytes()
-            rec.add_pair(h, jl, jr)
-            rec.add_result(f'{{"mono_ir": {{"seq": {i}, "label": "crab"}}}}')
-
-
-def header(t: int, frame: str) -> Any:
-    Time = TS.types["builtin_interfaces/msg/Time"]  # noqa: N806 - a message class
-    Header = TS.types["std_msgs/msg/Header"]  # noqa: N806 - a message class
-    return Header(stamp=Time(sec=t // 10**9, nanosec=t % 10**9), frame_id=frame)
-
-
-def raw_image(t: int, im: np.ndarray, encoding: str = "bgr8") -> Any:
-    Image = TS.types["sensor_msgs/msg/Image"]  # noqa: N806 - a message class
-    data = cv2.cvtColor(im, cv2.COLOR_BGR2RGB) if encoding == "rgb8" else im
-    return Image(header=header(t, "cam"), height=H, width=W, encoding=encoding, is_bigendian=0,
-                 step=W * 3, data=np.ascontiguousarray(data).reshape(-1))
-
-
-def write_bag(path: Path, n: int, plugin: StoragePlugin, drop_right: int = -1) -> None:
-    with Writer(path, version=8, storage_plugin=plugin) as w:
-        cl = w.add_connection("/cam0/image_raw", "sensor_msgs/msg/Image", typestore=TS)
-        cr = w.add_connection("/cam1/image_raw", "sensor_msgs/msg/Image", typestore=TS)
-        other = w.add_connection("/imu", "std_msgs/msg/String", typestore=TS)
-        String = TS.types["std_msgs/msg/String"]  # noqa: N806 - a message class
-        for i in range(n):
-            t = T0 + i * PERIOD
-            left = raw_image(t, img(i, 0), "rgb8")
-            w.write(cl, t, TS.serialize_cdr(left, "sensor_msgs/msg/Image"))
-            if i != drop_right:  # the right camera skips a frame: that pair is lost, not misaligned
-                tr = t + 4_000_000
-                w.write(cr, tr, TS.serialize_cdr(raw_image(tr, img(i, 1)), "sensor_msgs/msg/Image"))
-            w.write(other, t, TS.serialize_cdr(String(data="x"), "std_msgs/msg/String"))
 
 
 def test_replays_a_trapflow_recording(tmp_path: Path) -> None:
@@ -117,25 +77,6 @@ def test_replay_loops(tmp_path: Path) -> None:
     write_trapflow(tmp_path / "run.mcap", 3)
     got = drain(make(tmp_path / "run.mcap", loop=True), limit=7)
     assert [level(f.left, 0) for f in got] == [0, 1, 2, 0, 1, 2, 0]
-
-
-def write_stereo_msg_bag(folder: Path, n: int, right_after_ns: int = 0) -> Path:
-    """A bag (folder/bag) of n pairs, each one user-defined message on /stereo:
-    trap_msgs/msg/StereoImage (two sensor_msgs/Image), defined in folder/StereoImage.msg
-    (returned); each right image is stamped right_after_ns after its left."""
-    msgdef = "sensor_msgs/Image left\nsensor_msgs/Image right\n"
-    (folder / "StereoImage.msg").write_text(msgdef)
-    store = get_typestore(Stores.ROS2_HUMBLE)
-    store.register(get_types_from_msg(msgdef, "trap_msgs/msg/StereoImage"))
-    Stereo = store.types["trap_msgs/msg/StereoImage"]  # noqa: N806 - a message class
-    with Writer(folder / "bag", version=8) as w:
-        c = w.add_connection("/stereo", "trap_msgs/msg/StereoImage", typestore=store)
-        for i in range(n):
-            t = T0 + i * PERIOD
-            m = Stereo(left=raw_image(t, img(i, 0)),
-                       right=raw_image(t + right_after_ns, img(i, 1)))
-            w.write(c, t, store.serialize_cdr(m, "trap_msgs/msg/StereoImage"))
-    return folder / "StereoImage.msg"
 
 
 def test_custom_stereo_message_with_user_definition(tmp_path: Path) -> None:
@@ -179,7 +120,7 @@ def test_bad_recordings_fail_with_one_clear_reason(
 
 def compressed(t: int, data: bytes) -> Any:
     Compressed = TS.types["sensor_msgs/msg/CompressedImage"]  # noqa: N806 - a message class
-    return Compressed(header=header(t, "cam"), format="jpeg",
+    return Compressed(header=ros_header(t, "cam"), format="jpeg",
                       data=np.frombuffer(data, np.uint8))
 
 
@@ -252,3 +193,14 @@ def test_a_recording_damaged_mid_file_ends_the_source_with_where(tmp_path: Path)
     src.close()
     assert not isinstance(info.value, SkipPair)
     assert 10 <= got < 40
+
+
+def test_a_custom_stereo_message_tells_its_frame_size(tmp_path: Path) -> None:
+    """A bag of one user-defined stereo message: the rig takes the size of its first images."""
+    msg_def = write_stereo_msg_bag(tmp_path, 2)
+    found = rig.describe(from_data({"source": {"kind": "replay", "uri": str(tmp_path / "bag"),
+                                           "options": {
+                                               "msg_type": "trap_msgs/msg/StereoImage",
+                                               "msg_def": str(msg_def)}}}))
+    assert found.rig == StereoRig.from_fov(W, H, 70.0, 0.12)
+    assert "trap_msgs/msg/StereoImage" in found.origin

@@ -66,6 +66,7 @@ class BrokerNode(Node):
     """Distributes pairs to worker pools with back-pressure and per-pool policies."""
 
     def __init__(self, spec: NodeSpec) -> None:
+        # Long on purpose: all the broker holds, made in the order each depends on the other.
         super().__init__(spec)
         ep = self.endpoints
         self.poller = Poller()

@@ -206,14 +206,20 @@ def build_rows(run_dir: Path, dep: Deployment, events_folder: str = "events", *,
                     d, f, dep_id, dep.taxa, f"{f.media_id}-{k}",
                     (f.event, obs.iso(spans[f.event][0]), obs.iso(spans[f.event][1]))))
     start, end = min(times.values()), max(times.values())
-    deployment = {
+    return Rows([_deployment_row(dep, dep_id, start, end)], media, observations, files, start,
+                end, labels)
+
+
+def _deployment_row(dep: Deployment, dep_id: str, start: dt.datetime,
+                    end: dt.datetime) -> dict[str, Any]:
+    """The package's one deployments.csv row."""
+    return {
         "deploymentID": dep_id, "locationID": dep.location_id, "locationName": dep.location_name,
         "latitude": dep.latitude, "longitude": dep.longitude,
         "deploymentStart": obs.iso(start), "deploymentEnd": obs.iso(end), "setupBy": dep.setup_by,
         "cameraModel": dep.camera_model, "cameraDepth": dep.depth_m, "cameraHeight": dep.height_m,
         "cameraTilt": dep.tilt_deg, "cameraHeading": dep.heading_deg, "habitat": dep.habitat,
         "timestampIssues": "false", "deploymentComments": dep.comments}
-    return Rows([deployment], media, observations, files, start, end, labels)
 
 
 def datapackage(rows: Rows, dep: Deployment, name: str) -> dict[str, Any]:

@@ -7,11 +7,7 @@ from trapflow.calibration.camera import StereoRig
 from trapflow.calibration.model import StereoCalibration
 from trapflow.config.schema import SourceConfig
 from trapflow.errors import ConfigError
-from trapflow.sources.base import Frames, Geometry, SkipPair, Source, SourceError
-from trapflow.sources.spec import parse_source_spec
-
-__all__ = ["Frames", "Geometry", "SkipPair", "Source", "SourceError", "build_source",
-           "open_source", "parse_source_spec", "KINDS"]
+from trapflow.sources.base import Source
 
 KINDS = ("synthetic", "video", "images", "v4l2", "picamera2", "gst", "replay")
 

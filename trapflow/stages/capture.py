@@ -205,23 +205,7 @@ class CaptureNode(Node):
                 return
         seq = self.seq
         self.seq += 1
-        seen = self.motion.update(f.left) if self.motion is not None else None
-        header = messages.StereoPair(
-            seq=seq,
-            # A recording's own capture time; a camera's is now (a label only).
-            t_wall_ns=time.time_ns() if f.t_wall_ns is None else f.t_wall_ns,
-            t_mono_ns=time.monotonic_ns(),  # stamped after encoding: transport latency
-            t_left_ns=f.t_left_ns,
-            t_right_ns=f.t_right_ns,
-            skew_ns=f.right_minus_left_ns(),
-            encoding=self.src_cfg.encoding,
-            width=w,
-            height=h,
-            source=self.src_cfg.kind,
-            motion=seen.motion if seen is not None else None,
-            motion_score=seen.score if seen is not None else 0.0,
-            motion_regions=seen.regions[:MOTION_REGIONS] if seen is not None else (),
-        )
+        header = self._header(f, seq)
         payload: list[Any] = [messages.encode(header)]
         payload += [left, right] if slot is None else [messages.encode(ref)]
         while not self._deliver(payload):  # the broker cannot take it now
@@ -242,6 +226,27 @@ class CaptureNode(Node):
             truth = msgspec.structs.replace(f.truth, seq=seq)
             # Truth is for tests and viewers; never worth a wait.
             self._deliver([tap_msgs.TOPIC_TRUTH, messages.encode(truth)])
+
+    def _header(self, f: Frames, seq: int) -> messages.StereoPair:
+        """The pair's header, stamped now, with what the motion gate saw in its left image."""
+        h, w = f.left.shape[:2]
+        seen = self.motion.update(f.left) if self.motion is not None else None
+        return messages.StereoPair(
+            seq=seq,
+            # A recording's own capture time; a camera's is now (a label only).
+            t_wall_ns=time.time_ns() if f.t_wall_ns is None else f.t_wall_ns,
+            t_mono_ns=time.monotonic_ns(),  # stamped after encoding: transport latency
+            t_left_ns=f.t_left_ns,
+            t_right_ns=f.t_right_ns,
+            skew_ns=f.right_minus_left_ns(),
+            encoding=self.src_cfg.encoding,
+            width=w,
+            height=h,
+            source=self.src_cfg.kind,
+            motion=seen.motion if seen is not None else None,
+            motion_score=seen.score if seen is not None else 0.0,
+            motion_regions=seen.regions[:MOTION_REGIONS] if seen is not None else (),
+        )
 
     def _deliver(self, frames: list[Any]) -> bool:
         """Hand one message to the broker without waiting; False if it cannot take it now."""

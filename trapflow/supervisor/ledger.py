@@ -21,8 +21,7 @@ from trapflow.supervisor import status_line
 from trapflow.wire.messages import FAILED_PREFIX, CaptureCounters, PoolStats, Stats
 from trapflow.wire.pool_counters import POOL_COUNTERS, SUMMED, settled
 
-__all__ = ["FAILED_PREFIX", "Delivered", "RunLedger", "capture_failures", "combine", "retire",
-           "verdict"]
+__all__ = ["Delivered", "RunLedger", "capture_failures", "combine", "retire", "verdict"]
 
 # The normalizer's heartbeat counters route:<pool>:<kind> say which pool's results become lines
 # of which kind (the first key of a results.jsonl line); results.jsonl itself has no pool.

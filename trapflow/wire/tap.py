@@ -19,7 +19,6 @@ from trapflow.wire.transport import Endpoints, SocketSpec, new_context, open_soc
 
 # Nothing for this long: say once that the tap is waiting (no pipeline may be running yet).
 WAITING_NOTICE_S = 1.0
-JPEG_QUALITY = 90  # of frames saved from a raw pipeline
 
 TOPICS = {
     "results": (tap_msgs.TOPIC_RESULT,),
@@ -94,9 +93,10 @@ def run_tap(what: str, run_dir: Path, endpoints: list[str], count: int | None = 
             except ProtocolError as exc:
                 line = f"malformed tap message: {exc}"
             if save_frames is not None and isinstance(msg, tap_msgs.TapPair):
-                # Photos on disk: a raw pair (the default ring) is encoded here, once.
+                # Photos on disk: a raw pair (the default ring) is encoded here, once, at
+                # the quality a JPEG pipeline would have used.
                 p, left, right = jpeg.to_jpeg_pair(msg.header, msg.left, msg.right,
-                                                   JPEG_QUALITY)
+                                                   configmod.DEFAULT_JPEG_QUALITY)
                 (save_frames / f"{p.seq:08d}_left.jpg").write_bytes(left)
                 (save_frames / f"{p.seq:08d}_right.jpg").write_bytes(right)
             print(line, flush=True)

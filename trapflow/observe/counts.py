@@ -117,3 +117,33 @@ class Counter:
                                      for lb in labels])
         self._visits, self._max_n, self._dwell = {}, {}, {}
         return rec
+
+
+class RunNews(msgspec.Struct, frozen=True, kw_only=True):
+    """News the surface should hear first: a label's first confirmed track of the run
+    (`new_label`), or a label's MaxN over the run so far grown past 1 (`max_n`)."""
+
+    label: str
+    max_n: int  # tracks of the label seen at this capture time (the run's new MaxN)
+    new_label: bool
+    track: int  # the lowest id among them
+
+
+class News:
+    """The run's news, pure: fed each capture time's confirmed tracks by label, it answers
+    when a label is seen for the first time and when a label's run-wide MaxN grows."""
+
+    def __init__(self) -> None:
+        self._max_n: dict[str, int] = {}
+
+    def observe(self, seen: Mapping[str, Collection[int]]) -> list[RunNews]:
+        """The news of one capture time, by label in name order."""
+        out = []
+        for label in sorted(seen):
+            ids = seen[label]
+            before = self._max_n.get(label, 0)
+            if len(ids) > before:
+                self._max_n[label] = len(ids)
+                out.append(RunNews(label=label, max_n=len(ids), new_label=before == 0,
+                                   track=min(ids)))
+        return out

@@ -3,6 +3,9 @@ held-out ones): coordinate descent over the thresholds, the gaps and the motion 
 noise, scored by the mean of HOTA and IDF1 at both detector rates, pooled over sequences.
 
     python scripts/tune_tracking.py [--seeds N] [--frames N] [--jobs N] [--rounds N]
+                                    [--set KEY=VALUE ...] [--keys KEY,KEY...]
+
+--set starts from other values than TrackerConfig's defaults; --keys searches only those.
 
 Prints every configuration tried with its score and the best one; writes
 bench-results/tracking-tune.json. Sequences are cached in bench-results/tracking-cache/
@@ -40,7 +43,7 @@ GRID: dict[str, Sequence[float]] = {
     "tentative_gap_s": (0.0, 0.1, 0.25, 0.5, 1.0),
     "high": (0.4, 0.5, 0.6),
     "low": (0.1, 0.2, 0.3),
-    "noise.measure": (0.02, 0.03, 0.05, 0.08),
+    "noise.measure": (0.02, 0.03, 0.05, 0.08, 0.1, 0.12, 0.16),
     "noise.accel": (0.25, 0.5, 1.0, 2.0, 4.0),
     "noise.speed0": (0.25, 0.5, 1.0, 2.0),
 }
@@ -93,8 +96,15 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=900)
     ap.add_argument("--jobs", type=int, default=1, help="processes scoring in parallel")
     ap.add_argument("--rounds", type=int, default=2, help="passes over the parameters")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="start value of a parameter (a GRID key)")
+    ap.add_argument("--keys", default=",".join(GRID), help="parameters searched, comma-separated")
     ap.add_argument("--out", type=Path, default=Path("bench-results/tracking-tune.json"))
     args = ap.parse_args()
+    keys = [k for k in args.keys.split(",") if k]
+    unknown = [k for k in keys + [kv.partition("=")[0] for kv in args.set] if k not in GRID]
+    if unknown:
+        ap.error(f"unknown parameters {unknown}: expected some of {list(GRID)}")
     seeds = list(DEV_SEEDS[: args.seeds])
     assert not set(seeds) & set(HELD_OUT_SEEDS), "tuning must never see a held-out seed"
     cache = args.out.parent / "tracking-cache"
@@ -102,6 +112,9 @@ def main() -> None:
         load(s, args.frames, cache)
     tried: dict[str, dict[str, Any]] = {}
     best = TrackerConfig()
+    for kv in args.set:
+        key, _, value = kv.partition("=")
+        best = with_value(best, key, float(value))
     with ProcessPoolExecutor(args.jobs, initializer=_init,
                              initargs=(seeds, args.frames, str(cache))) as pool:
         def run(cfgs: list[TrackerConfig]) -> None:
@@ -115,7 +128,8 @@ def main() -> None:
         run([best])
         for _ in range(args.rounds):
             changed = False
-            for key, values in GRID.items():
+            for key in keys:
+                values = GRID[key]
                 cands = [with_value(best, key, v) for v in values]
                 run(cands)
                 top = max(cands, key=lambda c: tried[repr(c)]["objective"])

@@ -5,8 +5,10 @@ Ground truth: the synthetic world's labelled objects (TruthObject.id is the anim
 Detections: derived from truth with a seeded rng (boxes jittered, some dropped, more so
 when occluded, some given a low confidence or a wrong label, false positives added), at
 full rate and with the detector seeing one pair in three. Scores count only the pairs the
-detector saw (no tracker can answer for the others). Development seeds tune the defaults;
-held-out seeds are reported. Writes bench-results/tracking.json and prints a table.
+detector saw (no tracker can answer for the others). Development seeds (1001-1016) tune
+the defaults (scripts/tune_tracking.py); held-out seeds (2001-2006) are reported. Both
+trackers get the same frame rate and each pair's capture time. Writes
+bench-results/tracking.json and prints a table.
 
     python scripts/bench_tracking.py [--split dev|held-out|both] [--frames N]
 

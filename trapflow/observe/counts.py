@@ -8,6 +8,9 @@ Dwell is the time between a track's consecutive sightings (gaps included, as the
 kept the id), added to the interval of the later sighting: a closed interval is never
 amended, so the time from a track's last sighting before a boundary to its next one goes to
 the new interval (at most one detector gap early), and the sum over intervals is exact.
+
+`News`, fed the same, says what the surface should hear first: a label's first track of
+the run, and each time a label's MaxN over the run grows.
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """Observations on the acoustic link: a finished track in at most 12 bytes of body, interval
-counts, and v2 detection lines (track id, stereo measurement) in their compact kind, all
-round-tripping; old mono_ir records still decode (fields only append)."""
+counts, the run's news (a new label, a new MaxN) in 8, and v2 detection lines (track id,
+stereo measurement) in their compact kind, all round-tripping; old mono_ir records still
+decode (fields only append); the news goes out before everything else."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ from typing import Any
 import pytest
 
 from trapflow.modem.codec import GENERIC, LinkCodec
-from trapflow.observe.stage import modem_counts, modem_track
+from trapflow.observe.counts import RunNews
+from trapflow.observe.stage import modem_counts, modem_news, modem_track
 
 T0 = 1_795_617_060.526  # 2026-11-25
 
@@ -50,6 +52,41 @@ def test_interval_counts_round_trip() -> None:
         == [("crab", 2, 81), ("sea-pen", 1, 5)]
 
 
+@pytest.mark.parametrize(("news", "kinds"), [
+    # a label's first track, alone at its capture time
+    (RunNews(label="crab", max_n=1, new_label=True, track=3), [9]),
+    # first seen two at once: the new label and the run's MaxN
+    (RunNews(label="urchin", max_n=2, new_label=True, track=12), [9, 10]),
+    # a new MaxN of a known label, off the label table
+    (RunNews(label="sea-pen", max_n=4, new_label=False, track=40), [10]),
+])
+def test_news_is_small_and_round_trips(news: RunNews, kinds: list[int]) -> None:
+    codec = LinkCodec()
+    recs = modem_news(news, T0)
+    assert [codec.encode(r)[0] for r in recs] == kinds
+    for rec in recs:
+        data = codec.encode(rec)
+        on_table = news.label != "sea-pen"
+        assert len(data) - 1 <= (8 if on_table else 8 + len(news.label)), len(data)
+        assert codec.decode(data) == rec
+    assert recs[0][next(iter(recs[0]))]["time"] == "2026-11-25 14:31:00"
+
+
+@pytest.mark.parametrize(("hexbytes", "record"), [
+    # kind 7, a finished track, as a box sent it before kinds 9 and 10 were appended
+    ("071f1101a4a0ec672aba", {"track": {"id": 17, "label": "crab",
+                                        "start": "2026-11-25 14:31:00", "duration_s": 42,
+                                        "confidence": 0.93}}),
+    # kind 8, interval counts, likewise
+    ("080fe89fec670aa8460101030251", {"counts": {
+        "start": "2026-11-25 14:30:00", "minutes": 10, "pairs": 9000,
+        "labels": [{"label": "crab", "visits": 3, "max_n": 2, "dwell_s": 81}]}}),
+])
+def test_old_kinds_still_decode_beside_the_news(hexbytes: str, record: dict[str, Any]) -> None:
+    """Kinds only append: bytes of the older observation kinds decode as before."""
+    assert LinkCodec().decode(bytes.fromhex(hexbytes)) == record
+
+
 @pytest.mark.parametrize("line", [
     # v2: tracked and measured
     {"timestamp": "2026-11-25 14:32:55.075", "seq": 0, "label": "crab", "confidence": 0.28,
@@ -72,8 +109,9 @@ def test_detection_lines_keep_their_compact_kind(line: dict[str, Any]) -> None:
 
 
 def test_observations_overtake_queued_detections() -> None:
-    """With the default priorities, a track and a count made after a backlog of detections
-    go out in the next frame, ahead of every older detection."""
+    """With the default priorities, the news (a new label, a new MaxN), then a count and a
+    track, made after a backlog of detections, go out in the next frame, in that order,
+    ahead of every older detection."""
     from trapflow.config.modem import ModemConfig
     from trapflow.modem.outbox import Stored
     from trapflow.modem.schedule import ClassQueue, Queued, Schedule, SendData
@@ -96,8 +134,11 @@ def test_observations_overtake_queued_detections() -> None:
     counts = queue("counts", [(42, modem_counts({"counts": {
         "start_s": T0, "end_s": T0 + 600, "pairs": 10,
         "labels": [{"label": "crab", "visits": 1, "max_n": 1, "dwell_s": 42.0}]}}))])
+    news = [modem_news(RunNews(label="fish", max_n=2, new_label=True, track=9), T0 + 9)]
+    new_label = queue("new_label", [(43, news[0][0])])
+    new_max_n = queue("new_max_n", [(44, news[0][1])])
     decision = Schedule(cfg, b"\x01\x02\x03\x04", []).next(
-        100.0, 0, [], 0, [detections, tracks, counts], 42)
+        100.0, 0, [], 0, [detections, tracks, counts, new_max_n, new_label], 44)
     assert isinstance(decision, SendData)
     sent = [q.name for q, _ in decision.batch]
-    assert sent[:2] == ["counts", "track"]
+    assert sent[:4] == ["new_label", "new_max_n", "counts", "track"]

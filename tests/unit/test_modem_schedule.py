@@ -18,6 +18,7 @@ from trapflow.modem.schedule import (
     BUDGET_SPENT,
     HOUR_NS,
     IDLE_WAIT_S,
+    NEWS_IN_FLIGHT,
     REPEAT_SHARE,
     REPEAT_SHARE_SPENT,
     WINDOW_FULL,
@@ -113,6 +114,36 @@ def test_what_goes_out_next(spec: Spec, replies: int, in_flight: int, busy: bool
         s.on_air(30, NOW, WALL)
     queued = [OutReply(bytes([i]) * 8) for i in range(replies)]
     assert what(s.next(NOW, WALL, queued, in_flight, classes(spec), 0)) == want
+
+
+@pytest.mark.parametrize(("news_inflight", "other_inflight", "want"), [
+    # news waiting for their ACK hold every other class back, the window not full
+    ([1], [], ("wait", NEWS_IN_FLIGHT)),
+    # news acknowledged: the rest goes out
+    ([], [], ("data", [2, 3])),
+    # an ordinary class in flight holds back only itself (stop-and-wait), as before
+    ([], [5], ("data", [3])),
+])
+def test_news_in_flight_hold_the_rest_back(news_inflight: list[int], other_inflight: list[int],
+                                           want: tuple[Any, ...]) -> None:
+    """A lost frame of news is resent before any newer frame can overtake it (issue 23: a
+    new label reaches the surface before older detections queued with it)."""
+    news = ClassQueue("new_label", 0, news=True)
+    news.inflight.extend(record(seq, 10) for seq in news_inflight)
+    other = ClassQueue("mono_ir/crab", 3)
+    other.queue.extend([record(2, 10)])
+    other.inflight.extend(record(seq, 10) for seq in other_inflight)
+    third = ClassQueue("health", 4)
+    third.queue.append(record(3, 1))
+    got = schedule().next(NOW, WALL, [], len(news_inflight) + len(other_inflight),
+                          [news, other, third], 0)
+    assert what(got) == want
+
+
+def test_news_classes_come_from_the_config() -> None:
+    cfg = ModemConfig()
+    assert [cfg.is_news(c) for c in ("new_label", "new_max_n", "counts", "mono_ir/crab")] \
+        == [True, True, False, False]
 
 
 def test_a_data_frame_carries_the_session_the_floor_and_the_batch() -> None:

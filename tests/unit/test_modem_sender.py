@@ -54,14 +54,16 @@ def test_outbox_config_rejects(data: dict[str, Any], error: str) -> None:
 @pytest.mark.parametrize(
     ("cls", "rank", "ttl", "aggregated"),
     [
-        ("counts", 0, 0.0, False),  # observations first (issue 23)
-        ("track", 1, 0.0, False),
-        ("stereo_ir/scallop", 2, 0.0, False),
-        ("mono_ir/crab", 3, 0.0, True),
-        ("health", 4, 3600.0, False),
-        ("mono_ir/fish", 7, 0.0, True),
-        ("stereo_vo", 8, 600.0, True),
-        ("whatever", 9, 0.0, False),
+        ("new_label", 0, 0.0, False),  # the run's news first, then observations (issue 23)
+        ("new_max_n", 1, 0.0, False),
+        ("counts", 2, 0.0, False),
+        ("track", 3, 0.0, False),
+        ("stereo_ir/scallop", 4, 0.0, False),
+        ("mono_ir/crab", 5, 0.0, True),
+        ("health", 6, 3600.0, False),
+        ("mono_ir/fish", 9, 0.0, True),
+        ("stereo_vo", 10, 600.0, True),
+        ("whatever", 11, 0.0, False),
     ],
 )
 def test_class_policy(cls: str, rank: int, ttl: float, aggregated: bool) -> None:

@@ -1,10 +1,11 @@
-"""Interval counts, pure: visits, MaxN and dwell per label, interval boundaries, flush."""
+"""Interval counts, pure: visits, MaxN and dwell per label, interval boundaries, flush; the
+run's news (a label's first track, a new run-wide MaxN)."""
 
 from __future__ import annotations
 
 import pytest
 
-from trapflow.observe.counts import Counter, IntervalCounts, LabelCount
+from trapflow.observe.counts import Counter, IntervalCounts, LabelCount, News, RunNews
 from trapflow.observe.tracker import TrackEnd
 
 Step = tuple[float, dict[str, set[int]]]
@@ -96,3 +97,30 @@ def test_time_going_back_is_refused() -> None:
     counter.observe(15.0, {})
     with pytest.raises(ValueError, match="must not go back"):
         counter.observe(5.0, {})
+
+
+NEWS = [
+    # (steps of confirmed tracks by label, expected news per step as (label, max_n, new, id))
+    # A label's first track is news once; the same label again is not.
+    ([{"crab": {3}}, {"crab": {3}}, {"crab": {4}}], [[("crab", 1, True, 3)], [], []]),
+    # Two crabs at once later: the run's MaxN grew; a third time with two is no news.
+    ([{"crab": {1}}, {"crab": {1, 2}}, {"crab": {2, 5}}],
+     [[("crab", 1, True, 1)], [("crab", 2, False, 1)], []]),
+    # First seen two at a time: new label and its MaxN in one, the lowest id named.
+    ([{"scallop": {7, 6}}], [[("scallop", 2, True, 6)]]),
+    # Labels are news apart, in name order; nobody seen is no news.
+    ([{}, {"scallop": {2}, "crab": {1}}, {"crab": {1}, "fish": {9}}],
+     [[], [("crab", 1, True, 1), ("scallop", 1, True, 2)], [("fish", 1, True, 9)]]),
+    # MaxN falling and rising back to its old height is no news (the run's MaxN, not the
+    # interval's).
+    ([{"crab": {1, 2}}, {"crab": {1}}, {"crab": {1, 3}}], [[("crab", 2, True, 1)], [], []]),
+]
+
+
+@pytest.mark.parametrize(("steps", "expected"), NEWS)
+def test_news_of_the_run(steps: list[dict[str, set[int]]],
+                         expected: list[list[tuple[str, int, bool, int]]]) -> None:
+    news = News()
+    got = [news.observe(seen) for seen in steps]
+    assert got == [[RunNews(label=lb, max_n=n, new_label=new, track=tid)
+                    for lb, n, new, tid in step] for step in expected]

@@ -213,7 +213,8 @@ def tap(what: str, count: int | None, save_frames: Path | None, run_dir: Path,
 @click.option("--timeout", type=click.FloatRange(min=0, min_open=True), default=3.0,
               show_default=True)
 def status(run_dir: Path, as_json: bool, stop: bool, timeout: float) -> None:
-    """Show the running pipeline's nodes, lifecycle states and counters."""
+    """Show the running pipeline's nodes, lifecycle states, counters and the latest
+    interval's counts (visits, MaxN per label)."""
     from trapflow.cli.status_text import format_status
     from trapflow.wire.control_client import request
 

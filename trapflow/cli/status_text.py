@@ -5,6 +5,7 @@ and ledger.json are."""
 from __future__ import annotations
 
 import json
+import time
 from typing import Any
 
 from trapflow.supervisor import ledger as run_ledger
@@ -15,6 +16,29 @@ from trapflow.wire.pool_counters import POOL_COUNTERS
 POOL_UNITS = {c.name: c.unit for c in POOL_COUNTERS if c.column}
 # Give-ups and retries `trapflow status` lists (the newest); the JSON has them all.
 TIMELINE_SHOWN = 5
+
+
+def _clock(t_s: float, fmt: str) -> str:
+    return time.strftime(fmt, time.gmtime(t_s))
+
+
+def counts_text(counts: dict[str, Any]) -> list[str]:
+    """The status reply's `counts` (the latest closed interval of counts.jsonl): per label
+    its visits, MaxN and dwell, or why there is nothing to show yet."""
+    latest, every = counts.get("latest"), counts["interval_s"]
+    if latest is None:
+        return [f"counts: no interval closed yet (one every {every:g} s, counts.jsonl)"]
+    span = (f"{_clock(latest['start_s'], '%Y-%m-%d %H:%M:%S')}-"
+            f"{_clock(latest['end_s'], '%H:%M:%S')} UTC")
+    lines = [f"counts {span}, {latest['pairs']} pairs seen by the detector"]
+    if not latest["labels"]:
+        return [lines[0] + ": no animal tracked"]
+    lines.append(f"{'label':<16}{'visits':>9}{'MaxN':>9}{'dwell':>9}")
+    lines.append(f"{'':<16}{'(tracks)':>9}{'(tracks)':>9}{'(s)':>9}")
+    for lab in latest["labels"]:
+        lines.append(f"{lab['label']:<16}{lab['visits']:>9}{lab['max_n']:>9}"
+                     f"{lab['dwell_s']:>9.1f}")
+    return lines
 
 
 def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
@@ -48,6 +72,8 @@ def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
             lines.append(f"{r['worker']:<34} {r['host']:<16} {r['pool']:<10} {r['state']:<8} "
                          f"{r.get('processed', 0):>9} {r.get('rate', 0.0):>7}  "
                          f"{r.get('reason', '')}")
+    if reply.get("counts"):
+        lines += counts_text(reply["counts"])
     sup = reply.get("supervision")
     if sup:
         lines.append(f"supervision: {sup['gave_up']} give-ups, {sup['retries']} retries, "

@@ -20,10 +20,11 @@ DEFAULT_LABELS = (
 
 
 def _priorities() -> list[str]:
-    # Observations first: interval counts (MaxN, visits) and finished tracks answer the
+    # Observations first: a label seen for the first time in the run and a new MaxN are
+    # the news, then interval counts (MaxN, visits) and finished tracks answer the
     # questions asked of a trap in a few bytes; per-pair detections follow.
-    return ["counts", "track", "stereo_ir/scallop", "mono_ir/crab", "health", "tags",
-            "stereo_ir/*", "mono_ir/*", "stereo_vo", "*"]  # fmt: skip
+    return ["new_label", "new_max_n", "counts", "track", "stereo_ir/scallop", "mono_ir/crab",
+            "health", "tags", "stereo_ir/*", "mono_ir/*", "stereo_vo", "*"]  # fmt: skip
 
 
 class ModemConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
@@ -54,6 +55,10 @@ class ModemConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     of the detector pools go out, the lines stay on disk."""
     priorities: list[str] = msgspec.field(default_factory=_priorities)
     """Message class patterns (fnmatch), most urgent first; unmatched classes come last."""
+    news: list[str] = msgspec.field(default_factory=lambda: ["new_label", "new_max_n"])
+    """Class patterns of the run's news (a label's first track, a new MaxN): while a record
+    of one waits for its acknowledgement no other DATA frame goes out, so over a lossy link
+    it reaches the surface before anything queued with it. News are rare: little cost."""
     ttl_s: dict[str, Annotated[float, msgspec.Meta(ge=0)]] = msgspec.field(
         default_factory=lambda: {"stereo_vo": 600.0, "health": 3600.0}
     )
@@ -90,6 +95,10 @@ class ModemConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
             if fnmatch.fnmatchcase(cls, pattern):
                 return i
         return len(self.priorities)
+
+    def is_news(self, cls: str) -> bool:
+        """Whether a class is news (`news`): sent, then acknowledged, before anything else."""
+        return any(fnmatch.fnmatchcase(cls, pattern) for pattern in self.news)
 
     def ttl_of(self, cls: str) -> float:
         """Seconds a record of this class may wait; 0 means forever."""

@@ -206,7 +206,7 @@ class ObserveConfig(_Section):
     """Detections at or above this confidence are matched first and may start tracks."""
     low: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.1
     """Between low and high a detection may only extend a confirmed track."""
-    iou_gate: Annotated[float, msgspec.Meta(gt=0, lt=1)] = 0.1
+    iou_gate: Annotated[float, msgspec.Meta(gt=0, lt=1)] = 0.2
     """Least overlap of a track's predicted box and a detection for them to match."""
     min_hits: Annotated[int, msgspec.Meta(ge=1, le=100)] = 2
     """Detections that confirm a track and give it its id."""

@@ -439,6 +439,10 @@ KINDS: dict[int, tuple[str, list[tuple[str, tuple[Enc, Dec]]]]] = {
                   ("pairs", UINT)]),
     8: ("counts", [("start", SECS), ("minutes", UINT), ("pairs", UINT),
                    ("labels", (_enc_label_counts, _dec_label_counts))]),
+    # The run's news (trapflow.observe.stage.modem_news), 8 bytes after the kind byte for
+    # a label of the table and an id under 128: a label's first track, a new run-wide MaxN.
+    9: ("new_label", [("label", LABEL), ("time", SECS), ("track", UINT)]),
+    10: ("new_max_n", [("label", LABEL), ("time", SECS), ("max_n", UINT)]),
 }  # fmt: skip
 _BY_KEY = {key: (kind, fields) for kind, (key, fields) in KINDS.items()}
 

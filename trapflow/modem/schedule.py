@@ -6,7 +6,9 @@ The rules, one per branch of `Schedule.next`, in order: nothing while the previo
 still on the air (the bit rate); a queued REPLY above every class and outside the window (it
 gets no acknowledgement), but a repeated one (an answer a replayed frame can ask for again)
 only within REPEAT_SHARE of the hourly budget, dropped beyond it so data keeps the rest; at
-most `window` DATA frames waiting for their ACK; the classes with records queued and none in
+most `window` DATA frames waiting for their ACK; none while a record of a news class
+(`modem.news`) waits for its ACK, so a lost frame of news is resent before anything newer
+reaches the surface; the classes with records queued and none in
 flight, by priority rank and then by the oldest head, each class's records in seq order
 while they fit the frame; and every frame within the hourly byte budget. A record's
 acknowledgement is awaited for the frame's air time, an ACK's, and the timeout backed off by
@@ -48,6 +50,7 @@ BIT_RATE = "bit rate"
 WINDOW_FULL = "window full"
 BUDGET_SPENT = "hourly byte budget spent"
 REPEAT_SHARE_SPENT = "repeated replies' share of the hourly budget spent"
+NEWS_IN_FLIGHT = "news waiting for their acknowledgement"
 
 
 @dataclass(frozen=True)
@@ -74,9 +77,10 @@ class Queued:
 class ClassQueue:
     """Per-class queue: loaded pending records (oldest first) and the batch in flight."""
 
-    def __init__(self, name: str, rank: int) -> None:
+    def __init__(self, name: str, rank: int, news: bool = False) -> None:
         self.name = name
         self.rank = rank
+        self.news = news  # ModemConfig.is_news: nothing else goes out while it is in flight
         self.queue: collections.deque[Queued] = collections.deque()
         self.cursor = 0  # highest seq loaded from the outbox
         self.inflight: list[Queued] = []
@@ -183,6 +187,8 @@ class Schedule:
             return SendReply(wire, reply.repeat)
         if frames_in_flight >= self.cfg.window:
             return Wait(WINDOW_FULL)
+        if any(c.news and c.inflight for c in classes):
+            return Wait(NEWS_IN_FLIGHT)
         order = ready(classes)
         if not order:
             return Wait("")

@@ -193,7 +193,8 @@ class ModemSender:
     def _class(self, name: str) -> ClassQueue:
         cls = self.classes.get(name)
         if cls is None:
-            cls = self.classes[name] = ClassQueue(name, self.cfg.priority_of(name))
+            cls = self.classes[name] = ClassQueue(name, self.cfg.priority_of(name),
+                                                  self.cfg.is_news(name))
         return cls
 
     def _load(self, cls: ClassQueue) -> None:

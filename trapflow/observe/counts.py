@@ -8,6 +8,9 @@ Dwell is the time between a track's consecutive sightings (gaps included, as the
 kept the id), added to the interval of the later sighting: a closed interval is never
 amended, so the time from a track's last sighting before a boundary to its next one goes to
 the new interval (at most one detector gap early), and the sum over intervals is exact.
+
+`News`, fed the same, says what the surface should hear first: a label's first track of
+the run, and each time a label's MaxN over the run grows.
 """
 
 from __future__ import annotations
@@ -117,3 +120,33 @@ class Counter:
                                      for lb in labels])
         self._visits, self._max_n, self._dwell = {}, {}, {}
         return rec
+
+
+class RunNews(msgspec.Struct, frozen=True, kw_only=True):
+    """News the surface should hear first: a label's first confirmed track of the run
+    (`new_label`), or a label's MaxN over the run so far grown past 1 (`max_n`)."""
+
+    label: str
+    max_n: int  # tracks of the label seen at this capture time (the run's new MaxN)
+    new_label: bool
+    track: int  # the lowest id among them
+
+
+class News:
+    """The run's news, pure: fed each capture time's confirmed tracks by label, it answers
+    when a label is seen for the first time and when a label's run-wide MaxN grows."""
+
+    def __init__(self) -> None:
+        self._max_n: dict[str, int] = {}
+
+    def observe(self, seen: Mapping[str, Collection[int]]) -> list[RunNews]:
+        """The news of one capture time, by label in name order."""
+        out = []
+        for label in sorted(seen):
+            ids = seen[label]
+            before = self._max_n.get(label, 0)
+            if len(ids) > before:
+                self._max_n[label] = len(ids)
+                out.append(RunNews(label=label, max_n=len(ids), new_label=before == 0,
+                                   track=min(ids)))
+        return out

@@ -13,11 +13,12 @@ _H = np.hstack([np.eye(_DIM), np.zeros((_DIM, _DIM))])
 
 @dataclass(frozen=True)
 class Noise:
-    """Noise levels relative to the box height, so one setting fits near and far animals."""
+    """Noise levels relative to the box height, so one setting fits near and far animals
+    (defaults tuned with the tracker's thresholds, trapflow.observe.tracker.TrackerConfig)."""
 
-    measure: float = 0.05
+    measure: float = 0.08
     """Standard deviation of a detected box's centre and sides, in box heights."""
-    accel: float = 1.0
+    accel: float = 0.5
     """White-noise acceleration density, in box heights per s^2 per sqrt(Hz)."""
     speed0: float = 1.0
     """Standard deviation of a new track's unknown speed, in box heights per second."""

@@ -19,7 +19,7 @@ import msgspec
 import numpy as np
 
 from trapflow.config.schema import ObserveConfig
-from trapflow.observe.counts import Counter, IntervalCounts
+from trapflow.observe.counts import Counter, IntervalCounts, News, RunNews
 from trapflow.observe.rigpose import RigPoses, ground_positions
 from trapflow.observe.tracker import Det, TrackEnd, Tracker, TrackerConfig
 
@@ -143,16 +143,31 @@ def modem_counts(record: dict[str, Any]) -> dict[str, Any]:
                        "pairs": c["pairs"], "labels": c["labels"]}}
 
 
+def modem_news(news: RunNews, t_s: float) -> list[dict[str, Any]]:
+    """The run's news as the modem carries it: `new_label` (kind 9: label, time, the first
+    track's id) and `new_max_n` (kind 10: label, time, the run's new MaxN when above 1)."""
+    out: list[dict[str, Any]] = []
+    if news.new_label:
+        out.append({"new_label": {"label": news.label, "time": _utc(t_s),
+                                  "track": news.track}})
+    if news.max_n > 1:
+        out.append({"new_max_n": {"label": news.label, "time": _utc(t_s),
+                                  "max_n": news.max_n}})
+    return out
+
+
 @dataclass
 class Observations:
-    """What one call produced: finished tracks and closed intervals, as JSON objects."""
+    """What one call produced: finished tracks and closed intervals, as JSON objects, and
+    the run's news (modem records only: the same facts are in the files)."""
 
     tracks: list[dict[str, Any]] = field(default_factory=list)
     counts: list[dict[str, Any]] = field(default_factory=list)
+    news: list[dict[str, Any]] = field(default_factory=list)
 
     def for_modem(self) -> list[dict[str, Any]]:
-        """The same, compact, for the outbox."""
-        return [*map(modem_counts, self.counts), *map(modem_track, self.tracks)]
+        """The same, compact, for the outbox; news first."""
+        return [*self.news, *map(modem_counts, self.counts), *map(modem_track, self.tracks)]
 
 
 def track_pairs(pairs: Iterable[tuple[int, list[dict[str, Any]]]],
@@ -176,6 +191,7 @@ class Observer:
         self.tracker = Tracker(tracker_config(cfg))
         self.poses = poses  # the rig's motion from VO, shared by every detector's observer
         self.counter = Counter(cfg.interval_s)
+        self.news = News()
         self.views: dict[int, list[View]] = {}  # stereo measurements of live tracks
         self.t_s: float | None = None  # newest capture time fed
         self.late = 0  # results tracked at a newer capture time than their own
@@ -202,7 +218,8 @@ class Observer:
                     own_s, tuple(it["xyz"]), it.get("length_m"), it.get("length_sd_m")))
         self.counter.ended(upd.ended)
         closed = self.counter.observe(t_s, upd.seen)
-        return Observations(self._records(upd.ended), [count_record(c) for c in closed])
+        news = [rec for n in self.news.observe(upd.seen) for rec in modem_news(n, t_s)]
+        return Observations(self._records(upd.ended), [count_record(c) for c in closed], news)
 
     def _records(self, ended: tuple[TrackEnd, ...]) -> list[dict[str, Any]]:
         return [track_record(e, self.views.pop(e.id, None), self.poses) for e in ended]

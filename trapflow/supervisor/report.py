@@ -30,6 +30,9 @@ from trapflow.wire.frame_ring import FrameRing
 # results.jsonl is read incrementally for the ledger, at most this much per status tick.
 RESULTS_READ_BYTES = 4 << 20
 RESULTS_READS_AT_END = 10_000
+# counts.jsonl's last line is looked for in this much of its end (a line is a few hundred
+# bytes per label).
+COUNTS_TAIL_BYTES = 64 << 10
 
 
 @dataclass(frozen=True)
@@ -84,6 +87,25 @@ def _full_stats(stats: messages.Stats) -> dict[str, Any]:
     return out
 
 
+def latest_counts(path: Path) -> dict[str, Any] | None:
+    """The last closed interval in counts.jsonl (its `counts` object), or None while none has
+    closed; a line still being written is passed over for the one before it."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(max(0, f.seek(0, os.SEEK_END) - COUNTS_TAIL_BYTES))
+            tail = f.read()
+    except FileNotFoundError:
+        return None
+    for line in reversed(tail.splitlines()):
+        try:
+            obj = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(obj, dict) and isinstance(obj.get("counts"), dict):
+            return obj["counts"]  # type: ignore[no-any-return]
+    return None
+
+
 class Report:
     """The run's reports, built from the supervisor's state on demand."""
 
@@ -136,7 +158,17 @@ class Report:
                      **msgspec.structs.asdict(h.rig)} if h.rig is not None else None),
             "ring": ({"segment": h.ring.name, "slots": h.ring.slots, **h.ring.counts()}
                      if h.ring is not None else None),
+            "counts": self.counts(),
         }
+
+    def counts(self) -> dict[str, Any] | None:
+        """The latest closed interval's visits, MaxN and dwell per label (counts.jsonl), and
+        the interval's length; None when the run does not track."""
+        ocfg = self.cfg.observe
+        if not ocfg.enabled:
+            return None
+        return {"interval_s": ocfg.interval_s,
+                "latest": latest_counts(self.run_dir / ocfg.counts_file)}
 
     def supervision(self) -> dict[str, Any]:
         """Give-ups, retries and recycles over the run, and their timeline (seconds since

@@ -28,6 +28,7 @@ from trapflow.broker.state import (
     BrokerState,
     Dispatch,
     Evicted,
+    GateNotice,
     PoolSpec,
     Rejected,
     Release,
@@ -38,7 +39,7 @@ from trapflow.errors import ProtocolError, unreachable
 from trapflow.gate.policy import gated_pools
 from trapflow.runtime.node import ACTIVE, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog, wire
-from trapflow.wire import frame_msgs, messages, tap_msgs
+from trapflow.wire import frame_msgs, gate_msgs, messages, tap_msgs
 from trapflow.wire.frame_ring import HELD, FrameRing
 from trapflow.wire.transport import (
     PAIR_MAX_MSG_BYTES,
@@ -254,7 +255,12 @@ class BrokerNode(Node):
                     self._on_capture(frames)
                     continue
                 if role == "results":
-                    self._on_ack(messages.decode_results_ack(frames[0]))
+                    said = gate_msgs.decode_normalizer_msg(frames[0])
+                    if isinstance(said, gate_msgs.GateHint):
+                        self._apply(self.state.gate_hint(said.tracks, said.rig_moving,
+                                                         time.monotonic()))
+                    else:
+                        self._on_ack(said)
                     continue
                 msg = _local_msg(messages.decode_worker_msg(frames[0]))
                 ident = self.link_ident.get(link)
@@ -451,6 +457,8 @@ class BrokerNode(Node):
                     "rejected:" + action.reason,
                     "dropped an answer from worker '%s' for pool '%s' pair %d (%s): %s",
                     wire(action.worker), wire(action.pool), action.seq, action.reason, why)
+            elif isinstance(action, GateNotice):
+                log.info("%s", action.text)
             elif isinstance(action, Evicted):
                 self.remote.roster.evicted(action.worker, action.reason)
                 # A worker told to stop, or recycled, leaves on purpose (news for the debug

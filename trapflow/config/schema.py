@@ -241,6 +241,18 @@ class MotionGateConfig(_Section):
     """Pairs keep going for this long after the last motion (an animal pausing mid-walk)."""
     min_score: Annotated[float, msgspec.Meta(ge=0, lt=1)] = 0.0
     """Motion counts only with at least this score (share of the small image moving)."""
+    rig_moving_m_s: Annotated[float, msgspec.Meta(gt=0, le=100)] = 0.05
+    """Visual odometry's speed from which the rig moves: the gate is off (every pair fed)
+    until it is still again (README "Motion gate")."""
+    rig_moving_deg_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 3.0
+    """VO's rotation rate from which the rig moves."""
+    rig_still_s: Annotated[float, msgspec.Meta(ge=0, le=3600)] = 2.0
+    """Seconds below half of both before the rig is still and the gate on again."""
+    idle_after_s: Annotated[float, msgspec.Meta(ge=0, le=86400)] = 0.0
+    """Duty cycling, opt-in: seconds without motion before capture drops to idle_rate_hz
+    (0: never). The first pair that moves brings the full rate back."""
+    idle_rate_hz: Annotated[float, msgspec.Meta(gt=0, le=240)] = 2.0
+    """Capture rate while idle (at most source.rate_hz): below VO's 10 pairs/s, a choice."""
 
 
 class SupervisorConfig(_Section):

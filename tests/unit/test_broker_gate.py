@@ -215,9 +215,16 @@ def test_gated_pools_from_config_give_a_latest_pool_no_pre_roll() -> None:
     from trapflow.gate.policy import gated_pools
 
     cfg = from_data({"pools": {"mono": {"gate": "motion"},
-                               "stereo": {"gate": "motion", "policy": "fifo:6"}},
+                               "stereo": {"gate": "motion", "policy": "fifo:6"},
+                               # The pre-roll is queued at once with the pair that moved:
+                               # a fifo:N pool takes at most N - 1 of it (a config of
+                               # before the default gate, fifo:4, stays valid).
+                               "small": {"gate": "motion", "policy": "fifo:4"}},
                      "gate": {"pre_roll": 5, "keepalive_s": 2.0, "hold_s": 1.0}})
     assert gated_pools(cfg) == {
         "mono": GateConfig(pre_roll=0, keepalive_s=2.0, hold_s=1.0),
-        "stereo": GateConfig(pre_roll=5, keepalive_s=2.0, hold_s=1.0)}
-    assert gated_pools(from_data({})) == {}  # the default gates nothing
+        "stereo": GateConfig(pre_roll=5, keepalive_s=2.0, hold_s=1.0),
+        "small": GateConfig(pre_roll=3, keepalive_s=2.0, hold_s=1.0)}
+    # The default gates the recognisers (latest pools: no pre-roll), never VO or tags.
+    rules = GateConfig(pre_roll=0, keepalive_s=5.0, hold_s=3.0)
+    assert gated_pools(from_data({})) == {"mono": rules, "stereo": rules}

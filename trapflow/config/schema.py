@@ -233,8 +233,8 @@ class MotionGateConfig(_Section):
 
     pre_roll: Annotated[int, msgspec.Meta(ge=0, le=100)] = 5
     """Withheld pairs kept in the frame ring and fed in order when motion begins; a
-    `latest` pool takes none (it would keep only the newest of them), a fifo:N pool needs
-    N > pre_roll."""
+    `latest` pool takes none (it would keep only the newest of them), a fifo:N pool at most
+    N - 1 (they are queued at once, with the pair that moved)."""
     keepalive_s: Annotated[float, msgspec.Meta(gt=0, le=86400)] = 5.0
     """One pair at least this often without motion: a still animal in view is still seen."""
     hold_s: Annotated[float, msgspec.Meta(ge=0, le=3600)] = 3.0
@@ -383,9 +383,11 @@ class ViewerConfig(_Section):
 
 def _default_pools() -> dict[str, PoolConfig]:
     return {
-        # Visual odometry keeps its rate: the recognisers run at a lower CPU priority.
-        "mono": PoolConfig(count=1, policy="latest", nice=5),
-        "stereo": PoolConfig(count=1, policy="latest", nice=10),
+        # Visual odometry keeps its rate: the recognisers run at a lower CPU priority, and
+        # only on pairs the motion gate lets through (an empty sea floor costs almost
+        # nothing; a rig that VO sees moving turns the gate off). VO is never gated.
+        "mono": PoolConfig(count=1, policy="latest", nice=5, gate="motion"),
+        "stereo": PoolConfig(count=1, policy="latest", nice=10, gate="motion"),
         "vo": PoolConfig(count=1, policy="ordered:16"),
         "tags": PoolConfig(count=0, policy="latest", nice=5),
     }
@@ -422,13 +424,6 @@ class Config(_Section):
                 raise ValueError(
                     f"pool {name!r}: the ordered policy takes count 0 or 1, got {pool.count}"
                 )
-            policy = pool.parsed_policy
-            pre_roll = self.gate.pre_roll
-            if pool.gate == "motion" and policy.kind == "fifo" and policy.bound <= pre_roll:
-                raise ValueError(
-                    f"pool {name!r}: expected fifo:N with N > gate.pre_roll = "
-                    f"{pre_roll} for gate: motion, got {pool.policy}: the pre-roll "
-                    "pairs are queued at once when motion begins, with the pair that moved")
 
     def validated(self) -> Config:
         """Re-run validation after programmatic changes."""

@@ -17,7 +17,7 @@ from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from trapflow.config.schema import Config
+from trapflow.config.schema import Config, Policy
 from trapflow.gate.duty import DutyConfig
 from trapflow.gate.hint import RigConfig
 
@@ -64,13 +64,22 @@ class GateConfig:
 
 
 def gated_pools(cfg: Config) -> dict[str, GateConfig]:
-    """Every pool with `gate: motion` and its rules, from the config's `gate` section. A
-    `latest` pool takes no pre-roll: of pairs queued at once it keeps only the newest, so
-    the pre-roll would only be counted dropped (and hold ring slots meanwhile)."""
+    """Every pool with `gate: motion` and its rules, from the config's `gate` section. The
+    pre-roll is queued at once with the pair that moved, so a pool takes only what its
+    queue holds beside it: a `latest` pool none (the rest would only be counted dropped,
+    holding ring slots meanwhile), a fifo:N pool at most N - 1."""
     g = cfg.gate
-    return {name: GateConfig(pre_roll=0 if p.parsed_policy.kind == "latest" else g.pre_roll,
+    return {name: GateConfig(pre_roll=_pre_roll(p.parsed_policy, g.pre_roll),
                              keepalive_s=g.keepalive_s, hold_s=g.hold_s, min_score=g.min_score)
             for name, p in cfg.pools.items() if p.gate == "motion"}
+
+
+def _pre_roll(policy: Policy, pre_roll: int) -> int:
+    if policy.kind == "latest":
+        return 0
+    if policy.kind == "fifo":
+        return min(pre_roll, policy.bound - 1)
+    return pre_roll
 
 
 @dataclass(frozen=True)

@@ -164,3 +164,18 @@ def test_rig_moving_says_so_once() -> None:
 def test_config_rejects(kwargs: dict[str, float], error: str) -> None:
     with pytest.raises(ValueError, match=error.replace("(", r"\(")):
         GateConfig(**kwargs)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(("events", "active", "idle"), [
+    # Still: idle all along (the keep-alive is no activity).
+    (still(0, 50), 0.0, 5.0),
+    # Motion at 10 and its hold of 2 s (to 30): active from pair 10 to 30, the rest idle.
+    (still(0, 9) + moved(10) + still(11, 50), 2.1, 2.9),
+    # A moving rig: the gate is off, every pair fed, all active.
+    ([("rig", True, 0.0)] + still(0, 20), 2.0, 0.0),
+])
+def test_active_and_idle_time(events: list[Event], active: float, idle: float) -> None:
+    """The report's split of a run: seconds the gate was open and seconds it was idle."""
+    gate = GateState({"mono": CFG})
+    play(gate, events)
+    assert (round(gate.active_s, 6), round(gate.idle_s, 6)) == (active, idle)

@@ -133,7 +133,10 @@ class BrokerNode(Node):
         self.level_reason = ""
 
     def counters(self) -> dict[str, int]:
-        return {"pairs_in": self.state.pairs_in, "malformed": self._malformed(),
+        active, idle = self.state.gate_time()
+        return {"pairs_in": self.state.pairs_in,
+                "gate_active_s": int(active), "gate_idle_s": int(idle),
+                "malformed": self._malformed(),
                 "held": self.state.held(), "results_waiting": len(self._out) + len(self._unacked),
                 "results_dropped": self.results_dropped, "late_answers": self.state.late,
                 "refused_subscriptions": self.tap.gate.refused,

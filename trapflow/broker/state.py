@@ -404,6 +404,10 @@ class BrokerState:
             for p in self._pools.values()
         }
 
+    def gate_time(self) -> tuple[float, float]:
+        """Seconds the motion gate was open (active) and idle; (0, 0) without a gated pool."""
+        return (self._gate.active_s, self._gate.idle_s) if self._gate else (0.0, 0.0)
+
     def worker_pools(self) -> dict[bytes, str]:
         """Every worker the state knows (live), and its pool."""
         return {w: p.name for p in self._pools.values() for w in p.workers}

@@ -25,6 +25,9 @@ from trapflow.gate.hint import RigConfig
 TRACK_TTL_S = 10.0
 # The id under which tracks_alive() holds the gate: the normalizer's count of live tracks.
 TRACKS_ALIVE = -1
+# Longest interval between two pairs counted as active or idle time (a stalled source's gap
+# is neither).
+MAX_PAIR_GAP_S = 2.0
 
 
 class Reason(enum.Enum):
@@ -146,6 +149,11 @@ class GateState:
         self._track_ttl = track_ttl_s
         self._tracks: dict[int, float] = {}  # track id -> when last said alive
         self.rig_moving = False
+        # Seconds the gate was open (some gated pool fed for motion, pre-roll, hold, a track
+        # or a moving rig) and idle (withheld, or only the keep-alive): the report's split.
+        self.active_s = 0.0
+        self.idle_s = 0.0
+        self._last_pair: float | None = None
 
     # --- events -------------------------------------------------------------------
 
@@ -156,6 +164,13 @@ class GateState:
         tracking = self._tracking(now)
         for pool in self._pools.values():
             actions.extend(self._decide(pool, seq, motion, score, tracking, now))
+        if self._last_pair is not None and now > self._last_pair:
+            gap = min(now - self._last_pair, MAX_PAIR_GAP_S)
+            if any(isinstance(a, Feed) and a.reason is not Reason.KEEPALIVE for a in actions):
+                self.active_s += gap
+            else:
+                self.idle_s += gap
+        self._last_pair = now
         return actions
 
     def track_alive(self, track_id: int, now: float) -> list[Action]:

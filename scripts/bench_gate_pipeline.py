@@ -91,7 +91,9 @@ def summary(ledger: dict[str, Any], battery_wh: float) -> dict[str, Any]:
     pi5 = estimate(BOARDS["pi5"], cpu, wall)
     fed = {p: (ledger["pools"][p]["processed"] + ledger["pools"][p]["dropped_by_policy"]) / wall
            for p in RECOGNISERS}  # pairs the gate let through (a latest pool drops some)
-    ros2_cpu = cpu_from_rates(ROS2_COST_S, fed, wall)
+    # One worker per pool takes at most one pair per its cost: a `latest` pool drops the rest.
+    ros2_cpu = cpu_from_rates(ROS2_COST_S, {p: min(r, 1.0 / ROS2_COST_S[p])
+                                            for p, r in fed.items()}, wall)
     ros2 = estimate(BOARDS["pi5"], {**{k: v for k, v in cpu.items()
                                         if k not in RECOGNISERS}, **ros2_cpu}, wall)
     out = {"wall_s": wall, "produced": ledger["produced"],

@@ -35,13 +35,15 @@ STILL_ANIMAL = "tests.integration.gate_plugins:StillAnimal"
 NO_ANIMAL = "tests.integration.gate_plugins:NoAnimal"
 
 
-def _gated_mono(plugin: str, source: dict[str, object], vo: int = 1, **extra: object
-                ) -> dict[str, object]:
-    """mono gated (keep-alive 1 s, no hold, no pre-roll), the other recognisers off."""
+def _gated_mono(plugin: str, source: dict[str, object], vo: int = 1,
+                gate: dict[str, float] | None = None, **extra: object) -> dict[str, object]:
+    """mono gated (keep-alive 1 s, no hold, no pre-roll, and `gate`), the other recognisers
+    off."""
     return {"source": {"kind": "synthetic", "rate_hz": 10.0, **source},
             "pools": {"mono": {"plugin": plugin, "gate": "motion"}, "vo": {"count": vo},
                       "stereo": {"count": 0}, "tags": {"count": 0}},
-            "gate": {"keepalive_s": 1.0, "hold_s": 0.0, "pre_roll": 0}, **extra}
+            "gate": {"keepalive_s": 1.0, "hold_s": 0.0, "pre_roll": 0, **(gate or {})},
+            **extra}
 
 
 @pytest.mark.timeout(90)
@@ -85,4 +87,24 @@ def test_a_moving_rig_turns_the_gate_off(spawn, run_dir: Path) -> None:
     assert mono["gated"] <= 0.3 * ledger["produced"], ledger
     log = (run_dir / "trapflow.log").read_text()
     assert log.count("motion gate off: the rig moves") == 1, log[-2000:]
+    assert not p.leftovers()
+
+
+@pytest.mark.timeout(90)
+def test_duty_cycling_drops_capture_to_the_idle_rate_on_still_water(spawn, run_dir: Path
+                                                                    ) -> None:
+    """Still water with duty cycling on (idle after 1 s at 2 pairs/s): capture says so in
+    one INFO line and, after the first second at 10 pairs/s, sends about 2 pairs a second;
+    without it the same run sends about 10."""
+    still = {"options": {"density": 0.0, "snow": 0.0}}
+    cfg = write_config(run_dir.parent / "duty.yaml", _gated_mono(
+        NO_ANIMAL, still, vo=0, gate={"idle_after_s": 1.0, "idle_rate_hz": 2.0}))
+    p: Pipeline = spawn(["--config", str(cfg), "--duration", "8"], run_dir)
+    code, _out, err = p.wait(75)
+    assert code == 0, err
+    produced = json.loads((run_dir / "ledger.json").read_text())["produced"]
+    # 8 s: about 10 pairs in the first second, then 2 a second (about 24); at full rate 80.
+    assert 12 <= produced <= 40, produced
+    log = (run_dir / "trapflow.log").read_text()
+    assert log.count("duty cycling: 2 pairs/s after 1 s without motion") == 1, log[-2000:]
     assert not p.leftovers()

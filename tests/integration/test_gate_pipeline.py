@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from pathlib import Path
 
 import pytest
@@ -35,7 +36,7 @@ STILL_ANIMAL = "tests.integration.gate_plugins:StillAnimal"
 NO_ANIMAL = "tests.integration.gate_plugins:NoAnimal"
 
 
-def _gated_mono(plugin: str, source: dict[str, object], vo: int = 1,
+def _gated_mono(plugin: str, source: Mapping[str, object], vo: int = 1,
                 gate: dict[str, float] | None = None, **extra: object) -> dict[str, object]:
     """mono gated (keep-alive 1 s, no hold, no pre-roll, and `gate`), the other recognisers
     off."""

@@ -134,9 +134,8 @@ class BrokerNode(Node):
 
     def counters(self) -> dict[str, int]:
         active, idle = self.state.gate_time()
-        return {"pairs_in": self.state.pairs_in,
+        return {"pairs_in": self.state.pairs_in, "malformed": self._malformed(),
                 "gate_active_s": int(active), "gate_idle_s": int(idle),
-                "malformed": self._malformed(),
                 "held": self.state.held(), "results_waiting": len(self._out) + len(self._unacked),
                 "results_dropped": self.results_dropped, "late_answers": self.state.late,
                 "refused_subscriptions": self.tap.gate.refused,
@@ -258,12 +257,7 @@ class BrokerNode(Node):
                     self._on_capture(frames)
                     continue
                 if role == "results":
-                    said = gate_msgs.decode_normalizer_msg(frames[0])
-                    if isinstance(said, gate_msgs.GateHint):
-                        self._apply(self.state.gate_hint(said.tracks, said.rig_moving,
-                                                         time.monotonic()))
-                    else:
-                        self._on_ack(said)
+                    self._on_ack(gate_msgs.decode_normalizer_msg(frames[0]))
                     continue
                 msg = _local_msg(messages.decode_worker_msg(frames[0]))
                 ident = self.link_ident.get(link)
@@ -538,8 +532,12 @@ class BrokerNode(Node):
                 n = 1
             del self._out[:n]
 
-    def _on_ack(self, ack: messages.ResultsAck) -> None:
-        """Only the live normalizer's link is read for acks; never more than it was sent."""
+    def _on_ack(self, ack: gate_msgs.NormalizerMsg) -> None:
+        """Only the live normalizer's link is read for acks; never more than it was sent. Its
+        gate hints (live tracks, a moving rig) go to the gate."""
+        if isinstance(ack, gate_msgs.GateHint):
+            self._apply(self.state.gate_hint(ack.tracks, ack.rig_moving, time.monotonic()))
+            return
         if not 0 < ack.count <= len(self._unacked):
             self._refuse("bad_ack", "an acknowledgement of %d results exceeds the %d sent and "
                          "not yet acknowledged; taking only those", ack.count, len(self._unacked))

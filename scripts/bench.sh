@@ -43,7 +43,9 @@ Parts, in order, with their run time on a 2-core machine (full / --quick):
               track speeds over the ground, rig still and moving,
               VO's poses against the truth (bench_speed.py)        ~5 min  / skipped
   gate        motion gate: cost per pair per method, pairs fed, animals
-              missed, empty water withheld                         ~3 min  / skipped
+              missed, empty water withheld; whole pipelines on rendered
+              sequences gated vs ungated: recognisers' CPU, CPU per hour,
+              days on a Pi 5 battery, animal recall, snow   ~20 min / skipped
 
 Numbers go to OUT_DIR: one JSON (and Markdown) per part, and OUT_DIR/bench.md with all
 of them; the CPU table is what docs/benchmarks.md quotes. Nothing is asserted.

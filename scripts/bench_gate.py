@@ -1,7 +1,10 @@
 """Benchmark of the motion gate: CPU per pair of each background method at 1280x720, and on
-synthetic sequences with truth (static rig) what the gate would withhold, as JSON.
+synthetic sequences with truth (static rig) what the gate would withhold, as JSON; then whole
+pipelines (bench_gate_pipeline.py): sequences rendered first with `trapflow dataset synth`
+and replayed as an image folder, gated default against `gate: always`, in one run.
 
-Usage: python scripts/bench_gate.py [--pairs 1800 --seeds 11,12,13 --out bench-results]
+Usage: python scripts/bench_gate.py [--pairs 1800 --seeds 11,12,13 --out bench-results
+                                     --pipeline-pairs 900 --size 1280x720]
 
 Miss rate: pairs with an animal in view that the gated pool would not get (after pre-roll,
 hold and keep-alive). Two recognisers are simulated: `gate` alone (no tracks), and `tracks`
@@ -22,6 +25,7 @@ from pathlib import Path
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"
 
+import bench_gate_pipeline  # noqa: E402  (scripts/ is on the path when run as a script)
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -190,6 +194,11 @@ def main() -> None:
     ap.add_argument("--seeds", default="11,12,13", help="held-out world seeds")
     ap.add_argument("--rounds", type=int, default=10, help="cost: passes over 100 pairs")
     ap.add_argument("--out", default="bench-results", help="folder for gate.json")
+    ap.add_argument("--pipeline-pairs", type=int, default=900,
+                    help="pairs per replayed sequence of the pipeline part (0: skip it)")
+    ap.add_argument("--size", default="1280x720", help="pipeline part: rendered pair size")
+    ap.add_argument("--battery-wh", type=float, default=1000.0,
+                    help="pipeline part: battery capacity for days on a Pi 5")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     rig = StereoRig.from_fov(1280, 720, 70.0, 0.12)
@@ -211,6 +220,10 @@ def main() -> None:
     }
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.pipeline_pairs:
+        w, h = (int(v) for v in args.size.split("x"))
+        result["pipeline"] = bench_gate_pipeline.run_all(
+            out / "gate-pipeline", args.pipeline_pairs, (w, h), RATE_HZ, args.battery_wh)
     (out / "gate.json").write_text(json.dumps(result, indent=2) + "\n")
 
 

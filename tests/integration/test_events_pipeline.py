@@ -18,7 +18,8 @@ pytestmark = pytest.mark.slow  # starts whole pipelines
 def test_trigger_keeps_preroll_and_postroll_pairs(spawn, run_dir: Path) -> None:
     cfg = write_config(run_dir.parent / "events.yaml", {
         "source": small_source(10.0),
-        "pools": only_pools({"stereo": {"plugin": "histogram", "policy": "latest"}}),
+        "pools": only_pools({"stereo": {"plugin": "histogram", "policy": "latest",
+                                        "gate": "always"}}),
         "events": {"enabled": True, "pre_s": 1.0, "post_s": 1.0,
                    "triggers": [{"algorithm": "stereo_ir", "not_label": "nothing"}]},
     })

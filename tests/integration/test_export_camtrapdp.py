@@ -131,7 +131,9 @@ def check_event_rows(obs: list[dict[str, str]], tracks: list[dict[str, Any]],
 @pytest.mark.timeout(300)
 def test_package_of_a_run_with_tracks_and_events(spawn, run_dir: Path, tmp_path: Path) -> None:
     cfg = write_config(tmp_path / "events.yaml", {
-        "pools": only_pools({"mono": {"count": 1}}),
+        # Every pair to mono: media.csv dates an image by its pair's result (a pair the
+        # gate withheld has none, and only mono runs here).
+        "pools": only_pools({"mono": {"count": 1, "gate": "always"}}),
         "events": {"enabled": True, "pre_s": 0.4, "post_s": 0.6,
                    "triggers": [{"algorithm": "mono_ir", "label": "crab",
                                  "min_confidence": 0.3}]}})

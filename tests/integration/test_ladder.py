@@ -56,7 +56,7 @@ def test_hot_cpu_slows_stereo_and_it_comes_back(spawn, run_dir: Path) -> None:
     temp.write_text("40000\n")
     cfg = write_config(run_dir.parent / "ladder.yaml", {
         "source": small_source(8.0, seed=1),
-        "pools": only_pools({"stereo": {"count": 1, "policy": "latest"}}),
+        "pools": only_pools({"stereo": {"count": 1, "policy": "latest", "gate": "always"}}),
         "ladder": {
             "interval_s": 0.2,
             "levels": [{"name": "full"},

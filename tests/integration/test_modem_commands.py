@@ -67,7 +67,8 @@ def test_commands_run_once_replays_and_forgeries_are_refused(
     key_path.chmod(0o600)
     cfg = write_config(link / "cmd.yaml", {
         "source": {"width": 160, "height": 120, "rate_hz": 4.0},
-        "pools": only_pools({"stereo": {"plugin": "noop", "policy": "latest"}}),
+        "pools": only_pools({"stereo": {"plugin": "noop", "policy": "latest",
+                                        "gate": "always"}}),
         "modem": {"enabled": True, "port": str(link / "a"), "bit_rate": 9600.0,
                   "ack_timeout_s": 1.0, "reopen_interval_s": 0.5,
                   "command_key": str(key_path)},

@@ -53,7 +53,8 @@ def test_results_and_health_reach_the_surface(spawn, run_dir: Path, helpers) -> 
     helpers.append(_cli("surface", str(link / "b"), "-o", str(surface_out)))
     cfg = write_config(link / "modem.yaml", {
         "source": small_source(5.0),
-        "pools": only_pools({"stereo": {"plugin": "histogram", "policy": "latest"}}),
+        "pools": only_pools({"stereo": {"plugin": "histogram", "policy": "latest",
+                                        "gate": "always"}}),
         "modem": {"enabled": True, "port": str(link / "a"), "bit_rate": 2400.0,
                   "ack_timeout_s": 1.0, "reopen_interval_s": 0.5},
         "health": {"enabled": True, "interval_s": 2.0},

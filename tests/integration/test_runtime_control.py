@@ -41,7 +41,7 @@ def node(p: Pipeline, name: str) -> dict[str, Any]:
 def test_pool_count_lifecycle_and_param_at_run_time(spawn, run_dir: Path) -> None:
     cfg = write_config(run_dir.parent / "ctl.yaml", {
         "source": small_source(4.0, seed=1),
-        "pools": only_pools({"mono": {"count": 1, "policy": "latest"},
+        "pools": only_pools({"mono": {"count": 1, "policy": "latest", "gate": "always"},
                              # a plugin that cannot be configured again: restarted instead
                              "slow": {"plugin": "slow", "params": {"delay_s": 0.05}}}),
     })

@@ -8,7 +8,7 @@ import random
 
 import pytest
 
-from trapflow.broker.state import BrokerState, Dispatch, PoolSpec, Release
+from trapflow.broker.state import Action, BrokerState, Dispatch, GateNotice, PoolSpec, Release
 from trapflow.config.schema import parse_policy
 from trapflow.gate.policy import GateConfig
 
@@ -74,6 +74,76 @@ def test_a_gated_pool_gets_what_the_gate_lets_through(
     assert g.received == g.processed + g.gated  # the ledger adds up, gated counted
     assert (vo.processed, vo.gated) == (len(motions), 0)  # never gated: every pair
     assert sorted(released) == list(range(len(motions))) and s.drained()
+
+
+def play(s: BrokerState, events: list[tuple[object, ...]]) -> tuple[list[int], list[Action]]:
+    """Events at DT apart: ("pair", motion) for the next seq, ("hint", tracks, rig moving)
+    as the normalizer says it, ("throttle", interval) as the ladder sets it. Workers answer
+    at once. Returns the seqs the gated pool got and every other action of the broker."""
+    s.worker_ready(W_GATED, "g", 64, 0.0)
+    s.worker_ready(W_ALL, "vo", 64, 0.0)
+    got: list[int] = []
+    said: list[Action] = []
+    seq = 0
+    for i, ev in enumerate(events):
+        now = i * DT
+        if ev[0] == "pair":
+            todo = s.pair_arrived(seq, now, bool(ev[1]), 0.1 if ev[1] else 0.0)
+            seq += 1
+        elif ev[0] == "hint":
+            todo = s.gate_hint(int(ev[1]), bool(ev[2]), now)  # type: ignore[call-overload]
+        elif ev[0] == "throttle":
+            todo = s.set_interval("g", float(ev[1]), now)  # type: ignore[arg-type]
+        else:
+            raise TypeError(f"unknown event {ev!r}")
+        while todo:
+            a = todo.pop(0)
+            if isinstance(a, Dispatch):
+                got += [a.seq] if a.pool == "g" else []
+                todo += s.job_done(a.worker, a.pool, a.seq, True, now)
+            elif not isinstance(a, Release):
+                said.append(a)
+    return got, said
+
+
+def pairs(*motions: bool) -> list[tuple[object, ...]]:
+    return [("pair", m) for m in motions]
+
+
+NOTICE_OFF = GateNotice("motion gate off: the rig moves, every pair is fed")
+NOTICE_ON = GateNotice("motion gate on: the rig is still")
+
+
+@pytest.mark.parametrize(("events", "fed", "notices"), [
+    # Tracks alive (the normalizer's word) hold the gate open on a still scene; their end
+    # closes it (0..4 held; then withheld until the keep-alive 1 s after 4: 7).
+    ([("hint", 1, False)] + pairs(*[F] * 5) + [("hint", 0, False)] + pairs(*[F] * 3),
+     [0, 1, 2, 3, 4, 7], []),
+    # No tracks: only the keep-alive.
+    ([("hint", 0, False)] + pairs(*[F] * 5), [0, 4], []),
+    # The rig moves: every pair fed with one notice (said again: still one); still again:
+    # the hold (0.5 s) while the background is learnt afresh, then gated.
+    (pairs(F, F) + [("hint", 0, True)] + pairs(F, F) + [("hint", 0, True)] + pairs(F)
+     + [("hint", 0, False)] + pairs(*[F] * 5), [0, 2, 3, 4, 5, 6], [NOTICE_OFF, NOTICE_ON]),
+    # The ladder and the gate agree: a throttled pool (one pair a second) gets no more when
+    # motion and its pre-roll come at once; the gate never raises a level's rate.
+    ([("throttle", 1.0)] + pairs(F, F, F, T, T, T, T, T), [0, 4], []),
+])
+def test_the_normalizers_word_and_the_ladder(events: list[tuple[object, ...]], fed: list[int],
+                                             notices: list[Action]) -> None:
+    s = gated_state("fifo:8")
+    got, said = play(s, events)
+    assert got == fed
+    assert said == notices
+    s.finish()
+    g = s.pool_stats()["g"]
+    n = sum(ev[0] == "pair" for ev in events)
+    assert g.received == n == g.processed + g.gated + g.throttled  # the ledger adds up
+
+
+def test_a_hint_without_a_gated_pool_changes_nothing() -> None:
+    s = BrokerState({"a": PoolSpec(parse_policy("fifo:3"), timeout_s=1.0)})
+    assert s.gate_hint(3, True, 0.0) == []
 
 
 def test_a_kept_pair_holds_its_slot_until_fed_or_gated() -> None:
@@ -145,9 +215,16 @@ def test_gated_pools_from_config_give_a_latest_pool_no_pre_roll() -> None:
     from trapflow.gate.policy import gated_pools
 
     cfg = from_data({"pools": {"mono": {"gate": "motion"},
-                               "stereo": {"gate": "motion", "policy": "fifo:6"}},
+                               "stereo": {"gate": "motion", "policy": "fifo:6"},
+                               # The pre-roll is queued at once with the pair that moved:
+                               # a fifo:N pool takes at most N - 1 of it (a config of
+                               # before the default gate, fifo:4, stays valid).
+                               "small": {"gate": "motion", "policy": "fifo:4"}},
                      "gate": {"pre_roll": 5, "keepalive_s": 2.0, "hold_s": 1.0}})
     assert gated_pools(cfg) == {
         "mono": GateConfig(pre_roll=0, keepalive_s=2.0, hold_s=1.0),
-        "stereo": GateConfig(pre_roll=5, keepalive_s=2.0, hold_s=1.0)}
-    assert gated_pools(from_data({})) == {}  # the default gates nothing
+        "stereo": GateConfig(pre_roll=5, keepalive_s=2.0, hold_s=1.0),
+        "small": GateConfig(pre_roll=3, keepalive_s=2.0, hold_s=1.0)}
+    # The default gates the recognisers (latest pools: no pre-roll), never VO or tags.
+    rules = GateConfig(pre_roll=0, keepalive_s=5.0, hold_s=3.0)
+    assert gated_pools(from_data({})) == {"mono": rules, "stereo": rules}

@@ -50,9 +50,6 @@ def test_default_yaml_documents_the_defaults() -> None:
         ({"pools": {"vo": {"gate": "motion"}}},
          r"an ordered pool \(visual odometry\) needs every pair.*\$.pools.vo"),
         ({"pools": {"mono": {"gate": "sometimes"}}}, r"\$.pools.mono.gate"),
-        # The pre-roll is queued at once with the pair that moved: the fifo must hold it.
-        ({"pools": {"mono": {"gate": "motion", "policy": "fifo:5"}}},
-         r"expected fifo:N with N > gate.pre_roll = 5 for gate: motion, got fifo:5"),
         ({"gate": {"pre_roll": 101}}, r"\$.gate.pre_roll"),
         ({"gate": {"keepalive_s": 0}}, r"\$.gate.keepalive_s"),
         ({"normalizer": {"flush_interval_s": 5}}, r"\$.normalizer.flush_interval_s"),

@@ -135,3 +135,19 @@ def test_run_metadata_section() -> None:
         assert text in page, text
     assert "onnxruntime" not in page  # not installed: not claimed
     assert "no run.json" in render_html(RunSummary(run="old"))
+
+
+def test_energy_section_with_active_and_idle_time() -> None:
+    """The report shows the power model's estimate and the motion gate's active vs idle
+    time from ledger.json's `energy`; a run without a ledger says so."""
+    s = RunSummary(run="r", ledger={"energy": {
+        "board": "pi5", "watts": 3.65, "wh_per_day": 87.6, "busy_cores": 0.42,
+        "days_on_battery": 4.6, "active_s": 40, "idle_s": 290,
+        "cpu_s_per_hour": {"mono": 300.0, "capture": 900.0}}})
+    page = render_html(s)
+    energy = page.split("<h2>Energy</h2>")[1].split("<h2>")[0]
+    for cell in ("<td>3.65</td>", "<td>87.6</td>", "<td>4.6</td>", "<td>40 (12 %)</td>",
+                 "<td>290</td>", "<td>mono</td><td>300.0</td>"):
+        assert cell in energy, (cell, energy)
+    bare = render_html(RunSummary(run="r")).split("<h2>Energy</h2>")[1]
+    assert bare.startswith("\n<p>no energy estimate")

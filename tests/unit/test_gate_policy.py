@@ -8,20 +8,17 @@ import pytest
 
 from trapflow.gate.policy import (
     Action,
-    DutyConfig,
     Feed,
     GateConfig,
     Gated,
     GateState,
     Keep,
     Notice,
-    Rate,
-    Relearn,
 )
 
 HZ = 10.0
-# An event: ("pair", seq, moved) at seq / HZ, ("alive" | "ended", track, t), ("rig", moving,
-# t), ("tick", t).
+# An event: ("pair", seq, moved) at seq / HZ, ("alive" | "ended", track, t), ("tracks",
+# count, t) as the normalizer says it, ("rig", moving, t), ("tick", t).
 Event = tuple[object, ...]
 
 
@@ -47,6 +44,8 @@ def play(gate: GateState, events: Iterable[Event]) -> list[Action]:
             out += gate.track_ended(int(ev[1]), float(ev[2]))  # type: ignore[call-overload,arg-type]
         elif kind == "rig":
             out += gate.set_rig_moving(bool(ev[1]), float(ev[2]))  # type: ignore[arg-type]
+        elif kind == "tracks":
+            out += gate.tracks_alive(int(ev[1]), float(ev[2]))  # type: ignore[call-overload,arg-type]
         elif kind == "tick":
             out += gate.tick(float(ev[1]))  # type: ignore[arg-type]
         else:
@@ -90,6 +89,18 @@ CFG = GateConfig(pre_roll=3, keepalive_s=5.0, hold_s=2.0)
      [(s, "track") for s in range(10)], [10, 11]),
     # A track whose end was lost expires after its TTL (10 s), by tick.
     (CFG, [("alive", 7, 0.0)] + still(0, 99) + [("tick", 10.5)] + still(105, 109),
+     [(s, "track") for s in range(100)], [105, 106]),
+    # The normalizer's count of live tracks holds the gate open like a track; its 0 ends
+    # the hold at once.
+    (CFG, [("tracks", 2, 0.0)] + still(0, 9) + [("tracks", 0, 0.95)] + still(10, 14),
+     [(s, "track") for s in range(10)], [10, 11]),
+    # Said again every second, the count keeps holding past the TTL (10 s)...
+    (CFG, [("tracks", 1, 0.0)] + [e for s in range(0, 130) for e in
+                                   ([("tracks", 1, s / HZ)] if s % 10 == 0 else [])
+                                   + [("pair", s, False)]] + [("tick", 13.0)] + still(130, 134),
+     [(s, "track") for s in range(135)], []),
+    # ...but a count not said again expires with its TTL, by tick, like a lost track end.
+    (CFG, [("tracks", 1, 0.0)] + still(0, 99) + [("tick", 10.5)] + still(105, 109),
      [(s, "track") for s in range(100)], [105, 106]),
     # No pre-roll: a withheld pair is gated at once.
     (GateConfig(pre_roll=0), still(0, 3), [(0, "keepalive")], [1, 2, 3]),
@@ -141,37 +152,7 @@ def test_rig_moving_says_so_once() -> None:
     assert [a for a in actions if isinstance(a, Notice)] == \
         [Notice("motion gate off: the rig moves, every pair is fed")]
     back = play(gate, [("rig", False, 4.0)])
-    assert Relearn() in back and sum(isinstance(a, Notice) for a in back) == 1
-
-
-@pytest.mark.parametrize(("duty", "events", "want"), [
-    # Off by default: never a rate change.
-    (DutyConfig(), still(0, 200), []),
-    # Idle rate after 5 s without motion (the start counts as motion).
-    (DutyConfig(idle_after_s=5.0), still(0, 60), [(50, Rate(2.0))]),
-    # Motion brings the full rate back on that very pair, before its feeds.
-    (DutyConfig(idle_after_s=5.0), still(0, 60) + moved(61), [(50, Rate(2.0)),
-                                                               (61, Rate(None))]),
-    # A live track keeps the full rate.
-    (DutyConfig(idle_after_s=5.0), [("alive", 3, 0.0)] + still(0, 60), []),
-])
-def test_duty_cycling(duty: DutyConfig, events: list[Event], want: list[tuple[int, Rate]]
-                      ) -> None:
-    gate = GateState({"mono": CFG}, duty)
-    got = []
-    for ev in events:
-        for a in play(gate, [ev]):
-            if isinstance(a, Rate):
-                got.append((ev[1], a))
-    assert got == want
-
-
-def test_full_rate_comes_before_the_feeds_of_the_pair_that_moved() -> None:
-    gate = GateState({"mono": CFG}, DutyConfig(idle_after_s=1.0))
-    play(gate, still(0, 20))
-    assert gate.idle
-    actions = play(gate, moved(21))
-    assert actions[0] == Rate(None) and isinstance(actions[-1], Feed)
+    assert back == [Notice("motion gate on: the rig is still")]
 
 
 @pytest.mark.parametrize(("kwargs", "error"), [
@@ -183,3 +164,18 @@ def test_full_rate_comes_before_the_feeds_of_the_pair_that_moved() -> None:
 def test_config_rejects(kwargs: dict[str, float], error: str) -> None:
     with pytest.raises(ValueError, match=error.replace("(", r"\(")):
         GateConfig(**kwargs)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(("events", "active", "idle"), [
+    # Still: idle all along (the keep-alive is no activity).
+    (still(0, 50), 0.0, 5.0),
+    # Motion at 10 and its hold of 2 s (to 30): active from pair 10 to 30, the rest idle.
+    (still(0, 9) + moved(10) + still(11, 50), 2.1, 2.9),
+    # A moving rig: the gate is off, every pair fed, all active.
+    ([("rig", True, 0.0)] + still(0, 20), 2.0, 0.0),
+])
+def test_active_and_idle_time(events: list[Event], active: float, idle: float) -> None:
+    """The report's split of a run: seconds the gate was open and seconds it was idle."""
+    gate = GateState({"mono": CFG})
+    play(gate, events)
+    assert (round(gate.active_s, 6), round(gate.idle_s, 6)) == (active, idle)

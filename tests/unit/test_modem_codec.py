@@ -51,6 +51,11 @@ RECORDS: list[tuple[dict[str, Any], int]] = [  # record, most link bytes allowed
                  "temp_c": 85.0, "mem_pct": 40.1, "disk_free_mb": 20000, "backlog": 12,
                  "link": "active", "pools": {"mono": [4.5, 10], "stereo": [0.2, 200]},
                  "level": "ir_slowed"}}, 58),
+    # the power model's figures ride appended (issue 25): 4 more bytes
+    ({"health": {"timestamp": TS, "uptime_s": 3600, "cpu_pct": 55.5, "load1": 1.25,
+                 "temp_c": 61.2, "mem_pct": 40.1, "disk_free_mb": 20000, "backlog": 12,
+                 "link": "active", "pools": {"mono": [4.5, 10], "stereo": [1.0, 200]},
+                 "watts": 5.6, "days": 31.2}}, 52),
     ({"aggregate": {"class": "mono_ir/crab", "from": TS, "to": "2025-07-07 12:53:42.999",
                     "count": 57, "best": [{"mono_ir": {"timestamp": TS, "seq": 17, "label": "crab",
                                                        "confidence": 0.71,

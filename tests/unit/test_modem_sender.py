@@ -107,6 +107,25 @@ def test_health_record_fits_the_link(tmp_path: Path) -> None:
     assert LinkCodec().decode(data) == first
 
 
+def test_health_record_says_the_power_model_figures(tmp_path: Path) -> None:
+    """With the energy section, the record carries watts at the host's load now and the
+    days the battery lasts at that draw (within the board model's range), and still fits."""
+    from trapflow.config.schema import EnergyConfig
+
+    monitor = HealthMonitor(HealthConfig(interval_s=60), tmp_path,
+                            energy=EnergyConfig(board="pi5", battery_wh=500.0, usable=0.8))
+    rec = monitor({"backlog": 0})
+    assert rec is not None
+    body = rec["health"]
+    # Pi 5: 2.7 W idle + 0.4 W for two cameras, at most 4 busy cores at 1.3 W more each.
+    assert 3.1 <= body["watts"] <= 8.3
+    assert body["days"] == pytest.approx(500.0 * 0.8 / (body["watts"] * 24), abs=0.3)
+    data = LinkCodec().encode(rec)
+    assert len(data) <= 52 and LinkCodec().decode(data) == rec
+    plain = HealthMonitor(HealthConfig(interval_s=60), tmp_path)({"backlog": 0})
+    assert plain is not None and "watts" not in plain["health"]
+
+
 @pytest.mark.parametrize("periodic", [True, False])
 def test_a_level_change_sends_a_health_record_at_once(tmp_path: Path, periodic: bool) -> None:
     """The ladder's level (from the broker's stats) changes: a record now, carrying it, even

@@ -165,6 +165,20 @@ def test_trapflow_status_renders_the_supervision_timeline_and_the_ledger() -> No
     assert "vo: processed 20" in text and "restarts 6" in text
 
 
+def test_status_says_the_energy_estimate() -> None:
+    """`trapflow status` ends with the energy line of ledger.json's estimate so far."""
+    from trapflow.config.schema import EnergyConfig
+    from trapflow.supervisor.report import energy_section
+
+    led = RunLedger()
+    ledger = led.ledger({}, {}, final=False)
+    ledger["energy"] = energy_section(EnergyConfig(), {"mono": 360.0}, 3600.0, (20, 80))
+    text = format_status({"run_dir": "runs/x", "uptime_s": 3600.0, "nodes": [],
+                          "stats": None, "ledger": ledger})
+    assert text.endswith("energy (pi5 model): 0.1 cores busy, 3.23 W, 77.5 Wh/day; "
+                         "motion gate active 20 s (20 %), idle 80 s")
+
+
 def _live_and_final(produced: int, pairs_in: int, written: int | None,
                     **pool: int) -> tuple[dict[str, int], dict[str, int]]:
     """The vo pool's row of the live ledger and of the final one after a failure."""

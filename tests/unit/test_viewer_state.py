@@ -272,3 +272,38 @@ def test_ladder_level_as_top_level_fields() -> None:
 
 def test_no_status_yet_has_no_control() -> None:
     assert ViewState().snapshot(0.0)["control"] == {}
+
+
+def test_energy_gauges_from_the_status_ledger(tmp_path: Path) -> None:
+    """/metrics serves the run's energy estimate as ledger.json has it: a Pi 5 (2.7 W idle,
+    1.3 W per busy core, 0.2 W per camera) with 54 CPU seconds in an hour is 2.7 +
+    1.3 x 0.015 + 0.4 = 3.12 W, 74.9 Wh a day, 100 Wh x 0.8 usable lasts 1.1 days."""
+    from trapflow.config.schema import EnergyConfig
+    from trapflow.supervisor.report import energy_section, energy_text
+
+    energy = energy_section(EnergyConfig(battery_wh=100.0), {"capture": 36.0, "mono": 18.0},
+                            3600.0, (600, 3000))
+    st = ViewState()
+    st.on_status({"nodes": [], "ledger": {"energy": energy}})
+    fams = {f.name: f for f in text_string_to_metric_families(
+        metrics.exposition(metrics.registry_for(st, tmp_path)).decode())}
+
+    def value(name: str, **labels: str) -> float:
+        return next(s.value for s in fams[name].samples
+                    if all(s.labels.get(k) == v for k, v in labels.items()))
+
+    assert value("trapflow_energy_watts") == 3.12
+    assert value("trapflow_energy_watt_hours_per_day") == 74.9
+    assert value("trapflow_energy_battery_days") == 1.1
+    assert value("trapflow_energy_cpu_seconds_per_hour", role="mono") == 18.0
+    assert value("trapflow_gate_active_seconds") == 600
+    assert value("trapflow_gate_idle_seconds") == 3000
+    assert energy_text(energy) == (
+        "energy (pi5 model): 0.015 cores busy, 3.12 W, 74.9 Wh/day, 1.1 days on the battery; "
+        "motion gate active 600 s (17 %), idle 3000 s\n")
+
+
+def test_no_energy_yet_gives_empty_gauges(tmp_path: Path) -> None:
+    fams = {f.name: f for f in text_string_to_metric_families(
+        metrics.exposition(metrics.registry_for(ViewState(), tmp_path)).decode())}
+    assert fams["trapflow_energy_watts"].samples == []

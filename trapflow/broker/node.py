@@ -29,6 +29,7 @@ from trapflow.broker.state import (
     BrokerState,
     Dispatch,
     Evicted,
+    GateNotice,
     PoolSpec,
     Rejected,
     Release,
@@ -39,7 +40,7 @@ from trapflow.errors import ProtocolError, unreachable
 from trapflow.gate.policy import gated_pools
 from trapflow.runtime.node import ACTIVE, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog, wire
-from trapflow.wire import frame_msgs, messages, tap_msgs
+from trapflow.wire import frame_msgs, gate_msgs, messages, tap_msgs
 from trapflow.wire.frame_ring import HELD, FrameRing
 from trapflow.wire.transport import (
     PAIR_MAX_MSG_BYTES,
@@ -137,7 +138,9 @@ class BrokerNode(Node):
         self._capture_held: set[Link] = set()  # not polled: held back (_pace_capture)
 
     def counters(self) -> dict[str, int]:
+        active, idle = self.state.gate_time()
         return {"pairs_in": self.state.pairs_in, "malformed": self._malformed(),
+                "gate_active_s": int(active), "gate_idle_s": int(idle),
                 "held": self.state.held(), "results_waiting": len(self._out) + len(self._unacked),
                 "results_dropped": self.results_dropped, "late_answers": self.state.late,
                 "refused_subscriptions": self.tap.gate.refused,
@@ -284,7 +287,7 @@ class BrokerNode(Node):
                     self._on_capture(frames)
                     continue
                 if role == "results":
-                    self._on_ack(messages.decode_results_ack(frames[0]))
+                    self._on_ack(gate_msgs.decode_normalizer_msg(frames[0]))
                     continue
                 msg = _local_msg(messages.decode_worker_msg(frames[0]))
                 ident = self.link_ident.get(link)
@@ -486,6 +489,8 @@ class BrokerNode(Node):
                     "rejected:" + action.reason,
                     "dropped an answer from worker '%s' for pool '%s' pair %d (%s): %s",
                     wire(action.worker), wire(action.pool), action.seq, action.reason, why)
+            elif isinstance(action, GateNotice):
+                log.info("%s", action.text)
             elif isinstance(action, Evicted):
                 self.remote.roster.evicted(action.worker, action.reason)
                 # A worker told to stop, or recycled, leaves on purpose (news for the debug
@@ -562,8 +567,12 @@ class BrokerNode(Node):
                 n = 1
             del self._out[:n]
 
-    def _on_ack(self, ack: messages.ResultsAck) -> None:
-        """Only the live normalizer's link is read for acks; never more than it was sent."""
+    def _on_ack(self, ack: gate_msgs.NormalizerMsg) -> None:
+        """Only the live normalizer's link is read for acks; never more than it was sent. Its
+        gate hints (live tracks, a moving rig) go to the gate."""
+        if isinstance(ack, gate_msgs.GateHint):
+            self._apply(self.state.gate_hint(ack.tracks, ack.rig_moving, time.monotonic()))
+            return
         if not 0 < ack.count <= len(self._unacked):
             self._refuse("bad_ack", "an acknowledgement of %d results exceeds the %d sent and "
                          "not yet acknowledged; taking only those", ack.count, len(self._unacked))

@@ -90,7 +90,14 @@ class Rejected:
     named: tuple[int, str] | None = None  # (seq, pool) the result named, for result_* reasons
 
 
-Action = Dispatch | Release | Evicted | Rejected
+@dataclass(frozen=True)
+class GateNotice:
+    """The motion gate changed how it works (the rig moves, or is still again): one INFO line."""
+
+    text: str
+
+
+Action = Dispatch | Release | Evicted | Rejected | GateNotice
 
 
 @dataclass(frozen=True)
@@ -180,6 +187,16 @@ class BrokerState:
             seen = self._gate.pair(seq, True if motion is None else motion, score, now)
             actions.extend(self._apply_gate(seen, now))
         return actions
+
+    def gate_hint(self, tracks: int, rig_moving: bool, now: float) -> list[Action]:
+        """The normalizer's word: `tracks` alive now (they hold the gated pools open, said
+        again while they live) and whether visual odometry says the rig moves (the gate is
+        off while it does: every pair fed). Nothing without a gated pool."""
+        if self._gate is None:
+            return []
+        decided = self._gate.tracks_alive(tracks, now)
+        decided += self._gate.set_rig_moving(rig_moving, now)
+        return self._apply_gate(decided, now)
 
     def worker_ready(self, ident: bytes, pool_name: str, credit: int, now: float) -> list[Action]:
         """A worker announces `credit` more free slots."""
@@ -383,6 +400,10 @@ class BrokerState:
             for p in self._pools.values()
         }
 
+    def gate_time(self) -> tuple[float, float]:
+        """Seconds the motion gate was open (active) and idle; (0, 0) without a gated pool."""
+        return (self._gate.active_s, self._gate.idle_s) if self._gate else (0.0, 0.0)
+
     def worker_pools(self) -> dict[bytes, str]:
         """Every worker the state knows (live), and its pool."""
         return {w: p.name for p in self._pools.values() for w in p.workers}
@@ -457,7 +478,8 @@ class BrokerState:
         return actions + self._dispatch(pool, now)
 
     def _apply_gate(self, decided: list[gate.Action], now: float) -> list[Action]:
-        """The gate's actions: Feed queues the pair, Keep holds it on, Gated lets it go."""
+        """The gate's actions: Feed queues the pair, Keep holds it on, Gated lets it go, a
+        Notice is said."""
         actions: list[Action] = []
         for a in decided:
             if isinstance(a, gate.Feed):
@@ -468,8 +490,8 @@ class BrokerState:
             elif isinstance(a, gate.Gated):
                 self._pools[a.pool].gated += 1
                 actions.extend(self._unhold(a.seq))
-            elif isinstance(a, (gate.Rate, gate.Relearn, gate.Notice)):
-                pass  # duty cycling and the rig's motion are not told to this gate
+            elif isinstance(a, gate.Notice):
+                actions.append(GateNotice(a.text))
             else:
                 unreachable(a)
         return actions

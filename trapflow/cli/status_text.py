@@ -9,6 +9,7 @@ import time
 from typing import Any
 
 from trapflow.supervisor import ledger as run_ledger
+from trapflow.supervisor.report import energy_text
 from trapflow.wire.pool_counters import POOL_COUNTERS
 
 # The pool table's columns and their units: counts are pairs since the run started (over
@@ -99,4 +100,6 @@ def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
             lines.append(f"  {e['t_s']:>8} s  {e['node']:<20} {e['kind']:<8} {e['reason']}")
     if reply.get("ledger"):
         lines.append(run_ledger.totals_text(reply["ledger"]).rstrip("\n"))
+        if reply["ledger"].get("energy"):
+            lines.append(energy_text(reply["ledger"]["energy"]).rstrip("\n"))
     return "\n".join(lines)

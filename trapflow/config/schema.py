@@ -253,14 +253,26 @@ class MotionGateConfig(_Section):
 
     pre_roll: Annotated[int, msgspec.Meta(ge=0, le=100)] = 5
     """Withheld pairs kept in the frame ring and fed in order when motion begins; a
-    `latest` pool takes none (it would keep only the newest of them), a fifo:N pool needs
-    N > pre_roll."""
+    `latest` pool takes none (it would keep only the newest of them), a fifo:N pool at most
+    N - 1 (they are queued at once, with the pair that moved)."""
     keepalive_s: Annotated[float, msgspec.Meta(gt=0, le=86400)] = 5.0
     """One pair at least this often without motion: a still animal in view is still seen."""
     hold_s: Annotated[float, msgspec.Meta(ge=0, le=3600)] = 3.0
     """Pairs keep going for this long after the last motion (an animal pausing mid-walk)."""
     min_score: Annotated[float, msgspec.Meta(ge=0, lt=1)] = 0.0
     """Motion counts only with at least this score (share of the small image moving)."""
+    rig_moving_m_s: Annotated[float, msgspec.Meta(gt=0, le=100)] = 0.05
+    """Visual odometry's speed from which the rig moves: the gate is off (every pair fed)
+    until it is still again (README "Motion gate")."""
+    rig_moving_deg_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 3.0
+    """VO's rotation rate from which the rig moves."""
+    rig_still_s: Annotated[float, msgspec.Meta(ge=0, le=3600)] = 2.0
+    """Seconds below half of both before the rig is still and the gate on again."""
+    idle_after_s: Annotated[float, msgspec.Meta(ge=0, le=86400)] = 0.0
+    """Duty cycling, opt-in: seconds without motion before capture drops to idle_rate_hz
+    (0: never). The first pair that moves brings the full rate back."""
+    idle_rate_hz: Annotated[float, msgspec.Meta(gt=0, le=240)] = 2.0
+    """Capture rate while idle (at most source.rate_hz): below VO's 10 pairs/s, a choice."""
 
 
 class SupervisorConfig(_Section):
@@ -392,9 +404,11 @@ class ViewerConfig(_Section):
 
 def _default_pools() -> dict[str, PoolConfig]:
     return {
-        # Visual odometry keeps its rate: the recognisers run at a lower CPU priority.
-        "mono": PoolConfig(count=1, policy="latest", nice=5),
-        "stereo": PoolConfig(count=1, policy="latest", nice=10),
+        # Visual odometry keeps its rate: the recognisers run at a lower CPU priority, and
+        # only on pairs the motion gate lets through (an empty sea floor costs almost
+        # nothing; a rig that VO sees moving turns the gate off). VO is never gated.
+        "mono": PoolConfig(count=1, policy="latest", nice=5, gate="motion"),
+        "stereo": PoolConfig(count=1, policy="latest", nice=10, gate="motion"),
         "vo": PoolConfig(count=1, policy="ordered:16"),
         "tags": PoolConfig(count=0, policy="latest", nice=5),
     }
@@ -432,13 +446,6 @@ class Config(_Section):
                 raise ValueError(
                     f"pool {name!r}: the ordered policy takes count 0 or 1, got {pool.count}"
                 )
-            policy = pool.parsed_policy
-            pre_roll = self.gate.pre_roll
-            if pool.gate == "motion" and policy.kind == "fifo" and policy.bound <= pre_roll:
-                raise ValueError(
-                    f"pool {name!r}: expected fifo:N with N > gate.pre_roll = "
-                    f"{pre_roll} for gate: motion, got {pool.policy}: the pre-roll "
-                    "pairs are queued at once when motion begins, with the pair that moved")
 
     def validated(self) -> Config:
         """Re-run validation after programmatic changes."""

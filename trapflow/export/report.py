@@ -337,6 +337,25 @@ def _table(head: list[str], rows: list[list[Any]]) -> str:
                       for r in rows) + "</table>")
 
 
+def _energy(energy: dict[str, Any] | None) -> list[str]:
+    """The power model's estimate (ledger.json's `energy`) and the motion gate's active vs
+    idle time."""
+    if not energy:
+        return ["<p>no energy estimate (no ledger.json)</p>"]
+    rows = [["board model", energy["board"]], ["watts", energy["watts"]],
+            ["Wh per day", energy["wh_per_day"]], ["CPU cores busy", energy["busy_cores"]]]
+    if "days_on_battery" in energy:
+        rows.append(["days on the battery", energy["days_on_battery"]])
+    if "active_s" in energy:
+        total = energy["active_s"] + energy["idle_s"]
+        share = f" ({100 * energy['active_s'] / total:.0f} %)" if total else ""
+        rows += [["motion gate active (s)", f"{energy['active_s']}{share}"],
+                 ["motion gate idle (s)", energy["idle_s"]]]
+    per_hour = energy.get("cpu_s_per_hour", {})
+    return [_table(["", "estimate"], rows),
+            _table(["role", "CPU s per hour"], [[r, v] for r, v in sorted(per_hour.items())])]
+
+
 def render_html(s: RunSummary) -> str:
     """The page: one HTML string with its styles and SVG charts inline."""
     e = html.escape
@@ -383,6 +402,7 @@ def render_html(s: RunSummary) -> str:
         _table(["pool", "processed", "dropped by policy", "timed out", "failed", "lost",
                 "unfinished at stop"], ledger_rows)
         if s.ledger else "<p>no ledger.json (the run did not end cleanly)</p>",
+        "<h2>Energy</h2>", *_energy(s.ledger.get("energy")),
         "<h2>Restarts</h2>", _table(["time", "node", "restart"], [list(r) for r in s.restarts]),
         "<h2>Events</h2>",
         _table(["event", "pairs", "first seq", "last seq", "results"],

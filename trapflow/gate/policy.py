@@ -1,5 +1,5 @@
-"""The gate's decisions, pure: events in (pair seen with its motion result, track alive or
-ended, rig moving, tick), actions out (feed, keep for pre-roll, gated, rate, notice).
+"""The gate's decisions, pure: events in (pair seen with its motion result, tracks alive,
+rig moving, tick), actions out (feed, keep for pre-roll, gated, notice).
 No sockets, no clocks: callers pass `now` in seconds (monotonic).
 
 Per gated pool a pair is fed when it moved, while the hold lasts after motion (hold_s), while
@@ -7,6 +7,7 @@ any track is alive, or as the keep-alive (one pair every keepalive_s); otherwise
 as pre-roll (the last `pre_roll` withheld pairs, fed in order when motion begins) and, once
 older pairs push it out, gated for good. Every pair of a pool ends in exactly one Feed or
 one Gated. A moving rig turns the gate off (everything fed) until it is still again.
+Capture's rate (duty cycling) is trapflow.gate.duty's to decide, in the capture process.
 """
 
 from __future__ import annotations
@@ -16,10 +17,17 @@ from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from trapflow.config.schema import Config
+from trapflow.config.schema import Config, Policy
+from trapflow.gate.duty import DutyConfig
+from trapflow.gate.hint import RigConfig
 
 # A track not said alive again for this long is taken as ended (its end was lost).
 TRACK_TTL_S = 10.0
+# The id under which tracks_alive() holds the gate: the normalizer's count of live tracks.
+TRACKS_ALIVE = -1
+# Longest interval between two pairs counted as active or idle time (a stalled source's gap
+# is neither).
+MAX_PAIR_GAP_S = 2.0
 
 
 class Reason(enum.Enum):
@@ -59,30 +67,22 @@ class GateConfig:
 
 
 def gated_pools(cfg: Config) -> dict[str, GateConfig]:
-    """Every pool with `gate: motion` and its rules, from the config's `gate` section. A
-    `latest` pool takes no pre-roll: of pairs queued at once it keeps only the newest, so
-    the pre-roll would only be counted dropped (and hold ring slots meanwhile)."""
+    """Every pool with `gate: motion` and its rules, from the config's `gate` section. The
+    pre-roll is queued at once with the pair that moved, so a pool takes only what its
+    queue holds beside it: a `latest` pool none (the rest would only be counted dropped,
+    holding ring slots meanwhile), a fifo:N pool at most N - 1."""
     g = cfg.gate
-    return {name: GateConfig(pre_roll=0 if p.parsed_policy.kind == "latest" else g.pre_roll,
+    return {name: GateConfig(pre_roll=_pre_roll(p.parsed_policy, g.pre_roll),
                              keepalive_s=g.keepalive_s, hold_s=g.hold_s, min_score=g.min_score)
             for name, p in cfg.pools.items() if p.gate == "motion"}
 
 
-@dataclass(frozen=True)
-class DutyConfig:
-    """Duty cycling of capture, opt-in: an idle rate after a while without motion."""
-
-    idle_after_s: float = 0.0
-    """Seconds without motion (and no track alive) before the idle rate; 0: never."""
-    idle_rate_hz: float = 2.0
-    """Capture rate while idle; the first pair that moves brings the full rate back."""
-
-    def __post_init__(self) -> None:
-        if not self.idle_after_s >= 0:
-            raise ValueError(f"duty idle_after_s: expected >= 0 s, got {self.idle_after_s}")
-        if not 0 < self.idle_rate_hz <= 240:
-            raise ValueError(f"duty idle_rate_hz: expected 0 < rate <= 240, "
-                             f"got {self.idle_rate_hz}")
+def _pre_roll(policy: Policy, pre_roll: int) -> int:
+    if policy.kind == "latest":
+        return 0
+    if policy.kind == "fifo":
+        return min(pre_roll, policy.bound - 1)
+    return pre_roll
 
 
 @dataclass(frozen=True)
@@ -111,25 +111,13 @@ class Gated:
 
 
 @dataclass(frozen=True)
-class Rate:
-    """Capture at `hz` (duty cycling), or at the configured full rate when hz is None."""
-
-    hz: float | None
-
-
-@dataclass(frozen=True)
-class Relearn:
-    """Start the motion background afresh (the rig stopped moving)."""
-
-
-@dataclass(frozen=True)
 class Notice:
     """One INFO line for the log: the gate changed how it works."""
 
     text: str
 
 
-Action = Feed | Keep | Gated | Rate | Relearn | Notice
+Action = Feed | Keep | Gated | Notice
 
 
 @dataclass(frozen=True)
@@ -153,17 +141,19 @@ class _Pool:
 
 
 class GateState:
-    """Feed-or-withhold for every gated pool of one pipeline, and the capture rate."""
+    """Feed-or-withhold for every gated pool of one pipeline."""
 
-    def __init__(self, pools: Mapping[str, GateConfig], duty: DutyConfig | None = None,
-                 track_ttl_s: float = TRACK_TTL_S) -> None:
+    def __init__(self, pools: Mapping[str, GateConfig], track_ttl_s: float = TRACK_TTL_S
+                 ) -> None:
         self._pools = {n: _Pool(n, c) for n, c in pools.items()}
-        self.duty = duty or DutyConfig()
         self._track_ttl = track_ttl_s
         self._tracks: dict[int, float] = {}  # track id -> when last said alive
         self.rig_moving = False
-        self.idle = False
-        self._last_motion: float | None = None  # any motion, for duty cycling
+        # Seconds the gate was open (some gated pool fed for motion, pre-roll, hold, a track
+        # or a moving rig) and idle (withheld, or only the keep-alive): the report's split.
+        self.active_s = 0.0
+        self.idle_s = 0.0
+        self._last_pair: float | None = None
 
     # --- events -------------------------------------------------------------------
 
@@ -171,15 +161,16 @@ class GateState:
         """Pair `seq` was seen (motion result of its left image): a Feed, Keep or Gated per
         pool, pre-roll Feeds (older seqs, in order) before the Feed of a pair that moved."""
         actions: list[Action] = []
-        if self._last_motion is None or motion:
-            self._last_motion = now  # the run's start counts as motion: no idle at once
-        if motion and self.idle:
-            self.idle = False
-            actions.append(Rate(None))  # the next pair comes at the full rate
         tracking = self._tracking(now)
         for pool in self._pools.values():
             actions.extend(self._decide(pool, seq, motion, score, tracking, now))
-        actions.extend(self._duty(now))
+        if self._last_pair is not None and now > self._last_pair:
+            gap = min(now - self._last_pair, MAX_PAIR_GAP_S)
+            if any(isinstance(a, Feed) and a.reason is not Reason.KEEPALIVE for a in actions):
+                self.active_s += gap
+            else:
+                self.idle_s += gap
+        self._last_pair = now
         return actions
 
     def track_alive(self, track_id: int, now: float) -> list[Action]:
@@ -192,6 +183,13 @@ class GateState:
         self._tracks.pop(track_id, None)
         return []
 
+    def tracks_alive(self, count: int, now: float) -> list[Action]:
+        """The normalizer's word: `count` tracks are alive now (0: none). Said again at
+        least every track_ttl_s while some are; its own tracks (track_alive) stay as they are."""
+        if count > 0:
+            return self.track_alive(TRACKS_ALIVE, now)
+        return self.track_ended(TRACKS_ALIVE, now)
+
     def set_rig_moving(self, moving: bool, now: float) -> list[Action]:
         """Visual odometry says whether the rig moves. A moving rig changes every pixel, so
         the gate turns itself off (one Notice) and on again when the rig is still."""
@@ -203,21 +201,19 @@ class GateState:
             actions.append(Notice("motion gate off: the rig moves, every pair is fed"))
             for pool in self._pools.values():
                 actions.extend(self._gate_kept(pool))
-            if self.idle:
-                self.idle = False
-                actions.append(Rate(None))
         else:
+            # Capture's detector learns the background afresh by itself: a moving view
+            # changes more than max_cover of the frame, which it takes as a new scene.
             actions.append(Notice("motion gate on: the rig is still"))
-            actions.append(Relearn())
             for pool in self._pools.values():
                 pool.last_motion = now  # hold while the new background is learnt
         return actions
 
     def tick(self, now: float) -> list[Action]:
-        """Forget tracks not said alive for track_ttl_s; the duty-cycle rate."""
+        """Forget tracks not said alive for track_ttl_s."""
         for tid in [t for t, seen in self._tracks.items() if now - seen > self._track_ttl]:
             del self._tracks[tid]
-        return self._duty(now)
+        return []
 
     def finish(self) -> list[Action]:
         """The run ends: what is kept for pre-roll is gated."""
@@ -287,10 +283,14 @@ class GateState:
         pool.kept.clear()
         return out
 
-    def _duty(self, now: float) -> list[Action]:
-        d = self.duty
-        if (not d.idle_after_s or self.idle or self.rig_moving or self._last_motion is None
-                or self._tracking(now) or now - self._last_motion < d.idle_after_s):
-            return []
-        self.idle = True
-        return [Rate(d.idle_rate_hz)]
+
+def rig_config(cfg: Config) -> RigConfig:
+    """When VO means the rig moves, from the config's `gate` section."""
+    g = cfg.gate
+    return RigConfig(moving_m_s=g.rig_moving_m_s, moving_deg_s=g.rig_moving_deg_s,
+                     still_s=g.rig_still_s)
+
+
+def duty_config(cfg: Config) -> DutyConfig:
+    """Capture's duty cycling, from the config's `gate` section."""
+    return DutyConfig(idle_after_s=cfg.gate.idle_after_s, idle_rate_hz=cfg.gate.idle_rate_hz)

@@ -428,7 +428,10 @@ KINDS: dict[int, tuple[str, list[tuple[str, tuple[Enc, Dec]]]]] = {
     5: ("health", [("timestamp", TS), ("uptime_s", UINT), ("cpu_pct", _fixed(10)),
                    ("load1", _fixed(100)), ("temp_c", _fixed(10)), ("mem_pct", _fixed(10)),
                    ("disk_free_mb", UINT), ("backlog", UINT), ("link", STR),
-                   ("pools", (_enc_pools, _dec_pools)), ("level", STR)]),
+                   ("pools", (_enc_pools, _dec_pools)), ("level", STR),
+                   # appended (issue 25): the power model's watts at the host's CPU load
+                   # now, and days on the configured battery at that draw, to 0.1
+                   ("watts", _fixed(10)), ("days", _fixed(10))]),
     6: ("aggregate", [("class", STR), ("from", TS), ("to", TS), ("count", UINT),
                       ("best", (_enc_records, _dec_records))]),
     # A finished track (trapflow.observe.stage.modem_track). Common case, 12 bytes after

@@ -1,5 +1,5 @@
 """Health telemetry: a small record (uptime, CPU, temperature, memory, disk, backlog, pools,
-the degradation ladder's level).
+the degradation ladder's level, and the power model's watts and days on the battery).
 
 Sized for the modem link (about 40 bytes encoded); sampled with psutil on an interval, and
 at once when the ladder's level changes.
@@ -16,6 +16,8 @@ from typing import Any
 import psutil
 
 from trapflow.config.modem import HealthConfig
+from trapflow.config.schema import EnergyConfig
+from trapflow.gate.energy import BOARDS, estimate
 
 PoolRates = dict[str, tuple[float, int]]  # pool -> (results per second, drops so far)
 
@@ -47,8 +49,10 @@ class HealthMonitor:
         cfg: HealthConfig | None = None,
         disk_path: str | Path = ".",
         pool_rates: Callable[[], PoolRates] | None = None,
+        energy: EnergyConfig | None = None,
     ) -> None:
         self.cfg = cfg or HealthConfig()
+        self.energy = energy  # with it, the record says watts (and days on the battery)
         self.disk_path = Path(disk_path)
         self.pool_rates = pool_rates
         self._next = 0.0
@@ -83,7 +87,21 @@ class HealthMonitor:
             }
         if self.level:
             body["level"] = self.level
+        if self.energy is not None:
+            body.update(self._power(body["cpu_pct"]))
         return {"health": body}
+
+    def _power(self, cpu_pct: float) -> dict[str, float]:
+        """The board's power model at the whole host's CPU load now (on a trap, the trap's
+        own work): what ledger.json estimates per role, as one figure the surface can watch."""
+        assert self.energy is not None
+        cores = (psutil.cpu_count() or 1) * cpu_pct / 100.0
+        est = estimate(BOARDS[self.energy.board], {"host": cores}, 1.0,
+                       cameras=self.energy.cameras)
+        out = {"watts": round(est.watts, 1)}
+        if self.energy.battery_wh > 0:
+            out["days"] = round(est.days(self.energy.battery_wh, self.energy.usable), 1)
+        return out
 
     def set_level(self, level: str) -> None:
         """The ladder's level as the stats say; a change is reported at once (a record on

@@ -66,7 +66,8 @@ class ModemNode(Node):
         self.pools: dict[str, tuple[float, int]] = {}
         health = None
         if self.cfg.health.enabled or self.cfg.ladder.enabled:  # a level change: a record
-            health = HealthMonitor(self.cfg.health, spec.run_dir, lambda: self.pools)
+            health = HealthMonitor(self.cfg.health, spec.run_dir, lambda: self.pools,
+                                   self.cfg.energy)
         self.health = health
         outbox = spec.run_dir / self.cfg.outbox.path
         self.sender = ModemSender(outbox, self.cfg.modem.port, self.cfg.modem, self.cfg.outbox,
@@ -84,7 +85,8 @@ class ModemNode(Node):
         run = spec.run_id or secrets.token_hex(8)
         self.guard = CommandGuard(key, self.sender.session, state, run=run, disabled=disabled)
         self.control = ControlClient(self.ctx, self.endpoints.control)
-        self.health_now = HealthMonitor(self.cfg.health, spec.run_dir, lambda: self.pools)
+        self.health_now = HealthMonitor(self.cfg.health, spec.run_dir, lambda: self.pools,
+                                        self.cfg.energy)
         self.running: tuple[int, Command] | None = None
         self.ratelog = RateLimitedLog(log)
 

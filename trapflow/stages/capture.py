@@ -20,7 +20,9 @@ import numpy as np
 import zmq
 
 from trapflow.errors import unreachable
+from trapflow.gate.duty import DutyCycle
 from trapflow.gate.motion import MotionConfig, MotionDetector
+from trapflow.gate.policy import duty_config
 from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.sources.base import Frames, SkipPair, Source, SourceError
@@ -68,7 +70,16 @@ class CaptureNode(Node):
         # pools (a fraction of a millisecond on a small grey copy); its result rides on the
         # pair's header to the broker, which decides what each gated pool gets.
         gated = any(p.gate == "motion" for p in self.cfg.pools.values())
-        self.motion = MotionDetector(MotionConfig()) if gated else None
+        # Duty cycling (opt-in): an idle rate after a while without motion, decided here on
+        # the detector's own result, so the full rate is back for the very next pair.
+        self.duty = DutyCycle(duty_config(self.cfg), self.src_cfg.rate_hz)
+        self.period_ns = int(1e9 / self.src_cfg.rate_hz)
+        self.next_ns = 0  # when the next pair is due (monotonic)
+        self.motion = MotionDetector(MotionConfig()) if gated or self.duty.enabled else None
+        if self.duty.enabled and not spec.restarted:
+            log.info("duty cycling: %g pairs/s after %g s without motion, %g pairs/s again on "
+                     "the first pair that moves (visual odometry runs at the idle rate too)",
+                     self.duty.idle_hz, self.duty.cfg.idle_after_s, self.duty.full_hz)
 
     def capture_counters(self) -> messages.CaptureCounters:
         """What the supervisor sums over capture's restarts."""
@@ -100,22 +111,22 @@ class CaptureNode(Node):
         while not self.stopping and not self._open():
             self._wait(RETRY_BACKOFF_S[min(attempt, len(RETRY_BACKOFF_S) - 1)])
             attempt += 1
-        period_ns = int(1e9 / self.src_cfg.rate_hz)
-        next_ns = time.monotonic_ns()
+        self.next_ns = time.monotonic_ns()
         while not self.stopping:
             if not self.source.paced:
-                delay = next_ns - time.monotonic_ns()
+                delay = self.next_ns - time.monotonic_ns()
                 if delay > 0:
                     self._wait(delay / 1e9)
                     continue
                 # Behind by more than a period (a slow frame): skip ahead, never burst.
-                next_ns = max(next_ns + period_ns, time.monotonic_ns() - period_ns)
+                self.next_ns = max(self.next_ns + self.period_ns,
+                                   time.monotonic_ns() - self.period_ns)
             try:
                 frames = self.source.read()
             except SkipPair as exc:  # the source is past it: count, say once, go on
                 self._fail(exc.kind, "skipped a pair: %s", exc)
                 self.beat()
-                next_ns = time.monotonic_ns()  # a pair never sent costs no period
+                self.next_ns = time.monotonic_ns()  # a pair never sent costs no period
                 continue
             except SourceError as exc:
                 if self.source.finite:  # a file or recording will not get better by waiting
@@ -231,6 +242,8 @@ class CaptureNode(Node):
         """The pair's header, stamped now, with what the motion gate saw in its left image."""
         h, w = f.left.shape[:2]
         seen = self.motion.update(f.left) if self.motion is not None else None
+        if seen is not None:
+            self._pace(seen.motion or seen.relearnt)
         return messages.StereoPair(
             seq=seq,
             # A recording's own capture time; a camera's is now (a label only).
@@ -247,6 +260,16 @@ class CaptureNode(Node):
             motion_score=seen.score if seen is not None else 0.0,
             motion_regions=seen.regions[:MOTION_REGIONS] if seen is not None else (),
         )
+
+    def _pace(self, changed: bool) -> None:
+        """Duty cycling: the idle rate, or the full rate from the very next pair."""
+        hz = self.duty.pair(changed, time.monotonic())
+        if hz is None or self.source.paced:
+            return
+        self.period_ns = int(1e9 / hz)
+        # Back to the full rate: the next pair is due one full period after this one.
+        self.next_ns = min(self.next_ns, time.monotonic_ns() + self.period_ns)
+        log.debug("capture at %g pairs/s (%s)", hz, "idle" if self.duty.idle else "motion")
 
     def _deliver(self, frames: list[Any]) -> bool:
         """Hand one message to the broker without waiting; False if it cannot take it now."""

@@ -19,13 +19,15 @@ from typing import IO
 import zmq
 
 from trapflow.errors import ProtocolError
+from trapflow.gate.hint import HintPacer, RigMotion
+from trapflow.gate.policy import gated_pools, rig_config
 from trapflow.modem.outbox import Outbox, OutboxFull
 from trapflow.observe.rigpose import RigPoses
 from trapflow.observe.stage import Observations, Observer
 from trapflow.runtime.node import ACTIVE, FINALIZED, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.stages.result_json import dumps, normalize
-from trapflow.wire import messages, tap_msgs
+from trapflow.wire import gate_msgs, messages, tap_msgs
 from trapflow.wire.transport import (
     LINK_RETRY_S,
     TAP_RCVHWM,
@@ -80,6 +82,12 @@ class NormalizerNode(Node):
                 self.obs_files[name] = open(path, "ab", buffering=0)  # noqa: SIM115
                 set_file_mode(path)
         self.tracks = 0
+        # With a gated pool, the broker's gate hears of live tracks and of a moving rig.
+        self.rig: RigMotion | None = None
+        if gated_pools(self.cfg):
+            self.rig = RigMotion(rig_config(self.cfg))
+        self.hints = HintPacer()
+        self.tracked_at = 0.0  # monotonic time detections were last tracked
         self.refused = 0
         self.lines = 0
         self.malformed = 0
@@ -101,6 +109,7 @@ class NormalizerNode(Node):
         dirty = False
         while not self.stopping:
             dirty |= self._receive(100)
+            self._hint(time.monotonic())
             self.gate.drain()  # subscriptions to the results tap
             now = time.monotonic()
             if dirty and now >= next_flush:
@@ -162,7 +171,25 @@ class NormalizerNode(Node):
             log.debug("results link: %s; reconnecting", exc)
             self.link_lost = True
             self.link.drop()
+            self.hints.forget()
         return dirty
+
+    def _hint(self, now: float) -> None:
+        """Tell the broker's gate how many tracks are alive and whether the rig moves, when
+        that changes and again every second while either holds it open."""
+        link = self.link.link
+        if self.rig is None or link is None:
+            return
+        # Tracks end only when a detection comes; with none for max_gap_s none is alive.
+        fresh = now - self.tracked_at <= self.cfg.observe.max_gap_s
+        tracks = sum(o.tracker.alive for o in self.observers.values()) if fresh else 0
+        if self.hints.due(tracks, self.rig.moving, now):
+            try:
+                link.send([messages.encode(gate_msgs.GateHint(tracks=tracks,
+                                                              rig_moving=self.rig.moving))])
+            except LinkClosed as exc:  # _receive reconnects
+                log.debug("results link: %s", exc)
+                self.hints.forget()
 
     def _handle(self, data: messages.Buffer, lines: list[bytes]) -> bool:
         """Decode, normalize and store one result; its JSON lines join `lines`."""
@@ -184,6 +211,13 @@ class NormalizerNode(Node):
                 observer = self.observers[res.pool] = Observer(self.cfg.observe, self.rig_poses)
             items = [obj["mono_ir"] for obj in objs]
             self._write_observations(observer.feed(res.t_wall_ns, items))
+            self.tracked_at = time.monotonic()
+        elif self.rig is not None and isinstance(res.body, messages.StereoVO):
+            vo = res.body
+            if self.rig.vo(res.t_wall_ns / 1e9, vo.ok and not vo.reinit, vo.rotation,
+                           vo.translation) is not None:
+                log.debug("visual odometry: the rig %s", "moves" if self.rig.moving
+                          else "is still")
         if self.outbox is not None:
             sent = objs if (self.cfg.modem.detections or not objs
                             or "mono_ir" not in objs[0]) else []

@@ -59,25 +59,34 @@ class Snapshot:
     cpu_s: dict[str, float]  # CPU seconds per role so far (trapflow.supervisor.cpu)
 
 
-def energy_section(cfg: EnergyConfig, cpu_s: dict[str, float], wall_s: float
-                   ) -> dict[str, Any]:
-    """ledger.json's `energy`: the board's power model over this run's CPU per role."""
+def energy_section(cfg: EnergyConfig, cpu_s: dict[str, float], wall_s: float,
+                   gate_s: tuple[int, int] | None = None) -> dict[str, Any]:
+    """ledger.json's `energy`: the board's power model over this run's CPU per role, and
+    with a motion gate the seconds it was open (`active_s`) and idle (`idle_s`)."""
     est = estimate(BOARDS[cfg.board], cpu_s, max(wall_s, 1e-3), cameras=cfg.cameras)
     out: dict[str, Any] = {
         "board": cfg.board, "wall_s": round(wall_s, 1), "cpu_s": cpu_s,
+        "cpu_s_per_hour": {role: round(v, 1) for role, v in est.cpu_s_per_hour.items()},
         "busy_cores": round(est.busy_cores, 3), "watts": round(est.watts, 2),
         "wh_per_day": round(est.wh_per_day, 1)}
     if cfg.battery_wh > 0:
         out["days_on_battery"] = round(est.days(cfg.battery_wh, cfg.usable), 1)
+    if gate_s is not None:
+        out["active_s"], out["idle_s"] = gate_s
     return out
 
 
 def energy_text(energy: dict[str, Any]) -> str:
-    """One line for the end of a run."""
+    """One line for the end of a run and `trapflow status`."""
     days = (f", {energy['days_on_battery']} days on the battery"
             if "days_on_battery" in energy else "")
+    gate = ""
+    if "active_s" in energy:
+        active, idle = energy["active_s"], energy["idle_s"]
+        share = f" ({100 * active / (active + idle):.0f} %)" if active + idle else ""
+        gate = f"; motion gate active {active} s{share}, idle {idle} s"
     return (f"energy ({energy['board']} model): {energy['busy_cores']} cores busy, "
-            f"{energy['watts']} W, {energy['wh_per_day']} Wh/day{days}\n")
+            f"{energy['watts']} W, {energy['wh_per_day']} Wh/day{days}{gate}\n")
 
 
 def _full_stats(stats: messages.Stats) -> dict[str, Any]:
@@ -227,7 +236,12 @@ class Report:
         out = self.ledger_model.ledger({n: p.policy for n, p in self.cfg.pools.items()},
                                        self._pool_restarts(snap), self.supervision(), final,
                                        planned_stop=snap.planned_stop)
-        out["energy"] = energy_section(self.cfg.energy, snap.cpu_s, time.monotonic() - self.t0)
+        broker = next((c.counters for c in snap.nodes if c.name == "broker"), {})
+        gate_s = ((broker["gate_active_s"], broker.get("gate_idle_s", 0))
+                  if "gate_active_s" in broker and any(
+                      p.gate == "motion" for p in self.cfg.pools.values()) else None)
+        out["energy"] = energy_section(self.cfg.energy, snap.cpu_s, time.monotonic() - self.t0,
+                                       gate_s)
         return out
 
     def read_results(self) -> None:

@@ -66,6 +66,7 @@ class PipelineCollector(Collector):
         yield from self._nodes()
         yield from self._health()
         yield from proc_metrics.families(self.state.status or {})
+        yield from self._energy()
 
     def _pools(self) -> Iterator[Metric]:
         s = self.state.stats
@@ -173,6 +174,33 @@ class PipelineCollector(Collector):
         if modem is not None:
             backlog.add_metric([], modem["counters"].get("backlog", 0))
         yield backlog
+
+
+    def _energy(self) -> Iterator[Metric]:
+        """The run's energy estimate so far (ledger.json's `energy`, from the status reply):
+        gauges, as a restarted broker's gate times start again from zero."""
+        energy = ((self.state.status or {}).get("ledger") or {}).get("energy") or {}
+        single = [("watts", "trapflow_energy_watts", "Estimated power draw (board model)."),
+                  ("wh_per_day", "trapflow_energy_watt_hours_per_day",
+                   "Estimated energy per day at this run's load."),
+                  ("busy_cores", "trapflow_energy_busy_cores", "Mean CPU cores busy."),
+                  ("days_on_battery", "trapflow_energy_battery_days",
+                   "Days the configured battery lasts at this load."),
+                  ("active_s", "trapflow_gate_active_seconds",
+                   "Seconds the motion gate was open (motion, hold, tracks, moving rig)."),
+                  ("idle_s", "trapflow_gate_idle_seconds",
+                   "Seconds the motion gate withheld pairs (or fed only the keep-alive).")]
+        for key, name, text in single:
+            fam = GaugeMetricFamily(name, text)
+            if key in energy:
+                fam.add_metric([], float(energy[key]))
+            yield fam
+        per_role = GaugeMetricFamily("trapflow_energy_cpu_seconds_per_hour",
+                                     "CPU seconds per hour of wall time, per role.",
+                                     labels=["role"])
+        for role, v in sorted((energy.get("cpu_s_per_hour") or {}).items()):
+            per_role.add_metric([role], float(v))
+        yield per_role
 
 
 def registry_for(state: ViewState, run_dir: Path) -> CollectorRegistry:

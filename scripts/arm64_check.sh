@@ -17,6 +17,7 @@
 #   SUITE      Debian release of the root (default: bookworm, Python 3.11)
 #   MIRROR     Debian mirror for debootstrap (default: debootstrap's own)
 #   DURATION   seconds of the quick start (default: 30; emulation starts processes slowly)
+#   HOST_CA    CA bundle the root's pip trusts (default: the host's own)
 set -euo pipefail
 src=$(cd "$(dirname "$0")/.." && pwd)
 unit=1
@@ -74,13 +75,28 @@ bind() {  # bind-mount a host folder into the root, unmounted on exit
 }
 for dir in /proc /sys /dev /dev/pts /dev/shm; do bind "$dir"; done
 cp -L /etc/resolv.conf "$root/etc/resolv.conf"
+# The root trusts what the host trusts (a site's TLS proxy included): pip inside it uses
+# the host's CA bundle.
+host_ca=${HOST_CA:-/etc/ssl/certs/ca-certificates.crt}
+ca_env=()
+if [ -f "$host_ca" ]; then
+  cp -L "$host_ca" "$root/etc/ssl/certs/host-ca-certificates.crt"
+  ca_env=(PIP_CERT=/etc/ssl/certs/host-ca-certificates.crt
+          SSL_CERT_FILE=/etc/ssl/certs/host-ca-certificates.crt)
+fi
 # A clean environment inside: the host's pip settings (its indexes, constraints, local
 # wheel folders) name paths the arm64 root does not have.
+chroot_bin=$(command -v chroot)
 in_root() {
   env -i PATH=/opt/venv/bin:/usr/local/bin:/usr/bin:/bin HOME=/root LANG=C.UTF-8 \
-    PIP_DISABLE_PIP_VERSION_CHECK=1 chroot "$root" "$@"
+    PIP_DISABLE_PIP_VERSION_CHECK=1 "${ca_env[@]}" "$chroot_bin" "$root" "$@"
 }
-say "arm64 Python: $(in_root python3 -c 'import platform, sys; print(platform.machine(), sys.version.split()[0])')"
+arch=$(in_root python3 -c 'import platform, sys; print(platform.machine(), sys.version.split()[0])')
+say "arm64 Python: $arch"
+case "$arch" in
+  aarch64*) ;;
+  *) echo "scripts/arm64_check.sh: expected an aarch64 Python in $root, got '$arch'" >&2; exit 1 ;;
+esac
 
 # 3. trapflow as a wheel (pure Python, built here from the tracked files), and every
 #    dependency from wheels only: a package without an aarch64 wheel fails the install.
@@ -90,8 +106,11 @@ mkdir -p "$root/opt/src" "$root/opt/dist"
   | tar -x -C "$root/opt/src"
 python3 -m pip wheel --quiet --no-deps --wheel-dir "$root/opt/dist" "$root/opt/src"
 wheel=$(cd "$root/opt/dist" && ls trapflow-*.whl)
-# The unit tier's own needs (tests/unit imports these beyond the run-time dependencies).
-test_deps=(pytest pytest-timeout onnx pupil-apriltags foxglove-schemas-protobuf)
+# The unit tier's own needs (tests/unit imports these beyond the run-time dependencies),
+# and optional extras tried one by one: one without an aarch64 wheel is reported, and the
+# tests that need it skip (the tags extra: the AprilTags plugin has a fallback without it).
+test_deps=(pytest pytest-timeout onnx foxglove-schemas-protobuf)
+optional=(pupil-apriltags)
 if [ ! -x "$root/opt/venv/bin/python" ]; then
   in_root python3 -m venv /opt/venv
   in_root python -m pip install --quiet --upgrade --only-binary=:all: pip
@@ -100,6 +119,13 @@ say "pip install --only-binary=:all: $wheel ${test_deps[*]}"
 t0=$(date +%s)
 in_root python -m pip install --quiet --only-binary=:all: "/opt/dist/$wheel" "${test_deps[@]}"
 say "installed in $(( $(date +%s) - t0 )) s"
+missing=()
+for dep in "${optional[@]}"; do
+  if ! in_root python -m pip install --quiet --only-binary=:all: "$dep" 2> /dev/null; then
+    missing+=("$dep")
+    say "optional $dep: no wheel for aarch64 / Python $(echo "$arch" | cut -d' ' -f2) (its tests skip)"
+  fi
+done
 
 # 4. Which wheels came: name, version and the wheel's tag (aarch64 or pure).
 in_root python - > "$report/wheels.txt" <<'PY'
@@ -152,6 +178,7 @@ fi
   echo "arm64 under emulation, $(date -u '+%Y-%m-%d %H:%M UTC'), host $(uname -m) $(nproc) cores"
   echo "root: Debian $suite arm64; $(head -1 "$report/wheels.txt" | sed 's/^# //')"
   echo "install: pip --only-binary=:all: $wheel ${test_deps[*]}: ok"
+  echo "optional without an aarch64 wheel: ${missing[*]:-none}"
   echo "$quick"
   echo "$unit_line"
   echo "(times under emulation are not performance numbers)"

@@ -67,13 +67,21 @@ cleanup() {
   for ((i = ${#mounted[@]} - 1; i >= 0; i--)); do umount -l "${mounted[$i]}" || true; done
 }
 trap cleanup EXIT
-bind() {  # bind-mount a host folder into the root, unmounted on exit
+bind() {  # bind-mount a host path (or $2) onto this path in the root, unmounted on exit
   mountpoint -q "$root$1" && return
-  mkdir -p "$root$1"
-  mount --bind "$1" "$root$1"
+  [ -e "$root$1" ] || mkdir -p "$root$1"
+  mount --bind "${2:-$1}" "$root$1"
+  mount --make-private "$root$1"  # nothing mounted under it reaches the host's tree
   mounted+=("$root$1")
 }
 for dir in /proc /sys /dev /dev/pts /dev/shm; do bind "$dir"; done
+# qemu-user passes the host's /proc/cpuinfo through: onnxruntime's CPU detection finds no
+# ARM core in an x86 one and crashes at import (SIGSEGV). The root sees Cortex-A76 cores
+# (a Pi 5's), as many as the host has, which also matches /sys/devices/system/cpu.
+for ((cpu = 0; cpu < $(nproc); cpu++)); do
+  printf 'processor\t: %d\nBogoMIPS\t: 108.00\nFeatures\t: fp asimd evtstrm aes pmull sha1 sha2 crc32 atomics fphp asimdhp cpuid asimdrdm lrcpc dcpop asimddp\nCPU implementer\t: 0x41\nCPU architecture: 8\nCPU variant\t: 0x4\nCPU part\t: 0xd0b\nCPU revision\t: 1\n\n' "$cpu"
+done > "$root/etc/cpuinfo-arm64"
+bind /proc/cpuinfo "$root/etc/cpuinfo-arm64"
 cp -L /etc/resolv.conf "$root/etc/resolv.conf"
 # The root trusts what the host trusts (a site's TLS proxy included): pip inside it uses
 # the host's CA bundle.
@@ -118,6 +126,8 @@ fi
 say "pip install --only-binary=:all: $wheel ${test_deps[*]}"
 t0=$(date +%s)
 in_root python -m pip install --quiet --only-binary=:all: "/opt/dist/$wheel" "${test_deps[@]}"
+# The same version number on a later run: this tree's trapflow replaces the installed one.
+in_root python -m pip install --quiet --no-deps --force-reinstall "/opt/dist/$wheel"
 say "installed in $(( $(date +%s) - t0 )) s"
 missing=()
 for dep in "${optional[@]}"; do

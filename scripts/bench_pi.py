@@ -54,6 +54,12 @@ def device() -> str:
             return Path(path).read_text().strip("\x00\n ")
         except OSError:
             pass
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith(("model name", "Model")):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
     return platform.processor() or platform.machine()
 
 

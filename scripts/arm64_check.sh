@@ -18,6 +18,7 @@
 #   MIRROR     Debian mirror for debootstrap (default: debootstrap's own)
 #   DURATION   seconds of the quick start (default: 30; emulation starts processes slowly)
 #   HOST_CA    CA bundle the root's pip trusts (default: the host's own)
+#   STARTUP_S  supervisor.startup_timeout_s of the quick start (default: 900)
 set -euo pipefail
 src=$(cd "$(dirname "$0")/.." && pwd)
 unit=1
@@ -74,7 +75,15 @@ bind() {  # bind-mount a host path (or $2) onto this path in the root, unmounted
   mount --make-private "$root$1"  # nothing mounted under it reaches the host's tree
   mounted+=("$root$1")
 }
-for dir in /proc /sys /dev /dev/pts /dev/shm; do bind "$dir"; done
+for dir in /proc /sys /dev /dev/pts; do bind "$dir"; done
+# A /dev/shm of its own: qemu-user fakes /proc/self/stat, so the frame ring's owner start
+# time differs from the one the host sees, and a pipeline started on the host would take
+# the emulated pipeline's ring for a dead process's and remove it (and the reverse).
+if ! mountpoint -q "$root/dev/shm"; then
+  mkdir -p "$root/dev/shm"
+  mount -t tmpfs -o size=50%,mode=1777 tmpfs "$root/dev/shm"
+  mounted+=("$root/dev/shm")
+fi
 # qemu-user passes the host's /proc/cpuinfo through: onnxruntime's CPU detection finds no
 # ARM core in an x86 one and crashes at import (SIGSEGV). The root sees Cortex-A76 cores
 # (a Pi 5's), as many as the host has, which also matches /sys/devices/system/cpu.
@@ -154,11 +163,19 @@ native=$(grep -c 'aarch64' "$report/wheels.txt" || true)
 say "$(($(wc -l < "$report/wheels.txt") - 1)) wheels, $native of them built for aarch64: $report/wheels.txt"
 
 # 5. The quick start from an empty folder, with the installed trapflow (not the source).
+# Emulated, each process takes tens of seconds to import and capture minutes to build the
+# synthetic world: a start-up limit of STARTUP_S (default 900) instead of 60 s, and a
+# pair may take the pools' workers longer than their 10 s timeout_s.
 say "quick start: trapflow start --workers mono=1,stereo=1,vo=1 --duration $duration"
 rm -rf "$root/opt/quick" && mkdir -p "$root/opt/quick"
+printf 'supervisor:\n  startup_timeout_s: %s\npools:\n' "${STARTUP_S:-900}" \
+  > "$root/opt/quick/emulated.yaml"
+for pool in mono stereo vo; do
+  printf '  %s: {timeout_s: 300.0}\n' "$pool" >> "$root/opt/quick/emulated.yaml"
+done
 t0=$(date +%s)
-in_root sh -c "cd /opt/quick && trapflow start --workers mono=1,stereo=1,vo=1 \
-  --duration $duration" > "$report/quickstart.txt" 2>&1 || {
+in_root sh -c "cd /opt/quick && trapflow start --config emulated.yaml \
+  --workers mono=1,stereo=1,vo=1 --duration $duration" > "$report/quickstart.txt" 2>&1 || {
   tail -20 "$report/quickstart.txt" >&2; echo "[arm64] quick start FAILED" >&2; exit 1; }
 lines=$(wc -l < "$root/opt/quick/runs/latest/results.jsonl")
 pools=$(in_root python -c "

@@ -159,7 +159,7 @@ for dist in md.distributions():
 for name, version, tags in sorted(rows):
     print(f"{name} {version} {tags}")
 PY
-native=$(grep -c 'aarch64' "$report/wheels.txt" || true)
+native=$(tail -n +2 "$report/wheels.txt" | grep -c aarch64 || true)
 say "$(($(wc -l < "$report/wheels.txt") - 1)) wheels, $native of them built for aarch64: $report/wheels.txt"
 
 # 5. The quick start from an empty folder, with the installed trapflow (not the source).

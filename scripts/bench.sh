@@ -11,7 +11,8 @@ Usage: scripts/bench.sh [--quick | --pi] [--help] [OUT_DIR]   (default OUT_DIR: 
 --pi: the deployment table, run on the device (Raspberry Pi 5, Jetson, any board with
 trapflow installed, nothing else running): per algorithm CPU and wall ms per pair at
 1280x720 on one core (detector int8 and fp32), the pipeline's parallel overhead per pair
-at 10 pairs/s, and the VO floor under saturating recognisers. About 3 minutes on a Pi 5;
+at 10 pairs/s, and the VO floor under saturating recognisers. About 4 minutes on the
+2-core development machine (not yet timed on a Pi);
 writes OUT_DIR/pi.md and pi.json and prints the table (scripts/bench_pi.py --help for
 another size or rate).
 
@@ -70,7 +71,7 @@ OUT=${1:-bench-results}
 PY=${PYTHON:-python}
 mkdir -p "$OUT"
 if [ "$QUICK" = pi ]; then
-  echo "[bench] deployment table on $(uname -m), $(nproc) cores (about 3 minutes)" >&2
+  echo "[bench] deployment table on $(uname -m), $(nproc) cores (a few minutes)" >&2
   "$PY" scripts/bench_pi.py --out "$OUT"
   exit 0
 fi

@@ -1,12 +1,20 @@
 #!/usr/bin/env bash
 # Benchmarks of trapflow on this machine; numbers go to bench-results/ (JSON per part and
 # bench.md with everything). Speed is measured here, never asserted in tests.
-# Usage: scripts/bench.sh [--quick] [OUT_DIR]   (set PYTHON to choose the interpreter)
+# Usage: scripts/bench.sh [--quick | --pi] [OUT_DIR]   (set PYTHON to choose the interpreter)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 usage() {
   cat <<'TXT'
-Usage: scripts/bench.sh [--quick] [--help] [OUT_DIR]   (default OUT_DIR: bench-results)
+Usage: scripts/bench.sh [--quick | --pi] [--help] [OUT_DIR]   (default OUT_DIR: bench-results)
+
+--pi: the deployment table, run on the device (Raspberry Pi 5, Jetson, any board with
+trapflow installed, nothing else running): per algorithm CPU and wall ms per pair at
+1280x720 on one core (detector int8 and fp32), the pipeline's parallel overhead per pair
+at 10 pairs/s, and the VO floor under saturating recognisers. About 4 minutes on the
+2-core development machine (not yet timed on a Pi);
+writes OUT_DIR/pi.md and pi.json and prints the table (scripts/bench_pi.py --help for
+another size or rate).
 
 Parts, in order, with their run time on a 2-core machine (full / --quick):
   transport   broker path vs raw pyzmq, JPEG and raw pairs        ~3 min  / skipped
@@ -31,6 +39,10 @@ Parts, in order, with their run time on a 2-core machine (full / --quick):
   algorithms  decode and process time per algorithm; the detector
               fp32 vs int8, preallocated vs allocating input, JPEG
               decoded whole vs reduced (ratios, same run)          ~3 min  / skipped
+  detector    int8 vs fp32 demo detector on 480 held-out synthetic
+              pairs, one run: mAP@0.5, recall/precision, process()
+              and inference time (int8 is the default while its crab
+              mAP is within 0.02 of fp32's)                       ~4 min  / skipped
   process     Dask LocalCluster vs one plain loop                 ~2 min  / skipped
   viewer      live viewer's CPU (viewer + broker beyond a pipeline
               without viewer) with no page open and with one     ~3 min  / skipped
@@ -56,12 +68,18 @@ QUICK=0
 case "${1:-}" in
   -h|--help) usage; exit 0 ;;
   --quick) QUICK=1; shift ;;
-  -*) echo "scripts/bench.sh: unknown option $1 (expected --quick, --help or OUT_DIR)" >&2
+  --pi) QUICK=pi; shift ;;
+  -*) echo "scripts/bench.sh: unknown option $1 (expected --quick, --pi, --help or OUT_DIR)" >&2
       usage >&2; exit 2 ;;
 esac
 OUT=${1:-bench-results}
 PY=${PYTHON:-python}
 mkdir -p "$OUT"
+if [ "$QUICK" = pi ]; then
+  echo "[bench] deployment table on $(uname -m), $(nproc) cores (a few minutes)" >&2
+  "$PY" scripts/bench_pi.py --out "$OUT"
+  exit 0
+fi
 if [ "$QUICK" = 1 ]; then
   echo "[bench] cpu per pair by role and the VO floor (quick)" >&2
   "$PY" scripts/bench_cpu.py --quick --out "$OUT" > /dev/null
@@ -94,6 +112,8 @@ echo "[bench] stereo VO against the plugin before issue 27" >&2
 "$PY" scripts/bench_vo.py --out "$OUT" > /dev/null
 echo "[bench] algorithms" >&2
 "$PY" scripts/bench_algorithms.py --out "$OUT" > /dev/null
+echo "[bench] detector int8 vs fp32 (time and accuracy, held-out synthetic pairs)" >&2
+"$PY" scripts/quantize_detector.py --eval-only --out "$OUT" > /dev/null
 echo "[bench] process (Dask LocalCluster vs one plain loop)" >&2
 "$PY" scripts/bench_process.py --out "$OUT" > /dev/null
 echo "[bench] live viewer (no page, a page open, no viewer: 30 s each)" >&2
@@ -113,7 +133,8 @@ echo "[bench] worker recycling (health check per pair, replacement time)" >&2
   echo "# trapflow benchmark, $(date -u '+%Y-%m-%d %H:%M UTC'), $(nproc) cores"
   echo
   for md in "$OUT"/transport.md "$OUT"/peers.md "$OUT"/remote.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/cpu.md \
-            "$OUT"/decode.md "$OUT"/bench_vo.md "$OUT"/bench_algorithms.md "$OUT"/process.md "$OUT"/viewer.md; do
+            "$OUT"/decode.md "$OUT"/bench_vo.md "$OUT"/bench_algorithms.md "$OUT"/quantize_detector.md \
+            "$OUT"/process.md "$OUT"/viewer.md; do
     [ -f "$md" ] && cat "$md" && echo
   done
   echo "## Modem link"

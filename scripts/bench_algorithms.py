@@ -114,7 +114,7 @@ def _detector_variants(rig: StereoRig, params: dict[str, Any], n: int,
                                   .is_file()):
             continue  # stand-in models, or no int8 file: fp32 only
         det = CrabDetector()
-        det.configure({**params, "variant": variant} if variant != "fp32" else params, ctx)
+        det.configure({**params, "variant": variant}, ctx)
         dets[variant] = det
     fp32 = dets["fp32"]
     pre = fp32.preprocess

@@ -34,7 +34,11 @@ from trapflow.wire.transport import Endpoints, Link, LinkClosed, connect_link
 
 PAGE = 4096
 WINDOW = 4  # pairs in flight per consumer, as in the peer measurements
-FRAMES = ("zmq", "shm")  # trapflow's two frame paths: bytes through the broker, or the ring
+# trapflow's frame paths: bytes through the broker; the ring, written by a capture that
+# copies a pair it holds (as a camera or a decoder with its own buffers makes it); the ring
+# with the pair made in place in the slot (begin/commit, the harness touches one byte a
+# page as the consumer does): no copy on either side, the ring's own cost.
+FRAMES = ("zmq", "shm", "shm_inplace")
 REPEATS = 5  # throughput runs per path, median reported
 
 
@@ -185,9 +189,12 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
     """Pairs into the real broker, no-op workers, results counted back (window per worker).
 
     The harness plays capture: with frames="shm" it writes each pair once into the ring
-    and sends the descriptor over the broker's local link, as capture does; with "zmq" it
-    sends the bytes.
+    and sends the descriptor over the broker's local link, as capture does; with
+    "shm_inplace" it makes the pair in the slot instead (touching a byte a page, no copy);
+    with "zmq" it sends the bytes.
     """
+    inplace = frames == "shm_inplace"
+    frames = "shm" if inplace else frames
     run_dir = Path(tempfile.mkdtemp(prefix="tfb-", dir=tmp))
     cfg = configmod.from_data({
         "source": {"encoding": "raw" if kind == "raw" else "jpeg"},
@@ -232,8 +239,14 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
         slot = writer.acquire()
         if slot is None:
             return False  # every slot held: the window will free one
-        ref = writer.write(slot, left_a if kind == "raw" else left,
-                           right_a if kind == "raw" else right)
+        if inplace:
+            lv, rv = writer.begin(slot, len(left), len(right))
+            lv[::PAGE] = seq & 0xFF  # one store a page, as the consumer loads one
+            rv[::PAGE] = seq & 0xFF
+            ref = writer.commit(slot)
+        else:
+            ref = writer.write(slot, left_a if kind == "raw" else left,
+                               right_a if kind == "raw" else right)
         nonlocal link
         while link is None:  # as capture does: descriptors over the broker's local link
             try:
@@ -319,7 +332,8 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
         ring.close()
     per_pool = completed / pools
     names = ["harness", "broker"] + [f"worker{i}" for i in range(len(procs) - 1)]
-    return {"frames": frames, "pairs": int(per_pool), "pairs_s": per_pool / dt,
+    return {"frames": "shm_inplace" if inplace else frames, "pairs": int(per_pool),
+            "pairs_s": per_pool / dt,
             "lost": sent - int(per_pool), "lat_us": _pcts(lats),
             "cpu_us_per_pair": sum(cpu) / max(per_pool, 1) * 1e6,
             "cpu_us_per_pair_by_process": dict(zip(
@@ -360,8 +374,10 @@ def markdown(out: dict[str, Any]) -> str:
              f"{m['cores']} cores, Python {m['python']}, pyzmq {m['pyzmq']}, "
              f"libzmq {m['libzmq']}. 1280x720 stereo pairs; lossless, {WINDOW} pairs in "
              "flight per consumer; consumers touch every page. trapflow-zmq: bytes through "
-             "the broker; trapflow-shm: written once into the shared-memory ring, "
-             "descriptors through the broker over local links. Throughput: median of "
+             "the broker; trapflow-shm: copied once into the shared-memory ring by the "
+             "harness (capture), descriptors through the broker over local links; "
+             "trapflow-shm_inplace: the same, the pair made in its slot (a byte a page "
+             "touched, no copy on either side: the ring's own cost). Throughput: median of "
              f"{REPEATS} runs (pyzmq and trapflow interleaved), [min-max] next to it; x pyzmq: "
              "ratio of the medians, [min-max] of the ratios run by run (each trapflow run "
              "against the pyzmq run just before it).", "",
@@ -388,6 +404,7 @@ def markdown(out: dict[str, Any]) -> str:
     for f in FRAMES:
         r = fan[f"trapflow_{f}"]
         lines.append(f"| trapflow-{f} | {r['pairs_s']:,.0f} | {r['pairs_s'] / base:.2f}x |")
+    lines += ["", f"Load average {out['load']['before']} before, {out['load']['after']} after."]
     lines += ["", "One-way latency at 30 pairs/s, capture stamp before send -> the worker holds "
               "the pair (us):", "",
               "| payload | path | p50 | p99 | max | x pyzmq p50 | broker CPU % of a core | "
@@ -418,7 +435,8 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="tfbench-"))
     gc.freeze()  # every producer here (pyzmq's and trapflow's) runs with a frozen heap
     out: dict[str, Any] = {"machine": {"cores": os.cpu_count(), "python": sys.version.split()[0],
-                                       "pyzmq": zmq.__version__, "libzmq": zmq.zmq_version()}}
+                                       "pyzmq": zmq.__version__, "libzmq": zmq.zmq_version()},
+                           "load": {"before": round(os.getloadavg()[0], 2)}}
     for kind in ("jpeg", "raw"):
         print(f"[bench] {kind}: throughput (pyzmq, trapflow zmq, trapflow shm)", file=sys.stderr)
         # Interleaved repeats, median kept: a shared machine's noise hits every path alike.
@@ -450,6 +468,7 @@ def main() -> None:
         f"trapflow_{f}": trapflow_path("raw", args.seconds, None, 1, tmp, pools=3, frames=f)
         for f in FRAMES}}
     out["jpeg_decode"] = jpeg_decode_cost()
+    out["load"]["after"] = round(os.getloadavg()[0], 2)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "transport.json").write_text(json.dumps(out, indent=1))
     (args.out / "transport.md").write_text(markdown(out))

@@ -238,6 +238,26 @@ def test_variant_int8_runs_the_packaged_int8_model() -> None:
     assert {"QuantizeLinear", "DequantizeLinear"} <= ops  # QDQ: int8 inside
 
 
+@pytest.mark.parametrize(("params", "model"), [
+    ({}, "crab_detector_int8.onnx"),  # no variant: int8, the default since issue 27
+    ({"variant": ""}, "crab_detector_int8.onnx"),  # empty says the same
+    ({"variant": "fp32"}, "crab_detector.onnx"),  # fp32 stays one key away
+])
+def test_the_packaged_default_is_int8(params: dict[str, str], model: str) -> None:
+    det = CrabDetector()
+    det.configure({**params, "providers": ["cpu"]}, make_context(pool="mono"))
+    assert det.session.path.name == model
+
+
+def test_variant_fp32_beside_a_model_path_runs_that_model(tmp_path: Path) -> None:
+    """A config that named its model and `variant: fp32` (accepted before int8 became the
+    default) still runs its own model."""
+    path = _model(tmp_path, "yolov8")
+    det = CrabDetector()
+    det.configure({"model": str(path), "variant": "fp32"}, make_context(pool="mono"))
+    assert det.session.path == path
+
+
 def test_variant_with_a_model_path_is_refused(tmp_path: Path) -> None:
     det = CrabDetector()
     with pytest.raises(WorkerError, match=r"params\.variant: 'int8' picks a packaged"):

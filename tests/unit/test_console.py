@@ -254,8 +254,10 @@ def test_tap_with_messages_exits_0_at_its_timeout(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(("args", "code", "stream", "text"), [
     (["--help"], 0, "stdout", "with their run time"),
-    (["-h"], 0, "stdout", "Usage: scripts/bench.sh [--quick] [--help] [OUT_DIR]"),
-    (["--fast"], 2, "stderr", "unknown option --fast (expected --quick, --help or OUT_DIR)"),
+    (["-h"], 0, "stdout", "Usage: scripts/bench.sh [--quick | --pi] [--help] [OUT_DIR]"),
+    (["--help"], 0, "stdout", "--pi: the deployment table, run on the device"),
+    (["--fast"], 2, "stderr",
+     "unknown option --fast (expected --quick, --pi, --help or OUT_DIR)"),
 ])
 def test_bench_sh_help_prints_its_usage_and_run_time(args: list[str], code: int, stream: str,
                                                      text: str) -> None:

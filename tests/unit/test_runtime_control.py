@@ -391,3 +391,16 @@ def test_viewer_pool_changes_are_decoded_with_bounds(
     else:
         with pytest.raises(ProtocolError, match=match):
             control_msgs.decode_pool_change(body)
+
+
+def test_workers_added_later_get_the_pools_start_up_limit() -> None:
+    """A worker a resize adds has supervisor.startup_timeout_s to become active, as the
+    pool's first workers had (issue 27: 60 s was a constant, too short under emulation)."""
+    s = SupervisorState((), Budget(max_restarts=2))
+    s.pools.add_pool("mono", 1, "latest", {}, liveness_s=5.0, startup_s=600.0)
+    assert kinds(s.pools.set_count("mono", 2, 1.0)) == ["AddWorker", "Spawn"]
+    added = worker_name("mono", 1)
+    assert s.nodes[added].plan.startup_s == 600.0
+    s.spawned(added, 200, 1.0)
+    assert s.start_problem([added], 500.0) is None
+    assert s.start_problem([added], 602.0) is not None

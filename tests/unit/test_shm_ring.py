@@ -181,6 +181,46 @@ def test_write_bounds(make_ring: Callable[..., fr.FrameRing], n_left: int, n_rig
     writer.close()
 
 
+def test_a_pair_made_in_place_reads_as_a_written_one(
+        make_ring: Callable[..., fr.FrameRing]) -> None:
+    """begin() hands out the slot's own memory and commit() publishes it: the reader sees
+    the bytes the producer put there, and the same descriptor write() gives for them."""
+    ring = make_ring(slots=2)
+    writer, reader = fr.RingWriter(ring.name), fr.RingReader(ring.name)
+    img = builders.image(seed=3)
+    slot = writer.acquire()
+    assert slot is not None
+    lv, rv = writer.begin(slot, img.nbytes, 5)
+    lv.reshape(img.shape)[:] = img  # a decoder writing its output straight into the slot
+    rv[:] = np.frombuffer(b"right", np.uint8)
+    assert ring.generation(slot) % 2 == 1  # odd while it is being made: no reader trusts it
+    ref = writer.commit(slot)
+    left, right = reader.view(ref)
+    assert np.array_equal(left.reshape(img.shape), img) and right.tobytes() == b"right"
+    slot2 = writer.acquire()
+    assert slot2 is not None
+    assert writer.write(slot2, img, b"right").right_offset == ref.right_offset
+    assert ring.state(slot) == fr.HELD and ref.generation % 2 == 0
+    del left, right, lv, rv
+    reader.close()
+    writer.close()
+
+
+@pytest.mark.parametrize("opened", [False, True])
+def test_commit_needs_a_slot_opened_by_begin(make_ring: Callable[..., fr.FrameRing],
+                                             opened: bool) -> None:
+    ring = make_ring(slots=1)
+    writer = fr.RingWriter(ring.name)
+    slot = writer.acquire()
+    assert slot is not None
+    if opened:  # opened, committed: a second commit is refused
+        writer.begin(slot, 1, 1)
+        writer.commit(slot)
+    with pytest.raises(fr.RingError, match="opened by begin"):
+        writer.commit(slot)
+    writer.close()
+
+
 def test_write_needs_an_acquired_slot(make_ring: Callable[..., fr.FrameRing]) -> None:
     ring = make_ring(slots=2)
     writer = fr.RingWriter(ring.name)

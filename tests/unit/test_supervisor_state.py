@@ -205,16 +205,24 @@ def test_nothing_restarts_once_stopping() -> None:
     assert s.tick(100.0) == []
 
 
-@pytest.mark.parametrize(("state", "reason", "at", "problem"), [
-    (Lifecycle.ACTIVE, "", 1.0, None),
-    (Lifecycle.UNCONFIGURED, "", 59.0, None),
-    (Lifecycle.UNCONFIGURED, "", 61.0, "nodes not active after 60 s: ['worker:vo:0']"),
-    (Lifecycle.INACTIVE, "cannot start algorithm: no model",
-     1.0, "worker:vo:0 cannot start: cannot start algorithm: no model"),
+SLOW = "(a slow board or emulation: raise supervisor.startup_timeout_s)"
+
+
+@pytest.mark.parametrize(("state", "reason", "at", "startup_s", "problem"), [
+    (Lifecycle.ACTIVE, "", 1.0, 60.0, None),
+    (Lifecycle.UNCONFIGURED, "", 59.0, 60.0, None),
+    (Lifecycle.UNCONFIGURED, "", 61.0, 60.0,
+     f"nodes not active after 60 s: ['worker:vo:0'] {SLOW}"),
+    # supervisor.startup_timeout_s raised (issue 27: emulated arm64 starts in minutes)
+    (Lifecycle.UNCONFIGURED, "", 61.0, 600.0, None),
+    (Lifecycle.UNCONFIGURED, "", 601.0, 600.0,
+     f"nodes not active after 600 s: ['worker:vo:0'] {SLOW}"),
+    (Lifecycle.INACTIVE, "cannot start algorithm: no model", 1.0, 60.0,
+     "worker:vo:0 cannot start: cannot start algorithm: no model"),
 ])
 def test_start_up_deadline_and_reasons(state: Lifecycle, reason: str, at: float,
-                                       problem: str | None) -> None:
-    s = core()
+                                       startup_s: float, problem: str | None) -> None:
+    s = core(NodePlan("worker:vo:0", "worker", liveness_s=3.0, startup_s=startup_s))
     s.spawned("worker:vo:0", 1, 0.0)
     s.heartbeat("worker:vo:0", 1, state, reason, 0.5)
     assert s.start_problem(["worker:vo:0"], at) == problem

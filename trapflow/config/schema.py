@@ -288,6 +288,10 @@ class SupervisorConfig(_Section):
     """A node given up (its restart budget spent) is retried this long after, with a fresh
     budget; essential nodes (broker, capture, normalizer) are never given up."""
     stop_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=4)] = 2.0
+    startup_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 60.0
+    """How long every node has to report its first state before start-up is declared
+    failed; more on a slow board or under emulation, where imports and the synthetic
+    world's set-up take minutes."""
 
 
 class LogFileConfig(_Section):

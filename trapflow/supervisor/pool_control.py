@@ -31,6 +31,7 @@ from trapflow.config.ladder import PoolLevel
 from trapflow.config.schema import parse_policy
 from trapflow.runtime.lifecycle import Lifecycle
 from trapflow.supervisor.actions import (
+    STARTUP_TIMEOUT_S,
     AddWorker,
     LevelChanged,
     NodePlan,
@@ -57,6 +58,7 @@ class PoolState:
     policy: str
     params: dict[str, Any]
     liveness_s: float
+    startup_s: float = STARTUP_TIMEOUT_S
     state: Lifecycle = Lifecycle.ACTIVE
     changes: int = 0
     off_by: str = ""  # who deactivated it: "operator" or "ladder" ("" while active)
@@ -91,9 +93,10 @@ class PoolControl:
     # --- runtime control ----------------------------------------------------------------
 
     def add_pool(self, name: str, count: int, policy: str, params: Mapping[str, Any],
-                 liveness_s: float) -> None:
+                 liveness_s: float, startup_s: float = STARTUP_TIMEOUT_S) -> None:
         """A pool started at boot (its workers are added as nodes by the caller)."""
-        self.by_name[name] = PoolState(name, count, policy, dict(params), liveness_s)
+        self.by_name[name] = PoolState(name, count, policy, dict(params), liveness_s,
+                                       startup_s)
 
     def _pool(self, name: str) -> PoolState:
         p = self.by_name.get(name)
@@ -126,7 +129,7 @@ class PoolControl:
                 raise Refused(f"pool {name!r}: {wname} is still stopping; try again in a "
                               "few seconds")
             self.nodes[wname] = NodeState(NodePlan(wname, "worker", p.liveness_s,
-                                                   pool=name))
+                                                   pool=name, startup_s=p.startup_s))
             actions += [AddWorker(wname, name, i), Spawn(wname, 0)]
         for i in range(count, p.count):
             wname = worker_name(name, i)

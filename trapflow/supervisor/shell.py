@@ -171,7 +171,8 @@ class Supervisor:
         for pool, pcfg in cfg.pools.items():
             if pcfg.count:  # runtime control (trapflow pool / param) knows the pools run
                 self.core.pools.add_pool(pool, pcfg.count, pcfg.policy, pcfg.params,
-                                         worker_liveness(pcfg.timeout_s, sup.heartbeat_interval_s))
+                                         worker_liveness(pcfg.timeout_s, sup.heartbeat_interval_s),
+                                         sup.startup_timeout_s)
             for i in range(pcfg.count):
                 spec = NodeSpec("worker", f"worker:{pool}:{i}", cfg, run, pool=pool, index=i,
                                 rig=self.rig, tag_size_m=self.tag_size_m, ring=ring)
@@ -187,7 +188,8 @@ class Supervisor:
 
     def _add(self, spec: NodeSpec, liveness_s: float) -> None:
         self.children.append(Child(spec))
-        self.core.add(NodePlan(spec.name, spec.role, liveness_s, pool=spec.pool))
+        self.core.add(NodePlan(spec.name, spec.role, liveness_s, pool=spec.pool,
+                               startup_s=spec.cfg.supervisor.startup_timeout_s))
 
     def _spawn(self, child: Child, now: float) -> None:
         child.proc = self.mp.Process(

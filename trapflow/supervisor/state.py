@@ -26,7 +26,6 @@ from dataclasses import dataclass
 
 from trapflow.runtime.lifecycle import RECYCLE_EXITS, Lifecycle
 from trapflow.supervisor.actions import (
-    STARTUP_TIMEOUT_S,
     Budget,
     Event,
     GiveUp,
@@ -198,7 +197,9 @@ class SupervisorState:
         slow = [name for name in names if self.nodes[name].state == Lifecycle.UNCONFIGURED
                 and now - self.nodes[name].started > self.nodes[name].plan.startup_s]
         if slow:
-            return f"nodes not active after {STARTUP_TIMEOUT_S:g} s: {slow}"
+            limit = max(self.nodes[name].plan.startup_s for name in slow)
+            return (f"nodes not active after {limit:g} s: {slow} (a slow board or emulation: "
+                    "raise supervisor.startup_timeout_s)")
         return None
 
     def started(self, names: Iterable[str]) -> bool:

@@ -9,7 +9,8 @@ Segment layout (Linux, a file under /dev/shm named
 
 Slot states and who moves them (one writer per transition, so no cross-process lock):
     FREE -> WRITING   capture, in acquire()
-    WRITING -> HELD   capture, at the end of write()
+    WRITING -> HELD   capture, at the end of write() (or commit(), after begin() opened
+                      the slot for a pair made in place)
     WRITING -> FREE   capture, release() of an abandoned write, or reclaim after a crash
     HELD -> FREE      the lifetime owner (the broker), free(slot, generation), when no pool
                       holds the pair any more; capture's release() when it is told instead
@@ -393,30 +394,53 @@ class RingWriter(FrameRing):
     def write(self, slot: int, left: Any, right: Any) -> FrameRef:
         """Copy both images into an acquired slot (one copy each), commit, return the
         descriptor. RingError if the slot was not acquired or the pair does not fit."""
+        lb, rb = _as_bytes(left), _as_bytes(right)
+        left_view, right_view = self.begin(slot, lb.nbytes, rb.nbytes)
+        left_view[:] = lb
+        right_view[:] = rb
+        return self.commit(slot)
+
+    def begin(self, slot: int, left_nbytes: int, right_nbytes: int
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Open an acquired slot for a pair of these sizes: writable uint8 views of its left
+        and right payloads, for a producer that makes the images in place (a decoder or a
+        camera buffer written straight into the slot: no copy); commit() publishes them.
+        RingError if the slot was not acquired or the pair does not fit."""
         if not 0 <= slot < self.slots or self._states[slot] != WRITING:
             raise RingError(f"write: expected an acquired slot, got {slot}")
-        lb, rb = _as_bytes(left), _as_bytes(right)
         loff = FRAME_SLOT_HEADER
-        roff = _round_up(loff + lb.nbytes, ALIGN)
-        if (not lb.nbytes or not rb.nbytes or lb.nbytes + rb.nbytes > self.capacity
-                or roff + rb.nbytes > self.slot_size):
+        roff = _round_up(loff + left_nbytes, ALIGN)
+        if (left_nbytes <= 0 or right_nbytes <= 0
+                or left_nbytes + right_nbytes > self.capacity
+                or roff + right_nbytes > self.slot_size):
             raise RingError(
                 f"write: expected 1..{self.capacity} payload bytes per pair, got "
-                f"{lb.nbytes} + {rb.nbytes}")
+                f"{left_nbytes} + {right_nbytes}")
         words = self._words
         gen = int(words[slot, 0])
-        words[slot, 0] = gen + 1  # odd: readers of the old pair see the reuse
-        _fence()
+        if gen % 2 == 0:
+            words[slot, 0] = gen + 1  # odd: readers of the old pair see the reuse
+            _fence()
+        words[slot, 1] = left_nbytes
+        words[slot, 2] = right_nbytes
         row = self._data[slot]
-        row[loff:loff + lb.nbytes] = lb
-        row[roff:roff + rb.nbytes] = rb
-        words[slot, 1] = lb.nbytes
-        words[slot, 2] = rb.nbytes
+        return row[loff:loff + left_nbytes], row[roff:roff + right_nbytes]
+
+    def commit(self, slot: int) -> FrameRef:
+        """Publish the pair begin() opened in `slot`: HELD, and its descriptor. RingError if
+        begin() did not open it."""
+        words = self._words
+        gen = int(words[slot, 0]) if 0 <= slot < self.slots else 0
+        if gen % 2 == 0 or self._states[slot] != WRITING:
+            raise RingError(f"commit: expected a slot opened by begin(), got {slot}")
+        ln, rn = int(words[slot, 1]), int(words[slot, 2])
         _fence()
-        words[slot, 0] = gen + 2
+        words[slot, 0] = gen + 1
         self._states[slot] = HELD
-        return FrameRef(segment=self.name, slot=slot, generation=gen + 2, left_offset=loff,
-                        left_length=lb.nbytes, right_offset=roff, right_length=rb.nbytes)
+        loff = FRAME_SLOT_HEADER
+        return FrameRef(segment=self.name, slot=slot, generation=gen + 1, left_offset=loff,
+                        left_length=ln, right_offset=_round_up(loff + ln, ALIGN),
+                        right_length=rn)
 
     def release(self, slot: int) -> None:
         """Put a slot back on the free list: an acquired slot whose write was abandoned,

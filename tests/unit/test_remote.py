@@ -13,8 +13,8 @@ import zmq
 import zmq.auth
 from click.testing import CliRunner
 
-from trapflow.broker.node import _local_msg
 from trapflow.broker.remote_state import MAX_EVICTED_SHOWN, RemoteWorkers
+from trapflow.broker.trust import local_msg
 from trapflow.cli.main import main
 from trapflow.config import schema as configmod
 from trapflow.errors import ConfigError, ProtocolError, StartupError
@@ -170,7 +170,7 @@ def test_workers_of_a_silent_host_are_named(heard: float | None, now: float,
 ])
 def test_join_messages_are_refused_on_local_paths(msg: messages.Msg, error: str) -> None:
     with pytest.raises(ProtocolError, match=error):
-        _local_msg(messages.decode_worker_msg(messages.encode(msg)))
+        local_msg(messages.decode_worker_msg(messages.encode(msg)))
 
 
 @pytest.mark.parametrize("data,error", [

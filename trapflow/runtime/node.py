@@ -16,7 +16,7 @@ import os
 import signal
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
@@ -90,6 +90,9 @@ class NodeSpec:
     # This start of the pipeline (the supervisor's), the same for a restarted node: state a
     # node saved under another id predates a restart of the box (its runtime changes gone).
     run_id: str = ""
+    # The broker's: the key that seals the supervisor's orders (control_msgs.seal_order).
+    # Crosses the spawn in the pickled spec, never on a command line or in the environment.
+    order_key: bytes = field(default=b"", repr=False)
 
     def the_rig(self) -> StereoRig:
         """The run's rig; a node spawned without one (a test, a benchmark) gets the config's."""

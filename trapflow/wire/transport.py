@@ -43,6 +43,9 @@ _ENDPOINTS = {
 _LOCAL_ENDPOINTS = {
     "control": "control.sock",  # supervisor REP: status, stop
     "log": "log.sock",  # nodes PUSH -> supervisor PULL: log records (control_msgs.LogEntry)
+    # supervisor PUSH -> broker PULL: pool switches, the ladder's level, workers gone, the
+    # stop (control_msgs.seal_order: each sealed with the run's key, handed in the spawn)
+    "orders": "orders.sock",
 }
 # Modes that hold whatever the umask: the run directory is its owner's alone; sockets and
 # links in it are read-write for the owner only; results and logs may be read by its group.
@@ -126,6 +129,7 @@ class Endpoints:
     heartbeat: str
     control: str
     log: str
+    orders: str
     capture_link: str
     workers_link: str
     results_link: str

@@ -54,12 +54,12 @@ def test_remote_config_binds_beyond_loopback_only_with_keys(remote: dict[str, An
     assert "$.network.remote" in str(exc.value)
 
 
-def test_remote_port_must_not_be_one_of_the_pipelines_own() -> None:
-    with pytest.raises(ConfigError, match="takes a port of the pipeline's own"):
-        configmod.from_data({"network": {"transport": "tcp", "base_port": 5550,
-                                         "remote": {"bind": "tcp://127.0.0.1:5553"}}})
-    configmod.from_data({"network": {"transport": "tcp", "base_port": 5550,
-                                     "remote": {"bind": "tcp://127.0.0.1:5557"}}})
+def test_an_old_tcp_config_still_loads_and_any_remote_port_is_free() -> None:
+    """transport tcp once took base_port..base_port+6 (issue 26 item 3 keeps every local
+    socket an ipc file): an older config still loads, and no remote port clashes."""
+    cfg = configmod.from_data({"network": {"transport": "tcp", "base_port": 5550,
+                                           "remote": {"bind": "tcp://127.0.0.1:5553"}}})
+    assert cfg.network.remote.bind == "tcp://127.0.0.1:5553"
 
 
 def test_pipeline_endpoints_still_refuse_non_loopback_hosts() -> None:

@@ -93,9 +93,14 @@ class RemoteWorkersSide:
         self.monitor = open_monitor(self.router)
         self._poller.register(self.router)
         self._poller.register(self.monitor)
-        log.info("remote workers: %s (%s)", rc.bind,
-                 "CURVE, authorised keys in " + rc.authorized_keys if rc.curve else "loopback, "
-                 "no keys")
+        if rc.curve:
+            log.info("remote workers: %s (CURVE, authorised keys in %s)", rc.bind,
+                     rc.authorized_keys)
+        else:
+            # The one socket of the pipeline another local user can reach (issue 26 item 3).
+            log.warning("remote workers: %s has no CURVE keys: every user of this host may "
+                        "join its pools; set network.remote.server_key and authorized_keys "
+                        "(`trapflow keys generate DIR`)", rc.bind)
 
     def close(self) -> None:
         """Stop the authenticator's thread (the sockets go with the broker's context)."""

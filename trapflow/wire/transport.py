@@ -29,18 +29,17 @@ from trapflow.wire import frame_msgs, messages
 # Linux limits a UNIX socket path to 107 bytes.
 MAX_IPC_PATH = 107
 
-# Name -> (ipc file name, tcp port offset). The supervisor, broker and normalizer bind these.
+# The pipeline's sockets, ipc files in its run directory (0700, sockets 0600): only the
+# directory's owner reaches them, in every mode. network.transport tcp once put the first five
+# on loopback ports, where every local user read frames, joined pools, injected pairs and
+# forged heartbeats (issue 26 item 3); the only TCP socket now is network.remote.bind,
+# guarded by CURVE keys. The supervisor, broker and normalizer bind these.
 _ENDPOINTS = {
-    "capture": ("capture.sock", 0),  # capture PUSH -> broker PULL
-    "workers": ("workers.sock", 1),  # broker ROUTER <-> worker DEALERs
-    "tap": ("tap.sock", 3),  # broker PUB: frames and stats
-    "results_tap": ("results-tap.sock", 4),  # normalizer PUB: JSON results
-    "heartbeat": ("heartbeat.sock", 5),  # nodes PUSH -> supervisor PULL
-}
-# Always ipc files in the run directory, even in TCP mode: only who may enter the run
-# directory (0700, its owner) may stop the pipeline or write its log, and `trapflow status
-# --run-dir` finds a TCP-mode pipeline where it finds an ipc one.
-_LOCAL_ENDPOINTS = {
+    "capture": "capture.sock",  # capture PUSH -> broker PULL
+    "workers": "workers.sock",  # broker ROUTER <-> worker DEALERs
+    "tap": "tap.sock",  # broker PUB: frames and stats
+    "results_tap": "results-tap.sock",  # normalizer PUB: JSON results
+    "heartbeat": "heartbeat.sock",  # nodes PUSH -> supervisor PULL
     "control": "control.sock",  # supervisor REP: status, stop
     "log": "log.sock",  # nodes PUSH -> supervisor PULL: log records (control_msgs.LogEntry)
     # supervisor PUSH -> broker PULL: pool switches, the ladder's level, workers gone, the
@@ -61,27 +60,26 @@ _LINKS = {
 
 
 def check_ports_free(net: NetworkConfig) -> None:
-    """StartupError naming the first TCP port of the pipeline another process holds.
+    """StartupError naming network.remote.bind's port when another process holds it.
 
     The supervisor asks before it creates anything big (the ring), so a second pipeline on
-    the same ports ends in one line with nothing left behind. In ipc mode, nothing to do.
+    the same port ends in one line with nothing left behind. Without a remote bind, nothing
+    to check (every other socket is an ipc file in the run directory).
     """
-    if net.transport == "ipc":
+    if not net.remote.bind:
         return
-    for name, (_fname, offset) in _ENDPOINTS.items():
-        if name == "heartbeat":
-            continue  # the supervisor's own, bound already
-        port = net.base_port + offset
-        with socket.socket(socket.AF_INET6 if ":" in net.host else socket.AF_INET) as s:
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            try:
-                s.bind((net.host, port))
-            except OSError as exc:
-                why = (exc.strerror or str(exc)).lower()
-                raise StartupError(
-                    f"cannot start: cannot bind tcp://{net.host}:{port} ({name}): {why}; "
-                    f"another pipeline or program holds it: stop it, or set "
-                    f"network.base_port to a free range") from None
+    host, _, port = net.remote.bind.partition("://")[2].rpartition(":")
+    host = host.strip("[]")
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("" if host in ("*", "0.0.0.0") else host, int(port)))
+        except OSError as exc:
+            why = (exc.strerror or str(exc)).lower()
+            raise StartupError(
+                f"cannot start: cannot bind {net.remote.bind} (network.remote.bind): {why}; "
+                f"another pipeline or program holds it: stop it, or choose another port"
+            ) from None
 
 
 def _ipc_url(run_dir: Path, fname: str) -> str:
@@ -96,7 +94,7 @@ def _ipc_url(run_dir: Path, fname: str) -> str:
 
 def log_endpoint(run_dir: Path) -> str:
     """Where a process's nodes send their log records: log.sock in its run directory."""
-    return _ipc_url(run_dir, _LOCAL_ENDPOINTS["log"])
+    return _ipc_url(run_dir, _ENDPOINTS["log"])
 
 
 def make_private(run_dir: Path) -> None:
@@ -136,15 +134,9 @@ class Endpoints:
 
     @classmethod
     def for_run(cls, net: NetworkConfig, run_dir: Path) -> Endpoints:
-        """ipc:// files in the run directory, or consecutive tcp ports on the loopback host."""
-        urls: dict[str, str] = {}
-        for name, (fname, offset) in _ENDPOINTS.items():
-            if net.transport == "ipc":
-                urls[name] = _ipc_url(run_dir, fname)
-            else:
-                urls[name] = f"tcp://{net.host}:{net.base_port + offset}"
-        for name, fname in _LOCAL_ENDPOINTS.items():
-            urls[name] = _ipc_url(run_dir, fname)
+        """ipc:// files in the run directory, whatever network.transport says (see
+        _ENDPOINTS); `net` stays in the signature, which every node and client calls."""
+        urls = {name: _ipc_url(run_dir, fname) for name, fname in _ENDPOINTS.items()}
         for name, fname in _LINKS.items():
             urls[name] = str(run_dir.resolve() / fname)
         return cls(**urls)

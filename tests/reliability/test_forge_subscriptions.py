@@ -17,6 +17,7 @@ import zmq
 from tests.builders import small_source
 from tests.conftest import Pipeline, only_pools, poll_for, write_config
 from trapflow.wire import tap_msgs
+from trapflow.wire.transport import TRIM_INTERVAL_S
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
 
@@ -101,7 +102,7 @@ def test_huge_and_many_subscriptions_leave_broker_and_normalizer_memory_flat(
         for sub in hostile:
             sub.close(linger=0)
         reader.close(linger=0)
-    time.sleep(3.0)
+    time.sleep(TRIM_INTERVAL_S + 2.0)  # a trim after they left (TapGate.trim_due)
     after = {name: _rss(pid) for name, pid in pids.items()}
     st2 = p.status()
     assert st2 is not None and all(n["restarts"] == 0 for n in st2["nodes"])

@@ -141,7 +141,7 @@ class BrokerNode(Node):
         return {"pairs_in": self.state.pairs_in, "malformed": self._malformed(),
                 "held": self.state.held(), "results_waiting": len(self._out) + len(self._unacked),
                 "results_dropped": self.results_dropped, "late_answers": self.state.late,
-                "refused_subscriptions": self.tap.gate.refused,
+                "refused_subscriptions": self.tap.gate.refused, **self.remote.counters(),
                 **{f"rejected_{k}": n for k, n in self.state.rejected.items()},
                 **{f"refused_{k}": n for k, n in self.refused.items()}}
 

@@ -13,6 +13,7 @@ import zmq
 
 from trapflow.broker.remote_state import RemoteWorkers
 from trapflow.broker.state import BrokerState
+from trapflow.runtime.node import release_memory
 from trapflow.wire import messages, tap_msgs
 from trapflow.wire.transport import TAP_RCVHWM, Poller, SocketSpec, TapGate, open_socket
 
@@ -82,3 +83,5 @@ class BrokerTap:
         )
         self._last_in = state.pairs_in
         self.publish(tap_msgs.TOPIC_STATS, messages.encode(stats))  # cheap: once a second
+        if self.gate.trim_due(now):
+            release_memory()  # what refused subscribers made libzmq hold, once they leave

@@ -168,6 +168,18 @@ class Node:
         self.ctx.destroy(linger=0)
 
 
+def release_memory() -> None:
+    """Give the allocator's free pages back to the system (glibc's malloc_trim). libzmq frees
+    its record of a peer's subscriptions when the peer leaves, but the pages stay with the
+    process: 50,000 random subscriptions left +6.3 MB after their sender left, +1.7 MB after
+    a trim (measured, issue 26 item 10). Elsewhere than glibc, nothing to do."""
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL(None).malloc_trim(0)
+        except (OSError, AttributeError):
+            pass  # musl and others: no malloc_trim
+
+
 def _die_with_parent() -> None:
     """Ask Linux to SIGKILL us if the supervisor dies, so no orphan survives a kill -9."""
     if sys.platform.startswith("linux"):

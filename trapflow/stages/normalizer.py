@@ -20,7 +20,7 @@ import zmq
 from trapflow.errors import ProtocolError
 from trapflow.modem.outbox import Outbox, OutboxFull
 from trapflow.observe.stage import Observations, Observer
-from trapflow.runtime.node import ACTIVE, FINALIZED, Node, NodeSpec
+from trapflow.runtime.node import ACTIVE, FINALIZED, Node, NodeSpec, release_memory
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.stages.result_json import dumps, normalize
 from trapflow.wire import messages, tap_msgs
@@ -97,6 +97,8 @@ class NormalizerNode(Node):
             dirty |= self._receive(100)
             self.gate.drain()  # subscriptions to the results tap
             now = time.monotonic()
+            if self.gate.trim_due(now):
+                release_memory()  # what refused subscribers made libzmq hold, once they leave
             if dirty and now >= next_flush:
                 self.file.flush()
                 next_flush = now + ncfg.flush_interval_s

@@ -236,6 +236,10 @@ def open_socket(ctx: zmq.Context[zmq.Socket[bytes]], spec: SocketSpec) -> zmq.So
 
 
 TAP_RCVHWM = 64  # subscription messages queued from one peer before libzmq stops reading it
+# After subscriptions were refused, the process trims its heap this often for this long: the
+# memory libzmq held for them is freed when their sender leaves (TapGate.trim_due).
+TRIM_INTERVAL_S = 5.0
+TRIM_FOR_S = 60.0
 
 
 class TapGate:
@@ -254,6 +258,9 @@ class TapGate:
         self._valid = {t[:i] for t in self.topics for i in range(len(t) + 1)}
         self.readers: dict[bytes, int] = {}
         self.refused = 0
+        self._refused_seen = 0
+        self._trim_until = 0.0  # trims are due until then (refused subscriptions came)
+        self._next_trim = 0.0
 
     def drain(self) -> bool:
         """Take the subscription messages waiting (never blocks); True if readers changed."""
@@ -278,6 +285,18 @@ class TapGate:
                 else:
                     self.readers.pop(prefix, None)
             changed = True
+
+    def trim_due(self, now: float) -> bool:
+        """Whether the process should release freed memory now (runtime.node.release_memory):
+        every TRIM_INTERVAL_S for TRIM_FOR_S after the last refused subscription, so what a
+        hostile subscriber made libzmq hold goes back to the system once it leaves."""
+        if self.refused != self._refused_seen:
+            self._refused_seen = self.refused
+            self._trim_until = now + TRIM_FOR_S
+        if now < self._trim_until and now >= self._next_trim:
+            self._next_trim = now + TRIM_INTERVAL_S
+            return True
+        return False
 
     def wanted(self, topic: bytes) -> bool:
         """Somebody reads topic (subscribed to a prefix of it)."""

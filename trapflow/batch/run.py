@@ -95,6 +95,9 @@ def _distributed() -> Any:
     return importlib.import_module("dask.distributed")
 
 
+LOOPBACK = "127.0.0.1"
+
+
 @contextmanager
 def dask_client(opts: Options) -> Iterator[Any]:
     """A client of an existing scheduler, or of a LocalCluster of worker processes with one
@@ -111,8 +114,10 @@ def dask_client(opts: Options) -> Iterator[Any]:
             yield client
         return
     n = opts.local or os.cpu_count() or 1
-    with dd.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                      dashboard_address=":0", silence_logs=logging.ERROR) as cluster, \
+    # Scheduler and dashboard on loopback: ":0" served the dashboard (the run's tasks, logs
+    # and a profiler) to the whole network (issue 26 item 10).
+    with dd.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host=LOOPBACK,
+                      dashboard_address=f"{LOOPBACK}:0", silence_logs=logging.ERROR) as cluster, \
             dd.Client(cluster) as client:
         yield client
 

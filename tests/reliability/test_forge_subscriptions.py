@@ -16,6 +16,7 @@ import zmq
 
 from tests.builders import small_source
 from tests.conftest import Pipeline, only_pools, poll_for, write_config
+from tests.reliability import figures
 from trapflow.wire import tap_msgs
 from trapflow.wire.transport import TRIM_INTERVAL_S
 
@@ -108,6 +109,8 @@ def test_huge_and_many_subscriptions_leave_broker_and_normalizer_memory_flat(
     assert st2 is not None and all(n["restarts"] == 0 for n in st2["nodes"])
     code, _, err = p.stop(signal.SIGINT)
     assert code == 0, err
+    figures("subscriptions", subscriptions=SMALL_SUBS + 20,
+            growth_mb={n: round((after[n] - before[n]) / 2**20, 2) for n in pids})
     for name in pids:
         grew = (during[name] - before[name], after[name] - before[name])
         print(f"{name}: RSS before {before[name] / 2**20:.1f} MiB, growth with the "

@@ -21,6 +21,7 @@ import zmq
 
 from tests.conftest import Pipeline, poll_for
 from tests.integration.test_remote_workers import SMALL, free_port, keys, remote_config
+from tests.reliability import figures
 from trapflow.broker.remote_state import MAX_REMOTE_WORKERS
 from trapflow.wire import messages
 from trapflow.wire.transport import CurveKeys, client_keys
@@ -104,6 +105,8 @@ def test_300_hellos_from_an_authorised_key_keep_the_remote_table_bounded(
         after.append(psutil.Process(pid).memory_info().rss - before)
     print(f"broker RSS growth after each round of {HELLOS} hellos, once the senders left: "
           f"{[round(g / 2**20, 2) for g in after]} MiB; counters {c}")
+    figures("remote_hellos", hellos=2 * HELLOS, refused=c["refused_remote_table_full"],
+            forgotten=c["remote_forgotten"], growth_mb={"broker": round(max(after) / 2**20, 2)})
     assert c["refused_remote_table_full"] == 2 * (HELLOS - MAX_REMOTE_WORKERS), c
     # Given back once the senders left (the issue: +11.7 MB, all kept), and what the first
     # round took is reused by the second: no growth without bound.

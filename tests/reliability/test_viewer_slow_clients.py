@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.reliability import figures
 from trapflow.config.schema import Config
 from trapflow.viewer.server import IDLE_S, Viewer
 
@@ -70,6 +71,7 @@ def test_half_requests_are_closed_and_the_page_still_answers(tmp_path: Path) -> 
             v.close()
 
     n_closed, waited, answer = asyncio.run(main())
+    figures("viewer_slow_clients", clients=SLOW, closed=n_closed, seconds=round(waited, 1))
     assert answer.startswith(b"HTTP/1.1 200"), answer[:80]
     assert n_closed == SLOW, f"{SLOW - n_closed} of {SLOW} slow clients still held"
     assert waited < IDLE_S + 10.0

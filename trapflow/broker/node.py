@@ -66,6 +66,7 @@ class BrokerNode(Node):
     """Distributes pairs to worker pools with back-pressure and per-pool policies."""
 
     def __init__(self, spec: NodeSpec) -> None:
+        # Long on purpose: every socket, link and table the broker's loop reads, in one place.
         super().__init__(spec)
         ep = self.endpoints
         self.poller = Poller()

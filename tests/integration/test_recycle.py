@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -119,7 +120,7 @@ def test_the_supervisors_notice_of_a_recycle_does_not_overtake_the_workers_answe
         client.drop()
         notice = messages.Gone(worker=ident, reason=messages.recycled_reason("rss"))
         with caplog.at_level(logging.INFO, logger="trapflow.broker.node"):
-            broker._on_worker_msg(b"supervisor", notice, [])
+            broker._on_order(notice, time.monotonic())
         st = broker.state.pool_stats()["noop"]
         assert (st.processed, st.lost, st.pending, st.in_flight) == (1, 0, 0, 0)
         assert broker.state.rejected == {} and len(broker._out) == 1
@@ -128,7 +129,8 @@ def test_the_supervisors_notice_of_a_recycle_does_not_overtake_the_workers_answe
 
 @pytest.mark.timeout(60)
 def test_forged_stopping_notice_is_refused(run_dir: Path, prefix: str) -> None:
-    """Only the supervisor may tell the broker a planned stop began (it quiets warnings)."""
+    """Only the supervisor may tell the broker a planned stop began (it quiets warnings):
+    not a worker, not whoever claims the supervisor's old identity on the workers socket."""
     make_private(run_dir)
     cfg = Config(pools={"noop": PoolConfig(plugin="noop")})
     broker = BrokerNode(NodeSpec("broker", "broker", cfg, run_dir))
@@ -136,6 +138,8 @@ def test_forged_stopping_notice_is_refused(run_dir: Path, prefix: str) -> None:
         broker._on_worker_msg(b"noop:0:1", messages.Stopping(), [])
         assert (broker.winding_down, broker.refused) == (False, {"forged_stopping": 1})
         broker._on_worker_msg(b"supervisor", messages.Stopping(), [])
+        assert (broker.winding_down, broker.refused) == (False, {"forged_stopping": 2})
+        broker._on_order(messages.Stopping(), time.monotonic())
         assert broker.winding_down
     finally:
         broker.close()

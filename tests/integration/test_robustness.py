@@ -201,23 +201,27 @@ def test_run_dir_in_use_is_refused(spawn, run_dir: Path) -> None:
 
 
 @pytest.mark.timeout(60)
-def test_tcp_port_in_use_is_reported(spawn, run_dir: Path) -> None:
+def test_an_old_tcp_config_runs_with_its_ports_held_by_another_program(
+        spawn, run_dir: Path) -> None:
+    """transport tcp no longer binds base_port.. (issue 26 item 3: other local users reached
+    them): an older config still runs, and whatever holds those ports is no obstacle."""
     blocker = socket.socket()
     blocker.bind(("127.0.0.1", 0))
     blocker.listen()
     port = blocker.getsockname()[1]
     try:
-        # The broker's capture endpoint is base_port + 0.
+        if not 1024 <= port <= 65000:
+            pytest.skip(f"ephemeral port {port} outside base_port's range")
         cfg = write_config(run_dir.parent / "tcp.yaml", {
             "source": SMALL, "network": {"transport": "tcp", "base_port": port},
             "pools": only_pools({"vo": {"policy": "ordered"}}),
         })
-        p: Pipeline = spawn(["--config", str(cfg), "--duration", "10"], run_dir)
+        p: Pipeline = spawn(["--config", str(cfg), "--duration", "4"], run_dir)
         code, _, err = p.wait(45)
     finally:
         blocker.close()
-    assert code == 2
-    assert "cannot start" in err and "address already in use" in err
+    assert code == 0, err
+    assert p.results()
 
 
 @pytest.mark.timeout(90)

@@ -1,9 +1,10 @@
 """Who may enter a running pipeline: modes of the run directory, sockets, links, results and
-the log under umask 000, another uid's connections, and control in TCP mode.
+the log under umask 000, another uid's connections, and everything in TCP mode.
 
 Pins issue 16, item 6: socket and directory modes followed the umask, so under umask 000
 an unprivileged local user stopped the pipeline; in TCP mode any local user could, and
-`trapflow status --run-dir` could not reach a TCP-mode pipeline at all.
+`trapflow status --run-dir` could not reach a TCP-mode pipeline at all. Pins issue 26
+item 3: TCP mode left frames, pools, pair injection and heartbeats to every local user.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import errno
 import json
 import os
 import pwd
+import shutil
 import socket
 import stat
 import subprocess
@@ -133,22 +135,102 @@ def test_modes_hold_under_umask_000_and_another_uid_cannot_connect(spawn, run_di
     assert code == 0, err
 
 
+# What another local user tries against a TCP-mode pipeline (run by setpriv as `nobody`):
+# the ports transport tcp used, and the same sockets as ipc files; it prints what it got.
+_ATTACK = r"""
+import json, socket, sys, time
+import zmq
+from tests import builders
+from trapflow.wire import messages
+base, run = int(sys.argv[1]), sys.argv[2]
+out = {"uid": __import__("os").getuid(), "tcp": {}, "frames": 0, "jobs": 0}
+for off in range(7):
+    with socket.socket() as s:
+        s.settimeout(2)
+        out["tcp"][str(base + off)] = s.connect_ex(("127.0.0.1", base + off))
+def eps(off, name):
+    return [f"tcp://127.0.0.1:{base + off}", f"ipc://{run}/{name}"]
+ctx = zmq.Context()
+sub = ctx.socket(zmq.SUB)
+sub.setsockopt(zmq.SUBSCRIBE, b"")
+for ep in eps(3, "tap.sock") + eps(4, "results-tap.sock"):
+    sub.connect(ep)
+join = ctx.socket(zmq.DEALER)
+join.setsockopt(zmq.IDENTITY, b"vo:9:1")
+for ep in eps(1, "workers.sock"):
+    join.connect(ep)
+inject = ctx.socket(zmq.PUSH)
+beat = ctx.socket(zmq.PUSH)
+for ep in eps(0, "capture.sock"):
+    inject.connect(ep)
+for ep in eps(5, "heartbeat.sock"):
+    beat.connect(ep)
+deadline = time.monotonic() + 4.0
+seq = 10**6
+while time.monotonic() < deadline:
+    for sock, frames in ((join, [messages.encode(messages.Ready(worker="vo:9:1", pool="vo",
+                                                                credit=8))]),
+                         (inject, builders.pair_frames(seq)),
+                         (beat, [messages.encode(messages.Heartbeat(
+                             node="worker:vo:0", pid=1, state="inactive"))])):
+        try:
+            sock.send_multipart(frames, zmq.NOBLOCK)
+        except zmq.Again:
+            pass
+    seq += 1
+    while sub.poll(50):
+        sub.recv_multipart()
+        out["frames"] += 1
+    while join.poll(0):
+        join.recv_multipart()
+        out["jobs"] += 1
+print(json.dumps(out))
+ctx.destroy(linger=0)
+"""
+
+
 @pytest.mark.timeout(120)
-def test_tcp_mode_keeps_control_in_the_run_directory_and_status_finds_it(
+def test_tcp_mode_gives_another_uid_no_frames_no_pool_no_pairs_no_heartbeats(
         spawn, run_dir: Path) -> None:
+    """Pins issue 26 item 3: in TCP mode `nobody` read 18 MB of frames and the results,
+    joined a pool and wrote forged lines, injected pairs and forged a worker's heartbeat
+    over the loopback ports. Every local socket is now an ipc file in the 0700 run
+    directory: the same attempts, as another uid, get nothing and change nothing, and the
+    owner still reaches the pipeline with `trapflow status --run-dir` alone."""
+    if os.getuid() != 0:
+        pytest.skip("needs root to run a client as another uid (setpriv)")
+    if shutil.which("setpriv") is None:
+        pytest.skip("no setpriv on this host to run a client as another uid")
+    try:
+        pwd.getpwnam("nobody")
+    except KeyError:
+        pytest.skip("no user 'nobody' on this host to connect as")
+    os.chmod(run_dir.parent, 0o755)  # a world-traversable parent: only the run dir guards
     base = free_base_port()
     cfg = write_config(run_dir.parent / "t.yaml", {
-        "source": SMALL, "pools": POOLS,
+        "source": small_source(30, kind="synthetic"), "pools": POOLS,
         "network": {"transport": "tcp", "base_port": base}})
     p: Pipeline = spawn(["--config", str(cfg)], run_dir)
     st = p.wait_active()  # `trapflow status --run-dir` only: no config, no port given
     assert st["nodes"]
-    assert _mode(run_dir / "control.sock") == 0o600
-    with socket.socket() as s:  # nothing answers control on the TCP control port any more
-        assert s.connect_ex(("127.0.0.1", base + 6)) != 0
-    out = subprocess.run([sys.executable, "-m", "trapflow", "status", "--run-dir",
-                          str(run_dir), "--stop"], capture_output=True, text=True,
-                         timeout=30, cwd=REPO)
-    assert out.returncode == 0, out.stderr
-    code, _, err = p.wait(30)
+    poll_for(lambda: p.results(), 30, what="a first result")
+    env = {"PATH": os.environ.get("PATH", ""), "PYTHONPATH": os.pathsep.join(
+        [str(REPO), *os.environ.get("PYTHONPATH", "").split(os.pathsep)])}
+    attack = subprocess.run(
+        ["setpriv", "--reuid=nobody", "--regid=nogroup", "--clear-groups", sys.executable,
+         "-c", _ATTACK, str(base), str(run_dir.resolve())],
+        capture_output=True, text=True, timeout=60, cwd="/", env=env)
+    assert attack.returncode == 0, attack.stderr
+    got = json.loads(attack.stdout)
+    assert got["uid"] == pwd.getpwnam("nobody").pw_uid
+    assert all(code != 0 for code in got["tcp"].values()), got["tcp"]  # no port answers
+    assert (got["frames"], got["jobs"]) == (0, 0), got  # no frame read, no pair given
+    st2 = p.status()
+    assert st2 is not None
+    worker = next(n for n in st2["nodes"] if n["name"] == "worker:vo:0")
+    assert worker["state"] == "active" and worker["restarts"] == 0, worker
+    code, _, err = p.stop()
     assert code == 0, err
+    seqs = [row[k]["seq"] for row in p.results() for k in row if isinstance(row[k], dict)
+            and "seq" in row[k]]
+    assert seqs and max(seqs) < 10**6, "an injected pair was processed"

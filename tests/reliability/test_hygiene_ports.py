@@ -1,4 +1,4 @@
-"""A TCP port of the pipeline already in use: one line, the policy's exit status, nothing left.
+"""The pipeline's TCP port already in use: one line, the policy's exit status, nothing left.
 
 Pins issue 16, item 11: a second pipeline on used ports crashed with a traceback and left
 its 60 MB ring segment in /dev/shm.
@@ -22,22 +22,20 @@ SMALL = small_source(10, kind="synthetic")
 
 
 @pytest.mark.timeout(60)
-@pytest.mark.parametrize(("offset", "what"), [
-    (0, "capture"),  # bound by the broker
-    (3, "tap"),  # bound by the broker
-    (4, "results_tap"),  # bound by the normalizer
-    (5, "heartbeat"),  # bound by the supervisor itself
-])
-def test_used_tcp_port_ends_start_in_one_line_with_nothing_left(
-        spawn, run_dir: Path, offset: int, what: str) -> None:
-    """`what` names the socket on that port (for the reader; the message names the port)."""
+@pytest.mark.parametrize("transport", ["ipc", "tcp"])
+def test_used_remote_port_ends_start_in_one_line_with_nothing_left(
+        spawn, run_dir: Path, transport: str) -> None:
+    """The one TCP port a pipeline binds is network.remote.bind's (issue 26 item 3 keeps
+    every other socket an ipc file, also with the old transport tcp)."""
     base = free_base_port()
+    port = base + 1
     cfg = write_config(run_dir.parent / "p.yaml", {
         "source": SMALL, "pools": only_pools({"vo": {"count": 1}}),
-        "network": {"transport": "tcp", "base_port": base}})
-    with socket.socket() as holder:  # another program (or pipeline) holds one port
+        "network": {"transport": transport, "base_port": base,
+                    "remote": {"bind": f"tcp://127.0.0.1:{port}"}}})
+    with socket.socket() as holder:  # another program (or pipeline) holds the port
         holder.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        holder.bind(("127.0.0.1", base + offset))
+        holder.bind(("127.0.0.1", port))
         holder.listen(1)
         p: Pipeline = spawn(["--config", str(cfg)], run_dir)
         code, out, err = p.wait(45)
@@ -47,7 +45,7 @@ def test_used_tcp_port_ends_start_in_one_line_with_nothing_left(
     assert code == EXIT_USAGE, (code, err)
     assert "Traceback" not in err + out
     assert len(lines) == 1, lines
-    assert lines[0].startswith("trapflow: error:") and str(base + offset) in lines[0], lines
+    assert lines[0].startswith("trapflow: error:") and str(port) in lines[0], lines
     assert "in use" in lines[0], lines
     assert mine == [], f"ring segment left behind: {mine}"
     assert kids == [], f"processes left behind: {kids}"

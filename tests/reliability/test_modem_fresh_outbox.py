@@ -15,6 +15,7 @@ import pytest
 
 from tests.conftest import modem_cli, modem_link, send_until_drained, stop_surface, surface_idents
 from tests.integration.modem_writer import record
+from tests.reliability import figures
 from trapflow.config.modem import OutboxConfig
 from trapflow.modem.outbox import Outbox
 
@@ -63,6 +64,8 @@ def test_fresh_outbox_reaches_a_surface_that_stayed_up(
     got = surface_idents(out)
     lost = sorted(set(second) - set(got))
     print(f"{restart}: surface {stats}; {len(lost)} of {SECOND} records of the fresh outbox lost")
+    figures(f"fresh_outbox_{restart}", records=FIRST + SECOND, lost=len(lost),
+            duplicates=len(got) - len(set(got)))
     assert not lost, f"{len(lost)} of {SECOND} records of the fresh outbox never reached it"
     assert len(got) == len(set(got)), "a record was written twice"
     assert sorted(got) == first + second

@@ -15,10 +15,10 @@ import pytest
 
 from trapflow.broker import trust
 from trapflow.broker.remote_state import RemoteWorkers
-from trapflow.broker.trust import SUPERVISOR_IDENT
-from trapflow.wire import messages
+from trapflow.errors import ProtocolError
+from trapflow.wire import control_msgs, messages
 
-SUP = SUPERVISOR_IDENT
+SUP = b"supervisor"  # the identity the supervisor's DEALER had before issue 26 item 9
 W0 = b"vo:0:100"  # a local worker
 W1 = b"vo:1:101"  # another local worker
 R0 = b"vo@far:0:200"  # a remote worker that joined pool vo, started by OWNER
@@ -47,20 +47,55 @@ def verdict(v: trust.Verdict) -> str:
     (W0, FAILED, "allow"),
     (W0, ALIVE, "allow"),
     (W0, GONE_W0, "allow"),  # a worker tells of its own end (a recycle, a stop)
-    (SUP, GONE_W0, "allow"),  # the supervisor tells of a worker's death
     (W1, GONE_W0, "forged_gone"),  # a worker may not declare another dead
-    (SUP, STOPPING, "allow"),
+    # The supervisor's orders come on its own sealed channel: on this socket any process
+    # of the same user could claim its old identity (issue 26 item 9), so nobody may.
+    (SUP, GONE_W0, "forged_gone"),
+    (SUP, STOPPING, "forged_stopping"),
     (W0, STOPPING, "forged_stopping"),  # it would quiet the warnings of a real failure
-    (SUP, SWITCH, "allow"),
+    (SUP, SWITCH, "forged_switch"),
     (W0, SWITCH, "forged_switch"),  # a worker could stop or reconfigure a pool
     (b"", SWITCH, "forged_switch"),  # an empty identity is nobody's
-    (b"supervisor ", SWITCH, "forged_switch"),  # an exact match, not a prefix
-    (SUP, LEVEL, "allow"),
+    (SUP, LEVEL, "forged_level"),
     (W0, LEVEL, "forged_level"),  # the ladder's level in the stats is the supervisor's
 ])
 def test_who_may_send_what_on_the_workers_socket(
         sender: bytes, msg: trust.LocalMsg, expected: str) -> None:
     assert verdict(trust.on_workers_socket(sender, msg)) == expected
+
+
+KEY = bytes(range(control_msgs.ORDER_KEY_BYTES))
+OTHER_KEY = bytes(control_msgs.ORDER_KEY_BYTES)
+
+
+def _tampered() -> list[bytes]:
+    seal, body = control_msgs.seal_order(KEY, SWITCH)
+    return [seal, body.replace(b"vo", b"vp")]
+
+
+@pytest.mark.parametrize(("frames", "error"), [
+    (control_msgs.seal_order(OTHER_KEY, SWITCH), "its seal is not the run's"),  # a guess
+    (_tampered(), "its seal is not the run's"),  # a real order, altered on the way
+    ([b"x" * 32, messages.encode(SWITCH)], "its seal is not the run's"),
+    ([messages.encode(SWITCH)], "expected 2 frames"),  # the old, unsealed order
+    (control_msgs.seal_order(KEY, SWITCH) + [b""], "expected 2 frames"),
+    ([control_msgs.seal_order(KEY, SWITCH)[0][:31], messages.encode(SWITCH)], "its seal"),
+    # Sealed, but no order: a worker's message is never the supervisor's to send here.
+    ([*control_msgs.seal_order(KEY, READY)], "supervisor order"),  # type: ignore[arg-type]
+])
+def test_only_orders_sealed_with_the_runs_key_are_opened(frames: list[bytes], error: str
+                                                          ) -> None:
+    """Pins issue 26 item 9: the supervisor's orders were taken from whoever claimed its
+    identity on the workers socket."""
+    with pytest.raises(ProtocolError, match=error):
+        control_msgs.open_order(KEY, frames)
+
+
+@pytest.mark.parametrize("order", [SWITCH, LEVEL, STOPPING, GONE_W0])
+def test_a_sealed_order_opens_as_sent(order: control_msgs.SupervisorOrder) -> None:
+    assert control_msgs.open_order(KEY, control_msgs.seal_order(KEY, order)) == order
+    with pytest.raises(ProtocolError):  # an empty key (a broker spawned without one)
+        control_msgs.open_order(b"", control_msgs.seal_order(b"", order))
 
 
 @pytest.mark.parametrize(("msg", "expected"), [

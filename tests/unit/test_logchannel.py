@@ -1,8 +1,9 @@
 """The log channel (LogEntry over a PUSH/PULL in the run directory), the endpoints that stay
-local in TCP mode, the TCP port check and the chaos variables."""
+in the run directory in TCP mode, the remote port check and the chaos variables."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import socket
@@ -14,7 +15,7 @@ import pytest
 
 from tests.conftest import poll_for
 from tests.reliability import scaled
-from trapflow.config.schema import NetworkConfig
+from trapflow.config.schema import NetworkConfig, RemoteConfig
 from trapflow.errors import ProtocolError, StartupError
 from trapflow.runtime.logchannel import LogListener, LogSender, PrivateRotatingFile
 from trapflow.runtime.ratelog import CONSOLE_ONCE
@@ -104,24 +105,32 @@ def test_decode_log_rejects(data: bytes, error: str) -> None:
     assert error in str(exc.value)
 
 
-def test_control_and_log_stay_in_the_run_directory_in_tcp_mode(run_dir: Path) -> None:
+def test_every_endpoint_is_an_ipc_file_in_the_run_directory_in_tcp_mode(run_dir: Path
+                                                                       ) -> None:
+    """Pins issue 26 item 3: transport tcp put capture, workers, taps and heartbeats on
+    loopback ports that every local user could reach; now nothing of the pipeline's own is."""
     ep = Endpoints.for_run(NetworkConfig(transport="tcp", base_port=6000), run_dir)
+    urls = dataclasses.asdict(ep)
+    socks = {n: u for n, u in urls.items() if not n.endswith("_link")}
+    assert socks and all(u.startswith(f"ipc://{run_dir.resolve()}/") for u in socks.values()), \
+        socks
+    assert ep == Endpoints.for_run(NetworkConfig(), run_dir)
     assert ep.control == f"ipc://{run_dir.resolve() / 'control.sock'}"
-    assert ep.log == f"ipc://{run_dir.resolve() / 'log.sock'}"
-    assert ep.capture == "tcp://127.0.0.1:6000" and ep.heartbeat == "tcp://127.0.0.1:6005"
 
 
-def test_check_ports_free_names_the_port_a_listener_holds() -> None:
+def test_check_ports_free_names_the_remote_port_a_listener_holds() -> None:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         s.listen(1)
         port = s.getsockname()[1]
-        if port < 1024 + 4 or port > 65000:
-            pytest.skip(f"ephemeral port {port} outside base_port's range")
-        net = NetworkConfig(transport="tcp", base_port=port - 4)  # results_tap = base + 4
-        with pytest.raises(StartupError, match=rf":{port} \(results_tap\): address already"):
+        if port < 1024:
+            pytest.skip(f"ephemeral port {port} outside remote.bind's range")
+        net = NetworkConfig(remote=RemoteConfig(bind=f"tcp://127.0.0.1:{port}"))
+        with pytest.raises(StartupError, match=rf":{port} \(network.remote.bind\): address "
+                                               "already"):
             check_ports_free(net)
-    check_ports_free(NetworkConfig())  # ipc: nothing to check
+    check_ports_free(NetworkConfig())  # no remote bind: nothing to check
+    check_ports_free(NetworkConfig(transport="tcp"))  # nor in the old tcp mode
 
 
 def test_rotated_log_files_keep_their_mode_under_umask_000(tmp_path: Path) -> None:

@@ -181,12 +181,50 @@ def test_counter_rules(name: str, payload: bytes, decision: type, count: str,
 
 
 def test_refusal_replies_are_rate_limited() -> None:
-    """A replayed old frame must not spend the box's budget: one stale reply per interval."""
+    """A replayed old frame must not spend the box's budget: one stale reply per interval
+    for that frame; its first answer is fresh, the later ones repeats."""
     guard = C.CommandGuard(KEY, SESSION, C.CounterState(session=SESSION.hex(), counter=9))
     got = [guard.receive(cmd_payload(3), t) for t in (0.0, 1.0, 2.0, 6.0)]
     assert [type(d) for d in got] == [C.Reply, C.Refuse, C.Refuse, C.Reply]
-    assert all(d.repeat for d in got if isinstance(d, C.Reply))
+    assert [d.repeat for d in got if isinstance(d, C.Reply)] == [False, True]
     assert guard.counts["refused_old"] == 4 and guard.counts["replies_held"] == 2
+
+
+OTHER_SESSION = bytes.fromhex("0badf00d")
+
+
+@pytest.mark.parametrize("name, frames, want", [
+    # Issue 26 item 7: an old frame replayed once a second held the one slot, so the
+    # surface's own command to the wrong session never heard its correction.
+    ("replay, then the surface's command", [("old", 0.0), ("old", 1.0), ("new", 1.5),
+                                            ("old", 2.0), ("new", 9.5)],
+     [(True, False), (False, None), (True, False), (False, None), (True, True)]),
+    # The surface's retransmissions (8 s apart) of its own frame are each answered.
+    ("retries", [("new", 0.0), ("new", 8.0), ("new", 16.0)],
+     [(True, False), (True, True), (True, True)]),
+    # Two old frames replayed in turn: each once per interval, no more.
+    ("two replays", [("old", 0.0), ("old2", 0.5), ("old", 1.0), ("old2", 1.5), ("old", 5.0)],
+     [(True, False), (True, False), (False, None), (False, None), (True, True)]),
+])
+def test_refusal_replies_are_limited_per_frame(
+        name: str, frames: list[tuple[str, float]], want: list[tuple[bool, bool | None]]
+) -> None:
+    guard = C.CommandGuard(KEY, SESSION, C.CounterState(session=SESSION.hex(), counter=9))
+    payloads = {"old": cmd_payload(3), "old2": cmd_payload(4),
+                "new": cmd_payload(10, session=OTHER_SESSION)}
+    got = [guard.receive(payloads[which], t) for which, t in frames]
+    assert [(isinstance(d, C.Reply), d.repeat if isinstance(d, C.Reply) else None)
+            for d in got] == want, name
+    for (which, _), d in zip(frames, got, strict=True):
+        if which == "new" and isinstance(d, C.Reply):
+            assert reply_of(d.payload)[1] == REPLY_SESSION, name
+
+
+def test_answered_frames_are_bounded() -> None:
+    guard = C.CommandGuard(KEY, SESSION, C.CounterState(session=SESSION.hex(), counter=5000))
+    for c in range(C.MAX_ANSWERED_FRAMES + 50):
+        assert isinstance(guard.receive(cmd_payload(c + 1), 0.0), C.Reply)
+    assert len(guard._answered) == C.MAX_ANSWERED_FRAMES
 
 
 @pytest.mark.parametrize("name, reply_saved, times, want", [

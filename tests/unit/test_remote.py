@@ -13,15 +13,22 @@ import zmq
 import zmq.auth
 from click.testing import CliRunner
 
-from trapflow.broker.node import _local_msg
-from trapflow.broker.remote_state import MAX_EVICTED_SHOWN, RemoteWorkers
+from trapflow.broker.remote_state import MAX_EVICTED_SHOWN, MAX_REMOTE_WORKERS, RemoteWorkers
+from trapflow.broker.trust import local_msg
 from trapflow.cli.main import main
 from trapflow.config import schema as configmod
 from trapflow.errors import ConfigError, ProtocolError, StartupError
 from trapflow.stages.remote_worker import config_from
 from trapflow.wire import messages
 from trapflow.wire.keys import generate
-from trapflow.wire.transport import CurveKeys, SocketSpec, client_keys, open_socket, server_keys
+from trapflow.wire.transport import (
+    CurveKeys,
+    SocketSpec,
+    TapGate,
+    client_keys,
+    open_socket,
+    server_keys,
+)
 
 KEYS = {"server_key": "k/server.key_secret", "authorized_keys": "k/auth"}
 
@@ -54,12 +61,12 @@ def test_remote_config_binds_beyond_loopback_only_with_keys(remote: dict[str, An
     assert "$.network.remote" in str(exc.value)
 
 
-def test_remote_port_must_not_be_one_of_the_pipelines_own() -> None:
-    with pytest.raises(ConfigError, match="takes a port of the pipeline's own"):
-        configmod.from_data({"network": {"transport": "tcp", "base_port": 5550,
-                                         "remote": {"bind": "tcp://127.0.0.1:5553"}}})
-    configmod.from_data({"network": {"transport": "tcp", "base_port": 5550,
-                                     "remote": {"bind": "tcp://127.0.0.1:5557"}}})
+def test_an_old_tcp_config_still_loads_and_any_remote_port_is_free() -> None:
+    """transport tcp once took base_port..base_port+6 (issue 26 item 3 keeps every local
+    socket an ipc file): an older config still loads, and no remote port clashes."""
+    cfg = configmod.from_data({"network": {"transport": "tcp", "base_port": 5550,
+                                           "remote": {"bind": "tcp://127.0.0.1:5553"}}})
+    assert cfg.network.remote.bind == "tcp://127.0.0.1:5553"
 
 
 def test_pipeline_endpoints_still_refuse_non_loopback_hosts() -> None:
@@ -141,6 +148,35 @@ def test_remote_table_joins_reports_and_bounds_evicted() -> None:
     assert set(t.owners) == {b"o"}  # owners of forgotten workers are forgotten too
 
 
+@pytest.mark.parametrize("live,heard_at,now,forgotten", [
+    (False, None, 4.0, 1),  # joined at 0, never ready, silent past liveness 3: forgotten
+    (False, None, 2.5, 0),  # within liveness
+    (False, 2.0, 4.0, 0),  # it spoke again at 2 (its hello with every heartbeat)
+    (True, None, 9.0, 0),  # the broker's worker: its liveness is BrokerState's business
+])
+def test_stale_remote_entries_are_forgotten(live: bool, heard_at: float | None, now: float,
+                                            forgotten: int) -> None:
+    """Pins issue 26 item 10: 300 hellos from an authorised key kept 300 entries."""
+    t = RemoteWorkers()
+    t.joined(b"far@j:0:1", "j", "far", b"o", 0.0)
+    if heard_at is not None:
+        t.heard(b"far@j:0:1", heard_at)
+    assert t.forget_stale(now, 3.0, {b"far@j:0:1": "far"} if live else {}) == forgotten
+    assert (len(t.known), t.forgotten) == (1 - forgotten, forgotten)
+    assert set(t.owners) == ({b"o"} if not forgotten else set())
+
+
+def test_the_remote_table_is_capped() -> None:
+    t = RemoteWorkers()
+    for i in range(MAX_REMOTE_WORKERS):
+        assert not t.full(f"far@j:{i}:1".encode())
+        t.joined(f"far@j:{i}:1".encode(), "j", "far", b"o", 0.0)
+    assert t.full(b"far@j:new:1")
+    assert not t.full(b"far@j:0:1")  # a known worker's hello again is no new entry
+    t.evicted(b"far@j:0:1", "gone")  # evicted entries are bounded apart (MAX_EVICTED_SHOWN)
+    assert not t.full(b"far@j:new:1")
+
+
 @pytest.mark.parametrize("heard,now,expected", [
     (None, 4.0, []),  # joined at 0, within liveness
     (None, 5.5, [b"far@j:0:1", b"far@j:1:1"]),  # never heard since: host gone
@@ -170,7 +206,7 @@ def test_workers_of_a_silent_host_are_named(heard: float | None, now: float,
 ])
 def test_join_messages_are_refused_on_local_paths(msg: messages.Msg, error: str) -> None:
     with pytest.raises(ProtocolError, match=error):
-        _local_msg(messages.decode_worker_msg(messages.encode(msg)))
+        local_msg(messages.decode_worker_msg(messages.encode(msg)))
 
 
 @pytest.mark.parametrize("data,error", [
@@ -243,3 +279,19 @@ def test_status_lists_remote_workers_with_host_state_and_rate() -> None:
     assert rows[0][:6] == ["far@jet:0:7", "jet", "far", "active", "4", "2.5"]
     assert rows[1][:6] == ["far@jet:1:8", "jet", "far", "evicted", "0", "0.0"]
     assert text.rstrip().endswith("killed by signal 9")
+
+
+@pytest.mark.parametrize("refused_at,calls,want", [
+    # Issue 26 item 10: memory libzmq held for refused subscriptions stayed with the process.
+    (None, [0.0, 10.0], [False, False]),  # nothing refused: never
+    (1.0, [1.0, 2.0, 6.1, 30.0, 61.5], [True, False, True, True, False]),  # 5 s apart, 60 s
+])
+def test_taps_trim_memory_for_a_while_after_refused_subscriptions(
+        refused_at: float | None, calls: list[float], want: list[bool]) -> None:
+    gate = TapGate(None, (b"stats",))  # type: ignore[arg-type]  # trim_due reads no socket
+    got = []
+    for now in calls:
+        if refused_at is not None and now == refused_at:
+            gate.refused += 1
+        got.append(gate.trim_due(now))
+    assert got == want

@@ -107,6 +107,9 @@ def worker_setup() -> None:
     cv2.setNumThreads(1)
 
 
+LOOPBACK = "127.0.0.1"
+
+
 @contextmanager
 def dask_client(opts: Options) -> Iterator[Any]:
     """A client of an existing scheduler, or of a LocalCluster of worker processes with one
@@ -127,8 +130,11 @@ def dask_client(opts: Options) -> Iterator[Any]:
     # Dask's own logs stay quiet, errors included: a task that fails comes back to the
     # client with its error, which the input's ledger.json keeps and the summary names
     # (Dask logged each failure with its traceback once per retry: 23 lines for one error).
-    with dd.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                      dashboard_address=":0", silence_logs=logging.CRITICAL) as cluster, \
+    # Scheduler and dashboard on loopback: ":0" served the dashboard (the run's tasks, logs
+    # and a profiler) to the whole network (issue 26 item 10).
+    with dd.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host=LOOPBACK,
+                         dashboard_address=f"{LOOPBACK}:0",
+                         silence_logs=logging.CRITICAL) as cluster, \
             dd.Client(cluster) as client:
         client.register_worker_callbacks(setup=worker_setup)
         yield client

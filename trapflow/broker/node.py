@@ -2,9 +2,10 @@
 
 Owns: PULL from capture, ROUTER to workers, a local link of results to the
 normalizer (in batches), PUB tap (frame metadata, images, stats once a second: its
-trapflow.broker.tap.BrokerTap), and with network.remote.bind a second ROUTER for workers
-on other hosts (CURVE, ZAP: its trapflow.broker.remote.RemoteWorkersSide). Who may send
-what is trapflow.broker.trust's to say.
+trapflow.broker.tap.BrokerTap), a PULL of the supervisor's sealed orders (an ipc file in
+the run directory), and with network.remote.bind a second ROUTER for workers on other
+hosts (CURVE, ZAP: its trapflow.broker.remote.RemoteWorkersSide). Who may send what is
+trapflow.broker.trust's to say.
 Image frames are forwarded as received (zero-copy); only the small header is
 decoded. With the shared-memory ring, capture and local workers talk to it over
 local links instead (descriptors only).
@@ -35,12 +36,12 @@ from trapflow.broker.state import (
     Release,
 )
 from trapflow.broker.tap import BrokerTap
-from trapflow.broker.trust import SUPERVISOR_IDENT, LocalMsg
+from trapflow.broker.trust import LocalMsg
 from trapflow.errors import ProtocolError, unreachable
 from trapflow.gate.policy import gated_pools
 from trapflow.runtime.node import ACTIVE, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog, wire
-from trapflow.wire import frame_msgs, gate_msgs, messages, tap_msgs
+from trapflow.wire import control_msgs, frame_msgs, gate_msgs, messages, tap_msgs
 from trapflow.wire.frame_ring import HELD, FrameRing
 from trapflow.wire.transport import (
     PAIR_MAX_MSG_BYTES,
@@ -76,8 +77,13 @@ class BrokerNode(Node):
         self.router = open_socket(
             self.ctx, SocketSpec(zmq.ROUTER, ep.workers, bind=True, router_mandatory=True)
         )
+        # The supervisor's orders: its own channel, every order sealed with the run's key.
+        self.orders = open_socket(self.ctx, SocketSpec(zmq.PULL, ep.orders, bind=True,
+                                                       rcvhwm=100))
+        self.order_key = spec.order_key
         self.poller.register(self.pull)
         self.poller.register(self.router)
+        self.poller.register(self.orders)
         self._jobs: dict[tuple[str, int], bytes] = {}
         pools = {  # a remote pool exists with no local worker: remote workers add to count
             name: PoolSpec(p.parsed_policy, p.timeout_s, p.max_pending_age_s)
@@ -143,7 +149,7 @@ class BrokerNode(Node):
                 "gate_active_s": int(active), "gate_idle_s": int(idle),
                 "held": self.state.held(), "results_waiting": len(self._out) + len(self._unacked),
                 "results_dropped": self.results_dropped, "late_answers": self.state.late,
-                "refused_subscriptions": self.tap.gate.refused,
+                "refused_subscriptions": self.tap.gate.refused, **self.remote.counters(),
                 "previews": self.tap.preview.published, "previews_failed": self.tap.preview_failed,
                 **{f"rejected_{k}": n for k, n in self.state.rejected.items()},
                 **{f"refused_{k}": n for k, n in self.refused.items()}}
@@ -154,6 +160,8 @@ class BrokerNode(Node):
         next_tick = time.monotonic()
         while not self.stopping:
             socks, fds = poller.poll(int(TICK_INTERVAL_S * 1000))
+            if self.orders in socks:
+                self._drain_orders()
             if self.router in socks:
                 self._drain_workers()
             self.remote.serve(socks)
@@ -289,7 +297,7 @@ class BrokerNode(Node):
                 if role == "results":
                     self._on_ack(gate_msgs.decode_normalizer_msg(frames[0]))
                     continue
-                msg = _local_msg(messages.decode_worker_msg(frames[0]))
+                msg = trust.local_msg(messages.decode_worker_msg(frames[0]))
                 ident = self.link_ident.get(link)
                 if ident is None:  # a worker names itself in its first message
                     name = trust.names_link(msg)
@@ -346,7 +354,7 @@ class BrokerNode(Node):
                 if len(frames) < 2:
                     raise ProtocolError(
                         f"worker message: expected 2 or 3 frames, got {len(frames)}")
-                msg = _local_msg(messages.decode_worker_msg(frames[1]))
+                msg = trust.local_msg(messages.decode_worker_msg(frames[1]))
                 self._on_worker_msg(ident, msg, frames)
             except ProtocolError as exc:
                 self.malformed += 1
@@ -375,23 +383,9 @@ class BrokerNode(Node):
                 self.remote.roster.processed(ident)
             self._apply(actions)
         elif isinstance(msg, messages.Gone):
-            gone = msg.worker.encode()
-            link = self.worker_links.get(gone)
-            if ident == SUPERVISOR_IDENT and link is not None:
-                # Read what the worker sent before it exited first (its last answer and
-                # goodbye): the supervisor's notice must not overtake them.
-                self._drain_link(link)
-            self._goodbye(gone, msg.reason)
-            self._apply(self.state.worker_gone(gone, msg.reason, now,
-                                               requeue=msg.reason.startswith(
-                                                   messages.GONE_RECYCLED)))
-        elif isinstance(msg, messages.Stopping):
-            self.winding_down = True
-            log.debug("planned stop: workers leave from now on")
-        elif isinstance(msg, messages.PoolSwitch):
-            self._on_pool_switch(msg, now)
-        elif isinstance(msg, messages.LadderLevel):
-            self.level, self.level_reason = msg.level, msg.reason  # in the next Stats
+            self._on_gone(msg, now, notice=False)  # a worker's own goodbye (trust checked)
+        elif isinstance(msg, (messages.Stopping, messages.PoolSwitch, messages.LadderLevel)):
+            raise AssertionError("trust refuses the supervisor's orders on the workers socket")
         elif isinstance(msg, messages.Failed):
             actions = self.state.job_done(ident, msg.pool, msg.seq, False, now, msg.kind)
             if not any(isinstance(a, Rejected) for a in actions):
@@ -400,6 +394,48 @@ class BrokerNode(Node):
             self._apply(actions)
         else:
             unreachable(msg)
+
+    # --- the supervisor's orders -------------------------------------------------------
+
+    def _drain_orders(self) -> None:
+        self.poller.touch(self.orders)
+        for _ in range(64):
+            if not zmq_readable(self.orders):
+                return
+            frames = self.orders.recv_multipart(copy=False)
+            try:
+                order = control_msgs.open_order(self.order_key, frames)
+            except ProtocolError as exc:  # not the supervisor's: nothing of it is applied
+                self._refuse("forged_order", "refused a message on the supervisor's channel: "
+                             "%s", wire(str(exc)))
+                continue
+            self._on_order(order, time.monotonic())
+
+    def _on_order(self, order: control_msgs.SupervisorOrder, now: float) -> None:
+        """An order the supervisor sealed (open_order checked the seal)."""
+        if isinstance(order, messages.Gone):
+            self._on_gone(order, now, notice=True)
+        elif isinstance(order, messages.Stopping):
+            self.winding_down = True
+            log.debug("planned stop: workers leave from now on")
+        elif isinstance(order, messages.PoolSwitch):
+            self._on_pool_switch(order, now)
+        elif isinstance(order, messages.LadderLevel):
+            self.level, self.level_reason = order.level, order.reason  # in the next Stats
+        else:
+            unreachable(order)
+
+    def _on_gone(self, msg: messages.Gone, now: float, notice: bool) -> None:
+        """A worker left: its own goodbye, or the supervisor's notice of its exit."""
+        gone = msg.worker.encode()
+        link = self.worker_links.get(gone)
+        if notice and link is not None:
+            # Read what the worker sent before it exited first (its last answer and
+            # goodbye): the supervisor's notice must not overtake them.
+            self._drain_link(link)
+        self._goodbye(gone, msg.reason)
+        self._apply(self.state.worker_gone(gone, msg.reason, now, requeue=msg.reason.startswith(
+            messages.GONE_RECYCLED)))
 
     def close(self) -> None:
         self.remote.close()
@@ -617,12 +653,3 @@ class BrokerNode(Node):
         if n:
             log.warning("freed %d ring slots held by a previous broker", n)
 
-
-def _local_msg(msg: messages.WorkerMsg) -> LocalMsg:
-    """Hello, JoinRequest and HostAlive belong to the remote socket; on a local path they
-    are refused."""
-    if isinstance(msg, (messages.Hello, messages.JoinRequest, messages.HostAlive)):
-        raise ProtocolError(f"worker message: expected ready, alive, done, failed or gone on "
-                            f"a local path, got {type(msg).__name__} (remote workers connect "
-                            f"to network.remote.bind)")
-    return msg

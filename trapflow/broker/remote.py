@@ -17,11 +17,12 @@ import msgspec
 import zmq
 
 from trapflow.broker import trust
-from trapflow.broker.remote_state import RemoteWorkers
+from trapflow.broker.remote_state import MAX_REMOTE_WORKERS, RemoteWorkers
 from trapflow.broker.state import Action, BrokerState
 from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import Config
 from trapflow.errors import ProtocolError
+from trapflow.runtime.node import release_memory
 from trapflow.runtime.ratelog import RateLimitedLog, wire
 from trapflow.wire import jpeg, messages
 from trapflow.wire.transport import (
@@ -93,9 +94,14 @@ class RemoteWorkersSide:
         self.monitor = open_monitor(self.router)
         self._poller.register(self.router)
         self._poller.register(self.monitor)
-        log.info("remote workers: %s (%s)", rc.bind,
-                 "CURVE, authorised keys in " + rc.authorized_keys if rc.curve else "loopback, "
-                 "no keys")
+        if rc.curve:
+            log.info("remote workers: %s (CURVE, authorised keys in %s)", rc.bind,
+                     rc.authorized_keys)
+        else:
+            # The one socket of the pipeline another local user can reach (issue 26 item 3).
+            log.warning("remote workers: %s has no CURVE keys: every user of this host may "
+                        "join its pools; set network.remote.server_key and authorized_keys "
+                        "(`trapflow keys generate DIR`)", rc.bind)
 
     def close(self) -> None:
         """Stop the authenticator's thread (the sockets go with the broker's context)."""
@@ -124,11 +130,19 @@ class RemoteWorkersSide:
         self._jpeg.pop(seq, None)
 
     def evict_silent_hosts(self, now: float) -> None:
-        """Workers whose host's supervisor went silent are gone with it: their pairs lost."""
+        """Workers whose host's supervisor went silent are gone with it: their pairs lost.
+        Hellos never followed by work are forgotten once silent (the table stays bounded)."""
         liveness = self.cfg.supervisor.liveness_s
-        for ident in self.roster.silent(now, liveness, self._state.worker_pools()):
+        live = self._state.worker_pools()
+        for ident in self.roster.silent(now, liveness, live):
             self._hooks.apply(self._state.worker_gone(
                 ident, f"its host's supervisor silent for more than {liveness:g} s", now))
+        if self.roster.forget_stale(now, liveness, live):
+            release_memory()  # their connections' buffers, freed by libzmq, go back too
+
+    def counters(self) -> dict[str, int]:
+        """For the broker's counters: remote entries forgotten as stale."""
+        return {"remote_forgotten": self.roster.forgotten} if self.roster.forgotten else {}
 
     def _on_handshakes(self) -> None:
         assert self.monitor is not None
@@ -161,6 +175,7 @@ class RemoteWorkersSide:
                 self._ratelog.warning("route", "cannot answer remote %r: %s", ident, exc)
 
     def _on_message(self, ident: bytes, msg: messages.WorkerMsg, frames: list[Any]) -> None:
+        self.roster.heard(ident, time.monotonic())
         verdict = trust.on_remote_socket(ident, msg, self.roster)
         if isinstance(verdict, trust.Refuse):
             self._hooks.refuse(verdict.reason, verdict.message, *verdict.args)
@@ -203,6 +218,11 @@ class RemoteWorkersSide:
             why = "remote_bad_identity"
             error = (f"expected a worker identity POOL@HOST:INDEX:PID equal to the socket's, "
                      f"got {msg.worker!r} on a socket named {ident!r}")
+        elif isinstance(msg, messages.Hello) and self.roster.full(ident):
+            why = "remote_table_full"
+            error = (f"the pipeline takes at most {MAX_REMOTE_WORKERS} remote workers at once; "
+                     f"try again once one left (silent ones are forgotten after "
+                     f"{self.cfg.supervisor.liveness_s:g} s)")
         if error or pcfg is None:
             return messages.Welcome(pool=msg.pool, error=error), why
         rig = self._rig()

@@ -14,6 +14,10 @@ from trapflow.wire.messages import RemoteWorker
 
 # Evicted remote workers still shown in status (oldest forgotten first).
 MAX_EVICTED_SHOWN = 32
+# Remote workers the table holds, live or joined: one more hello is refused (counted,
+# refused_remote_table_full). 300 hellos from one authorised key once kept 300 entries and
+# grew the broker by 11.7 MB (issue 26 item 10); a Pi takes a few remote workers, not 100s.
+MAX_REMOTE_WORKERS = 128
 
 
 @dataclass
@@ -21,6 +25,7 @@ class _Remote:
     host: str
     pool: str
     owner: bytes
+    heard: float  # when it last spoke (any message on the remote socket)
     processed: int = 0
     last_processed: int = 0
     reason: str = ""  # why it was evicted; empty while it is live
@@ -32,6 +37,31 @@ class RemoteWorkers:
     def __init__(self) -> None:
         self.known: dict[bytes, _Remote] = {}
         self.owners: dict[bytes, float] = {}  # supervisor identity -> last heard (HostAlive)
+        self.forgotten = 0  # joined, then silent before the broker took it as a worker
+
+    def full(self, ident: bytes) -> bool:
+        """Whether a hello from ident would pass MAX_REMOTE_WORKERS (one known may rejoin)."""
+        if ident in self.known:
+            return False
+        return sum(1 for r in self.known.values() if not r.reason) >= MAX_REMOTE_WORKERS
+
+    def heard(self, ident: bytes, now: float) -> None:
+        """Any message from a remote identity: it is not stale."""
+        r = self.known.get(ident)
+        if r is not None:
+            r.heard = now
+
+    def forget_stale(self, now: float, liveness_s: float, live: Mapping[bytes, str]) -> int:
+        """Forget workers that said hello but are not the broker's (never ready, or already
+        gone) and were silent for liveness_s; returns how many (also in `forgotten`)."""
+        stale = [i for i, r in self.known.items()
+                 if not r.reason and i not in live and now - r.heard > liveness_s]
+        for ident in stale:
+            del self.known[ident]
+        if stale:
+            self.forgotten += len(stale)
+            self._forget_owners()
+        return len(stale)
 
     def joined(self, ident: bytes, host: str, pool: str, owner: bytes, now: float) -> bool:
         """A Hello was accepted: this identity belongs to that pool, host and owner.
@@ -43,7 +73,7 @@ class RemoteWorkers:
         if r is not None and (r.host, r.pool, r.owner) == (host, pool, owner):
             return False
         self.known.pop(ident, None)
-        self.known[ident] = _Remote(host, pool, owner)
+        self.known[ident] = _Remote(host, pool, owner, heard=now)
         self.owners.setdefault(owner, now)  # a new owner gets its liveness from now on
         self._forget_owners()
         return True

@@ -17,6 +17,7 @@ from trapflow.broker.preview import PreviewClock
 from trapflow.broker.remote_state import RemoteWorkers
 from trapflow.broker.state import BrokerState
 from trapflow.errors import ProtocolError
+from trapflow.runtime.node import release_memory
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.wire import jpeg, messages, tap_msgs
 from trapflow.wire.transport import TAP_RCVHWM, Poller, SocketSpec, TapGate, open_socket
@@ -107,3 +108,5 @@ class BrokerTap:
         )
         self._last_in = state.pairs_in
         self.publish(tap_msgs.TOPIC_STATS, messages.encode(stats))  # cheap: once a second
+        if self.gate.trim_due(now):
+            release_memory()  # what refused subscribers made libzmq hold, once they leave

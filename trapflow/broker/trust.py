@@ -1,10 +1,12 @@
 """Who may tell the broker what, pure: a sender's identity and its message in, a verdict out.
 
-The supervisor's control messages (pool switch, ladder level, stopping notice, another
-worker's death) ride the workers' socket, where every local worker could send them too;
-only the identity of the supervisor's DEALER may. Remote workers may never send them, and
-speak for a pool only once their hello for it was taken. No sockets, no clocks: the broker
-shell counts a refusal by its reason (refused_<reason>) and logs its line, rate-limited.
+The supervisor's orders (pool switch, ladder level, stopping notice, another worker's
+death) come only on its own channel, sealed with the run's key (control_msgs.open_order
+checks each); on the workers' socket, where every local worker and any process of the same
+user could claim any identity, they are refused whoever sends them (issue 26 item 9: an
+identity string let a same-user process switch a pool). Remote workers speak for a pool
+only once their hello for it was taken. No sockets, no clocks: the broker shell counts a
+refusal by its reason (refused_<reason>) and logs its line, rate-limited.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from trapflow.broker.remote_state import RemoteWorkers
-from trapflow.errors import unreachable
+from trapflow.errors import ProtocolError, unreachable
 from trapflow.runtime.ratelog import wire
 from trapflow.wire.messages import (
     Alive,
@@ -28,8 +30,6 @@ from trapflow.wire.messages import (
     Stopping,
     WorkerMsg,
 )
-
-SUPERVISOR_IDENT = b"supervisor"  # the supervisor's DEALER identity on the workers socket
 
 # What may arrive on the workers' socket or a local link (the rest is the remote socket's).
 LocalMsg = Ready | Alive | Done | Failed | Gone | PoolSwitch | LadderLevel | Stopping
@@ -58,8 +58,7 @@ Verdict = Allow | Refuse
 ALLOW = Allow()
 
 
-def _supervisor_only(sender: bytes, refusal: Refuse) -> Verdict:
-    return ALLOW if sender == SUPERVISOR_IDENT else refusal
+_ORDERS_ONLY = "only the supervisor may send it, on its own channel"
 
 
 def on_workers_socket(sender: bytes, msg: LocalMsg) -> Verdict:
@@ -70,27 +69,34 @@ def on_workers_socket(sender: bytes, msg: LocalMsg) -> Verdict:
         # BrokerState (a Rejected action), not here.
         return ALLOW
     elif isinstance(msg, Gone):
-        # Only the supervisor tells of another worker's death; a worker, of its own.
-        if sender in (SUPERVISOR_IDENT, msg.worker.encode()):
+        # A worker tells of its own end here; of another's, only the supervisor's orders.
+        if sender == msg.worker.encode():
             return ALLOW
         return Refuse("forged_gone", "refused a gone message for worker '%s' from '%s': "
-                      "only the supervisor or that worker may send it",
+                      "only that worker, or the supervisor on its own channel, may send it",
                       (wire(msg.worker), wire(sender)))
     elif isinstance(msg, Stopping):
         # It quiets the warnings of workers leaving: a worker must not be able to.
-        return _supervisor_only(sender, Refuse(
-            "forged_stopping", "refused a stopping notice from '%s': only the supervisor "
-            "may send it", (wire(sender),)))
+        return Refuse("forged_stopping", "refused a stopping notice from '%s': " + _ORDERS_ONLY,
+                      (wire(sender),))
     elif isinstance(msg, PoolSwitch):
-        return _supervisor_only(sender, Refuse(
-            "forged_switch", "refused a pool switch for '%s' from '%s': only the supervisor "
-            "may send it", (wire(msg.pool), wire(sender))))
+        return Refuse("forged_switch", "refused a pool switch for '%s' from '%s': "
+                      + _ORDERS_ONLY, (wire(msg.pool), wire(sender)))
     elif isinstance(msg, LadderLevel):
-        return _supervisor_only(sender, Refuse(
-            "forged_level", "refused a ladder level '%s' from '%s': only the supervisor may "
-            "send it", (wire(msg.level), wire(sender))))
+        return Refuse("forged_level", "refused a ladder level '%s' from '%s': " + _ORDERS_ONLY,
+                      (wire(msg.level), wire(sender)))
     else:
         unreachable(msg)
+
+
+def local_msg(msg: WorkerMsg) -> LocalMsg:
+    """Hello, JoinRequest and HostAlive belong to the remote socket; on a local path they
+    are refused."""
+    if isinstance(msg, (Hello, JoinRequest, HostAlive)):
+        raise ProtocolError(f"worker message: expected ready, alive, done, failed or gone on "
+                            f"a local path, got {type(msg).__name__} (remote workers connect "
+                            f"to network.remote.bind)")
+    return msg
 
 
 def names_link(msg: LocalMsg) -> str | Refuse:
@@ -99,7 +105,7 @@ def names_link(msg: LocalMsg) -> str | Refuse:
     it as malformed (a ProtocolError with this text), not as a refusal."""
     if isinstance(msg, (PoolSwitch, LadderLevel, Stopping)):
         return Refuse("malformed", "worker link: expected a worker message first, got a %s "
-                      "(only the supervisor sends those, on the workers socket)",
+                      "(only the supervisor sends those, on its own channel)",
                       (msg.__struct_config__.tag,))
     elif isinstance(msg, (Ready, Alive, Done, Failed, Gone)):
         return msg.worker

@@ -49,8 +49,8 @@ def _output(path: Path | None) -> Iterator[IO[bytes]]:
     default=None,
     help="File remembering which messages of which outbox session were written, so a "
     "restarted surface writes a retransmission only once (default: OUTPUT.state beside a "
-    "regular output file; with standard output and no --state the memory is lost when the "
-    "command stops).",
+    "regular output file, or one this run creates; with standard output and no --state the "
+    "memory is lost when the command stops).",
 )
 @click.option("--baudrate", type=click.IntRange(50, 4_000_000), default=9600, show_default=True)
 @click.option("--labels", default=None, help="Comma-separated label table (must match the box).")
@@ -124,7 +124,10 @@ def surface(
     """
     from trapflow.modem.surface import SurfaceReceiver
 
-    if state_path is None and output is not None and os.path.isfile(output):
+    if state_path is None and output is not None and (
+            os.path.isfile(output) or not os.path.lexists(output)):
+        # A regular file, or one this run creates (its first run keeps state too: issue 26
+        # item 8); not a terminal, pipe or device, which have no place for one beside them.
         state_path = output.with_name(output.name + ".state")
     if command_text is not None:
         _send_command(

@@ -346,12 +346,15 @@ class RemoteConfig(_Section):
 
 
 class NetworkConfig(_Section):
-    """Endpoints: ipc:// in the run directory on one host, or tcp:// on a loopback host;
-    remote workers connect to a port of their own (`remote`)."""
+    """Endpoints: ipc:// files in the run directory, reachable only by its owner; remote
+    workers connect to a TCP port of their own (`remote`), guarded by CURVE keys."""
 
     transport: Literal["ipc", "tcp"] = "ipc"
+    """Kept for older configs: since issue 26 item 3 `tcp` puts nothing on TCP ports (other
+    local users read frames and forged results there); every local socket is ipc."""
     host: str = "127.0.0.1"
     base_port: Annotated[int, msgspec.Meta(ge=1024, le=65000)] = 5550
+    """Kept for older configs; no socket uses it (see transport)."""
     remote: RemoteConfig = msgspec.field(default_factory=RemoteConfig)
 
     def __post_init__(self) -> None:
@@ -361,12 +364,6 @@ class NetworkConfig(_Section):
                 "endpoints never leave this host; workers on other hosts connect to "
                 "network.remote.bind, guarded by CURVE keys"
             )
-        port = self.remote.bind.rpartition(":")[2]
-        if self.transport == "tcp" and port.isdigit() and (
-                self.base_port <= int(port) <= self.base_port + 6):
-            raise ValueError(
-                f"remote.bind {self.remote.bind!r} takes a port of the pipeline's own "
-                f"endpoints ({self.base_port}..{self.base_port + 6}); expected another port")
 
 
 class FramesConfig(_Section):

@@ -15,6 +15,7 @@ import hmac
 import os
 import shlex
 import stat
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from hashlib import sha256
 from pathlib import Path
@@ -55,8 +56,14 @@ from trapflow.wire import control_msgs, messages
 
 MIN_KEY_BYTES = 16
 REFUSAL_REPLY_INTERVAL_S = 5.0
-"""At most one stale or wrong-session reply per this interval: each costs link time, and a
-replayed frame must not be able to spend the box's budget."""
+"""At most one stale or wrong-session reply per frame per this interval: each costs link
+time, and a replayed frame must not be able to spend the box's budget. Per frame, not one
+slot for all: an old frame replayed once a second took the only slot, so the surface's own
+command to the wrong session never heard its correction (issue 26 item 7)."""
+MAX_ANSWERED_FRAMES = 1024
+"""Frames whose refusal was answered, remembered (oldest forgotten first): a frame not among
+them is answered at once and not as a repeat, so only genuine frames recorded by the
+thousand could spend the repeats' share of the budget."""
 REPEAT_REPLY_INTERVAL_S = 5.0
 """At most one cached (or "reply lost") answer per this interval for the last command: a
 recorded frame replayed 3 times a second once drained the hourly budget in 30 s (issue 26).
@@ -199,7 +206,8 @@ class CommandGuard:
     running: int | None = None  # counter of the command being executed
     disabled: str = ""  # why every command is refused (the counter file cannot be trusted)
     counts: dict[str, int] = field(default_factory=dict)
-    _next_refusal_reply: float = 0.0
+    # tag of a frame whose refusal was answered -> when it may be answered again
+    _answered: OrderedDict[bytes, float] = field(default_factory=OrderedDict)
     _next_repeat_reply: tuple[int, float] = (0, 0.0)  # (counter, when it may be answered again)
 
     def _count(self, kind: str) -> None:
@@ -210,16 +218,24 @@ class CommandGuard:
         return Refuse(kind, why)
 
     def _refusal_reply(
-        self, kind: str, status: int, counter: int, data: dict[str, Any], now: float
+        self, kind: str, status: int, frame: SignedFrame, data: dict[str, Any], now: float
     ) -> Decision:
+        """A stale or wrong-session frame's answer: a frame heard for the first time is
+        answered at once (the surface's own, to be corrected); the same frame again at most
+        once per REFUSAL_REPLY_INTERVAL_S, as a repeat (a replay, or a retransmission)."""
         self._count(kind)
-        if now < self._next_refusal_reply:
+        next_at = self._answered.get(frame.tag)
+        if next_at is not None and now < next_at:
             self._count("replies_held")
             return Refuse(
-                kind, f"{kind} (reply held back: at most one per {REFUSAL_REPLY_INTERVAL_S:g} s)"
+                kind, f"{kind} (reply held back: at most one per {REFUSAL_REPLY_INTERVAL_S:g} s "
+                "for the same frame)"
             )
-        self._next_refusal_reply = now + REFUSAL_REPLY_INTERVAL_S
-        return Reply(self.reply(counter, status, data), repeat=True)
+        self._answered[frame.tag] = now + REFUSAL_REPLY_INTERVAL_S
+        self._answered.move_to_end(frame.tag)
+        while len(self._answered) > MAX_ANSWERED_FRAMES:
+            self._answered.popitem(last=False)
+        return Reply(self.reply(frame.counter, status, data), repeat=next_at is not None)
 
     def _repeat_reply(self, counter: int, now: float) -> Decision:
         """The last command's answer again (its cached reply, or that it was lost), at most
@@ -279,7 +295,7 @@ class CommandGuard:
             return self._refusal_reply(
                 "refused_session",
                 REPLY_SESSION,
-                frame.counter,
+                frame,
                 {
                     "error": f"addressed to session {frame.session.hex()}, this box's is "
                     f"{self.session.hex()}"
@@ -295,7 +311,7 @@ class CommandGuard:
             return self._refusal_reply(
                 "refused_old",
                 REPLY_STALE,
-                frame.counter,
+                frame,
                 {
                     "error": f"counter {frame.counter} is not above the last accepted {last}",
                     "last": last,

@@ -24,7 +24,7 @@ from trapflow.gate.policy import gated_pools, rig_config
 from trapflow.modem.outbox import Outbox, OutboxFull
 from trapflow.observe.rigpose import RigPoses
 from trapflow.observe.stage import Observations, Observer
-from trapflow.runtime.node import ACTIVE, FINALIZED, Node, NodeSpec
+from trapflow.runtime.node import ACTIVE, FINALIZED, Node, NodeSpec, release_memory
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.stages.result_json import dumps, normalize
 from trapflow.wire import gate_msgs, messages, tap_msgs
@@ -112,6 +112,8 @@ class NormalizerNode(Node):
             self._hint(time.monotonic())
             self.gate.drain()  # subscriptions to the results tap
             now = time.monotonic()
+            if self.gate.trim_due(now):
+                release_memory()  # what refused subscribers made libzmq hold, once they leave
             if dirty and now >= next_flush:
                 self.file.flush()
                 next_flush = now + ncfg.flush_interval_s

@@ -1,8 +1,9 @@
 """Runtime control of a running pipeline, the supervisor's two control sockets.
 
 Control owns the REP control socket (status, stop, pool, param and level requests, and
-their replies); BrokerLink owns the DEALER that tells the broker what was decided (pool
-switches, the ladder's level, workers gone, a planned stop). The decisions are the core's.
+their replies); BrokerLink owns the PUSH of orders that tells the broker what was decided
+(pool switches, the ladder's level, workers gone, a planned stop), each sealed with the
+run's order key (control_msgs.seal_order). The decisions are the core's.
 """
 
 from __future__ import annotations
@@ -117,15 +118,19 @@ class BrokerLink:
     """What the supervisor tells the broker, never blocking: a send the broker cannot take
     now is logged, and reconcile() sends pool states and the level again from its stats."""
 
-    def __init__(self, sock: zmq.Socket[bytes]) -> None:
+    def __init__(self, sock: zmq.Socket[bytes], key: bytes) -> None:
         self.sock = sock
+        self.key = key  # the run's order key, the broker's too (NodeSpec.order_key)
         self.switched_at = 0.0  # when the broker was last told of a pool switch or level
+
+    def _send(self, order: control_msgs.SupervisorOrder) -> None:
+        """zmq.Again when the broker cannot take it now."""
+        self.sock.send_multipart(control_msgs.seal_order(self.key, order), zmq.NOBLOCK)
 
     def gone(self, worker: str, reason: str) -> None:
         """A worker process died or left: the broker drops its pairs at once."""
         try:
-            self.sock.send(messages.encode(messages.Gone(worker=worker, reason=reason)),
-                           zmq.NOBLOCK)
+            self._send(messages.Gone(worker=worker, reason=reason))
         except zmq.Again:
             pass  # the broker's own timeout will evict it
 
@@ -133,7 +138,7 @@ class BrokerLink:
         """A planned stop begins: workers leave from now on, a send to one that left is no
         news."""
         try:
-            self.sock.send(messages.encode(messages.Stopping()), zmq.NOBLOCK)
+            self._send(messages.Stopping())
         except zmq.Again:
             pass  # the broker is busy; a departure is then logged as a warning
 
@@ -143,10 +148,10 @@ class BrokerLink:
         """A pool becomes (in)active, takes a new policy, parameters or minimum interval."""
         self.switched_at = time.monotonic()
         try:
-            self.sock.send(messages.encode(messages.PoolSwitch(
+            self._send(messages.PoolSwitch(
                 pool=pool, active=active, policy=policy,
                 params=dict(params) if params is not None else None,
-                min_interval_s=min_interval_s)), zmq.NOBLOCK)
+                min_interval_s=min_interval_s))
         except zmq.Again:
             log.warning("could not tell the broker about pool %s now; status reconciles it",
                         pool)
@@ -159,8 +164,7 @@ class BrokerLink:
             return
         self.switched_at = time.monotonic()
         try:
-            self.sock.send(messages.encode(messages.LadderLevel(
-                level=view["level"], reason=view["reason"][:256])), zmq.NOBLOCK)
+            self._send(messages.LadderLevel(level=view["level"], reason=view["reason"][:256]))
         except zmq.Again:
             log.warning("could not tell the broker the ladder's level now; status reconciles it")
 

@@ -65,7 +65,7 @@ from trapflow.supervisor.setup import (
     preflight,
 )
 from trapflow.supervisor.state import DurationClock, SupervisorState
-from trapflow.wire import identity, messages, tap_msgs
+from trapflow.wire import control_msgs, identity, messages, tap_msgs
 from trapflow.wire.frame_ring import FrameRing
 from trapflow.wire.transport import (
     Endpoints,
@@ -140,6 +140,8 @@ class Supervisor:
         self.tag_size_m: float | None = None  # the tags the source lays, where it knows
         self.ring: FrameRing | None = None
         self.run_id = secrets.token_hex(8)  # this start; the modem's cached replies name it
+        # Seals the orders to the broker: only a process handed it in the spawn can send one.
+        self.order_key = secrets.token_bytes(control_msgs.ORDER_KEY_BYTES)
         self.notifier = sdnotify.Notifier()  # READY/WATCHDOG/STATUS under systemd, else no-op
         self.ratelog = RateLimitedLog(log)  # warnings about messages from sockets
         self.cpu = CpuMeter()  # CPU per role: the energy estimate in ledger.json
@@ -164,8 +166,8 @@ class Supervisor:
         if cfg.modem.enabled:
             self._add(NodeSpec("modem", "modem", cfg, run, ring=ring, run_id=self.run_id),
                       sup.liveness_s)
-        self._add(NodeSpec("broker", "broker", cfg, run, ring=ring, rig=self.rig),
-                  sup.liveness_s)
+        self._add(NodeSpec("broker", "broker", cfg, run, ring=ring, rig=self.rig,
+                           order_key=self.order_key), sup.liveness_s)
         if cfg.events.enabled:
             self._add(NodeSpec("events", "events", cfg, run, ring=ring), sup.liveness_s)
         for pool, pcfg in cfg.pools.items():
@@ -227,7 +229,7 @@ class Supervisor:
             self.ring = create_ring(self.cfg, self.rig)
             # Tells the broker at once when a worker process dies (its pairs are lost).
             self.broker = BrokerLink(open_socket(self.ctx, SocketSpec(
-                zmq.DEALER, self.endpoints.workers, identity=b"supervisor", sndhwm=100)))
+                zmq.PUSH, self.endpoints.orders, sndhwm=100)), self.order_key)
             self.stats_sub = open_socket(self.ctx, SocketSpec(
                 zmq.SUB, self.endpoints.tap, subscribe=(tap_msgs.TOPIC_STATS,), rcvhwm=4))
             self._install_signals()

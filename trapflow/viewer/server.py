@@ -44,6 +44,11 @@ STATUS_IDLE_S = 5.0
 PAGE_OPEN_S = 3.0
 EVENTS_S = 2.0
 CONTROL_WAIT_S = 10.0  # a queued change waits for the status request out, then its own
+# A connection with no complete request this long is closed (aiohttp's keep-alive timer runs
+# from the connection's start), and a request is answered within REQUEST_S or gets 408:
+# 400 clients that sent half a request were held for 60 s and more (issue 26 item 10).
+IDLE_S = 10.0
+REQUEST_S = CONTROL_WAIT_S + 5.0
 STATIC = ("index.html", "viewer.js", "viewer.css")
 _TYPES = {".html": "text/html", ".js": "text/javascript", ".css": "text/css"}
 # A POST that changes the pipeline must carry this header: a page of another site cannot
@@ -107,7 +112,8 @@ class Viewer:
 
     async def start(self, host: str, port: int) -> web.AppRunner:
         """Bind the HTTP server; OSError if the address is taken."""
-        runner = web.AppRunner(self.app, access_log=None, handle_signals=False)
+        runner = web.AppRunner(self.app, access_log=None, handle_signals=False,
+                               keepalive_timeout=IDLE_S)
         await runner.setup()
         await web.TCPSite(runner, host, port).start()
         log.info("viewer on http://%s:%d/ for %s", host, port, self.run_dir)
@@ -134,7 +140,11 @@ class Viewer:
                                bearer_of(request.headers.get("Authorization")),
                                request.cookies.get(COOKIE), request.query.get("token"))
         if isinstance(d, Allow):
-            return await handler(request)
+            try:
+                return await asyncio.wait_for(handler(request), REQUEST_S)
+            except TimeoutError:  # a body sent slowly, or never: the client, not the viewer
+                return web.Response(status=408, text=f"request not complete within "
+                                    f"{REQUEST_S:g} s\n", headers={"Connection": "close"})
         if isinstance(d, SetCookie):
             resp = web.Response(status=303, headers={"Location": d.location,
                                                      "Cache-Control": "no-store"})

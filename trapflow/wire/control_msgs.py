@@ -1,8 +1,12 @@
 """Requests to the supervisor's control socket (status, stop, pool and parameter changes,
-ladder levels), the log records nodes send it, and their decoders, bounded."""
+ladder levels), the log records nodes send it, the supervisor's sealed orders to the
+broker, and their decoders, bounded."""
 
 from __future__ import annotations
 
+import hashlib
+import hmac
+from collections.abc import Sequence
 from typing import Annotated
 
 import msgspec
@@ -13,10 +17,15 @@ from trapflow.wire.messages import (
     MAX_LOG_BYTES,
     Buffer,
     ControlName,
+    Gone,
+    LadderLevel,
     Msg,
     ParamValue,
     PolicyText,
+    PoolSwitch,
+    Stopping,
     decode_bounded,
+    encode,
 )
 
 
@@ -103,3 +112,38 @@ def decode_log(data: Buffer) -> LogEntry:
     """Decode a LogEntry a node sent to the supervisor's log listener."""
     entry: LogEntry = decode_bounded(_log_dec, data, "log record", MAX_LOG_BYTES)
     return entry
+
+
+# --- the supervisor's orders to the broker -------------------------------------------------
+# They ride a socket of their own (Endpoints.orders, an ipc file in the 0700 run directory),
+# never the workers' socket, and each is sealed with the run's order key, which only the
+# supervisor and the broker hold (handed in the spawn, never on a command line or in the
+# environment): a process of the same user that reaches the socket still cannot forge one.
+
+SupervisorOrder = Gone | Stopping | PoolSwitch | LadderLevel
+ORDER_KEY_BYTES = 32
+_order_dec = msgspec.msgpack.Decoder(SupervisorOrder)
+
+
+def _seal(key: bytes, body: bytes) -> bytes:
+    return hmac.new(key, body, hashlib.sha256).digest()
+
+
+def seal_order(key: bytes, order: SupervisorOrder) -> list[bytes]:
+    """[seal, order]: the frames the supervisor sends the broker."""
+    body = encode(order)
+    return [_seal(key, body), body]
+
+
+def open_order(key: bytes, frames: Sequence[Buffer]) -> SupervisorOrder:
+    """The order in [seal, order] frames; ProtocolError when it is not sealed with `key`."""
+    if len(frames) != 2:
+        raise ProtocolError(f"supervisor order: expected 2 frames [seal, order], got "
+                            f"{len(frames)}")
+    seal, body = (bytes(memoryview(f.buffer if hasattr(f, "buffer") else f)) for f in frames)
+    if len(key) != ORDER_KEY_BYTES or not hmac.compare_digest(seal, _seal(key, body)):
+        raise ProtocolError("supervisor order: its seal is not the run's (only the "
+                            "supervisor that started this broker holds the key)")
+    order: SupervisorOrder = decode_bounded(_order_dec, body, "supervisor order",
+                                            MAX_HEADER_BYTES)
+    return order

@@ -29,20 +29,22 @@ from trapflow.wire import frame_msgs, messages
 # Linux limits a UNIX socket path to 107 bytes.
 MAX_IPC_PATH = 107
 
-# Name -> (ipc file name, tcp port offset). The supervisor, broker and normalizer bind these.
+# The pipeline's sockets, ipc files in its run directory (0700, sockets 0600): only the
+# directory's owner reaches them, in every mode. network.transport tcp once put the first five
+# on loopback ports, where every local user read frames, joined pools, injected pairs and
+# forged heartbeats (issue 26 item 3); the only TCP socket now is network.remote.bind,
+# guarded by CURVE keys. The supervisor, broker and normalizer bind these.
 _ENDPOINTS = {
-    "capture": ("capture.sock", 0),  # capture PUSH -> broker PULL
-    "workers": ("workers.sock", 1),  # broker ROUTER <-> worker DEALERs
-    "tap": ("tap.sock", 3),  # broker PUB: frames and stats
-    "results_tap": ("results-tap.sock", 4),  # normalizer PUB: JSON results
-    "heartbeat": ("heartbeat.sock", 5),  # nodes PUSH -> supervisor PULL
-}
-# Always ipc files in the run directory, even in TCP mode: only who may enter the run
-# directory (0700, its owner) may stop the pipeline or write its log, and `trapflow status
-# --run-dir` finds a TCP-mode pipeline where it finds an ipc one.
-_LOCAL_ENDPOINTS = {
+    "capture": "capture.sock",  # capture PUSH -> broker PULL
+    "workers": "workers.sock",  # broker ROUTER <-> worker DEALERs
+    "tap": "tap.sock",  # broker PUB: frames and stats
+    "results_tap": "results-tap.sock",  # normalizer PUB: JSON results
+    "heartbeat": "heartbeat.sock",  # nodes PUSH -> supervisor PULL
     "control": "control.sock",  # supervisor REP: status, stop
     "log": "log.sock",  # nodes PUSH -> supervisor PULL: log records (control_msgs.LogEntry)
+    # supervisor PUSH -> broker PULL: pool switches, the ladder's level, workers gone, the
+    # stop (control_msgs.seal_order: each sealed with the run's key, handed in the spawn)
+    "orders": "orders.sock",
 }
 # Modes that hold whatever the umask: the run directory is its owner's alone; sockets and
 # links in it are read-write for the owner only; results and logs may be read by its group.
@@ -58,27 +60,26 @@ _LINKS = {
 
 
 def check_ports_free(net: NetworkConfig) -> None:
-    """StartupError naming the first TCP port of the pipeline another process holds.
+    """StartupError naming network.remote.bind's port when another process holds it.
 
     The supervisor asks before it creates anything big (the ring), so a second pipeline on
-    the same ports ends in one line with nothing left behind. In ipc mode, nothing to do.
+    the same port ends in one line with nothing left behind. Without a remote bind, nothing
+    to check (every other socket is an ipc file in the run directory).
     """
-    if net.transport == "ipc":
+    if not net.remote.bind:
         return
-    for name, (_fname, offset) in _ENDPOINTS.items():
-        if name == "heartbeat":
-            continue  # the supervisor's own, bound already
-        port = net.base_port + offset
-        with socket.socket(socket.AF_INET6 if ":" in net.host else socket.AF_INET) as s:
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            try:
-                s.bind((net.host, port))
-            except OSError as exc:
-                why = (exc.strerror or str(exc)).lower()
-                raise StartupError(
-                    f"cannot start: cannot bind tcp://{net.host}:{port} ({name}): {why}; "
-                    f"another pipeline or program holds it: stop it, or set "
-                    f"network.base_port to a free range") from None
+    host, _, port = net.remote.bind.partition("://")[2].rpartition(":")
+    host = host.strip("[]")
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("" if host in ("*", "0.0.0.0") else host, int(port)))
+        except OSError as exc:
+            why = (exc.strerror or str(exc)).lower()
+            raise StartupError(
+                f"cannot start: cannot bind {net.remote.bind} (network.remote.bind): {why}; "
+                f"another pipeline or program holds it: stop it, or choose another port"
+            ) from None
 
 
 def _ipc_url(run_dir: Path, fname: str) -> str:
@@ -93,7 +94,7 @@ def _ipc_url(run_dir: Path, fname: str) -> str:
 
 def log_endpoint(run_dir: Path) -> str:
     """Where a process's nodes send their log records: log.sock in its run directory."""
-    return _ipc_url(run_dir, _LOCAL_ENDPOINTS["log"])
+    return _ipc_url(run_dir, _ENDPOINTS["log"])
 
 
 def make_private(run_dir: Path) -> None:
@@ -126,21 +127,16 @@ class Endpoints:
     heartbeat: str
     control: str
     log: str
+    orders: str
     capture_link: str
     workers_link: str
     results_link: str
 
     @classmethod
     def for_run(cls, net: NetworkConfig, run_dir: Path) -> Endpoints:
-        """ipc:// files in the run directory, or consecutive tcp ports on the loopback host."""
-        urls: dict[str, str] = {}
-        for name, (fname, offset) in _ENDPOINTS.items():
-            if net.transport == "ipc":
-                urls[name] = _ipc_url(run_dir, fname)
-            else:
-                urls[name] = f"tcp://{net.host}:{net.base_port + offset}"
-        for name, fname in _LOCAL_ENDPOINTS.items():
-            urls[name] = _ipc_url(run_dir, fname)
+        """ipc:// files in the run directory, whatever network.transport says (see
+        _ENDPOINTS); `net` stays in the signature, which every node and client calls."""
+        urls = {name: _ipc_url(run_dir, fname) for name, fname in _ENDPOINTS.items()}
         for name, fname in _LINKS.items():
             urls[name] = str(run_dir.resolve() / fname)
         return cls(**urls)
@@ -245,6 +241,10 @@ def set_subscribed(sock: zmq.Socket[bytes], topic: bytes, on: bool) -> None:
 
 
 TAP_RCVHWM = 64  # subscription messages queued from one peer before libzmq stops reading it
+# After subscriptions were refused, the process trims its heap this often for this long: the
+# memory libzmq held for them is freed when their sender leaves (TapGate.trim_due).
+TRIM_INTERVAL_S = 5.0
+TRIM_FOR_S = 60.0
 
 
 class TapGate:
@@ -263,6 +263,9 @@ class TapGate:
         self._valid = {t[:i] for t in self.topics for i in range(len(t) + 1)}
         self.readers: dict[bytes, int] = {}
         self.refused = 0
+        self._refused_seen = 0
+        self._trim_until = 0.0  # trims are due until then (refused subscriptions came)
+        self._next_trim = 0.0
 
     def drain(self) -> bool:
         """Take the subscription messages waiting (never blocks); True if readers changed."""
@@ -287,6 +290,18 @@ class TapGate:
                 else:
                     self.readers.pop(prefix, None)
             changed = True
+
+    def trim_due(self, now: float) -> bool:
+        """Whether the process should release freed memory now (runtime.node.release_memory):
+        every TRIM_INTERVAL_S for TRIM_FOR_S after the last refused subscription, so what a
+        hostile subscriber made libzmq hold goes back to the system once it leaves."""
+        if self.refused != self._refused_seen:
+            self._refused_seen = self.refused
+            self._trim_until = now + TRIM_FOR_S
+        if now < self._trim_until and now >= self._next_trim:
+            self._next_trim = now + TRIM_INTERVAL_S
+            return True
+        return False
 
     def wanted(self, topic: bytes) -> bool:
         """Somebody reads topic (subscribed to a prefix of it)."""

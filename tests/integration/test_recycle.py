@@ -123,7 +123,7 @@ def test_the_supervisors_notice_of_a_recycle_does_not_overtake_the_workers_answe
             broker._on_order(notice, time.monotonic())
         st = broker.state.pool_stats()["noop"]
         assert (st.processed, st.lost, st.pending, st.in_flight) == (1, 0, 0, 0)
-        assert broker.state.rejected == {} and len(broker._out) == 1
+        assert broker.state.rejected == {} and len(broker.results.out) == 1
         assert [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING] == []
 
 

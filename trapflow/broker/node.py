@@ -23,8 +23,10 @@ from typing import Any
 import zmq
 
 from trapflow.broker import trust
+from trapflow.broker.orders import OrdersChannel
 from trapflow.broker.preview import PreviewClock, drawn_pools
 from trapflow.broker.remote import BrokerHooks, RemoteWorkersSide, frame_bytes
+from trapflow.broker.results import ResultsOut
 from trapflow.broker.state import (
     Action,
     BrokerState,
@@ -42,7 +44,7 @@ from trapflow.gate.policy import gated_pools
 from trapflow.runtime.node import ACTIVE, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog, wire
 from trapflow.wire import control_msgs, frame_msgs, gate_msgs, messages, tap_msgs
-from trapflow.wire.frame_ring import HELD, FrameRing
+from trapflow.wire.frame_ring import FrameRing
 from trapflow.wire.transport import (
     PAIR_MAX_MSG_BYTES,
     Link,
@@ -59,8 +61,6 @@ log = logging.getLogger(__name__)
 
 STATS_INTERVAL_S = 1.0
 TICK_INTERVAL_S = 0.1
-RESULTS_BATCH_BYTES = 64 << 10  # results leave in datagrams of about this size, or less
-MAX_WAITING_RESULTS = 100_000  # kept while no normalizer listens; beyond, the oldest go
 MAX_GOODBYES = 256  # workers that left on purpose, remembered for the log's level
 
 
@@ -77,13 +77,9 @@ class BrokerNode(Node):
         self.router = open_socket(
             self.ctx, SocketSpec(zmq.ROUTER, ep.workers, bind=True, router_mandatory=True)
         )
-        # The supervisor's orders: its own channel, every order sealed with the run's key.
-        self.orders = open_socket(self.ctx, SocketSpec(zmq.PULL, ep.orders, bind=True,
-                                                       rcvhwm=100))
-        self.order_key = spec.order_key
         self.poller.register(self.pull)
         self.poller.register(self.router)
-        self.poller.register(self.orders)
+        self.orders = OrdersChannel(self.ctx, ep.orders, spec.order_key, self.poller)
         self._jobs: dict[tuple[str, int], bytes] = {}
         pools = {  # a remote pool exists with no local worker: remote workers add to count
             name: PoolSpec(p.parsed_policy, p.timeout_s, p.max_pending_age_s)
@@ -100,8 +96,8 @@ class BrokerNode(Node):
         self.refs: dict[int, frame_msgs.FrameRef] = {}
         # Remote pools get JPEG, from their local workers too (the remote side encodes it).
         self.remote_pools = {n for n, p in self.cfg.pools.items() if p.remote}
-        if self.ring is not None and spec.restarted:
-            self._reclaim_held()
+        if self.ring is not None and spec.restarted and (n := self.ring.free_held()):
+            log.warning("freed %d ring slots held by a previous broker", n)
         # Local links (ring only): listeners, then one Link per connected capture or worker.
         self.listeners: dict[Any, str] = {listen_link(ep.results_link): "results"}
         if self.ring is not None:
@@ -123,11 +119,7 @@ class BrokerNode(Node):
         self.link_ident: dict[Link, bytes] = {}
         self.worker_links: dict[bytes, Link] = {}
         self.results_link: Link | None = None  # the normalizer, once it connected
-        self._out: list[Any] = []  # results waiting for this pass's batch (or a normalizer)
-        # Sent but not yet written: sent again to a restarted normalizer (kill -9, OOM).
-        # Bounded: a normalizer that never acknowledges cannot grow the broker without limit.
-        self._unacked: collections.deque[Any] = collections.deque(maxlen=MAX_WAITING_RESULTS)
-        self.results_dropped = 0
+        self.results = ResultsOut(self.ratelog)  # to the normalizer, until acknowledged
         # Refused from the wire, by reason (forged answers are counted in self.state.rejected).
         self.refused: dict[str, int] = {}
         self.malformed = 0
@@ -147,8 +139,8 @@ class BrokerNode(Node):
         active, idle = self.state.gate_time()
         return {"pairs_in": self.state.pairs_in, "malformed": self._malformed(),
                 "gate_active_s": int(active), "gate_idle_s": int(idle),
-                "held": self.state.held(), "results_waiting": len(self._out) + len(self._unacked),
-                "results_dropped": self.results_dropped, "late_answers": self.state.late,
+                "held": self.state.held(), "results_waiting": self.results.waiting(),
+                "results_dropped": self.results.dropped, "late_answers": self.state.late,
                 "refused_subscriptions": self.tap.gate.refused, **self.remote.counters(),
                 "previews": self.tap.preview.published, "previews_failed": self.tap.preview_failed,
                 **{f"rejected_{k}": n for k, n in self.state.rejected.items()},
@@ -160,8 +152,9 @@ class BrokerNode(Node):
         next_tick = time.monotonic()
         while not self.stopping:
             socks, fds = poller.poll(int(TICK_INTERVAL_S * 1000))
-            if self.orders in socks:
-                self._drain_orders()
+            if self.orders.sock in socks:
+                for order in self.orders.drain(self._forged_order):
+                    self._on_order(order, time.monotonic())
             if self.router in socks:
                 self._drain_workers()
             self.remote.serve(socks)
@@ -333,9 +326,7 @@ class BrokerNode(Node):
         ident = self.link_ident.pop(link, None)
         if link is self.results_link:
             self.results_link = None
-            # What it was sent but never confirmed goes first to its successor.
-            self._out[:0] = self._unacked
-            self._unacked.clear()
+            self.results.link_lost()
         link.close()
         if ident is not None and self.worker_links.get(ident) is link:
             del self.worker_links[ident]
@@ -379,7 +370,7 @@ class BrokerNode(Node):
             actions = self.state.job_done(ident, msg.pool, msg.seq, True, now,
                                           named=(result.seq, result.pool))
             if not any(isinstance(a, Rejected) for a in actions):
-                self._out.append(frames[2])  # only an answer to a job this worker was given
+                self.results.add(frames[2])  # only an answer to a job this worker was given
                 self.remote.roster.processed(ident)
             self._apply(actions)
         elif isinstance(msg, messages.Gone):
@@ -397,19 +388,9 @@ class BrokerNode(Node):
 
     # --- the supervisor's orders -------------------------------------------------------
 
-    def _drain_orders(self) -> None:
-        self.poller.touch(self.orders)
-        for _ in range(64):
-            if not zmq_readable(self.orders):
-                return
-            frames = self.orders.recv_multipart(copy=False)
-            try:
-                order = control_msgs.open_order(self.order_key, frames)
-            except ProtocolError as exc:  # not the supervisor's: nothing of it is applied
-                self._refuse("forged_order", "refused a message on the supervisor's channel: "
-                             "%s", wire(str(exc)))
-                continue
-            self._on_order(order, time.monotonic())
+    def _forged_order(self, why: str) -> None:
+        self._refuse("forged_order", "refused a message on the supervisor's channel: %s",
+                     wire(why))
 
     def _on_order(self, order: control_msgs.SupervisorOrder, now: float) -> None:
         """An order the supervisor sealed (open_order checked the seal)."""
@@ -444,19 +425,16 @@ class BrokerNode(Node):
     def _on_pool_switch(self, msg: messages.PoolSwitch, now: float) -> None:
         """Runtime control of a pool, from the supervisor (trust checked who sent it)."""
         try:
-            if msg.active is not None:
-                self._apply(self.state.set_active(msg.pool, msg.active, now))
-                log.info("pool %s %s", msg.pool, "active" if msg.active else "inactive")
-            if msg.policy is not None:
-                self._apply(self.state.set_policy(msg.pool, msg.policy, now))
-                log.info("pool %s policy %s", msg.pool, msg.policy)
-            if msg.min_interval_s is not None:
-                self._apply(self.state.set_interval(msg.pool, msg.min_interval_s, now))
-                log.info("pool %s minimum interval %g s", msg.pool, msg.min_interval_s)
-            if msg.params is not None:
-                self._configure_workers(msg.pool, msg.params)
+            actions, done = self.state.pool_switch(msg.pool, msg.active, msg.policy,
+                                                   msg.min_interval_s, now)
         except ValueError as exc:
             self.ratelog.warning("switch", "refused a pool switch: %s", wire(str(exc)))
+            return
+        self._apply(actions)
+        for what in done:
+            log.info("pool %s %s", msg.pool, what)
+        if msg.params is not None:
+            self._configure_workers(msg.pool, msg.params)
 
     def _configure_workers(self, pool: str, params: dict[str, Any]) -> None:
         """New parameters, applied in place by every worker of the pool between pairs."""
@@ -476,7 +454,7 @@ class BrokerNode(Node):
     # --- actions --------------------------------------------------------------------
 
     def _apply(self, actions: list[Action]) -> None:
-        # Over 60 lines: one branch per action kind, each the socket work of that kind;
+        # Long on purpose: one branch per action kind, each the socket work of that kind;
         # the exhaustive chain (ending in unreachable) reads best in one place.
         for action in actions:
             if isinstance(action, Dispatch):
@@ -575,33 +553,11 @@ class BrokerNode(Node):
             self.ratelog.warning(what, "cannot reach worker %r: %s", ident, exc)
 
     def _flush_results(self) -> None:
-        """Results leave in few datagrams: one wake-up of the normalizer per pass, not one each.
-
-        What the normalizer cannot take now (busy, restarting) waits here for the next pass.
-        """
-        if len(self._out) > MAX_WAITING_RESULTS:
-            extra = len(self._out) - MAX_WAITING_RESULTS
-            self.results_dropped += extra
-            self.ratelog.warning("results", "no normalizer: dropped %d oldest results", extra)
-            del self._out[:extra]
-        while self._out and self.results_link is not None:
-            n, size = 0, 0
-            while n < min(len(self._out), frame_msgs.MAX_LINK_FRAMES) and (
-                    n == 0 or size + len(self._out[n]) < RESULTS_BATCH_BYTES):
-                size += len(self._out[n])
-                n += 1
-            try:
-                if not self.results_link.send(self._out[:n]):
-                    return
-                self._unacked.extend(self._out[:n])
-            except LinkClosed:
-                self._drop_link(self.results_link, "disconnected")
-                return
-            except ProtocolError as exc:  # one result too big for a datagram
-                self.results_dropped += 1
-                self.ratelog.warning("results", "dropped a result: %s", exc)
-                n = 1
-            del self._out[:n]
+        try:
+            self.results.flush(self.results_link)
+        except LinkClosed:
+            assert self.results_link is not None
+            self._drop_link(self.results_link, "disconnected")
 
     def _on_ack(self, ack: gate_msgs.NormalizerMsg) -> None:
         """Only the live normalizer's link is read for acks; never more than it was sent. Its
@@ -609,11 +565,10 @@ class BrokerNode(Node):
         if isinstance(ack, gate_msgs.GateHint):
             self._apply(self.state.gate_hint(ack.tracks, ack.rig_moving, time.monotonic()))
             return
-        if not 0 < ack.count <= len(self._unacked):
+        sent = len(self.results.unacked)
+        if not self.results.acked(ack.count):
             self._refuse("bad_ack", "an acknowledgement of %d results exceeds the %d sent and "
-                         "not yet acknowledged; taking only those", ack.count, len(self._unacked))
-        for _ in range(min(max(ack.count, 0), len(self._unacked))):
-            self._unacked.popleft()
+                         "not yet acknowledged; taking only those", ack.count, sent)
 
     def _refuse(self, reason: str, msg: str, *args: object) -> None:
         self.refused[reason] = self.refused.get(reason, 0) + 1
@@ -637,19 +592,8 @@ class BrokerNode(Node):
         """The viewer's preview of a pair that arrived (pool None) or was given to pool,
         if it is the one due (trapflow.broker.preview): from views of the ring (encoded
         before this returns, while the broker still holds the slot) or the frames."""
-        clock = self.tap.preview
-        if not clock.wanted or not (clock.on_arrival(time.monotonic()) if pool is None
-                                    else clock.on_dispatch(pool, time.monotonic())):
+        if not self.tap.preview_due(pool, time.monotonic()):
             return  # no page open (the usual case: one attribute read per pair)
         frames, ref = self.frames[seq], self.refs.get(seq)
         sides = self.ring.payload(ref) if ref is not None and self.ring is not None else frames[1:]
         self.tap.publish_preview(frames[0], *sides)
-
-    def _reclaim_held(self) -> None:
-        """A new broker knows of no pair: slots a previous broker held are free again."""
-        assert self.ring is not None
-        n = sum(self.ring.free(slot, self.ring.generation(slot))
-                for slot in range(self.ring.slots) if self.ring.state(slot) == HELD)
-        if n:
-            log.warning("freed %d ring slots held by a previous broker", n)
-

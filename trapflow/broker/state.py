@@ -361,6 +361,29 @@ class BrokerState:
                 actions.extend(self._unhold(dropped))
         return actions + self._dispatch(pool, now)
 
+    def pool_switch(self, pool_name: str, active: bool | None, policy: str | None,
+                    min_interval_s: float | None, now: float) -> tuple[list[Action], list[str]]:
+        """A runtime switch of a pool (trapflow pool, the ladder): its actions and what
+        changed, for the log. Checked whole first: a ValueError changes nothing."""
+        self._known(pool_name)
+        if policy is not None:
+            parse_policy(policy)
+        if min_interval_s is not None and not min_interval_s >= 0:
+            raise ValueError(f"pool {pool_name!r}: expected a minimum interval >= 0 s, got "
+                             f"{min_interval_s}")
+        actions: list[Action] = []
+        done: list[str] = []
+        if active is not None:
+            actions += self.set_active(pool_name, active, now)
+            done.append("active" if active else "inactive")
+        if policy is not None:
+            actions += self.set_policy(pool_name, policy, now)
+            done.append(f"policy {policy}")
+        if min_interval_s is not None:
+            actions += self.set_interval(pool_name, min_interval_s, now)
+            done.append(f"minimum interval {min_interval_s:g} s")
+        return actions, done
+
     def finish(self) -> list[Action]:
         """The run ends: what the gate kept as pre-roll is gated, what is pending or in
         flight is lost; every pair is accounted for."""

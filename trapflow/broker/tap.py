@@ -68,6 +68,13 @@ class BrokerTap:
         except zmq.Again:
             pass  # a slow subscriber loses tap messages; the pipeline never waits
 
+    def preview_due(self, pool: str | None, now: float) -> bool:
+        """A page is open and the pair that arrived (pool None) or was given to pool is the
+        preview it is due (trapflow.broker.preview)."""
+        clock = self.preview
+        return clock.wanted and (clock.on_arrival(now) if pool is None
+                                 else clock.on_dispatch(pool, now))
+
     def publish_preview(self, header: Any, left: Any, right: Any) -> None:
         """The viewer's preview of a pair: its header frame as received and both sides
         (views of the ring or received frames: encoded before this returns)."""

@@ -42,6 +42,34 @@ def counts_text(counts: dict[str, Any]) -> list[str]:
     return lines
 
 
+def supervision_text(sup: dict[str, Any]) -> list[str]:
+    """The supervision part of the status reply: give-ups, the ladder, pools' runtime
+    changes and the latest timeline entries."""
+    lines: list[str] = []
+    lines.append(f"supervision: {sup['gave_up']} give-ups, {sup['retries']} retries, "
+                 f"{sup['capped']} capped restarts of essential nodes, "
+                 f"{sup.get('control', 0)} runtime changes")
+    lad = sup.get("ladder")
+    if lad:
+        how = "forced" if lad["forced"] else "auto"
+        lines.append(f"ladder: level {lad['level']} ({lad['index']} of "
+                     f"{len(lad['levels']) - 1}, {how}), {lad['changes']} changes; "
+                     f"{lad['reason']}")
+    for name, by in sup.get("recycled", {}).items():
+        why = ", ".join(f"{k} {n}" for k, n in sorted(by.items()))
+        lines.append(f"  pool {name:<10} workers recycled: {why}")
+    for name, p in sup.get("pools", {}).items():
+        params = ", ".join(f"{k}={v!r}" for k, v in p["params"].items()) or "defaults"
+        off = f" (by the {p['off_by']})" if p.get("off_by") else ""
+        every = f", at most 1 pair / {p['min_interval_s']:g} s" \
+            if p.get("min_interval_s") else ""
+        lines.append(f"  pool {name:<10} {p['state']:<9}{off} {p['count']} workers, policy "
+                     f"{p['policy']}{every}, params {params}, {p['changes']} changes")
+    for e in sup["timeline"][-TIMELINE_SHOWN:]:
+        lines.append(f"  {e['t_s']:>8} s  {e['node']:<20} {e['kind']:<8} {e['reason']}")
+    return lines
+
+
 def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
     """A human table of nodes and pool counters, or the JSON itself."""
     if as_json or "nodes" not in reply:
@@ -75,29 +103,8 @@ def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
                          f"{r.get('reason', '')}")
     if reply.get("counts"):
         lines += counts_text(reply["counts"])
-    sup = reply.get("supervision")
-    if sup:
-        lines.append(f"supervision: {sup['gave_up']} give-ups, {sup['retries']} retries, "
-                     f"{sup['capped']} capped restarts of essential nodes, "
-                     f"{sup.get('control', 0)} runtime changes")
-        lad = sup.get("ladder")
-        if lad:
-            how = "forced" if lad["forced"] else "auto"
-            lines.append(f"ladder: level {lad['level']} ({lad['index']} of "
-                         f"{len(lad['levels']) - 1}, {how}), {lad['changes']} changes; "
-                         f"{lad['reason']}")
-        for name, by in sup.get("recycled", {}).items():
-            why = ", ".join(f"{k} {n}" for k, n in sorted(by.items()))
-            lines.append(f"  pool {name:<10} workers recycled: {why}")
-        for name, p in sup.get("pools", {}).items():
-            params = ", ".join(f"{k}={v!r}" for k, v in p["params"].items()) or "defaults"
-            off = f" (by the {p['off_by']})" if p.get("off_by") else ""
-            every = f", at most 1 pair / {p['min_interval_s']:g} s" \
-                if p.get("min_interval_s") else ""
-            lines.append(f"  pool {name:<10} {p['state']:<9}{off} {p['count']} workers, policy "
-                         f"{p['policy']}{every}, params {params}, {p['changes']} changes")
-        for e in sup["timeline"][-TIMELINE_SHOWN:]:
-            lines.append(f"  {e['t_s']:>8} s  {e['node']:<20} {e['kind']:<8} {e['reason']}")
+    if reply.get("supervision"):
+        lines += supervision_text(reply["supervision"])
     if reply.get("ledger"):
         lines.append(run_ledger.totals_text(reply["ledger"]).rstrip("\n"))
         if reply["ledger"].get("energy"):

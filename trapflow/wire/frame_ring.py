@@ -299,6 +299,11 @@ class FrameRing:
         self._states[slot] = FREE
         return True
 
+    def free_held(self) -> int:
+        """Free every HELD slot (a new lifetime owner knows of no pair); how many."""
+        return sum(self.free(slot, self.generation(slot))
+                   for slot in range(self.slots) if self.state(slot) == HELD)
+
     def free_ref(self, ref: FrameRef) -> bool:
         """free() the slot a descriptor points to."""
         return self.free(ref.slot, ref.generation)

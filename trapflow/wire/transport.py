@@ -30,10 +30,9 @@ from trapflow.wire import frame_msgs, messages
 MAX_IPC_PATH = 107
 
 # The pipeline's sockets, ipc files in its run directory (0700, sockets 0600): only the
-# directory's owner reaches them, in every mode. network.transport tcp once put the first five
-# on loopback ports, where every local user read frames, joined pools, injected pairs and
-# forged heartbeats (issue 26 item 3); the only TCP socket now is network.remote.bind,
-# guarded by CURVE keys. The supervisor, broker and normalizer bind these.
+# directory's owner reaches them, in every mode (network.transport tcp once put five on
+# loopback ports that every local user could reach: issue 26 item 3). The only TCP socket
+# is network.remote.bind (CURVE keys). The supervisor, broker and normalizer bind these.
 _ENDPOINTS = {
     "capture": "capture.sock",  # capture PUSH -> broker PULL
     "workers": "workers.sock",  # broker ROUTER <-> worker DEALERs

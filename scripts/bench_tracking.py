@@ -10,7 +10,14 @@ the defaults (scripts/tune_tracking.py); held-out seeds (2001-2006) are reported
 trackers get the same frame rate and each pair's capture time. Writes
 bench-results/tracking.json and prints a table.
 
-    python scripts/bench_tracking.py [--split dev|held-out|both] [--frames N]
+--live adds the tracker inside the pipeline: held-out seeds rendered by `trapflow dataset
+synth` are run through `trapflow start --source images:DIR` (the mono pool alone, fifo for
+every pair, then `latest` with the detector slowed so that it sees about one pair in three);
+the run's tracked lines (frame = seq + 1) are scored against the dataset's gt/gt.txt over
+the pairs the detector saw, beside the other trackers on the run's own detections.
+
+    python scripts/bench_tracking.py [--split dev|held-out|both|none] [--frames N]
+                                     [--live [--live-seeds S,S] [--live-frames N]]
 
 Needs the test extra (motmetrics) and, bench only, TrackEval and Roboflow's trackers:
 `pip install supervision && pip install --no-deps trackeval trackers` (--no-deps: both

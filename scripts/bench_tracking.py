@@ -10,7 +10,14 @@ the defaults (scripts/tune_tracking.py); held-out seeds (2001-2006) are reported
 trackers get the same frame rate and each pair's capture time. Writes
 bench-results/tracking.json and prints a table.
 
-    python scripts/bench_tracking.py [--split dev|held-out|both] [--frames N]
+--live adds the tracker inside the pipeline: held-out seeds rendered by `trapflow dataset
+synth` are run through `trapflow start --source images:DIR` (the mono pool alone, fifo for
+every pair, then `latest` with the detector slowed so that it sees about one pair in three);
+the run's tracked lines (frame = seq + 1) are scored against the dataset's gt/gt.txt over
+the pairs the detector saw, beside the other trackers on the run's own detections.
+
+    python scripts/bench_tracking.py [--split dev|held-out|both|none] [--frames N]
+                                     [--live [--live-seeds S,S] [--live-frames N]]
 
 Needs the test extra (motmetrics) and, bench only, TrackEval and Roboflow's trackers:
 `pip install supervision && pip install --no-deps trackeval trackers` (--no-deps: both
@@ -22,17 +29,24 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
 import time
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import msgspec
 import numpy as np
+import yaml
 
 from trapflow.calibration.camera import StereoRig
 from trapflow.observe.assign import iou_matrix
-from trapflow.observe.motformat import MotRow, track_rows
+from trapflow.observe.motformat import MotRow, read_mot, track_rows
 from trapflow.observe.tracker import TrackerConfig
 from trapflow.synth.dataset import labelled
 from trapflow.synth.options import SynthOptions
@@ -257,13 +271,20 @@ def evaluate(seqs: list[SynthSequence], trackers: dict[str, Callable[[list[MotRo
                 last = max([r.frame for r in s.gt] + [1])
                 frames = [f for f in range(1, last + 1) if (f - 1) % step == 0]
                 per.append(score(s.gt, fn(s.dets[rate]), frames))
-            wsum = sum(p["gt_dets"] for p in per) or 1
-            agg = {k: sum(p[k] * p["gt_dets"] for p in per) / wsum
-                   for k in ("HOTA", "DetA", "AssA", "IDF1", "MOTA")}
-            agg["IDSW"] = sum(p["IDSW"] for p in per)
+            agg = pooled(per)
             agg["seconds"] = time.perf_counter() - t0
             out[rate][name] = agg
     return out
+
+
+def pooled(per: list[dict[str, float]]) -> dict[str, float]:
+    """Metrics of several sequences as one: weighted by ground-truth detections, ID switches
+    summed."""
+    wsum = sum(p["gt_dets"] for p in per) or 1
+    agg = {k: sum(p[k] * p["gt_dets"] for p in per) / wsum
+           for k in ("HOTA", "DetA", "AssA", "IDF1", "MOTA")}
+    agg["IDSW"] = sum(p["IDSW"] for p in per)
+    return agg
 
 
 def table(title: str, res: dict[str, dict[str, dict[str, float]]]) -> str:
@@ -277,12 +298,125 @@ def table(title: str, res: dict[str, dict[str, dict[str, float]]]) -> str:
     return "\n".join(lines)
 
 
+# --- the tracker inside a live run --------------------------------------------------------
+
+# Held-out seeds rendered by `trapflow dataset synth` and run through the pipeline (one still
+# rig, one moving, one still); 300 pairs each keep the part to a few minutes.
+LIVE_SEEDS = HELD_OUT_SEEDS[:3]
+# The detector's added time per pair at `latest`: with the model's own time it then sees
+# about one pair in three or fewer at 15 pairs/s (the live IDF1 test's slow detector).
+SLOW_DELAY_S = 0.2
+LIVE_RATES = ("full", "latest")  # fifo, every pair; `latest` with the slowed detector
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _trapflow(args: list[str], timeout_s: float) -> None:
+    """`python -m trapflow ARGS` from the repository root, in a session of its own; past
+    timeout_s that session (only what this call started) is killed."""
+    proc = subprocess.Popen([sys.executable, "-m", "trapflow", *args], cwd=REPO, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            start_new_session=True)
+    try:
+        _out, err = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        raise SystemExit(f"trapflow {args[0]}: still running after {timeout_s:g} s, killed; "
+                         "run fewer pairs (--live-frames)") from None
+    if proc.returncode != 0:
+        raise SystemExit(f"trapflow {args[0]} exited {proc.returncode}: {err.strip()[-2000:]}")
+
+
+def live_config(path: Path, frames: int, slow: bool) -> Path:
+    """A config running the mono pool alone: fifo for every pair (a finite source waits for
+    no one, so the queue holds them all), or `latest` with the slowed detector."""
+    from trapflow.config.schema import Config
+
+    mono: dict[str, object] = {"count": 1, "policy": f"fifo:{frames}"}
+    if slow:
+        mono = {"count": 1, "policy": "latest",
+                "plugin": "tests.integration.slow_plugins:SlowDetector",
+                "params": {"delay_s": SLOW_DELAY_S}}
+    pools = {**{name: {"count": 0} for name in Config().pools if name != "mono"}, "mono": mono}
+    path.write_text(yaml.safe_dump({"source": {"rate_hz": FPS}, "pools": pools,
+                                    "observe": {"interval_s": 3600}}))
+    return path
+
+
+def run_rows(results: Path) -> tuple[list[MotRow], list[MotRow], list[int]]:
+    """A run's results.jsonl as MOT rows (frame = seq + 1, the source's pair index): the
+    tracked detections (id = the line's track; a track's first box, null until confirmed,
+    is left out), the same detections without ids, and the frames the detector saw."""
+    tracked, dets, seen = [], [], set()
+    for line in results.read_text().splitlines():
+        d = json.loads(line)["mono_ir"]
+        seen.add(d["seq"] + 1)
+        if d["label"] == "none":
+            continue
+        x1, y1, x2, y2 = d["box"]
+        row = MotRow(frame=d["seq"] + 1, id=-1, x=x1, y=y1, w=x2 - x1, h=y2 - y1,
+                     conf=d["confidence"],
+                     cls=LABELS.index(d["label"]) if d["label"] in LABELS else -1)
+        dets.append(row)
+        if d.get("track") is not None:
+            tracked.append(msgspec.structs.replace(row, id=d["track"]))
+    return tracked, dets, sorted(seen)
+
+
+def live_sequence(seed: int, frames: int, work: Path,
+                  trackers: dict[str, Callable[[list[MotRow]], list[MotRow]]]
+                  ) -> dict[str, dict[str, dict[str, float]]]:
+    """One held-out seed rendered, run through the pipeline at both detector rates; per rate
+    the run's own tracks and each offline tracker on the run's detections, scored over the
+    pairs the detector saw. "trapflow-live" is the run's own tracks; "trapflow" is
+    `trapflow track` (the same tracker, offline) on the run's detections."""
+    data = work / f"seed{seed}"
+    opts = [a for f in ("density", "empty_fraction", "episode_s")
+            for a in ("-o", f"{f}={getattr(OPTIONS, f)}")]
+    _trapflow(["dataset", "synth", str(data), "--frames", str(frames), "--seed", str(seed),
+               "--width", str(WIDTH), "--height", str(HEIGHT), "--rate", f"{FPS:g}", *opts,
+               *(["--moving"] if seed % 2 == 0 else [])], timeout_s=600)
+    gt = read_mot(data / "gt" / "gt.txt")
+    out: dict[str, dict[str, dict[str, float]]] = {}
+    for rate in LIVE_RATES:
+        run = work / f"seed{seed}-{rate}"
+        cfg = live_config(run.with_suffix(".yaml"), frames, slow=rate == "latest")
+        _trapflow(["start", "--run-dir", str(run), "--config", str(cfg),
+                   "--source", f"images:{data}"], timeout_s=120 + 2 * frames / FPS)
+        tracked, dets, seen = run_rows(run / "results.jsonl")
+        out[rate] = {"trapflow-live": score(gt, tracked, seen)}
+        for name, fn in trackers.items():
+            out[rate][name] = score(gt, fn(dets), seen)
+        out[rate]["trapflow-live"]["pairs_seen"] = len(seen)
+    return out
+
+
+def live_results(seeds: Sequence[int], frames: int,
+                 trackers: dict[str, Callable[[list[MotRow]], list[MotRow]]]
+                 ) -> dict[str, object]:
+    """Every live sequence, then per rate and tracker the pooled metrics."""
+    with tempfile.TemporaryDirectory(prefix="bench-tracking-") as tmp:
+        per = [live_sequence(s, frames, Path(tmp), trackers) for s in seeds]
+    res = {rate: {name: pooled([p[rate][name] for p in per]) for name in per[0][rate]}
+           for rate in LIVE_RATES}
+    seen = {rate: [int(p[rate]["trapflow-live"]["pairs_seen"]) for p in per]
+            for rate in LIVE_RATES}
+    return {"seeds": list(seeds), "frames": frames, "slow_delay_s": SLOW_DELAY_S,
+            "pairs_seen": seen, "results": res}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--split", choices=("dev", "held-out", "both"), default="both")
+    ap.add_argument("--split", choices=("dev", "held-out", "both", "none"), default="both",
+                    help="offline sequences to score (none: the live part alone)")
     ap.add_argument("--frames", type=int, default=900, help="pairs per sequence (15 per s)")
     ap.add_argument("--out", type=Path, default=Path("bench-results/tracking.json"))
     ap.add_argument("--no-bytetrack", action="store_true")
+    ap.add_argument("--live", action="store_true",
+                    help="also score the tracker inside live runs of the pipeline")
+    ap.add_argument("--live-frames", type=int, default=300, help="pairs per live sequence")
+    ap.add_argument("--live-seeds", type=lambda t: [int(x) for x in t.split(",")],
+                    default=list(LIVE_SEEDS), help="comma-separated held-out seeds")
     args = ap.parse_args()
     trackers: dict[str, Callable[[list[MotRow]], list[MotRow]]] = {
         "trapflow": run_trapflow(TrackerConfig()), "greedy-iou": run_greedy}
@@ -296,7 +430,7 @@ def main() -> None:
         trackers["bytetrack-tuned"] = lambda d: run_bytetrack(d, tuned=True)
     splits = {"dev": DEV_SEEDS, "held-out": HELD_OUT_SEEDS}
     if args.split != "both":
-        splits = {args.split: splits[args.split]}
+        splits = {args.split: splits[args.split]} if args.split != "none" else {}
     report: dict[str, object] = {
         "frames_per_sequence": args.frames, "fps": FPS, "size": [WIDTH, HEIGHT],
         "options": {f: getattr(OPTIONS, f) for f in ("density", "empty_fraction",
@@ -310,6 +444,11 @@ def main() -> None:
         res = evaluate(seqs, trackers)
         report["splits"][split] = {"seeds": list(seeds), "results": res}  # type: ignore[index]
         print(table(f"{split} seeds {list(seeds)}, {args.frames} pairs each", res))
+    if args.live:
+        live = live_results(args.live_seeds, args.live_frames, trackers)
+        report["live"] = live
+        print(table(f"live runs, seeds {args.live_seeds}, {args.live_frames} pairs each, "
+                    f"pairs seen {live['pairs_seen']}", live["results"]))  # type: ignore[arg-type]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=1) + "\n")
     print(f"wrote {args.out}")

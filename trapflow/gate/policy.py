@@ -59,7 +59,7 @@ class GateConfig:
     busy_rate_hz: float = 0.0
     """While the gate is open, at most this many pairs per second of capture time (0: every
     pair): the tracker associates by capture time, so a detector seeing one pair in three
-    keeps its tracks, and a busy scene costs a third."""
+    keeps its tracks, and a busy scene costs a third of the pairs."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.pre_roll <= 100:

@@ -199,6 +199,9 @@ def main() -> None:
     ap.add_argument("--size", default="1280x720", help="pipeline part: rendered pair size")
     ap.add_argument("--battery-wh", type=float, default=1000.0,
                     help="pipeline part: battery capacity for days on a Pi 5")
+    ap.add_argument("--busy-rates", default="",
+                    help="pipeline part: also gate the default world at these "
+                         "gate.busy_rate_hz, comma-separated (how the default was chosen)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     rig = StereoRig.from_fov(1280, 720, 70.0, 0.12)
@@ -212,8 +215,9 @@ def main() -> None:
         "size": "1280x720",
         "threads": cv2.getNumThreads(),
         "rate_hz": RATE_HZ,
+        # The simulation measures the detector: no busy rate (GateConfig's 0).
         "gate": {"pre_roll": gate.pre_roll, "keepalive_s": gate.keepalive_s,
-                 "hold_s": gate.hold_s},
+                 "hold_s": gate.hold_s, "busy_rate_hz": gate.busy_rate_hz},
         "motion": {k: v for k, v in vars(MotionConfig()).items() if k != "method"},
         "cost_per_pair": costs,
         "quality": quality([int(s) for s in args.seeds.split(",")], args.pairs, gate),
@@ -223,7 +227,8 @@ def main() -> None:
     if args.pipeline_pairs:
         w, h = (int(v) for v in args.size.split("x"))
         result["pipeline"] = bench_gate_pipeline.run_all(
-            out / "gate-pipeline", args.pipeline_pairs, (w, h), RATE_HZ, args.battery_wh)
+            out / "gate-pipeline", args.pipeline_pairs, (w, h), RATE_HZ, args.battery_wh,
+            tuple(float(r) for r in args.busy_rates.split(",") if r))
     (out / "gate.json").write_text(json.dumps(result, indent=2) + "\n")
 
 

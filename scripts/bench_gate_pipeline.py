@@ -3,7 +3,8 @@
 the gated default against the same with `gate: always` on mono and stereo, one after the
 other in one run. From each run's ledger.json: CPU seconds per role (the supervisor's meter),
 the gate's active and idle time; from results.jsonl and the sequence's truth.jsonl: which
-animals (truth ids) mono detected at least once.
+animals (truth ids) mono detected at least once. `busy_rates` adds gated runs of the default
+sequence at each gate.busy_rate_hz (what the default was chosen by).
 
 Run by scripts/bench_gate.py (`scripts/bench.sh` part `gate`); writes no file of its own
 beyond the rendered sequences and the run directories under its folder.
@@ -48,12 +49,14 @@ def render(folder: Path, options: list[str], pairs: int, size: tuple[int, int], 
                    check=True, capture_output=True, text=True)
 
 
-def replay(folder: Path, run_dir: Path, gated: bool, rate: float, pairs: int
-           ) -> dict[str, Any]:
-    """One pipeline over the folder at `rate`; returns its ledger.json."""
+def replay(folder: Path, run_dir: Path, gated: bool, rate: float, pairs: int,
+           busy_rate: float | None = None) -> dict[str, Any]:
+    """One pipeline over the folder at `rate` (gate.busy_rate_hz: `busy_rate`, None: the
+    default); returns its ledger.json."""
     cfg = run_dir.parent / f"{run_dir.name}.yaml"
     pools = {} if gated else {p: {"gate": "always"} for p in RECOGNISERS}
-    cfg.write_text(json.dumps({"pools": pools, "log_level": "WARNING"}))
+    gate = {} if busy_rate is None else {"gate": {"busy_rate_hz": busy_rate}}
+    cfg.write_text(json.dumps({"pools": pools, "log_level": "WARNING", **gate}))
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     subprocess.run([sys.executable, "-m", "trapflow", "start", "--run-dir", str(run_dir),
                     "--config", str(cfg), "--source", f"images:{folder}", "--rate", str(rate)],
@@ -111,8 +114,9 @@ def summary(ledger: dict[str, Any], battery_wh: float) -> dict[str, Any]:
 
 
 def run_all(folder: Path, pairs: int, size: tuple[int, int], rate: float,
-            battery_wh: float) -> dict[str, Any]:
-    """Render every sequence, then replay each gated and ungated; ratios in one run."""
+            battery_wh: float, busy_rates: tuple[float, ...] = ()) -> dict[str, Any]:
+    """Render every sequence, then replay each gated and ungated (the default sequence
+    also gated at each of `busy_rates`); ratios in one run."""
     folder.mkdir(parents=True, exist_ok=True)
     for i, (name, options) in enumerate(SEQUENCES.items()):
         render(folder / name, options, pairs, size, rate, seed=11 + i)
@@ -121,22 +125,32 @@ def run_all(folder: Path, pairs: int, size: tuple[int, int], rate: float,
                            "load_before": os.getloadavg()}
     for name in SEQUENCES:
         runs: dict[str, Any] = {}
-        for gated in ((True,) if name == "snow_max" else (True, False)):
-            kind = "gated" if gated else "ungated"
+        kinds: list[tuple[str, bool, float | None]] = [("gated", True, None)]
+        if name != "snow_max":
+            kinds.append(("ungated", False, None))
+        if name == "default":
+            kinds += [(f"gated_busy_{r:g}", True, r) for r in busy_rates]
+        for kind, gated, busy in kinds:
             run_dir = folder / f"run-{name}-{kind}"
             t0 = time.monotonic()
-            ledger = replay(folder / name, run_dir, gated, rate, pairs)
+            ledger = replay(folder / name, run_dir, gated, rate, pairs, busy)
             runs[kind] = summary(ledger, battery_wh)
             seen, found = detected_ids(folder / name, run_dir)
             runs[kind]["animals"], runs[kind]["animals_detected"] = len(seen), sorted(found)
             runs[kind]["took_s"] = round(time.monotonic() - t0, 1)
+            runs[kind]["load"] = os.getloadavg()
         if "ungated" in runs:
-            g, u = runs["gated"], runs["ungated"]
-            runs["recognisers_cpu_ratio"] = round(
-                g["recognisers_cpu_s"] / max(u["recognisers_cpu_s"], 1e-9), 3)
+            u = runs["ungated"]
             base = set(u["animals_detected"])
-            runs["animal_recall_vs_ungated"] = (
-                round(len(base & set(g["animals_detected"])) / len(base), 4) if base else None)
+            for kind, gated, _busy in kinds:
+                if not gated:
+                    continue
+                g = runs[kind]
+                g["recognisers_cpu_ratio"] = round(
+                    g["recognisers_cpu_s"] / max(u["recognisers_cpu_s"], 1e-9), 3)
+                g["animal_recall_vs_ungated"] = (
+                    round(len(base & set(g["animals_detected"])) / len(base), 4)
+                    if base else None)
         out[name] = runs
         print("pipeline", name, json.dumps(runs), flush=True)
     out["load_after"] = os.getloadavg()

@@ -38,32 +38,39 @@ NO_ANIMAL = "tests.integration.gate_plugins:NoAnimal"
 
 def _gated_mono(plugin: str, source: Mapping[str, object], vo: int = 1,
                 gate: dict[str, float] | None = None, **extra: object) -> dict[str, object]:
-    """mono gated (keep-alive 1 s, no hold, no pre-roll, and `gate`), the other recognisers
-    off."""
+    """mono gated (keep-alive 1 s, no hold, no pre-roll, no busy rate, and `gate`), the other
+    recognisers off."""
     return {"source": {"kind": "synthetic", "rate_hz": 10.0, **source},
             "pools": {"mono": {"plugin": plugin, "gate": "motion"}, "vo": {"count": vo},
                       "stereo": {"count": 0}, "tags": {"count": 0}},
-            "gate": {"keepalive_s": 1.0, "hold_s": 0.0, "pre_roll": 0, **(gate or {})},
+            "gate": {"keepalive_s": 1.0, "hold_s": 0.0, "pre_roll": 0, "busy_rate_hz": 0.0,
+                     **(gate or {})},
             **extra}
 
 
 @pytest.mark.timeout(90)
-@pytest.mark.parametrize("tracking", [True, False])
-def test_a_live_track_holds_the_gate_open(spawn, run_dir: Path, tracking: bool) -> None:
+@pytest.mark.parametrize(("tracking", "busy"), [(True, 0.0), (False, 0.0), (True, 4.0)])
+def test_a_live_track_holds_the_gate_open(spawn, run_dir: Path, tracking: bool,
+                                          busy: float) -> None:
     """Still water (no animal, no snow: the gate never sees motion) and a detector that sees
     a motionless crab in every pair it gets: its track, confirmed by the second keep-alive
     pair, is told to the broker by the normalizer, and from then on mono gets every pair
-    while the track lives. Without tracking (observe off) mono gets only the keep-alive."""
+    while the track lives. Without tracking (observe off) mono gets only the keep-alive.
+    With a busy rate of 4 pairs/s, mono gets 4 of every 10 pairs while the track lives
+    (it stays alive on them), the rest counted gated."""
     still = {"options": {"density": 0.0, "snow": 0.0}}
-    cfg = write_config(run_dir.parent / "track.yaml",
-                       _gated_mono(STILL_ANIMAL, still, vo=0, observe={"enabled": tracking}))
+    cfg = write_config(run_dir.parent / "track.yaml", _gated_mono(
+        STILL_ANIMAL, still, vo=0, gate={"busy_rate_hz": busy}, observe={"enabled": tracking}))
     p: Pipeline = spawn(["--config", str(cfg), "--duration", "8"], run_dir)
     code, _out, err = p.wait(75)
     assert code == 0, err
     ledger = json.loads((run_dir / "ledger.json").read_text())
     mono, produced = ledger["pools"]["mono"], ledger["produced"]
     assert mono["lost"] == 0 and produced >= 40, ledger
-    if tracking:  # all but the first second or so (1 s keep-alive, 2 hits to confirm)
+    if busy:  # 4 of 10 once the track lives (a keep-alive alone would be 1 of 10)
+        assert 0.25 * produced <= mono["processed"] <= 0.5 * produced, ledger
+        assert mono["gated"] >= 0.4 * produced, ledger  # withheld: counted, never lost
+    elif tracking:  # all but the first second or so (1 s keep-alive, 2 hits to confirm)
         assert mono["processed"] >= 0.6 * produced, ledger
     else:  # about one pair a second
         assert mono["processed"] <= 0.25 * produced and mono["gated"] > 0, ledger

@@ -220,11 +220,34 @@ def test_gated_pools_from_config_give_a_latest_pool_no_pre_roll() -> None:
                                # a fifo:N pool takes at most N - 1 of it (a config of
                                # before the default gate, fifo:4, stays valid).
                                "small": {"gate": "motion", "policy": "fifo:4"}},
-                     "gate": {"pre_roll": 5, "keepalive_s": 2.0, "hold_s": 1.0}})
+                     "gate": {"pre_roll": 5, "keepalive_s": 2.0, "hold_s": 1.0,
+                              "busy_rate_hz": 2.0}})
     assert gated_pools(cfg) == {
-        "mono": GateConfig(pre_roll=0, keepalive_s=2.0, hold_s=1.0),
-        "stereo": GateConfig(pre_roll=5, keepalive_s=2.0, hold_s=1.0),
-        "small": GateConfig(pre_roll=3, keepalive_s=2.0, hold_s=1.0)}
+        "mono": GateConfig(pre_roll=0, keepalive_s=2.0, hold_s=1.0, busy_rate_hz=2.0),
+        "stereo": GateConfig(pre_roll=5, keepalive_s=2.0, hold_s=1.0, busy_rate_hz=2.0),
+        "small": GateConfig(pre_roll=3, keepalive_s=2.0, hold_s=1.0, busy_rate_hz=2.0)}
     # The default gates the recognisers (latest pools: no pre-roll), never VO or tags.
-    rules = GateConfig(pre_roll=0, keepalive_s=5.0, hold_s=3.0)
+    rules = GateConfig(pre_roll=0, keepalive_s=5.0, hold_s=3.0, busy_rate_hz=3.0)
     assert gated_pools(from_data({})) == {"mono": rules, "stereo": rules}
+
+
+def test_the_busy_rate_paces_by_capture_time_and_the_ledger_counts_the_rest_gated() -> None:
+    """Every pair moving, one pair a second allowed while busy: pairs captured 0.25 s apart
+    but arriving in one burst (a stalled link catching up) are paced by their capture time,
+    so the gated pool gets 0, 4, 8; the rest are counted gated, none dropped or lost."""
+    s = gated_state("latest", GateConfig(pre_roll=0, keepalive_s=5.0, hold_s=0.5,
+                                         busy_rate_hz=1.0))
+    s.worker_ready(W_GATED, "g", 64, 0.0)
+    s.worker_ready(W_ALL, "vo", 64, 0.0)
+    got: list[int] = []
+    for seq in range(11):
+        todo = s.pair_arrived(seq, 3.0, True, 0.1, captured=seq * DT)
+        while todo:
+            a = todo.pop(0)
+            if isinstance(a, Dispatch):
+                got += [a.seq] if a.pool == "g" else []
+                todo += s.job_done(a.worker, a.pool, a.seq, True, 3.0)
+    s.finish()
+    g = s.pool_stats()["g"]
+    assert got == [0, 4, 8]
+    assert (g.received, g.processed, g.gated, g.dropped, g.lost) == (11, 3, 8, 0, 0)

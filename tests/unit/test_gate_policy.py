@@ -17,7 +17,8 @@ from trapflow.gate.policy import (
 )
 
 HZ = 10.0
-# An event: ("pair", seq, moved) at seq / HZ, ("alive" | "ended", track, t), ("tracks",
+# An event: ("pair", seq, moved) at seq / HZ (captured then too), ("cap", seq, moved,
+# captured) at seq / HZ captured at `captured` s, ("alive" | "ended", track, t), ("tracks",
 # count, t) as the normalizer says it, ("rig", moving, t), ("tick", t).
 Event = tuple[object, ...]
 
@@ -38,6 +39,10 @@ def play(gate: GateState, events: Iterable[Event]) -> list[Action]:
         if kind == "pair":
             seq, motion = int(ev[1]), bool(ev[2])  # type: ignore[call-overload]
             out += gate.pair(seq, motion, 0.05 if motion else 0.0, seq / HZ)
+        elif kind == "cap":
+            seq, motion = int(ev[1]), bool(ev[2])  # type: ignore[call-overload]
+            out += gate.pair(seq, motion, 0.05 if motion else 0.0, seq / HZ,
+                             float(ev[3]))  # type: ignore[arg-type]
         elif kind == "alive":
             out += gate.track_alive(int(ev[1]), float(ev[2]))  # type: ignore[call-overload,arg-type]
         elif kind == "ended":
@@ -62,6 +67,12 @@ def gated(actions: Iterable[Action]) -> list[int]:
 
 
 CFG = GateConfig(pre_roll=3, keepalive_s=5.0, hold_s=2.0)
+BUSY = GateConfig(pre_roll=3, keepalive_s=5.0, hold_s=2.0, busy_rate_hz=3.0)
+
+
+def captured(moving: bool, times: Iterable[float]) -> list[Event]:
+    """Pairs 0, 1, ... arriving at 10 a second, captured at `times`."""
+    return [("cap", s, moving, t) for s, t in enumerate(times)]
 
 
 @pytest.mark.parametrize(("cfg", "events", "want_fed", "want_gated"), [
@@ -112,6 +123,33 @@ CFG = GateConfig(pre_roll=3, keepalive_s=5.0, hold_s=2.0)
     # Rig still again: a hold of hold_s while the background is learnt afresh, then gated.
     (CFG, [("rig", True, 0.0)] + still(0, 1) + [("rig", False, 0.15)] + still(2, 26),
      [(0, "off"), (1, "off")] + [(s, "hold") for s in range(2, 22)], [22, 23]),
+    # Busy rate 3 pairs/s while moving: the onset and its pre-roll go, then due times step
+    # by 1/3 s (one pair in 3 or 4, 3 a second on average); the rest are gated.
+    (BUSY, still(0, 4) + moved(*range(5, 25)),
+     [(0, "keepalive"), (2, "pre_roll"), (3, "pre_roll"), (4, "pre_roll"), (5, "motion"),
+      (9, "motion"), (12, "motion"), (15, "motion"), (19, "motion"), (22, "motion")],
+     [1, 6, 7, 8, 10, 11, 13, 14, 16, 17, 18, 20, 21, 23, 24]),
+    # The hold is paced the same way...
+    (BUSY, moved(0) + still(1, 12), [(0, "motion"), (4, "hold"), (7, "hold"), (10, "hold")],
+     [1, 2, 3, 5, 6, 8, 9, 11, 12]),
+    # ...and so is a live track.
+    (BUSY, [("tracks", 1, 0.0)] + still(0, 10),
+     [(0, "track"), (4, "track"), (7, "track"), (10, "track")], [1, 2, 3, 5, 6, 8, 9]),
+    # A new onset after the gate closed always goes, however soon after the last pair fed.
+    (GateConfig(pre_roll=3, hold_s=0.0, busy_rate_hz=3.0), moved(0) + still(1, 1) + moved(2),
+     [(0, "motion"), (1, "pre_roll"), (2, "motion")], []),
+    # Capture time paces, not arrival: pairs captured 0.2 s apart (a slower source, or a
+    # backlog) at 3 pairs/s are 0, 2, 4, 5 (by arrival at 10 a second it would be 0, 4).
+    (BUSY, captured(True, [0.0, 0.2, 0.4, 0.6, 0.8, 1.0]),
+     [(0, "motion"), (2, "motion"), (4, "motion"), (5, "motion")], [1, 3]),
+    # Capture time that goes back (a source that looped or restarted) starts afresh.
+    (BUSY, captured(True, [1.0, 1.1, 0.0, 0.1]), [(0, "motion"), (2, "motion")], [1, 3]),
+    # A busy rate under one pair per keep-alive: the keep-alive still goes.
+    (GateConfig(pre_roll=0, keepalive_s=1.0, hold_s=5.0, busy_rate_hz=0.5),
+     moved(*range(21)), [(0, "motion"), (10, "motion"), (20, "motion")],
+     [s for s in range(21) if s not in (0, 10, 20)]),
+    # A moving rig turns the gate off: every pair, whatever the busy rate.
+    (BUSY, [("rig", True, 0.0)] + moved(0, 1, 2), [(0, "off"), (1, "off"), (2, "off")], []),
 ])
 def test_feeds_and_gates(cfg: GateConfig, events: list[Event], want_fed: list[tuple[int, str]],
                          want_gated: list[int]) -> None:
@@ -131,12 +169,12 @@ def test_pre_roll_comes_before_the_pair_that_moved() -> None:
 def test_every_pair_ends_in_one_feed_or_one_gated() -> None:
     """The ledger adds up per pool: fed + gated + kept = pairs, with two pools' own rules."""
     gate = GateState({"mono": CFG, "stereo": GateConfig(pre_roll=1, keepalive_s=20.0,
-                                                        hold_s=0.5)})
+                                                        hold_s=0.5), "busy": BUSY})
     events = still(0, 80) + moved(81, 82) + still(83, 200) + [("alive", 1, 15.0)] + \
         still(201, 260) + moved(261) + still(262, 300)
     actions = play(gate, events)
     actions += gate.finish()
-    for pool in ("mono", "stereo"):
+    for pool in ("mono", "stereo", "busy"):
         seqs = [a.seq for a in actions if isinstance(a, Feed | Gated) and a.pool == pool]
         assert sorted(seqs) == list(range(301)), pool
         counts = gate.counts()[pool]
@@ -160,6 +198,7 @@ def test_rig_moving_says_so_once() -> None:
     ({"keepalive_s": 0.0}, "keepalive_s: expected > 0 s, got 0.0"),  # a keep-alive is a must
     ({"hold_s": -1.0}, "hold_s: expected >= 0 s, got -1.0"),  # negative
     ({"min_score": 1.0}, "min_score: expected 0 <= score < 1, got 1.0"),  # nothing passes
+    ({"busy_rate_hz": -1.0}, "busy_rate_hz: expected >= 0 pairs/s, got -1.0"),  # negative
 ])
 def test_config_rejects(kwargs: dict[str, float], error: str) -> None:
     with pytest.raises(ValueError, match=error.replace("(", r"\(")):
@@ -179,3 +218,12 @@ def test_active_and_idle_time(events: list[Event], active: float, idle: float) -
     gate = GateState({"mono": CFG})
     play(gate, events)
     assert (round(gate.active_s, 6), round(gate.idle_s, 6)) == (active, idle)
+
+
+def test_pairs_the_busy_rate_withholds_count_as_active_time() -> None:
+    """The gate is open while an animal moves, however few of its pairs the busy rate lets
+    through: the report's active time is the open time, not the fed time."""
+    gate = GateState({"mono": BUSY})
+    actions = play(gate, moved(*range(21)))
+    assert gated(actions)  # the rate withheld some
+    assert (round(gate.active_s, 6), round(gate.idle_s, 6)) == (2.0, 0.0)

@@ -252,7 +252,7 @@ class BrokerNode(Node):
             self.tap.publish(tap_msgs.TOPIC_IMAGE, *self._payload(pair.seq, copy=True))
         self._preview(pair.seq, None)
         self._apply(self.state.pair_arrived(pair.seq, time.monotonic(), pair.motion,
-                                            pair.motion_score))
+                                            pair.motion_score, pair.t_left_ns / 1e9))
 
     # --- local links ----------------------------------------------------------------
 

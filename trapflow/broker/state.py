@@ -169,10 +169,11 @@ class BrokerState:
     # --- events -------------------------------------------------------------------
 
     def pair_arrived(self, seq: int, now: float, motion: bool | None = None,
-                     score: float = 0.0) -> list[Action]:
+                     score: float = 0.0, captured: float | None = None) -> list[Action]:
         """A new pair from capture: queue it in every ungated pool, let the gate say what
         the gated ones get (motion: what capture's gate saw; None, no result, is taken as
-        motion: a gate that cannot see never withholds), dispatch what can go."""
+        motion: a gate that cannot see never withholds; captured: its capture time in s,
+        which paces the gate's busy rate), dispatch what can go."""
         self.pairs_in += 1
         actions: list[Action] = []
         if not self._pools:
@@ -184,7 +185,8 @@ class BrokerState:
             if self._gate is None or not self._gate.gates(pool.name):
                 actions.extend(self._enqueue(pool, seq, now, now))
         if self._gate is not None:
-            seen = self._gate.pair(seq, True if motion is None else motion, score, now)
+            seen = self._gate.pair(seq, True if motion is None else motion, score, now,
+                                   captured)
             actions.extend(self._apply_gate(seen, now))
         return actions
 

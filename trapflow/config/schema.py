@@ -261,6 +261,11 @@ class MotionGateConfig(_Section):
     """Pairs keep going for this long after the last motion (an animal pausing mid-walk)."""
     min_score: Annotated[float, msgspec.Meta(ge=0, lt=1)] = 0.0
     """Motion counts only with at least this score (share of the small image moving)."""
+    busy_rate_hz: Annotated[float, msgspec.Meta(ge=0, le=240)] = 3.0
+    """While the gate is open (motion, hold, a live track), at most this many pairs per
+    second of capture time to each gated pool (0: every pair); the first pair of a motion
+    onset and its pre-roll always go, the rest are counted `gated`. Tracks and counts keep
+    (the tracker bridges the gaps); a length gets fewer views (README "Motion gate")."""
     rig_moving_m_s: Annotated[float, msgspec.Meta(gt=0, le=100)] = 0.05
     """Visual odometry's speed from which the rig moves: the gate is off (every pair fed)
     until it is still again (README "Motion gate")."""

@@ -5,8 +5,10 @@ No sockets, no clocks: callers pass `now` in seconds (monotonic).
 Per gated pool a pair is fed when it moved, while the hold lasts after motion (hold_s), while
 any track is alive, or as the keep-alive (one pair every keepalive_s); otherwise it is kept
 as pre-roll (the last `pre_roll` withheld pairs, fed in order when motion begins) and, once
-older pairs push it out, gated for good. Every pair of a pool ends in exactly one Feed or
-one Gated. A moving rig turns the gate off (everything fed) until it is still again.
+older pairs push it out, gated for good. While the gate is open (motion, hold, track) a pool
+gets at most busy_rate_hz pairs per second of capture time, the first pair of a motion
+onset and its pre-roll always; the rest are gated. Every pair of a pool ends in exactly one
+Feed or one Gated. A moving rig turns the gate off (everything fed) until it is still again.
 Capture's rate (duty cycling) is trapflow.gate.duty's to decide, in the capture process.
 """
 
@@ -54,6 +56,10 @@ class GateConfig:
     """Pairs keep going for this long after the last motion (an animal pausing mid-walk)."""
     min_score: float = 0.0
     """A motion result counts only with at least this score (share of the image moving)."""
+    busy_rate_hz: float = 0.0
+    """While the gate is open, at most this many pairs per second of capture time (0: every
+    pair): the tracker associates by capture time, so a detector seeing one pair in three
+    keeps its tracks, and a busy scene costs a third of the pairs."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.pre_roll <= 100:
@@ -64,6 +70,8 @@ class GateConfig:
             raise ValueError(f"gate hold_s: expected >= 0 s, got {self.hold_s}")
         if not 0 <= self.min_score < 1:
             raise ValueError(f"gate min_score: expected 0 <= score < 1, got {self.min_score}")
+        if not self.busy_rate_hz >= 0:
+            raise ValueError(f"gate busy_rate_hz: expected >= 0 pairs/s, got {self.busy_rate_hz}")
 
 
 def gated_pools(cfg: Config) -> dict[str, GateConfig]:
@@ -73,7 +81,8 @@ def gated_pools(cfg: Config) -> dict[str, GateConfig]:
     holding ring slots meanwhile), a fifo:N pool at most N - 1."""
     g = cfg.gate
     return {name: GateConfig(pre_roll=_pre_roll(p.parsed_policy, g.pre_roll),
-                             keepalive_s=g.keepalive_s, hold_s=g.hold_s, min_score=g.min_score)
+                             keepalive_s=g.keepalive_s, hold_s=g.hold_s, min_score=g.min_score,
+                             busy_rate_hz=g.busy_rate_hz)
             for name, p in cfg.pools.items() if p.gate == "motion"}
 
 
@@ -135,6 +144,8 @@ class _Pool:
     cfg: GateConfig
     kept: deque[int] = field(default_factory=deque)
     last_fed: float | None = None
+    fed_at: float | None = None  # capture time of the last pair fed while open
+    due: float | None = None  # capture time from which the busy rate lets the next one go
     last_motion: float | None = None
     fed: dict[Reason, int] = field(default_factory=dict)
     gated: int = 0
@@ -157,16 +168,22 @@ class GateState:
 
     # --- events -------------------------------------------------------------------
 
-    def pair(self, seq: int, motion: bool, score: float, now: float) -> list[Action]:
-        """Pair `seq` was seen (motion result of its left image): a Feed, Keep or Gated per
+    def pair(self, seq: int, motion: bool, score: float, now: float,
+             captured: float | None = None) -> list[Action]:
+        """Pair `seq` was seen (motion result of its left image; `captured`, its capture time
+        in seconds, paces busy_rate_hz: `now` when not given): a Feed, Keep or Gated per
         pool, pre-roll Feeds (older seqs, in order) before the Feed of a pair that moved."""
         actions: list[Action] = []
         tracking = self._tracking(now)
+        at = now if captured is None else captured
         for pool in self._pools.values():
-            actions.extend(self._decide(pool, seq, motion, score, tracking, now))
+            actions.extend(self._decide(pool, seq, motion, score, tracking, now, at))
         if self._last_pair is not None and now > self._last_pair:
             gap = min(now - self._last_pair, MAX_PAIR_GAP_S)
-            if any(isinstance(a, Feed) and a.reason is not Reason.KEEPALIVE for a in actions):
+            # Open: some pool fed for motion, hold, a track or a moving rig, or would have
+            # but for its busy rate (a pair that moved holds its pool, see _decide).
+            if self.rig_moving or tracking or any(self._held(p, now)
+                                                  for p in self._pools.values()):
                 self.active_s += gap
             else:
                 self.idle_s += gap
@@ -242,23 +259,28 @@ class GateState:
     # --- internals ----------------------------------------------------------------
 
     def _decide(self, pool: _Pool, seq: int, motion: bool, score: float, tracking: bool,
-                now: float) -> list[Action]:
+                now: float, at: float) -> list[Action]:
         if self.rig_moving:
             return [self._feed(pool, seq, Reason.OFF, now)]
+        was_open = self._held(pool, now) or tracking
         if motion and score >= pool.cfg.min_score:
             pool.last_motion = now
+            if was_open and self._busy(pool, at, now):
+                return [self._gate(pool, seq)]
+            self._pace(pool, at, onset=not was_open)  # an onset always goes
             pre = [self._feed(pool, old, Reason.PRE_ROLL, now) for old in sorted(pool.kept)]
             pool.kept.clear()
             return [*pre, self._feed(pool, seq, Reason.MOTION, now)]
-        if self._held(pool, now):
-            return [self._feed(pool, seq, Reason.HOLD, now)]
-        if tracking:
-            return [self._feed(pool, seq, Reason.TRACK, now)]
-        if pool.last_fed is None or now - pool.last_fed >= pool.cfg.keepalive_s:
+        if was_open:
+            if self._busy(pool, at, now):
+                return [self._gate(pool, seq)]
+            self._pace(pool, at, onset=False)
+            reason = Reason.HOLD if self._held(pool, now) else Reason.TRACK
+            return [self._feed(pool, seq, reason, now)]
+        if self._keepalive_due(pool, now):
             return [self._feed(pool, seq, Reason.KEEPALIVE, now)]
         if pool.cfg.pre_roll == 0:
-            pool.gated += 1
-            return [Gated(pool.name, seq)]
+            return [self._gate(pool, seq)]
         pool.kept.append(seq)
         actions: list[Action] = [Keep(pool.name, seq)]
         while len(pool.kept) > pool.cfg.pre_roll:
@@ -270,6 +292,38 @@ class GateState:
         pool.last_fed = now
         pool.fed[reason] = pool.fed.get(reason, 0) + 1
         return Feed(pool.name, seq, reason)
+
+    def _gate(self, pool: _Pool, seq: int) -> Gated:
+        pool.gated += 1
+        return Gated(pool.name, seq)
+
+    def _busy(self, pool: _Pool, at: float, now: float) -> bool:
+        """Whether the busy rate withholds a pair captured at `at` from an open gate (never
+        past the keep-alive; a capture time that went back, a source looping or restarted,
+        starts it afresh)."""
+        if pool.cfg.busy_rate_hz == 0 or pool.fed_at is None or pool.due is None:
+            return False
+        if self._keepalive_due(pool, now):
+            return False
+        # Half a microsecond of slack: capture times in ns, a period of 1/3 s is not exact.
+        return pool.fed_at <= at < pool.due - 5e-7
+
+    def _pace(self, pool: _Pool, at: float, onset: bool) -> None:
+        """A pair captured at `at` is fed while the gate is open: when the next may go. Due
+        times step by the period, not from the pair fed, so 3 pairs/s of a 10 pairs/s
+        capture is one pair in 3 or 4, not one in 4; a pair far past its due time (a gap,
+        a restarted source) starts afresh instead of letting a burst through."""
+        rate = pool.cfg.busy_rate_hz
+        if rate == 0:
+            return
+        period = 1.0 / rate
+        on_time = (not onset and pool.fed_at is not None and pool.due is not None
+                   and pool.fed_at <= at < pool.due + period)
+        pool.due = (pool.due + period) if on_time and pool.due is not None else at + period
+        pool.fed_at = at
+
+    def _keepalive_due(self, pool: _Pool, now: float) -> bool:
+        return pool.last_fed is None or now - pool.last_fed >= pool.cfg.keepalive_s
 
     def _held(self, pool: _Pool, now: float) -> bool:
         return pool.last_motion is not None and now - pool.last_motion <= pool.cfg.hold_s

@@ -47,7 +47,8 @@ def test_a_run_tracks_counts_and_measures(tmp_path: Path, run_dir: Path,
                     "--height", "360"], check=True, cwd=REPO, capture_output=True, timeout=120)
     # Every pair through the detector (a finite source waits for no one: fifo keeps them).
     cfg = write_config(tmp_path / "c.yaml", {
-        "pools": {"mono": {"count": 1, "policy": "fifo:256"}, "stereo": {"count": 0},
+        "pools": {"mono": {"count": 1, "policy": "fifo:256", "gate": "always"},
+                  "stereo": {"count": 0},
                   "vo": {"count": 0}},
         "observe": {"interval_s": 3600}})
     p = spawn(["--config", str(cfg), "--source", f"images:{data}"], run_dir)
@@ -102,7 +103,8 @@ def test_a_moving_rigs_tracks_take_vos_poses(tmp_path: Path, run_dir: Path,
                     "--width", "640", "--height", "360"],
                    check=True, cwd=REPO, capture_output=True, timeout=120)
     cfg = write_config(tmp_path / "c.yaml", {
-        "pools": {"mono": {"count": 1, "policy": "fifo:256"}, "stereo": {"count": 0},
+        "pools": {"mono": {"count": 1, "policy": "fifo:256", "gate": "always"},
+                  "stereo": {"count": 0},
                   "vo": {"count": 1, "policy": "ordered:256"}},
         "observe": {"interval_s": 3600}})
     p = spawn(["--config", str(cfg), "--source", f"images:{data}"], run_dir)
@@ -176,13 +178,14 @@ def test_a_slow_detector_at_latest_tracks_nearly_as_well(tmp_path: Path, run_dir
     gt = data / "gt" / "gt.txt"
     full_cfg = write_config(tmp_path / "full.yaml", {
         "source": {"rate_hz": 15.0},
-        "pools": only_pools({"mono": {"count": 1, "policy": f"fifo:{SLOW_FRAMES}"}}),
+        "pools": only_pools({"mono": {"count": 1, "policy": f"fifo:{SLOW_FRAMES}",
+                                      "gate": "always"}}),
         "observe": {"interval_s": 3600}})
     full = _run_lines(spawn, run_dir, full_cfg, data)
     slow_cfg = write_config(tmp_path / "slow.yaml", {
         "source": {"rate_hz": 15.0},
         "pools": only_pools({"mono": {
-            "count": 1, "policy": "latest",
+            "count": 1, "policy": "latest", "gate": "always",
             "plugin": "tests.integration.slow_plugins:SlowDetector",
             "params": {"delay_s": 0.2}}}),
         "observe": {"interval_s": 3600}})

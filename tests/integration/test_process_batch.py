@@ -56,8 +56,9 @@ def test_process_equals_the_live_pipeline_pair_for_pair(spawn, run_dir: Path) ->
     """The same folder through `trapflow start --source images:` and through `process`
     (stateless pools in chunks of 3, VO whole) gives the same results for every pair."""
     scene = write_scene(run_dir.parent / "scene")
-    pools = {"mono": {"count": 1, "policy": "fifo:64"},
-             "stereo": {"count": 1, "policy": "fifo:64"},
+    # Every pair through every pool in the live run too (batch has no motion gate).
+    pools = {"mono": {"count": 1, "policy": "fifo:64", "gate": "always"},
+             "stereo": {"count": 1, "policy": "fifo:64", "gate": "always"},
              "vo": {"count": 1, "policy": "ordered:64"},
              "tags": {"count": 1, "policy": "fifo:64"}}
     cfg = write_config(run_dir.parent / "c.yaml", {"pools": only_pools(pools)})

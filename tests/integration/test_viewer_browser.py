@@ -65,6 +65,9 @@ def test_page_draws_a_detected_box_and_moving_charts(spawn, run_dir: Path, page:
         timeout=10_000)
     assert page.locator("#nodes td", has_text="viewer").count() == 1
     assert "processed" in page.inner_text("#ledger")
+    # The power model's estimate (issue 25): watts and Wh per day from the run's CPU so far.
+    page.wait_for_function("/energy \\(\\w+ model\\).* W, .* Wh\\/day/"
+                           ".test(document.getElementById('ledger').innerText)", timeout=20_000)
     # An event folder written by the events node, shown with its first image as thumbnail.
     page.wait_for_function(
         "[...document.querySelectorAll('#events img')].some(i => i.complete && i.naturalWidth)",

@@ -242,6 +242,12 @@ function drawTables(s) {
       const inactive = p.dropped_inactive ? `, inactive ${p.dropped_inactive}` : "";
       rows.push([name, `processed ${p.processed}, dropped ${p.dropped_by_policy} (${p.policy})${inactive}, failed ${p.failed}, timed out ${p.timed_out}, lost ${p.lost}${going}`]);
     }
+    const e = s.ledger.energy; // the power model's estimate so far (ledger.json's energy)
+    if (e) {
+      const days = e.days_on_battery !== undefined ? `, ${e.days_on_battery} days on the battery` : "";
+      const gate = e.active_s !== undefined ? `; motion gate active ${e.active_s} s, idle ${e.idle_s} s` : "";
+      rows.push([`energy (${e.board} model)`, `${e.busy_cores} cores busy, ${e.watts} W, ${e.wh_per_day} Wh/day${days}${gate}`]);
+    }
   }
   $("ledger").tBodies[0].innerHTML = rows.map(([k, v]) => `<tr><td>${esc(k)}</td><td>${esc(v)}</td></tr>`).join("");
   $("modem").textContent = s.modem

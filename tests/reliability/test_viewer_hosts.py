@@ -32,7 +32,7 @@ def with_viewer(tmp_path: Path, body: Body, **viewer: object) -> None:
 
     async def main() -> None:
         v = Viewer(cfg, tmp_path / "run")
-        v.state.shown = Frame(seq=1, width=2, height=2, encoding="jpeg", left=b"\xff\xd8L",
+        v.state.shown = Frame(seq=1, width=2, height=2, left=b"\xff\xd8L",
                               right=b"\xff\xd8R", t_wall_ns=0)
         client = TestClient(TestServer(v.app, host="127.0.0.1"))
         await client.start_server()

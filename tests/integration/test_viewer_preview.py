@@ -76,11 +76,16 @@ def test_no_preview_is_made_without_a_page(spawn, run_dir: Path) -> None:
     assert opened["previews_failed"] == 0
     # The page is gone: after PAGE_OPEN_S the viewer stops asking, the broker stops making.
     time.sleep(PAGE_OPEN_S + 2.0)
-    closed = _broker(p)["previews"]
+    _no_more_previews(p)
+
+
+def _no_more_previews(p: Pipeline) -> None:
+    """20 more pairs go through the broker and it makes no preview; then a clean stop."""
+    before = _broker(p)["previews"]
     moved = _broker(p)["pairs_in"]
     poll_for(lambda: _broker(p)["pairs_in"] >= moved + 20, 60, interval=1.0,
              what="20 more pairs through the broker")
-    assert _broker(p)["previews"] == closed
+    assert _broker(p)["previews"] == before
     code, _, err = p.stop()
     assert code == 0, err
 
@@ -105,10 +110,4 @@ def test_a_viewer_killed_with_its_page_open_leaves_no_previews(spawn, run_dir: P
     view.send_signal(signal.SIGKILL)
     view.wait(10)
     time.sleep(2.0)  # the broker hears of it when it next sends on its tap (stats: 1/s)
-    ended = _broker(p)["previews"]
-    moved = _broker(p)["pairs_in"]
-    poll_for(lambda: _broker(p)["pairs_in"] >= moved + 20, 60, interval=1.0,
-             what="20 more pairs through the broker")
-    assert _broker(p)["previews"] == ended
-    code, _, err = p.stop()
-    assert code == 0, err
+    _no_more_previews(p)

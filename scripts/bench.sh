@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
 # Benchmarks of trapflow on this machine; numbers go to bench-results/ (JSON per part and
 # bench.md with everything). Speed is measured here, never asserted in tests.
-# Usage: scripts/bench.sh [--quick | --pi] [OUT_DIR]   (set PYTHON to choose the interpreter)
+# Usage: scripts/bench.sh [--quick | --pi | --parts LIST] [OUT_DIR]   (set PYTHON to choose the interpreter)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 usage() {
   cat <<'TXT'
-Usage: scripts/bench.sh [--quick | --pi] [--help] [OUT_DIR]   (default OUT_DIR: bench-results)
+Usage: scripts/bench.sh [--quick | --pi | --parts LIST] [--help] [OUT_DIR]   (default OUT_DIR: bench-results)
 
 --pi: the deployment table, run on the device (Raspberry Pi 5, Jetson, any board with
 trapflow installed, nothing else running): per algorithm CPU and wall ms per pair at
@@ -60,20 +60,43 @@ Parts, in order, with their run time on a 2-core machine (full / --quick):
               missed, empty water withheld; whole pipelines on rendered
               sequences gated vs ungated: recognisers' CPU, CPU per hour,
               days on a Pi 5 battery, animal recall, snow   ~20 min / skipped
+  recycle     worker recycling: health check per pair, replacement
+              time                                                ~1 min  / skipped
 
 Numbers go to OUT_DIR: one JSON (and Markdown) per part, and OUT_DIR/bench.md with all
 of them; the CPU table is what docs/benchmarks.md quotes. Nothing is asserted.
 --quick runs the cpu, floor, decode and vo parts only, with short windows.
+--parts LIST runs the named parts only, in the order above, in one run (comma-separated:
+transport, peers, remote, shm, cpu, decode, vo, algorithms, detector, process, viewer,
+modem, tracking, measure, gate, recycle; floor comes with cpu), e.g. --parts
+vo,detector,process,transport; bench.md then holds those parts and the load average.
 TXT
 }
 QUICK=0
-case "${1:-}" in
-  -h|--help) usage; exit 0 ;;
-  --quick) QUICK=1; shift ;;
-  --pi) QUICK=pi; shift ;;
-  -*) echo "scripts/bench.sh: unknown option $1 (expected --quick, --pi, --help or OUT_DIR)" >&2
-      usage >&2; exit 2 ;;
-esac
+PARTS=""
+ALL_PARTS="transport peers remote shm cpu decode vo algorithms detector process viewer modem tracking measure gate recycle"
+while [ $# -gt 0 ]; do
+  case "$1" in
+    -h|--help) usage; exit 0 ;;
+    --quick) QUICK=1; shift ;;
+    --pi) QUICK=pi; shift ;;
+    --parts)
+      PARTS=" ${2:-} "; PARTS=${PARTS//,/ }
+      for p in $PARTS; do
+        case " $ALL_PARTS " in
+          *" $p "*) ;;
+          *) echo "scripts/bench.sh: unknown part '$p' in --parts (expected some of:" \
+                  "${ALL_PARTS// /,})" >&2; exit 2 ;;
+        esac
+      done
+      [ -n "${PARTS// /}" ] || { echo "scripts/bench.sh: --parts needs a list, e.g." \
+                                      "--parts vo,process" >&2; exit 2; }
+      shift 2 ;;
+    -*) echo "scripts/bench.sh: unknown option $1 (expected --quick, --pi, --parts, --help or OUT_DIR)" >&2
+        usage >&2; exit 2 ;;
+    *) break ;;
+  esac
+done
 OUT=${1:-bench-results}
 PY=${PYTHON:-python}
 mkdir -p "$OUT"
@@ -94,69 +117,102 @@ if [ "$QUICK" = 1 ]; then
   echo "[bench] wrote $OUT/bench.md" >&2
   exit 0
 fi
-echo "[bench] transport (broker path vs raw pyzmq)" >&2
-"$PY" scripts/bench_transport.py --out "$OUT" > /dev/null
-echo "[bench] peers (raw pyzmq, trapflow, dora-rs, Zenoh, Cyclone DDS)" >&2
-"$PY" scripts/bench_peers.py --out "$OUT" > /dev/null
-echo "[bench] remote pools (tcp with CURVE vs raw pyzmq over tcp)" >&2
-"$PY" scripts/bench_remote.py --out "$OUT" > /dev/null
-for part in bench_shm bench_synth; do
-  if [ -f "scripts/$part.py" ]; then
-    echo "[bench] $part" >&2
-    "$PY" "scripts/$part.py" --out "$OUT" > /dev/null
-  fi
-done
-echo "[bench] cpu per pair by role and the VO floor" >&2
-"$PY" scripts/bench_cpu.py --out "$OUT" > /dev/null
-echo "[bench] JPEG decode" >&2
-"$PY" scripts/bench_decode.py --out "$OUT" > /dev/null
-echo "[bench] stereo VO against the plugin before issue 27" >&2
-"$PY" scripts/bench_vo.py --out "$OUT" > /dev/null
-echo "[bench] algorithms" >&2
-"$PY" scripts/bench_algorithms.py --out "$OUT" > /dev/null
-echo "[bench] detector int8 vs fp32 (time and accuracy, held-out synthetic pairs)" >&2
-"$PY" scripts/quantize_detector.py --eval-only --out "$OUT" > /dev/null
-echo "[bench] process (Dask LocalCluster vs one plain loop)" >&2
-"$PY" scripts/bench_process.py --out "$OUT" > /dev/null
-echo "[bench] live viewer (no page, a page open, no viewer: 30 s each)" >&2
-"$PY" scripts/bench_viewer.py --out "$OUT" > /dev/null
-echo "[bench] modem link" >&2
-"$PY" scripts/bench_modem.py --out "$OUT/modem.json" > "$OUT/modem.txt"
-echo "[bench] tracking (held-out synthetic sequences, offline and in live runs)" >&2
-"$PY" scripts/bench_tracking.py --live --out "$OUT/tracking.json" > "$OUT/tracking.txt"
-echo "[bench] stereo measurement (held-out synthetic sequences)" >&2
-"$PY" scripts/bench_measure.py --out "$OUT/measure.json" > "$OUT/measure.txt"
-"$PY" scripts/bench_speed.py --out "$OUT/speed.json" >> "$OUT/measure.txt"
-echo "[bench] motion gate" >&2
-"$PY" scripts/bench_gate.py --out "$OUT" > "$OUT/gate.txt"
-echo "[bench] worker recycling (health check per pair, replacement time)" >&2
-"$PY" scripts/bench_recycle.py --out "$OUT/recycle.json" > "$OUT/recycle.txt"
+# want PART: true when every part runs (no --parts) or PART was named.
+want() { [ -z "$PARTS" ] || [[ $PARTS == *" $1 "* ]]; }
+# What this run wrote: a part not run leaves nothing behind from an earlier run.
+started=$(date +%s)
+load_before=$(cut -d' ' -f1-3 /proc/loadavg)
+if want transport; then
+  echo "[bench] transport (broker path vs raw pyzmq)" >&2
+  "$PY" scripts/bench_transport.py --out "$OUT" > /dev/null
+fi
+if want peers; then
+  echo "[bench] peers (raw pyzmq, trapflow, dora-rs, Zenoh, Cyclone DDS)" >&2
+  "$PY" scripts/bench_peers.py --out "$OUT" > /dev/null
+fi
+if want remote; then
+  echo "[bench] remote pools (tcp with CURVE vs raw pyzmq over tcp)" >&2
+  "$PY" scripts/bench_remote.py --out "$OUT" > /dev/null
+fi
+if want shm; then
+  for part in bench_shm bench_synth; do
+    if [ -f "scripts/$part.py" ]; then
+      echo "[bench] $part" >&2
+      "$PY" "scripts/$part.py" --out "$OUT" > /dev/null
+    fi
+  done
+fi
+if want cpu; then
+  echo "[bench] cpu per pair by role and the VO floor" >&2
+  "$PY" scripts/bench_cpu.py --out "$OUT" > /dev/null
+fi
+if want decode; then
+  echo "[bench] JPEG decode" >&2
+  "$PY" scripts/bench_decode.py --out "$OUT" > /dev/null
+fi
+if want vo; then
+  echo "[bench] stereo VO against the plugin before issue 27" >&2
+  "$PY" scripts/bench_vo.py --out "$OUT" > /dev/null
+fi
+if want algorithms; then
+  echo "[bench] algorithms" >&2
+  "$PY" scripts/bench_algorithms.py --out "$OUT" > /dev/null
+fi
+if want detector; then
+  echo "[bench] detector int8 vs fp32 (time and accuracy, held-out synthetic pairs)" >&2
+  "$PY" scripts/quantize_detector.py --eval-only --out "$OUT" > /dev/null
+fi
+if want process; then
+  echo "[bench] process (Dask LocalCluster vs one plain loop)" >&2
+  "$PY" scripts/bench_process.py --out "$OUT" > /dev/null
+fi
+if want viewer; then
+  echo "[bench] live viewer (no page, a page open, no viewer: 30 s each)" >&2
+  "$PY" scripts/bench_viewer.py --out "$OUT" > /dev/null
+fi
+if want modem; then
+  echo "[bench] modem link" >&2
+  "$PY" scripts/bench_modem.py --out "$OUT/modem.json" > "$OUT/modem.txt"
+fi
+if want tracking; then
+  echo "[bench] tracking (held-out synthetic sequences, offline and in live runs)" >&2
+  "$PY" scripts/bench_tracking.py --live --out "$OUT/tracking.json" > "$OUT/tracking.txt"
+fi
+if want measure; then
+  echo "[bench] stereo measurement (held-out synthetic sequences)" >&2
+  "$PY" scripts/bench_measure.py --out "$OUT/measure.json" > "$OUT/measure.txt"
+  "$PY" scripts/bench_speed.py --out "$OUT/speed.json" >> "$OUT/measure.txt"
+fi
+if want gate; then
+  echo "[bench] motion gate" >&2
+  "$PY" scripts/bench_gate.py --out "$OUT" > "$OUT/gate.txt"
+fi
+if want recycle; then
+  echo "[bench] worker recycling (health check per pair, replacement time)" >&2
+  "$PY" scripts/bench_recycle.py --out "$OUT/recycle.json" > "$OUT/recycle.txt"
+fi
+# One section per part run, in the order above; a file older than this run is an earlier
+# run's and is left out.
+fresh() { [ -f "$1" ] && [ "$(stat -c %Y "$1")" -ge "$started" ]; }
 {
   echo "# trapflow benchmark, $(date -u '+%Y-%m-%d %H:%M UTC'), $(nproc) cores"
+  echo
+  echo "Parts: ${PARTS:-all}; load average before: $load_before, after: $(cut -d' ' -f1-3 /proc/loadavg)"
   echo
   for md in "$OUT"/transport.md "$OUT"/peers.md "$OUT"/remote.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/cpu.md \
             "$OUT"/decode.md "$OUT"/bench_vo.md "$OUT"/bench_algorithms.md "$OUT"/quantize_detector.md \
             "$OUT"/process.md "$OUT"/viewer.md; do
-    [ -f "$md" ] && cat "$md" && echo
+    if fresh "$md"; then cat "$md"; echo; fi
   done
-  echo "## Modem link"
-  echo
-  echo '```'
-  cat "$OUT/modem.txt"
-  echo '```'
-  echo
-  for part in tracking measure gate; do
-    echo "## ${part^}"
-    echo
-    echo '```'
-    cat "$OUT/$part.txt"
-    echo '```'
-    echo
+  for part in modem tracking measure gate recycle; do
+    if fresh "$OUT/$part.txt"; then
+      echo "## ${part^}"
+      echo
+      echo '```'
+      cat "$OUT/$part.txt"
+      echo '```'
+      echo
+    fi
   done
-  echo "## Worker recycling"
-  echo
-  echo '```'
-  cat "$OUT/recycle.txt"
-  echo '```'
 } > "$OUT/bench.md"
 echo "[bench] wrote $OUT/bench.md" >&2

@@ -24,6 +24,7 @@ needed = [
     "trapflow/viewer/static/viewer.js",
     "trapflow/viewer/static/viewer.css",
     "trapflow_workers/models/crab_detector.onnx",
+    "trapflow_workers/models/crab_detector_int8.onnx",
     "trapflow_workers/models/crab_detector.labels",
     "trapflow_workers/models/scene_classifier.onnx",
     "trapflow_workers/models/scene_classifier.labels",

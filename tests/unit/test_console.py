@@ -254,10 +254,15 @@ def test_tap_with_messages_exits_0_at_its_timeout(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(("args", "code", "stream", "text"), [
     (["--help"], 0, "stdout", "with their run time"),
-    (["-h"], 0, "stdout", "Usage: scripts/bench.sh [--quick | --pi] [--help] [OUT_DIR]"),
+    (["-h"], 0, "stdout",
+     "Usage: scripts/bench.sh [--quick | --pi | --parts LIST] [--help] [OUT_DIR]"),
     (["--help"], 0, "stdout", "--pi: the deployment table, run on the device"),
     (["--fast"], 2, "stderr",
-     "unknown option --fast (expected --quick, --pi, --help or OUT_DIR)"),
+     "unknown option --fast (expected --quick, --pi, --parts, --help or OUT_DIR)"),
+    # a part that does not exist stops before anything runs, naming the parts there are
+    (["--parts", "vo,gpu"], 2, "stderr", "unknown part 'gpu' in --parts (expected some of: "
+     "transport,peers,remote,shm,cpu,decode,vo,algorithms,detector,process,viewer,modem,"),
+    (["--parts"], 2, "stderr", "--parts needs a list"),
 ])
 def test_bench_sh_help_prints_its_usage_and_run_time(args: list[str], code: int, stream: str,
                                                      text: str) -> None:

@@ -4,16 +4,14 @@ from __future__ import annotations
 
 import signal
 import socket
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from tests.conftest import REPO, Pipeline, poll_for
-from tests.integration.viewer_util import free_port, get, get_json, post
+from tests.conftest import Pipeline, poll_for
+from tests.integration.viewer_util import attach_viewer, free_port, get, get_json, post
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
 
@@ -96,11 +94,7 @@ def test_metrics_scrape_and_textfile(spawn, run_dir: Path) -> None:
 def test_view_attaches_to_a_running_pipeline(spawn, run_dir: Path, started_procs) -> None:
     p: Pipeline = spawn(["--size", "320x240"], run_dir)
     p.wait_active(90)
-    port = free_port()
-    view = subprocess.Popen(
-        [sys.executable, "-m", "trapflow", "view", "--run-dir", str(run_dir), "--listen",
-         f"127.0.0.1:{port}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO)
-    started_procs.append(view)
+    view, port = attach_viewer(run_dir, started_procs)
     state = poll_for(lambda: (s := get_json(f"http://127.0.0.1:{port}/api/state"))
                      and s["frame"] and s["nodes"] and s["pools"].get("vo", {}).get("rate")
                      and s, 40, interval=0.5, what="a pair, nodes and charts from the taps")

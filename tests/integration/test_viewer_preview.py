@@ -5,8 +5,6 @@ page is gone. Real pipeline, real sockets, the broker's own counter read from it
 from __future__ import annotations
 
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -15,8 +13,8 @@ import cv2
 import numpy as np
 import pytest
 
-from tests.conftest import REPO, Pipeline, poll_for
-from tests.integration.viewer_util import free_port, get, get_json
+from tests.conftest import Pipeline, poll_for
+from tests.integration.viewer_util import attach_viewer, free_port, get, get_json
 from trapflow.viewer.server import PAGE_OPEN_S
 
 pytestmark = pytest.mark.slow  # starts a whole pipeline
@@ -98,11 +96,7 @@ def test_a_viewer_killed_with_its_page_open_leaves_no_previews(spawn, run_dir: P
     previews for nobody."""
     p: Pipeline = spawn(["--size", "640x360"], run_dir)
     p.wait_active(90)
-    port = free_port()
-    view = subprocess.Popen(
-        [sys.executable, "-m", "trapflow", "view", "--run-dir", str(run_dir), "--listen",
-         f"127.0.0.1:{port}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO)
-    started_procs.append(view)
+    view, port = attach_viewer(run_dir, started_procs, quiet=True)
     poll_for(lambda: get_json(f"http://127.0.0.1:{port}/api/state"), 40, interval=0.5,
              what="the viewer answering")
     _, seqs = _poll_as_the_page(f"http://127.0.0.1:{port}", 4.0)

@@ -6,6 +6,8 @@ import importlib.util
 import json
 import shutil
 import socket
+import subprocess
+import sys
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -23,6 +25,22 @@ def free_port() -> int:
         s.bind(("127.0.0.1", 0))
         port: int = s.getsockname()[1]
         return port
+
+
+def attach_viewer(run_dir: Path, started: list[subprocess.Popen[bytes]],
+                  quiet: bool = False) -> tuple[subprocess.Popen[bytes], int]:
+    """`trapflow view` attached to a running pipeline's run directory on a free loopback
+    port, recorded in `started` (the harness kills what is left); its output piped, or
+    discarded when quiet."""
+    from tests.conftest import REPO
+
+    port = free_port()
+    out = subprocess.DEVNULL if quiet else subprocess.PIPE
+    view = subprocess.Popen(
+        [sys.executable, "-m", "trapflow", "view", "--run-dir", str(run_dir), "--listen",
+         f"127.0.0.1:{port}"], stdout=out, stderr=out, cwd=REPO)
+    started.append(view)
+    return view, port
 
 
 def get(url: str, timeout: float = 2.0) -> tuple[int, bytes]:

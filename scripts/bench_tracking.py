@@ -329,12 +329,13 @@ def _trapflow(args: list[str], timeout_s: float) -> None:
 
 def live_config(path: Path, frames: int, slow: bool) -> Path:
     """A config running the mono pool alone: fifo for every pair (a finite source waits for
-    no one, so the queue holds them all), or `latest` with the slowed detector."""
+    no one, so the queue holds them all), or `latest` with the slowed detector. The motion
+    gate is off (gate: always; mono is gated by default): the detector may see every pair."""
     from trapflow.config.schema import Config
 
-    mono: dict[str, object] = {"count": 1, "policy": f"fifo:{frames}"}
+    mono: dict[str, object] = {"count": 1, "policy": f"fifo:{frames}", "gate": "always"}
     if slow:
-        mono = {"count": 1, "policy": "latest",
+        mono = {"count": 1, "policy": "latest", "gate": "always",
                 "plugin": "tests.integration.slow_plugins:SlowDetector",
                 "params": {"delay_s": SLOW_DELAY_S}}
     pools = {**{name: {"count": 0} for name in Config().pools if name != "mono"}, "mono": mono}

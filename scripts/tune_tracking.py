@@ -39,6 +39,8 @@ from trapflow.observe.tracker import TrackerConfig
 GRID: dict[str, Sequence[float]] = {
     "max_gap_s": (0.75, 1.0, 1.5, 2.0, 3.0, 4.0),
     "iou_gate": (0.05, 0.1, 0.15, 0.2, 0.3),
+    "dist_gate": (0.0, 9.5, 13.0, 20.0),
+    "dup_iou": (0.5, 0.6, 0.7, 1.0),
     "min_hits": (1, 2, 3),
     "tentative_gap_s": (0.0, 0.1, 0.25, 0.5, 1.0),
     "high": (0.4, 0.5, 0.6),

@@ -193,6 +193,68 @@ def test_time_going_back_is_refused() -> None:
         tracker.update(1.0, [])
 
 
+GAP_JUMP = [
+    # (dist_gate, ids): a crab seen at 15 Hz, then 0.4 s later 50 px (1.25 sides) beyond
+    # where it was heading: no overlap with the predicted box, but within the covariance the
+    # gap has grown. IoU alone starts a new (tentative) track; the distance gate keeps it.
+    (0.0, [None, 1, 1, 1, None]),
+    (13.0, [None, 1, 1, 1, 1]),
+]
+
+
+@pytest.mark.parametrize(("dist_gate", "expected"), GAP_JUMP)
+def test_distance_gate_bridges_a_gap_iou_cannot(dist_gate: float,
+                                                expected: list[int | None]) -> None:
+    tracker = Tracker(TrackerConfig(dist_gate=dist_gate, dup_iou=1.0))
+    got = []
+    for t, x in [(0.0, 100.0), (1 / 15, 104.0), (2 / 15, 108.0), (3 / 15, 112.0),
+                 (3 / 15 + 0.4, 162.0)]:
+        upd = tracker.update(t, [Det(label="crab", confidence=0.9, box=(x, 100, x + 40, 140))])
+        got.append(upd.track_ids[0])
+    assert got == expected
+
+
+def test_distance_gate_refuses_a_far_box() -> None:
+    """A box 60 px beyond the same track's prediction is outside the gate: a new track."""
+    tracker = Tracker(TrackerConfig(dist_gate=13.0))
+    for t, x in [(0.0, 100.0), (1 / 15, 104.0), (2 / 15, 108.0), (3 / 15, 112.0)]:
+        tracker.update(t, [Det(label="crab", confidence=0.9, box=(x, 100, x + 40, 140))])
+    upd = tracker.update(3 / 15 + 0.4, [Det(label="crab", confidence=0.9,
+                                            box=(172.0, 100, 212.0, 140))])
+    assert upd.track_ids == (None,)
+
+
+DUPLICATES = [
+    # (dup_iou, ids of the two boxes per pair): the detector labels one animal twice (crab
+    # 0.9, scallop 0.6, nearly the same box). Kept apart, the second box becomes a second
+    # track; with dup_iou the weaker box is left out (no id) and one track remains.
+    (1.0, [(None, None), (1, 2), (1, 2)]),
+    (0.6, [(None, None), (1, None), (1, None)]),
+]
+
+
+@pytest.mark.parametrize(("dup_iou", "expected"), DUPLICATES)
+def test_a_second_label_for_one_animal_starts_no_track(
+        dup_iou: float, expected: list[tuple[int | None, ...]]) -> None:
+    tracker = Tracker(TrackerConfig(dup_iou=dup_iou))
+    got = []
+    for k in range(3):
+        x = 100.0 + 3 * k
+        upd = tracker.update(k / 15, [
+            Det(label="crab", confidence=0.9, box=(x, 100, x + 40, 140)),
+            Det(label="scallop", confidence=0.6, box=(x + 2, 101, x + 41, 141))])
+        got.append(upd.track_ids)
+    assert got == expected
+
+
+def test_overlapping_animals_below_dup_iou_keep_their_tracks() -> None:
+    """Two animals whose boxes overlap by less than dup_iou (IoU 1/3) are both tracked."""
+    movers = [Mover("crab", (100, 100), (0, 0)), Mover("crab", (120, 100), (0, 0))]
+    ids, _ = run(movers, steady(15, 0.5), TrackerConfig(dup_iou=0.6))
+    assert {i for i in ids[0] if i is not None} == {1}
+    assert {i for i in ids[1] if i is not None} == {2}
+
+
 BAD_CONFIG = [
     # low above high
     ({"low": 0.6, "high": 0.5}, "low <= high"),
@@ -200,6 +262,8 @@ BAD_CONFIG = [
     ({"iou_gate": 0.0}, "iou_gate"),
     ({"min_hits": 0}, "min_hits"),
     ({"max_gap_s": 0.0}, "max_gap_s"),
+    ({"dist_gate": -1.0}, "dist_gate"),
+    ({"dup_iou": 0.0}, "dup_iou"),
 ]
 
 

@@ -206,8 +206,13 @@ class ObserveConfig(_Section):
     """Detections at or above this confidence are matched first and may start tracks."""
     low: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.1
     """Between low and high a detection may only extend a confirmed track."""
-    iou_gate: Annotated[float, msgspec.Meta(gt=0, lt=1)] = 0.2
+    iou_gate: Annotated[float, msgspec.Meta(gt=0, lt=1)] = 0.1
     """Least overlap of a track's predicted box and a detection for them to match."""
+    dist_gate: Annotated[float, msgspec.Meta(ge=0, le=1000)] = 13.0
+    """Else a box this close to a track's predicted box (squared Mahalanobis distance,
+    widening with the time unseen) matches it; 0: off."""
+    dup_iou: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.6
+    """A box overlapping a more confident one of its pair this much is left out; 1: off."""
     min_hits: Annotated[int, msgspec.Meta(ge=1, le=100)] = 2
     """Detections that confirm a track and give it its id."""
     max_gap_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 3.0

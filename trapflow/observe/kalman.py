@@ -59,6 +59,19 @@ class BoxFilter:
         self.x = self.x + k @ (z - _H @ self.x)
         self.p = (np.eye(2 * _DIM) - k @ _H) @ self.p
 
+    def distance2(self, boxes: np.ndarray) -> np.ndarray:
+        """Squared Mahalanobis distance of each detected box (N, 4; x1 y1 x2 y2) from the
+        predicted one, under the prediction's covariance plus the measurement noise: about
+        chi-square with 4 degrees of freedom for a box of this track, however long the
+        track went unseen (its covariance has grown with the time)."""
+        if len(boxes) == 0:
+            return np.zeros(0)
+        z = np.array([_centre_size(b) for b in boxes]) - _H @ self.x
+        s = max(float(self.x[3]), 1.0)
+        cov = _H @ self.p @ _H.T + np.eye(_DIM) * (self.noise.measure * s) ** 2
+        out: np.ndarray = np.einsum("ni,ij,nj->n", z, np.linalg.inv(cov), z)
+        return out
+
     def box(self) -> np.ndarray:
         """The state's box as x1 y1 x2 y2 (sides kept at least one pixel)."""
         cx, cy = self.x[0], self.x[1]

@@ -30,6 +30,7 @@ NO_DETECTION = "none"
 def tracker_config(cfg: ObserveConfig) -> TrackerConfig:
     """The tracker's thresholds from the `observe` config section."""
     return TrackerConfig(high=cfg.high, low=cfg.low, iou_gate=cfg.iou_gate,
+                         dist_gate=cfg.dist_gate, dup_iou=cfg.dup_iou,
                          min_hits=cfg.min_hits, max_gap_s=cfg.max_gap_s)
 
 

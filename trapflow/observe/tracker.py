@@ -62,17 +62,30 @@ class Update:
 
 @dataclass(frozen=True)
 class TrackerConfig:
-    """Thresholds of the tracker; defaults tuned on the 16 development seeds of the synthetic
-    bench (scripts/tune_tracking.py: mean of HOTA and IDF1 at full detector rate and at one
-    pair in three), never on its held-out seeds (scripts/bench_tracking.py)."""
+    """Thresholds of the tracker; defaults tuned on development seeds only, never on the
+    bench's held-out ones: the 16 of the synthetic bench's fake detections
+    (scripts/tune_tracking.py: mean of HOTA and IDF1 at full detector rate and at one pair
+    in three), and live runs' detections of development seeds at policy `latest` with a
+    slow detector (docs/benchmarks.md, "Tracking inside a live run")."""
 
     high: float = 0.5
     """Detections at or above this confidence are matched first and may start tracks."""
     low: float = 0.1
     """Detections below this confidence are ignored; between low and high they may only
     extend a track that the high ones left unmatched."""
-    iou_gate: float = 0.2
+    iou_gate: float = 0.1
     """Least IoU between a track's predicted box and a detection for them to match."""
+    dist_gate: float = 13.0
+    """Second chance for the tracks and high-confidence detections that IoU left apart:
+    matched when the detected box is within this squared Mahalanobis distance of the
+    track's predicted box (centre and size, 4 degrees of freedom: 13 keeps 99 % of a
+    track's own boxes). Its covariance grows with the time unseen, so the gate widens
+    across the gaps of a detector that sees one pair in three or fewer, where an animal
+    may have moved off its predicted box; 0: off."""
+    dup_iou: float = 0.6
+    """A detection overlapping a more confident one of the same capture time by at least
+    this IoU is left out, whatever the labels (the detector's second label for one animal,
+    which would otherwise start or extend a second track); 1: off."""
     min_hits: int = 2
     """Matches that confirm a tentative track and give it an id."""
     max_gap_s: float = 3.0
@@ -91,6 +104,10 @@ class TrackerConfig:
                              f"high={self.high}")
         if not 0.0 < self.iou_gate < 1.0:
             raise ValueError(f"iou_gate: expected in (0, 1), got {self.iou_gate}")
+        if self.dist_gate < 0:
+            raise ValueError(f"dist_gate: expected >= 0 (0: off), got {self.dist_gate}")
+        if not 0.0 < self.dup_iou <= 1.0:
+            raise ValueError(f"dup_iou: expected in (0, 1] (1: off), got {self.dup_iou}")
         if self.min_hits < 1 or self.max_gap_s <= 0 or self.path_points < 2:
             raise ValueError(f"expected min_hits >= 1, max_gap_s > 0, path_points >= 2, got "
                              f"{self.min_hits}, {self.max_gap_s}, {self.path_points}")
@@ -165,11 +182,15 @@ class Tracker:
             tr.filter.predict(t_s - tr.t_filter)
             tr.t_filter = t_s
         ids: list[int | None] = [None] * len(detections)
-        high = [i for i, d in enumerate(detections) if d.confidence >= cfg.high]
-        low = [i for i, d in enumerate(detections) if cfg.low <= d.confidence < cfg.high]
+        kept = _distinct(detections, cfg.dup_iou)
+        high = [i for i in kept if detections[i].confidence >= cfg.high]
+        low = [i for i in kept if cfg.low <= detections[i].confidence < cfg.high]
         # Stage 1: high-confidence detections against every track, confirmed or not.
         everyone = list(range(len(self._tracks)))
         pairs, left_tracks, left_high = self._match(everyone, high, detections)
+        if cfg.dist_gate > 0:
+            more, left_tracks, left_high = self._match_near(left_tracks, left_high, detections)
+            pairs += more
         # Stage 2: low-confidence detections only against confirmed tracks left over; a
         # tentative track fed by weak boxes would confirm clutter.
         confirmed_left = [k for k in left_tracks if self._tracks[k].id is not None]
@@ -219,6 +240,21 @@ class Tracker:
         self._tracks = [tr for tr in self._tracks if tr.id is None or t_s - tr.last_s <= gap]
         return sorted(out, key=lambda e: e.id)
 
+    def _match_near(self, tracks: list[int], dets: list[int], detections: Sequence[Det]
+                    ) -> tuple[list[tuple[int, int]], list[int], list[int]]:
+        """Minimum-cost matching on the squared Mahalanobis distance under dist_gate."""
+        if not tracks or not dets:
+            return [], list(tracks), list(dets)
+        boxes = np.array([detections[i].box for i in dets], dtype=float)
+        d2 = np.array([self._tracks[k].filter.distance2(boxes) for k in tracks])
+        gate = self.config.dist_gate
+        cost = np.where(d2 <= gate, d2, gate * 2.0 + 1.0)
+        pairs = [(tracks[r], dets[c]) for r, c in assign(cost) if d2[r, c] <= gate]
+        used_t = {k for k, _ in pairs}
+        used_d = {i for _, i in pairs}
+        return (pairs, [k for k in tracks if k not in used_t],
+                [i for i in dets if i not in used_d])
+
     def _match(self, tracks: list[int], dets: list[int], detections: Sequence[Det]
                ) -> tuple[list[tuple[int, int]], list[int], list[int]]:
         """Minimum-cost (1 - IoU) matching under the IoU gate; returns the matched
@@ -236,3 +272,19 @@ class Tracker:
         used_d = {i for _, i in pairs}
         return (pairs, [k for k in tracks if k not in used_t],
                 [i for i in dets if i not in used_d])
+
+
+
+def _distinct(detections: Sequence[Det], dup_iou: float) -> list[int]:
+    """Indices of the detections that overlap no more confident one by dup_iou or more
+    (greedy, most confident first; ties to the earlier detection), in their order."""
+    if dup_iou >= 1.0 or len(detections) < 2:
+        return list(range(len(detections)))
+    boxes = np.array([d.box for d in detections], dtype=float)
+    iou = iou_matrix(boxes, boxes)
+    order = sorted(range(len(detections)), key=lambda i: -detections[i].confidence)
+    kept: list[int] = []
+    for i in order:
+        if all(iou[i, j] < dup_iou for j in kept):
+            kept.append(i)
+    return sorted(kept)

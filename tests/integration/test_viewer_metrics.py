@@ -75,9 +75,12 @@ def test_metrics_scrape_and_textfile(spawn, run_dir: Path) -> None:
     assert second[("trapflow_process_count", (("role", "mono"),))] == 1
     assert second[("trapflow_process_cpu_seconds_total", (("role", "vo"),))] > 0
     # The textfile: there, parseable, the same families, and rewritten on its interval.
+    # Processing times come with the workers' heartbeats, up to two seconds after the first
+    # counters: a textfile written in between lacks them (it failed one CI run in a few).
     first_text = poll_for(
         lambda: prom.exists() and 'processed_pairs_total{pool="mono"}' in (t := prom.read_text())
-        and t, 15, what=f"{prom.name} written with pool counters")
+        and all(f'processing_seconds_count{{pool="{pool}"}}' in t for pool in kinds) and t,
+        20, what=f"{prom.name} written with pool counters and processing times")
     assert {k[0] for k in _samples(first_text)} == {k[0] for k in second}
     poll_for(lambda: prom.read_text() != first_text, 15, what="the textfile rewritten")
     # A cross-site form post cannot stop the trap: the control header is required.

@@ -166,10 +166,16 @@ def test_a_failed_chunk_is_retried_reported_and_a_rerun_resumes(tmp_path: Path) 
 
 
 @pytest.mark.timeout(120)
-def test_an_existing_scheduler_by_address(tmp_path: Path) -> None:
+def test_an_existing_scheduler_by_address(tmp_path: Path,
+                                          monkeypatch: pytest.MonkeyPatch) -> None:
     """`--scheduler ADDRESS` runs the chunks on a cluster started elsewhere (here, by the
     test) and leaves that cluster running."""
     from dask.distributed import Client, LocalCluster
+
+    # Dask's nanny writes its pre-spawn environment (MALLOC_TRIM_THRESHOLD_) into this
+    # process's os.environ; recorded here so that it is undone after the test.
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "")
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_")
 
     scene = write_scene(tmp_path / "scene", 6)
     out = tmp_path / "out"

@@ -23,9 +23,15 @@ def _env() -> dict[str, str | None]:
 
 
 @pytest.mark.timeout(120)
-def test_local_workers_run_without_the_malloc_trim_threshold() -> None:
+def test_local_workers_run_without_the_malloc_trim_threshold(
+        monkeypatch: pytest.MonkeyPatch) -> None:
     pytest.importorskip("distributed")
     import dask
+
+    # As `trapflow process` starts: a fresh process, the variable unset. (Any LocalCluster
+    # started earlier in this process with Dask's defaults wrote it into os.environ, and
+    # workers inherit the parent's environment.)
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
 
     before = dask.config.get("distributed.nanny.pre-spawn-environ")
     with dask_client(Options(pools=("mono",), local=2)) as client:

@@ -13,7 +13,13 @@ trap 'rm -rf "$work"' EXIT
 mkdir "$work/src"
 (cd "$src" && git ls-files -z --cached --others --exclude-standard | tar -c --null -T - -f -) \
   | tar -x -C "$work/src"
-python3 -m pip wheel --quiet --no-deps --wheel-dir "$work/dist" "$work/src"
+# setuptools' warnings of a data folder it will stop installing ("is absent") fail it now.
+python3 -m pip wheel --no-deps --wheel-dir "$work/dist" "$work/src" > "$work/build.log" 2>&1 \
+  || { cat "$work/build.log"; exit 1; }
+if grep -E "as data is deprecated|Package '.*' is absent" "$work/build.log"; then
+  echo "the build warns of data folders that are not packages (setup.py)" >&2
+  exit 1
+fi
 wheel=$(ls "$work"/dist/trapflow-*.whl)
 python3 - "$wheel" <<'PY'
 import sys, zipfile

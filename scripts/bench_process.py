@@ -14,6 +14,7 @@ import io
 import json
 import os
 import resource
+import statistics
 import sys
 import tempfile
 import time
@@ -102,6 +103,10 @@ def main() -> None:
     ap.add_argument("--size", default="320x240")
     ap.add_argument("--chunk", type=int, default=8)
     ap.add_argument("--pools", default="mono,stereo,tags")
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="measure the plain loop and both clusters this many times in turn "
+                         "and report each time and the medians (a shared machine's speed "
+                         "drifts by 5 %% from one minute to the next)")
     args = ap.parse_args()
     w, h = (int(v) for v in args.size.split("x"))
     pools = tuple(args.pools.split(","))
@@ -115,11 +120,14 @@ def main() -> None:
         plain_loop(cfg, inp, min(4, args.pairs), pools, root / "warm")  # models, caches
         default_s, default_cpu = plain_loop(cfg, inp, args.pairs, pools, root / "plain-default")
         worker_setup()  # what every Dask worker does: OpenCV on one thread
-        loop_s, loop_cpu = plain_loop(cfg, inp, args.pairs, pools, root / "plain")
-        runs = [on_cluster(cfg, inp, n, opts, root / f"dask{n}") for n in (1, 2)]
-    load1 = os.getloadavg()[0]
-    report = summarise(args, pools, (loop_s, loop_cpu), (default_s, default_cpu), runs,
-                       (load0, load1))
+        reports = []
+        for i in range(args.repeat):
+            loop_s, loop_cpu = plain_loop(cfg, inp, args.pairs, pools, root / f"plain{i}")
+            runs = [on_cluster(cfg, inp, n, opts, root / f"dask{n}-{i}") for n in (1, 2)]
+            reports.append(summarise(args, pools, (loop_s, loop_cpu),
+                                     (default_s, default_cpu), runs,
+                                     (load0, os.getloadavg()[0])))
+    report = reports[0] if len(reports) == 1 else with_medians(reports)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "process.json").write_text(json.dumps(report, indent=2))
     md = markdown(report)
@@ -163,6 +171,21 @@ def summarise(args: argparse.Namespace, pools: tuple[str, ...], loop: tuple[floa
             "load_before_after": [round(x, 2) for x in load], "dask": rows}
 
 
+def with_medians(reports: list[dict[str, Any]]) -> dict[str, Any]:
+    """The last repetition's report, with every repetition's speed-ups and their medians."""
+    def median(xs: list[float]) -> float:
+        return round(statistics.median(xs), 2)
+
+    out = dict(reports[-1])
+    out["repeats"] = [{"plain_cpu_ms_per_pair": r["plain_cpu_ms_per_pair"],
+                       **{f"{d['workers']}w_{k}": d[k] for d in r["dask"]
+                          for k in ("speedup", "vs_one_worker", "worker_work_ms_per_pair")}}
+                      for r in reports]
+    out["medians"] = {k: median([rep[k] for rep in out["repeats"]])
+                      for k in out["repeats"][0]}
+    return out
+
+
 def markdown(r: dict[str, Any]) -> str:
     n = r["pairs"]
     lines = [f"## trapflow process ({n} pairs {r['size']}, pools {','.join(r['pools'])}, "
@@ -189,6 +212,15 @@ def markdown(r: dict[str, Any]) -> str:
               f"| {d['client_cpu_ms_per_pair']} | {d['idle_worker_cpu_ms_per_s']}, "
               f"{d['idle_client_cpu_ms_per_s']} | {d['cold_s']} | {d['cluster_start_s']} |"
               for d in r["dask"]]
+    if "repeats" in r:
+        keys = list(r["medians"])
+        lines += ["", f"{len(r['repeats'])} repetitions in turn (the table above is the last):",
+                  "", "| repetition | " + " | ".join(keys) + " |",
+                  "|---" * (len(keys) + 1) + "|"]
+        lines += [f"| {i + 1} | " + " | ".join(str(rep[k]) for k in keys) + " |"
+                  for i, rep in enumerate(r["repeats"])]
+        lines.append("| **median** | " + " | ".join(f"**{r['medians'][k]}**" for k in keys)
+                     + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -63,27 +63,12 @@ if [ ! -x "$root/usr/bin/python3" ]; then
     --include=python3,python3-venv,ca-certificates "$suite" "$root" ${MIRROR:+"$MIRROR"} \
     > "$report/debootstrap.log"
 fi
-mounted=()
-cleanup() {
-  for ((i = ${#mounted[@]} - 1; i >= 0; i--)); do umount -l "${mounted[$i]}" || true; done
-}
-trap cleanup EXIT
-bind() {  # bind-mount a host path (or $2) onto this path in the root, unmounted on exit
-  mountpoint -q "$root$1" && return
-  [ -e "$root$1" ] || mkdir -p "$root$1"
-  mount --bind "${2:-$1}" "$root$1"
-  mount --make-private "$root$1"  # nothing mounted under it reaches the host's tree
-  mounted+=("$root$1")
-}
-for dir in /proc /sys /dev /dev/pts; do bind "$dir"; done
+# shellcheck source=scripts/root_mounts.sh
+. "$src/scripts/root_mounts.sh"
 # A /dev/shm of its own: qemu-user fakes /proc/self/stat, so the frame ring's owner start
 # time differs from the one the host sees, and a pipeline started on the host would take
 # the emulated pipeline's ring for a dead process's and remove it (and the reverse).
-if ! mountpoint -q "$root/dev/shm"; then
-  mkdir -p "$root/dev/shm"
-  mount -t tmpfs -o size=50%,mode=1777 tmpfs "$root/dev/shm"
-  mounted+=("$root/dev/shm")
-fi
+mount_system
 # qemu-user passes the host's /proc/cpuinfo through: onnxruntime's CPU detection finds no
 # ARM core in an x86 one and crashes at import (SIGSEGV). The root sees Cortex-A76 cores
 # (a Pi 5's), as many as the host has, which also matches /sys/devices/system/cpu.

@@ -86,24 +86,9 @@ fi
 
 # 2. Mounts, every one undone on exit (bound, then made private: nothing mounted under it
 #    reaches the host's tree). /dev/shm is a tmpfs of the root's own, as in a container.
-mounted=()
-cleanup() {
-  for ((i = ${#mounted[@]} - 1; i >= 0; i--)); do umount -l "${mounted[$i]}" || true; done
-}
-trap cleanup EXIT
-bind() {
-  mountpoint -q "$root$1" && return
-  mkdir -p "$root$1"
-  mount --bind "$1" "$root$1"
-  mount --make-private "$root$1"
-  mounted+=("$root$1")
-}
-for dir in /proc /sys /dev /dev/pts; do bind "$dir"; done
-if ! mountpoint -q "$root/dev/shm"; then
-  mkdir -p "$root/dev/shm"
-  mount -t tmpfs -o size=50%,mode=1777 tmpfs "$root/dev/shm"
-  mounted+=("$root/dev/shm")
-fi
+# shellcheck source=scripts/root_mounts.sh
+. "$src/scripts/root_mounts.sh"
+mount_system
 cp -L /etc/resolv.conf "$root/etc/resolv.conf"
 ca_env=()
 host_ca=${HOST_CA-/etc/ssl/certs/ca-certificates.crt}

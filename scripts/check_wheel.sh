@@ -13,8 +13,9 @@ trap 'rm -rf "$work"' EXIT
 mkdir "$work/src"
 (cd "$src" && git ls-files -z --cached --others --exclude-standard | tar -c --null -T - -f -) \
   | tar -x -C "$work/src"
-# setuptools' warnings of a data folder it will stop installing ("is absent") fail it now.
-python3 -m pip wheel --no-deps --wheel-dir "$work/dist" "$work/src" > "$work/build.log" 2>&1 \
+# setuptools' warnings of a data folder it will stop installing ("is absent") fail it now
+# (pip shows the build's own output only with -v).
+python3 -m pip wheel -v --no-deps --wheel-dir "$work/dist" "$work/src" > "$work/build.log" 2>&1 \
   || { cat "$work/build.log"; exit 1; }
 if grep -E "as data is deprecated|Package '.*' is absent" "$work/build.log"; then
   echo "the build warns of data folders that are not packages (setup.py)" >&2

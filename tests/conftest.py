@@ -200,20 +200,21 @@ class Pipeline(TrapflowProcess):
     def status(self, deadline_s: float = 20.0) -> dict[str, Any] | None:
         """The pipeline's status, or None once it has exited or not answered by deadline_s.
 
-        One `trapflow status` call may miss its own timeout on a loaded machine (a busy
-        supervisor, a slow interpreter start); it is asked again until deadline_s, so a
-        test fails on a pipeline that does not answer, not on the machine's load.
+        Asked in this process through the control client `trapflow status` uses (the CLI
+        itself is tested in test_cli_surfaces): a fresh interpreter per call cost about a
+        second of CPU on every poll. One request may miss its own timeout on a loaded
+        machine (a busy supervisor); it is asked again until deadline_s, so a test fails on
+        a pipeline that does not answer, not on the machine's load.
         """
+        from trapflow.errors import TrapflowError
+        from trapflow.wire.control_client import request
+
         deadline = time.monotonic() + deadline_s
         while True:
-            out = subprocess.run(
-                [sys.executable, "-m", "trapflow", "status", "--json", "--run-dir",
-                 str(self.run_dir), "--timeout", "3"],
-                capture_output=True, text=True, timeout=deadline_s + 10, cwd=REPO,
-            )
-            if out.returncode == 0:
-                data: dict[str, Any] = json.loads(out.stdout)
-                return data
+            try:
+                return request(self.run_dir, "status", 3.0)
+            except TrapflowError:
+                pass
             if self.proc.poll() is not None or time.monotonic() >= deadline:
                 return None
             time.sleep(0.2)

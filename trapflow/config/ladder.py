@@ -45,13 +45,17 @@ class LevelConfig(_Section):
     """One rung of the ladder."""
 
     name: Name
+    """The level's name, as `trapflow level NAME`, the status line and the ledger show it."""
     pools: dict[Name, PoolLevel] = {}
+    """pool -> what the level does to it; pools not named run as configured."""
 
 
 class TriggerConfig(_Section):
     """One sensor, its thresholds per level and its dwell."""
 
     sensor: Sensor
+    """What is read: cpu_temp_c, load_per_core, pool_backlog (pairs), pool_latency_ms,
+    disk_free_mb, disk_free_pct, outbox_backlog (records) or battery_v."""
     pool: str = ""
     """The pool whose backlog or latency is read (pool_backlog, pool_latency_ms only)."""
     enter: dict[Name, float] = {}

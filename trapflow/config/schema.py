@@ -108,18 +108,32 @@ class SourceConfig(_Section):
     """Where pairs come from and how they are encoded."""
 
     kind: str = "synthetic"
+    """Where pairs come from: synthetic, video, images, v4l2, picamera2, gst or replay (`--source
+    KIND:ARGS`; docs/cli.md#sources)."""
     uri: str = ""
+    """The kind's location: files, a folder, devices, GStreamer pipelines or a recording (the ARGS
+    of `--source KIND:ARGS`); empty for synthetic."""
     rate_hz: Annotated[float, msgspec.Meta(gt=0, le=240)] = 15.0
+    """Pairs per second capture produces (a recording at its recorded pace unless replayed with
+    `--rate`)."""
     width: Annotated[int, msgspec.Meta(ge=16, le=8192)] = 1280
+    """Image width in pixels (of the synthetic world, or asked of a camera)."""
     height: Annotated[int, msgspec.Meta(ge=16, le=8192)] = 720
-    # raw: the ring holds the decoded frames; every local pool reads them, nothing decodes.
-    # jpeg: capture encodes each side (~3 ms at 1280x720) and every pool decodes it again.
+    """Image height in pixels (of the synthetic world, or asked of a camera)."""
     encoding: Literal["jpeg", "raw"] = "raw"
+    """raw: the ring holds the decoded frames and every local pool reads them as they are; jpeg:
+    capture encodes each side (~3 ms at 1280x720) and every pool decodes it again."""
     jpeg_quality: Annotated[int, msgspec.Meta(ge=1, le=100)] = DEFAULT_JPEG_QUALITY
+    """JPEG quality of pairs on the wire and in recordings (1..100)."""
     seed: int = 1
+    """Random seed of the synthetic world (1: crabs walk in after 3 s)."""
     moving: bool = False
+    """The synthetic rig moves along a known trajectory."""
     loop: bool = False
+    """Start a finite source again when it is exhausted (else the run ends once every pool has
+    drained)."""
     options: dict[str, Any] = {}
+    """Options of the source kind (e.g. the synthetic world's `tag_size_m`, a replay's `rate`)."""
 
     @property
     def waits_for_pools(self) -> bool:
@@ -138,20 +152,33 @@ class RigConfig(_Section):
     """The stereo rig: baseline and field of view (or a calibration file)."""
 
     baseline_m: Annotated[float, msgspec.Meta(gt=0, le=10)] = 0.12
+    """Distance between the two cameras in metres, where the source knows none."""
     hfov_deg: Annotated[float, msgspec.Meta(gt=1, lt=179)] = 70.0
+    """Horizontal field of view in degrees, where no calibration gives one."""
     calibration: str | None = None
+    """Path of a stereo calibration file (docs/calibration.md); it overrides everything else."""
 
 
 class PoolConfig(_Section):
     """One pool of identical worker processes running one algorithm."""
 
     count: Annotated[int, msgspec.Meta(ge=0, le=64)] = 1
-    plugin: str = ""  # registry name or module:Class; empty means the pool's own name
+    """Worker processes on this host (0 switches the pool off, or with `remote: true` leaves it to
+    other hosts)."""
+    plugin: str = ""
+    """Registry name or `module:Class` of the plugin; empty: the pool's own name."""
     policy: str = "latest"
+    """Queueing policy: `latest` (only the newest pair waits), `fifo:N` or `ordered[:N]` (one
+    worker, in order; a drop reaches it as a gap)."""
     nice: Annotated[int, msgspec.Meta(ge=0, le=19)] = 0
+    """Niceness added to the pool's processes (0..19), so visual odometry keeps its rate."""
     affinity: list[Annotated[int, msgspec.Meta(ge=0)]] = []
+    """CPU cores the pool's processes may run on; empty: all."""
     credit: Annotated[int, msgspec.Meta(ge=1, le=64)] = 1
-    timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 10.0  # per pair; kills a hung worker
+    """Pairs a worker may hold at once (prefetch)."""
+    timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 10.0
+    """A pair taking a worker longer than this is lost, the worker evicted and its process
+    killed."""
     max_rss_mb: Annotated[int, msgspec.Meta(ge=0, le=1 << 20)] = 0
     """A worker whose resident memory (MiB) is past this after a pair is recycled: it
     finishes the pair, says goodbye and is replaced at once (0: no limit)."""
@@ -160,13 +187,18 @@ class PoolConfig(_Section):
     max_pending_age_s: Annotated[float, msgspec.Meta(ge=0, le=86400)] = 0.0
     """Pairs waiting in the pool's queue longer than this are dropped as stale (0: kept)."""
     params: dict[str, Any] = {}
-    remote: bool = False  # workers on another host: the broker sends them the bytes
+    """Passed to the plugin's `configure()` (docs/plugins.md lists the built-in plugins' params)."""
+    remote: bool = False
+    """Workers on other hosts may join (`trapflow worker`); the broker sends them the bytes."""
     gate: Literal["always", "motion"] = "always"
     """always: every pair; motion: only pairs the motion gate lets through (the `gate:`
     section: motion, pre-roll, keep-alive, hold); the rest are counted `gated`."""
     debug: bool = False
+    """The pool's processes log at debug level."""
     save: bool = False
+    """The plugin may save debug images into the run directory (debug/)."""
     time: bool = False
+    """Log each pair's processing time."""
 
     def __post_init__(self) -> None:
         policy = parse_policy(self.policy)  # raises ValueError, reported with the key path
@@ -186,8 +218,11 @@ class NormalizerConfig(_Section):
     """The sink that writes one JSON object per result."""
 
     results_file: str = "results.jsonl"
+    """The results file, in the run directory."""
     flush_interval_s: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.5
+    """Results reach the file at least this often."""
     fsync_interval_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 5.0
+    """Results reach the disk (fsync) at least this often."""
     decimals: Annotated[int, msgspec.Meta(ge=0, le=9)] = 3
     """Digits kept in the float fields of plugin-defined results (built-in fields keep theirs)."""
 
@@ -196,6 +231,7 @@ class ObserveConfig(_Section):
     """Detections become observations: tracks, visits and interval counts (MaxN)."""
 
     enabled: bool = True
+    """Track the detector pools' boxes and write tracks and interval counts."""
     tracks_file: str = "tracks.jsonl"
     """Finished tracks, one JSON object each, in the run directory."""
     counts_file: str = "counts.jsonl"
@@ -241,7 +277,7 @@ class RecordingConfig(_Section):
 
 
 class EnergyConfig(_Section):
-    """The power model ledger.json's energy estimate uses (trapflow.gate.energy.BOARDS)."""
+    """The power model ledger.json's energy estimate uses (trapflow.power.energy.BOARDS)."""
 
     board: Literal["pi5", "orin_nano"] = "pi5"
     """Board whose power model turns CPU time into watts."""
@@ -254,7 +290,7 @@ class EnergyConfig(_Section):
 
 
 class MotionGateConfig(_Section):
-    """The motion gate's rules for every pool with `gate: motion` (README "Motion gate")."""
+    """The motion gate's rules for every pool with `gate: motion` (docs/gate-and-energy.md)."""
 
     pre_roll: Annotated[int, msgspec.Meta(ge=0, le=100)] = 5
     """Withheld pairs kept in the frame ring and fed in order when motion begins; a
@@ -270,10 +306,10 @@ class MotionGateConfig(_Section):
     """While the gate is open (motion, hold, a live track), at most this many pairs per
     second of capture time to each gated pool (0: every pair); the first pair of a motion
     onset and its pre-roll always go, the rest are counted `gated`. Tracks and counts keep
-    (the tracker bridges the gaps); a length gets fewer views (README "Motion gate")."""
+    (the tracker bridges the gaps); a length gets fewer views (docs/gate-and-energy.md)."""
     rig_moving_m_s: Annotated[float, msgspec.Meta(gt=0, le=100)] = 0.05
     """Visual odometry's speed from which the rig moves: the gate is off (every pair fed)
-    until it is still again (README "Motion gate")."""
+    until it is still again (docs/gate-and-energy.md)."""
     rig_moving_deg_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 3.0
     """VO's rotation rate from which the rig moves."""
     rig_still_s: Annotated[float, msgspec.Meta(ge=0, le=3600)] = 2.0
@@ -289,15 +325,23 @@ class SupervisorConfig(_Section):
     """Heartbeats, restarts and the stop ladder."""
 
     heartbeat_interval_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 1.0
+    """Every node sends a heartbeat this often."""
     liveness_s: Annotated[float, msgspec.Meta(gt=0, le=600)] = 5.0
+    """A node (or a remote worker host) silent this long is taken for dead: restarted, or its
+    workers evicted (a worker busy with a pair: its pool's timeout_s)."""
     restart_backoff_s: Annotated[float, msgspec.Meta(ge=0, le=60)] = 0.5
+    """First restart delay, doubled at each restart."""
     restart_backoff_max_s: Annotated[float, msgspec.Meta(ge=0, le=600)] = 10.0
+    """Longest restart delay."""
     max_restarts: Annotated[int, msgspec.Meta(ge=0)] = 5
+    """Restarts of a node allowed within restart_window_s before it is given up."""
     restart_window_s: Annotated[float, msgspec.Meta(gt=0)] = 60.0
+    """The window in which max_restarts are counted."""
     retry_cooldown_s: Annotated[float, msgspec.Meta(ge=0, le=86400)] = 60.0
     """A node given up (its restart budget spent) is retried this long after, with a fresh
     budget; essential nodes (broker, capture, normalizer) are never given up."""
     stop_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=4)] = 2.0
+    """Stop ladder: a node asked to stop has this long before it is killed."""
     startup_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 60.0
     """How long every node has to report its first state before start-up is declared
     failed; more on a slow board or under emulation, where imports and the synthetic
@@ -308,7 +352,9 @@ class LogFileConfig(_Section):
     """trapflow.log in the run directory: rotated at max_bytes, keeping `backups` old files."""
 
     max_bytes: Annotated[int, msgspec.Meta(ge=65536)] = 10 << 20
+    """trapflow.log is rotated when it reaches this size."""
     backups: Annotated[int, msgspec.Meta(ge=1, le=100)] = 3
+    """Old logs kept (trapflow.log.1 .. trapflow.log.N)."""
 
 
 def _is_loopback(host: str) -> bool:
@@ -363,6 +409,8 @@ class NetworkConfig(_Section):
     """Kept for older configs: since issue 26 item 3 `tcp` puts nothing on TCP ports (other
     local users read frames and forged results there); every local socket is ipc."""
     host: str = "127.0.0.1"
+    """Kept for older configs: a loopback address only (the pipeline's endpoints never leave the
+    host)."""
     base_port: Annotated[int, msgspec.Meta(ge=1024, le=65000)] = 5550
     """Kept for older configs; no socket uses it (see transport)."""
     remote: RemoteConfig = msgspec.field(default_factory=RemoteConfig)
@@ -431,6 +479,8 @@ class Config(_Section):
     source: SourceConfig = msgspec.field(default_factory=SourceConfig)
     rig: RigConfig = msgspec.field(default_factory=RigConfig)
     pools: dict[str, PoolConfig] = msgspec.field(default_factory=_default_pools)
+    """One pool of worker processes per algorithm, by name; a pool a config names changes only the
+    keys it gives (the defaults: mono, stereo, vo, tags)."""
     normalizer: NormalizerConfig = msgspec.field(default_factory=NormalizerConfig)
     observe: ObserveConfig = msgspec.field(default_factory=ObserveConfig)
     export: ExportConfig = msgspec.field(default_factory=ExportConfig)
@@ -447,6 +497,8 @@ class Config(_Section):
     viewer: ViewerConfig = msgspec.field(default_factory=ViewerConfig)
     ladder: LadderConfig = msgspec.field(default_factory=LadderConfig)
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    """Least level logged by every process to trapflow.log (standard error shows warnings
+    and above)."""
     log_file: LogFileConfig = msgspec.field(default_factory=LogFileConfig)
 
     def __post_init__(self) -> None:

@@ -101,7 +101,7 @@ def _detector_variants(rig: StereoRig, params: dict[str, Any], n: int,
     arrays at every step); a JPEG pair decoded whole and at the detector's DCT reduction."""
     from trapflow_workers.yolo_preprocess import allocate_tensor
 
-    from trapflow.stages.pair_path import decode_pair
+    from trapflow.pools.pair_path import decode_pair
     from trapflow.wire import jpeg
     from trapflow.wire.messages import StereoPair
 

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from trapflow.gate.energy import BOARDS, cpu_from_rates, days_on_battery, estimate
+from trapflow.power.energy import BOARDS, cpu_from_rates, days_on_battery, estimate
 
 RECOGNISERS = ("mono", "stereo")
 ANIMALS = ("crab", "scallop")

@@ -5,7 +5,7 @@ Every pair is rendered and goes through the packaged stereo VO plugin; every `--
 pair's animals (truth boxes of animals at most 10 % hidden, wholly inside the image) are
 measured by the stereo measurement and grouped into tracks by their true identity, so the
 numbers are the measurement's and the rig-motion removal's, not the tracker's. A track's
-speed is the observation stage's own (trapflow.observe.stage.aggregate: a straight line
+speed is the observation stage's own (trapflow.tracking.stage.aggregate: a straight line
 through its 3-D positions, in VO's world frame); the truth is the same line through the
 animal's true positions in the true world frame at the same times. Only tracks whose true
 speed is at least --min-speed m/s are scored (a resting scallop has no relative error).
@@ -32,10 +32,10 @@ from bench_measure import usable
 
 from trapflow.calibration.camera import StereoRig
 from trapflow.measure.stereo import Measured, measure
-from trapflow.observe.rigpose import RigPoses
-from trapflow.observe.stage import MIN_SPEED_VIEWS, View, aggregate
 from trapflow.synth.options import SynthOptions
 from trapflow.synth.render import World
+from trapflow.tracking.rigpose import RigPoses
+from trapflow.tracking.stage import MIN_SPEED_VIEWS, View, aggregate
 
 HELD_OUT_SEEDS = (9111, 9112, 9113, 9114)
 

@@ -45,12 +45,12 @@ import numpy as np
 import yaml
 
 from trapflow.calibration.camera import StereoRig
-from trapflow.observe.assign import iou_matrix
-from trapflow.observe.motformat import MotRow, read_mot, track_rows
-from trapflow.observe.tracker import TrackerConfig
 from trapflow.synth.dataset import labelled
 from trapflow.synth.options import SynthOptions
 from trapflow.synth.render import World
+from trapflow.tracking.assign import iou_matrix
+from trapflow.tracking.motformat import MotRow, read_mot, track_rows
+from trapflow.tracking.tracker import TrackerConfig
 from trapflow.wire.messages import Truth
 
 FPS = 15.0

@@ -20,7 +20,7 @@ the same frames for both models:
   - CrabDetector as a pool runs it (its defaults: INTER_LINEAR letterbox, NMS 0.45): mAP@0.5
     per class, and recall and precision at its default confidence 0.25 (IoU >= 0.5), on
     the raw frames and on their JPEGs (quality 90) decoded as a worker decodes them for the
-    detector (at 1/4: trapflow.stages.pair_path.decode_pair);
+    detector (at 1/4: trapflow.pools.pair_path.decode_pair);
   - ms per inference (session.run on the same letterboxed inputs, fp32 and int8 alternating,
     the plugin's session options: 1 intra-op thread, no spinning).
 Writes quantize_detector.json and quantize_detector.md into --out.
@@ -50,7 +50,7 @@ from trapflow_workers.yolo_preprocess import Preprocessor
 from tests.kits.context import make_context
 from trapflow.calibration.camera import StereoRig
 from trapflow.plugin import Pair
-from trapflow.stages.pair_path import decode_pair
+from trapflow.pools.pair_path import decode_pair
 from trapflow.wire import jpeg
 from trapflow.wire.messages import StereoPair
 

@@ -9,10 +9,10 @@ import cv2
 import numpy as np
 
 from trapflow.calibration.camera import StereoRig
-from trapflow.observe.assign import iou_matrix as iou
 from trapflow.synth.dataset import labelled
 from trapflow.synth.options import SynthOptions
 from trapflow.synth.render import World
+from trapflow.tracking.assign import iou_matrix as iou
 
 DET_SIZE = 320  # detector input, square, letterboxed
 DET_CLASSES = ("crab", "scallop")

@@ -33,7 +33,7 @@ from bench_tracking import (
     run_trapflow,
 )
 
-from trapflow.observe.tracker import TrackerConfig
+from trapflow.tracking.tracker import TrackerConfig
 
 # The values tried per parameter; noise.* are the Kalman filter's Noise fields.
 GRID: dict[str, Sequence[float]] = {

@@ -26,10 +26,10 @@ from trapflow.wire import messages
 
 
 def vo_line(reinit: bool = False, ok: bool = True) -> dict[str, Any]:
-    """A VO line as the normalizer writes it (trapflow.stages.result_json), with Rt (when ok)
+    """A VO line as the normalizer writes it (trapflow.normalizer.result_json), with Rt (when ok)
     and pose: a small step about a skew axis, a pose far from the start (a large turn, metres
     away)."""
-    from trapflow.stages.result_json import normalize
+    from trapflow.normalizer.result_json import normalize
 
     step = cv2.Rodrigues(np.array([0.0031, -0.0122, 0.0007]))[0]
     pose = np.hstack([cv2.Rodrigues(np.array([0.4, -1.9, 0.25]))[0],

@@ -1,7 +1,7 @@
 """A JPEG decoded at a reduced DCT scale gives the detector the detections of a full decode.
 
 The kit's YOLOv8n (640x640 input) on its real photos, decoded as a worker decodes a JPEG
-pair for the detector (trapflow.stages.pair_path.decode_pair: the largest DCT reduction that still
+pair for the detector (trapflow.pools.pair_path.decode_pair: the largest DCT reduction that still
 covers the letterboxed image) against the full decode of the same bytes. zidane.jpg
 (1280x720, letterboxed to 640x360) is decoded at 1/2; bus.jpg (810x1080, letterboxed to
 480x640) is less than twice that and is decoded whole, so its detections are identical.
@@ -30,7 +30,7 @@ from tests.conformance.detections import Det, assert_same
 from tests.kits.context import make_context
 from trapflow.calibration.camera import StereoRig
 from trapflow.plugin import Pair
-from trapflow.stages.pair_path import decode_pair
+from trapflow.pools.pair_path import decode_pair
 from trapflow.wire import jpeg
 
 KIT = "04_onnx_detectors"

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import REPO, Pipeline, only_pools, write_config
-from trapflow.observe.motformat import read_mot
+from trapflow.tracking.motformat import read_mot
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
 

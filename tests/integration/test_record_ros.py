@@ -27,7 +27,7 @@ from rosbags.highlevel import AnyReader
 
 from tests.conformance.conftest import realdata_root
 from tests.conftest import REPO, Pipeline, poll_for
-from trapflow.stages.result_json import SCHEMA_VERSION
+from trapflow.normalizer.result_json import SCHEMA_VERSION
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
 

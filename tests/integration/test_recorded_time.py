@@ -23,7 +23,7 @@ from tests.conftest import (
     run_process,
     write_config,
 )
-from trapflow.stages.result_json import timestamp
+from trapflow.normalizer.result_json import timestamp
 
 LEFT = "/trapflow/left/image/compressed"
 

@@ -80,7 +80,7 @@ def test_jpeg_pair_decoded_to_cover_the_input_classifies_alike(tmp_path: Path) -
     """The classifier resizes each image to its input (128x64 here): a 1280x720 JPEG pair
     is decoded at 1/8 (160x90), and the scene comes out the same as from the full decode."""
     from tests import builders
-    from trapflow.stages.pair_path import decode_image, decode_pair
+    from trapflow.pools.pair_path import decode_image, decode_pair
 
     clf = _classifier(tmp_path, "concat_channels")
     assert clf.max_size == (128, 64)

@@ -205,7 +205,7 @@ def test_jpeg_decoded_at_reduced_scale_gives_boxes_in_frame_pixels(
     output ignores the pixels the boxes equal those of the full frame exactly."""
     from tests import builders
     from trapflow.calibration.camera import StereoRig
-    from trapflow.stages.pair_path import decode_pair
+    from trapflow.pools.pair_path import decode_pair
 
     w, h = size
     det = CrabDetector()

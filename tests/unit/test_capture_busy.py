@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import pytest
 
-from trapflow.stages.capture_busy import WAIT_S, Busy, Choice, Drop, Wait, when_busy
+from trapflow.capture.busy import WAIT_S, Busy, Choice, Drop, Wait, when_busy
 
 
 @pytest.mark.parametrize(("busy", "finite", "stopping", "want"), [

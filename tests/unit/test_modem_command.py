@@ -4,7 +4,6 @@ files, the surface's grammar and its client's corrections."""
 
 from __future__ import annotations
 
-import os
 import time
 from pathlib import Path
 
@@ -412,10 +411,10 @@ def test_each_command_becomes_its_control_request(cmd: Command, expected: object
 
 
 @pytest.mark.parametrize("mode, content, error", [
-    (0o600, os.urandom(32), None),
-    (0o400, os.urandom(16), None),
-    (0o640, os.urandom(32), "readable by group or others .mode 640.*chmod 600"),
-    (0o604, os.urandom(32), "mode 604"),
+    (0o600, bytes(range(7, 7 + 32)), None),
+    (0o400, bytes(range(7, 7 + 16)), None),
+    (0o640, bytes(range(7, 7 + 32)), "readable by group or others .mode 640.*chmod 600"),
+    (0o604, bytes(range(7, 7 + 32)), "mode 604"),
     (0o600, b"short", "at least 16 bytes, got 5"),
 ])
 def test_key_file_rules(tmp_path: Path, mode: int, content: bytes, error: str | None) -> None:

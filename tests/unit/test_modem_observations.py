@@ -10,8 +10,8 @@ from typing import Any
 import pytest
 
 from trapflow.modem.codec import GENERIC, LinkCodec
-from trapflow.observe.counts import RunNews
-from trapflow.observe.stage import modem_counts, modem_news, modem_track
+from trapflow.tracking.counts import RunNews
+from trapflow.tracking.stage import modem_counts, modem_news, modem_track
 
 T0 = 1_795_617_060.526  # 2026-11-25
 

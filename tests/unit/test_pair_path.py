@@ -15,7 +15,7 @@ import pytest
 from tests import builders
 from trapflow.errors import ProtocolError
 from trapflow.plugin import Pair, Worker
-from trapflow.stages.pair_path import Need, process_pair
+from trapflow.pools.pair_path import Need, process_pair
 from trapflow.wire import messages
 
 

@@ -17,7 +17,7 @@ from tests import builders
 from tests.builders import vo_circle, vo_plugin
 from tests.kits.context import make_pair
 from trapflow.errors import WorkerError
-from trapflow.stages.pair_path import decode_image
+from trapflow.pools.pair_path import decode_image
 
 
 def _jpeg(img: np.ndarray) -> bytes:

@@ -18,7 +18,7 @@ from trapflow.broker.trust import local_msg
 from trapflow.cli.main import main
 from trapflow.config import schema as configmod
 from trapflow.errors import ConfigError, ProtocolError, StartupError
-from trapflow.stages.remote_worker import config_from
+from trapflow.pools.remote_worker import config_from
 from trapflow.wire import messages
 from trapflow.wire.keys import generate
 from trapflow.wire.transport import (

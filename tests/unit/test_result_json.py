@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from tests import builders
-from trapflow.stages.result_json import SCHEMA_VERSION, dumps, normalize, timestamp
+from trapflow.normalizer.result_json import SCHEMA_VERSION, dumps, normalize, timestamp
 from trapflow.wire import messages
 
 T = 1751892763120000000  # 2025-07-07 12:52:43.120 UTC

@@ -1,4 +1,4 @@
-"""The README's results.jsonl table and trapflow.stages.result_json agree, key by key.
+"""The README's results.jsonl table and trapflow.normalizer.result_json agree, key by key.
 
 Regression (issue 15): docs/plugins.md described VO lines as `rotation`/`translation` while
 results.jsonl writes `Rt`, and no document listed `calib`, `model` or `v`. Every body type a
@@ -17,8 +17,8 @@ from pathlib import Path
 import pytest
 
 from trapflow.config.schema import ObserveConfig
-from trapflow.observe.stage import Observer
-from trapflow.stages.result_json import normalize
+from trapflow.normalizer.result_json import normalize
+from trapflow.tracking.stage import Observer
 from trapflow.wire import messages
 
 README = Path(__file__).resolve().parents[2] / "README.md"

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from trapflow.config.schema import EventsConfig, TriggerRule
-from trapflow.stages.events import EventCapture, fires
+from trapflow.events.clips import EventCapture, fires
 from trapflow.wire.messages import StereoPair
 
 PERIOD = 100_000_000  # 10 Hz

@@ -15,7 +15,7 @@ import pytest
 from tests.builders import image, jpeg, pair_header, result
 from trapflow.broker.preview import PreviewClock, drawn_pools
 from trapflow.errors import ProtocolError
-from trapflow.stages.result_json import dumps, normalize
+from trapflow.normalizer.result_json import dumps, normalize
 from trapflow.viewer.state import LiveCounts, ViewState
 from trapflow.wire import jpeg as wire_jpeg
 from trapflow.wire import messages, tap_msgs

@@ -11,7 +11,7 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from trapflow.cli.view_params import parse_view
 from trapflow.errors import ProtocolError
-from trapflow.stages.result_json import dumps, normalize
+from trapflow.normalizer.result_json import dumps, normalize
 from trapflow.viewer import metrics
 from trapflow.viewer.state import Histogram, ViewState, parse_timestamp
 from trapflow.wire import messages

@@ -28,12 +28,12 @@ from trapflow.calibration.camera import StereoRig
 from trapflow.config import schema as configmod
 from trapflow.config.schema import Config
 from trapflow.errors import WorkerError
+from trapflow.normalizer.result_json import dumps, normalize
 from trapflow.plugin import Context, Pair, Worker
+from trapflow.pools.pair_path import Need, process_pair
 from trapflow.sources.base import SkipPair, Source
 from trapflow.sources.factory import open_source
 from trapflow.sources.rig import describe, mismatch, run_calibration
-from trapflow.stages.pair_path import Need, process_pair
-from trapflow.stages.result_json import dumps, normalize
 from trapflow.wire import jpeg, messages
 
 log = logging.getLogger(__name__)

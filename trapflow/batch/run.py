@@ -35,9 +35,9 @@ from trapflow.batch.plan import (
 )
 from trapflow.config.schema import Config
 from trapflow.errors import ConfigError
-from trapflow.observe.rigpose import RigPoses
-from trapflow.observe.stage import track_pairs
-from trapflow.stages.result_json import dumps, parse_timestamp
+from trapflow.normalizer.result_json import dumps, parse_timestamp
+from trapflow.tracking.rigpose import RigPoses
+from trapflow.tracking.stage import track_pairs
 
 log = logging.getLogger(__name__)
 

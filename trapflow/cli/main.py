@@ -188,7 +188,7 @@ def view(run_dir: Path, config_path: str | None, listen: tuple[str, int] | None,
 def tap(what: str, count: int | None, save_frames: Path | None, run_dir: Path,
         endpoint: tuple[str, ...], timeout: float | None) -> None:
     """Attach to a running pipeline and print one line per message."""
-    from trapflow.wire.tap import run_tap
+    from trapflow.cli.tap import run_tap
 
     try:
         n = run_tap(what, run_dir, list(endpoint), count, save_frames, timeout,

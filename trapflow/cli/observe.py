@@ -9,8 +9,8 @@ import click
 from trapflow.cli.exit import bad_input
 from trapflow.config.schema import ObserveConfig
 from trapflow.errors import TrapflowError
-from trapflow.observe.motformat import track_file
-from trapflow.observe.stage import tracker_config
+from trapflow.tracking.motformat import track_file
+from trapflow.tracking.stage import tracker_config
 
 
 @click.command("track")

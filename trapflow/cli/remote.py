@@ -58,7 +58,7 @@ def worker(endpoint: str, pool: str, count: int, keys: Path | None, host_name: s
     """Join a running pipeline's pool from this host: COUNT workers, restarted if they die."""
     import logging
 
-    from trapflow.stages.remote_worker import run
+    from trapflow.pools.remote_worker import run
 
     if keys is None and not _loopback(endpoint):
         raise bad_input(f"--connect {endpoint}: expected --keys DIR for a host beyond loopback "

@@ -434,7 +434,7 @@ KINDS: dict[int, tuple[str, list[tuple[str, tuple[Enc, Dec]]]]] = {
                    ("watts", _fixed(10)), ("days", _fixed(10))]),
     6: ("aggregate", [("class", STR), ("from", TS), ("to", TS), ("count", UINT),
                       ("best", (_enc_records, _dec_records))]),
-    # A finished track (trapflow.observe.stage.modem_track). Common case, 12 bytes after
+    # A finished track (trapflow.tracking.stage.modem_track). Common case, 12 bytes after
     # the kind byte: field mask 1, id 1, label 1, start 4, duration 1, confidence 1,
     # measured 3 (ids under 128, a label of the table, under two minutes, a crab's size).
     7: ("track", [("id", UINT), ("label", LABEL), ("start", SECS), ("duration_s", UINT),
@@ -442,7 +442,7 @@ KINDS: dict[int, tuple[str, list[tuple[str, tuple[Enc, Dec]]]]] = {
                   ("pairs", UINT)]),
     8: ("counts", [("start", SECS), ("minutes", UINT), ("pairs", UINT),
                    ("labels", (_enc_label_counts, _dec_label_counts))]),
-    # The run's news (trapflow.observe.stage.modem_news), 8 bytes after the kind byte for
+    # The run's news (trapflow.tracking.stage.modem_news), 8 bytes after the kind byte for
     # a label of the table and an id under 128: a label's first track, a new run-wide MaxN.
     9: ("new_label", [("label", LABEL), ("time", SECS), ("track", UINT)]),
     10: ("new_max_n", [("label", LABEL), ("time", SECS), ("max_n", UINT)]),

@@ -17,7 +17,7 @@ import psutil
 
 from trapflow.config.modem import HealthConfig
 from trapflow.config.schema import EnergyConfig
-from trapflow.gate.energy import BOARDS, estimate
+from trapflow.power.energy import BOARDS, estimate
 
 PoolRates = dict[str, tuple[float, int]]  # pool -> (results per second, drops so far)
 

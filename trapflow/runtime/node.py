@@ -44,13 +44,13 @@ EXIT_CRASHED = 1
 
 # Role -> Node class; the supervisor spawns nodes by role name.
 ROLES = {
-    "capture": "trapflow.stages.capture:CaptureNode",
+    "capture": "trapflow.capture.node:CaptureNode",
     "broker": "trapflow.broker.node:BrokerNode",
-    "worker": "trapflow.stages.worker:WorkerNode",
-    "remote_worker": "trapflow.stages.remote_worker:RemoteWorkerNode",  # `trapflow worker`
-    "normalizer": "trapflow.stages.normalizer:NormalizerNode",
+    "worker": "trapflow.pools.worker:WorkerNode",
+    "remote_worker": "trapflow.pools.remote_worker:RemoteWorkerNode",  # `trapflow worker`
+    "normalizer": "trapflow.normalizer.node:NormalizerNode",
     "modem": "trapflow.modem.node:ModemNode",
-    "events": "trapflow.stages.events_node:EventsNode",
+    "events": "trapflow.events.node:EventsNode",
     "viewer": "trapflow.viewer.node:ViewerNode",
 }
 

@@ -18,7 +18,7 @@ import msgspec
 
 from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import Config, EnergyConfig
-from trapflow.gate.energy import BOARDS, estimate
+from trapflow.power.energy import BOARDS, estimate
 from trapflow.supervisor import ledger as run_ledger
 from trapflow.supervisor import run_meta, status_line
 from trapflow.supervisor import summary as run_summary
@@ -56,7 +56,7 @@ class Snapshot:
     rig_origin: str
     source_where: str
     ring: FrameRing | None
-    cpu_s: dict[str, float]  # CPU seconds per role so far (trapflow.supervisor.cpu)
+    cpu_s: dict[str, float]  # CPU seconds per role so far (trapflow.power.cpu)
 
 
 def energy_section(cfg: EnergyConfig, cpu_s: dict[str, float], wall_s: float,

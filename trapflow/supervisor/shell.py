@@ -29,6 +29,7 @@ from trapflow import registry
 from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import Config
 from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError, unreachable
+from trapflow.power.cpu import CpuMeter
 from trapflow.runtime import sdnotify
 from trapflow.runtime.lifecycle import RECYCLE_EXITS
 from trapflow.runtime.node import NodeSpec, node_main
@@ -51,7 +52,6 @@ from trapflow.supervisor.actions import (
     WorkerGone,
 )
 from trapflow.supervisor.control_server import BrokerLink, Control
-from trapflow.supervisor.cpu import CpuMeter
 from trapflow.supervisor.ladder import Ladder
 from trapflow.supervisor.ledger import RunLedger
 from trapflow.supervisor.report import NodeView, Report, Snapshot

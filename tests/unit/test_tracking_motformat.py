@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from trapflow.errors import TrapflowError
-from trapflow.observe.motformat import (
+from trapflow.tracking.motformat import (
     MotFormatError,
     MotRow,
     read_fps,

@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 import msgspec
 import numpy as np
 
-from trapflow.observe.assign import assign, iou_matrix
-from trapflow.observe.kalman import BoxFilter, Noise
+from trapflow.tracking.assign import assign, iou_matrix
+from trapflow.tracking.kalman import BoxFilter, Noise
 
 Box = tuple[float, float, float, float]
 

@@ -19,6 +19,7 @@ import msgspec
 import numpy as np
 import zmq
 
+from trapflow.capture.busy import Busy, Drop, Wait, when_busy
 from trapflow.errors import unreachable
 from trapflow.gate.duty import DutyCycle
 from trapflow.gate.motion import MotionConfig, MotionDetector
@@ -28,7 +29,6 @@ from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.sources.base import Frames, SkipPair, Source, SourceError
 from trapflow.sources.factory import open_source
 from trapflow.sources.rig import mismatch, run_calibration
-from trapflow.stages.capture_busy import Busy, Drop, Wait, when_busy
 from trapflow.wire import jpeg, messages, tap_msgs
 from trapflow.wire.frame_ring import RingError, RingWriter
 from trapflow.wire.transport import LinkClient, LinkClosed, SocketSpec, open_socket

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import msgspec
 
-from trapflow.observe.tracker import TrackEnd
+from trapflow.tracking.tracker import TrackEnd
 
 DEFAULT_INTERVAL_S = 600.0
 

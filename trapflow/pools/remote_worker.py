@@ -26,10 +26,10 @@ from trapflow import registry
 from trapflow.calibration.camera import StereoRig
 from trapflow.config import schema as configmod
 from trapflow.errors import ConfigError, ProtocolError, StartupError
+from trapflow.pools.worker import WorkerNode
 from trapflow.runtime.lifecycle import RECYCLE_EXITS
 from trapflow.runtime.logchannel import LogListener
 from trapflow.runtime.node import JoinSpec, NodeSpec, node_main
-from trapflow.stages.worker import WorkerNode
 from trapflow.wire import identity, messages
 from trapflow.wire.transport import SocketSpec, client_keys, log_endpoint, new_context, open_socket
 

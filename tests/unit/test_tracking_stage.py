@@ -9,7 +9,7 @@ from typing import Any
 import pytest
 
 from trapflow.config.schema import ObserveConfig
-from trapflow.observe.stage import Observer, View, aggregate
+from trapflow.tracking.stage import Observer, View, aggregate
 
 T0_NS = 1_764_000_000 * 10**9
 

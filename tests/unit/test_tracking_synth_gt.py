@@ -10,8 +10,8 @@ import pytest
 from click.testing import CliRunner
 
 from trapflow.cli.dataset import dataset
-from trapflow.observe.motformat import read_fps, read_mot
 from trapflow.synth.dataset import mot_gt_lines
+from trapflow.tracking.motformat import read_fps, read_mot
 from trapflow.wire.messages import Truth, TruthObject
 
 GT_LINES = [

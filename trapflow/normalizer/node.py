@@ -22,11 +22,11 @@ from trapflow.errors import ProtocolError
 from trapflow.gate.hint import HintPacer, RigMotion
 from trapflow.gate.policy import gated_pools, rig_config
 from trapflow.modem.outbox import Outbox, OutboxFull
-from trapflow.observe.rigpose import RigPoses
-from trapflow.observe.stage import Observations, Observer
+from trapflow.normalizer.result_json import dumps, normalize
 from trapflow.runtime.node import ACTIVE, FINALIZED, Node, NodeSpec, release_memory
 from trapflow.runtime.ratelog import RateLimitedLog
-from trapflow.stages.result_json import dumps, normalize
+from trapflow.tracking.rigpose import RigPoses
+from trapflow.tracking.stage import Observations, Observer
 from trapflow.wire import gate_msgs, messages, tap_msgs
 from trapflow.wire.transport import (
     LINK_RETRY_S,

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from trapflow.observe.assign import assign
-from trapflow.observe.tracker import Det, TrackEnd, Tracker, TrackerConfig, Update
+from trapflow.tracking.assign import assign
+from trapflow.tracking.tracker import Det, TrackEnd, Tracker, TrackerConfig, Update
 
 
 @dataclass(frozen=True)

@@ -12,9 +12,9 @@ import logging
 import zmq
 
 from trapflow.errors import ProtocolError
+from trapflow.events.clips import EventCapture
 from trapflow.runtime.node import ACTIVE, FINALIZED, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog
-from trapflow.stages.events import EventCapture
 from trapflow.wire import jpeg, tap_msgs
 from trapflow.wire.transport import SocketSpec, open_socket
 

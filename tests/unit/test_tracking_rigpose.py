@@ -9,8 +9,8 @@ import pytest
 
 from trapflow.batch.run import rig_poses
 from trapflow.config.schema import ObserveConfig
-from trapflow.observe.rigpose import RigPoses, ground_positions
-from trapflow.observe.stage import View, aggregate, track_pairs
+from trapflow.tracking.rigpose import RigPoses, ground_positions
+from trapflow.tracking.stage import View, aggregate, track_pairs
 
 
 def _pose(x: float, yaw: float = 0.0) -> tuple[float, ...]:

@@ -19,9 +19,9 @@ import msgspec
 import numpy as np
 
 from trapflow.config.schema import ObserveConfig
-from trapflow.observe.counts import Counter, IntervalCounts, News, RunNews
-from trapflow.observe.rigpose import RigPoses, ground_positions
-from trapflow.observe.tracker import Det, TrackEnd, Tracker, TrackerConfig
+from trapflow.tracking.counts import Counter, IntervalCounts, News, RunNews
+from trapflow.tracking.rigpose import RigPoses, ground_positions
+from trapflow.tracking.tracker import Det, TrackEnd, Tracker, TrackerConfig
 
 # Labels a detector writes for "nothing here" (a line that keeps the pair in the ledger).
 NO_DETECTION = "none"

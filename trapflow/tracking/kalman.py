@@ -14,7 +14,7 @@ _H = np.hstack([np.eye(_DIM), np.zeros((_DIM, _DIM))])
 @dataclass(frozen=True)
 class Noise:
     """Noise levels relative to the box height, so one setting fits near and far animals
-    (defaults tuned with the tracker's thresholds, trapflow.observe.tracker.TrackerConfig)."""
+    (defaults tuned with the tracker's thresholds, trapflow.tracking.tracker.TrackerConfig)."""
 
     measure: float = 0.08
     """Standard deviation of a detected box's centre and sides, in box heights."""

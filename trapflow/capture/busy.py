@@ -1,6 +1,6 @@
 """Capture's choice when the ring has no free slot or the broker cannot take a pair now:
 wait (a file or recording: no clock to keep, so replay is lossless) or drop (a live camera:
-its next frame is coming). Pure; trapflow.stages.capture carries the choice out."""
+its next frame is coming). Pure; trapflow.capture.node carries the choice out."""
 
 from __future__ import annotations
 

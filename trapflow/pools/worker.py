@@ -24,10 +24,10 @@ import zmq
 from trapflow import registry
 from trapflow.errors import ProtocolError, WorkerError
 from trapflow.plugin import Context, Worker
+from trapflow.pools.pair_path import process_pair
 from trapflow.runtime.lifecycle import EXIT_RECYCLED_JOBS, EXIT_RECYCLED_RSS
 from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec, freeze_heap
 from trapflow.runtime.ratelog import RateLimitedLog
-from trapflow.stages.pair_path import process_pair
 from trapflow.wire import frame_msgs, identity, messages
 from trapflow.wire.frame_ring import RingError, RingReader
 from trapflow.wire.transport import (

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from trapflow.observe.counts import Counter, IntervalCounts, LabelCount, News, RunNews
-from trapflow.observe.tracker import TrackEnd
+from trapflow.tracking.counts import Counter, IntervalCounts, LabelCount, News, RunNews
+from trapflow.tracking.tracker import TrackEnd
 
 Step = tuple[float, dict[str, set[int]]]
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from trapflow.gate.energy import BOARDS, Board, cpu_from_rates, days_on_battery, estimate
+from trapflow.power.energy import BOARDS, Board, cpu_from_rates, days_on_battery, estimate
 
 PI5 = BOARDS["pi5"]
 ORIN = BOARDS["orin_nano"]

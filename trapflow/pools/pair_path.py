@@ -1,5 +1,5 @@
 """What happens to one pair at a pool, with no process around it: decode the frames as the
-plugin wants them, run the plugin, build the result. A worker (trapflow.stages.worker) and
+plugin wants them, run the plugin, build the result. A worker (trapflow.pools.worker) and
 a batch chunk (trapflow.batch.chunk) both call process_pair, so a result is made one way.
 """
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import msgspec
 
 from trapflow.errors import TrapflowError
-from trapflow.observe.tracker import Det, Tracker, TrackerConfig
+from trapflow.tracking.tracker import Det, Tracker, TrackerConfig
 
 # A MOT row's class column (8th) when it names none: detection files put -1 there.
 NO_CLASS_LABEL = "object"

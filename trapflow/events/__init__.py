@@ -1,0 +1,1 @@
+"""Events: stereo pairs kept around a configured result, in event folders."""

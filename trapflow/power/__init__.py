@@ -1,0 +1,1 @@
+"""Power: the energy model and the CPU metering it is fed by."""

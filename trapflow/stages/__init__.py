@@ -1,2 +1,0 @@
-"""The per-pair pipeline stages: capture, workers (local and remote), the normalizer and
-its result JSON, events."""

@@ -212,8 +212,9 @@ def test_config_is_a_leaf_that_imports_no_runtime_module() -> None:
             "print(' '.join(sorted(m for m in sys.modules if m.startswith('trapflow'))))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, timeout=60).stdout.split()
-    assert out == ["trapflow", "trapflow.config", "trapflow.config.ladder",
-                   "trapflow.config.modem", "trapflow.config.schema", "trapflow.errors"]
+    assert [m for m in out if not m.startswith("trapflow.config.")] == [
+        "trapflow", "trapflow.config", "trapflow.errors"]
+    assert {"trapflow.config.schema", "trapflow.config.pools", "trapflow.config.modem"} <= set(out)
 
 
 @pytest.mark.parametrize(("kind", "loop", "options", "waits"), [

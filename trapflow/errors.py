@@ -1,6 +1,6 @@
 """The exception hierarchy: every error trapflow raises on purpose derives from TrapflowError.
 
-Also the exit-code policy every command follows (README, "Exit status"): 0 when it did
+Also the exit-code policy every command follows (docs/cli.md, "Exit status"): 0 when it did
 what was asked, 1 when it ran and failed, 2 when it could not start as asked (a bad
 option, config or input named on the command line).
 

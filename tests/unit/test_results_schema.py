@@ -1,4 +1,4 @@
-"""The README's results.jsonl table and trapflow.normalizer.result_json agree, key by key.
+"""The results.jsonl table of docs/results.md and the result_json writer agree, key by key.
 
 Regression (issue 15): docs/plugins.md described VO lines as `rotation`/`translation` while
 results.jsonl writes `Rt`, and no document listed `calib`, `model` or `v`. Every body type a
@@ -21,7 +21,7 @@ from trapflow.normalizer.result_json import normalize
 from trapflow.tracking.stage import Observer
 from trapflow.wire import messages
 
-README = Path(__file__).resolve().parents[2] / "README.md"
+DOC = Path(__file__).resolve().parents[2] / "docs" / "results.md"
 PLUGIN_ROW = "*plugin name*"
 
 ROT = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
@@ -63,11 +63,12 @@ SHAPES: dict[type, list[messages.Msg]] = {
 EXTRA_FIELDS = {"range_m"}  # the plugin's own keys, not the schema's
 
 
-def _readme_table() -> dict[str, dict[str, str]]:
-    """kind -> {key: present} from the README's results.jsonl table."""
-    text = README.read_text(encoding="utf-8")
-    start = text.index("### results.jsonl")
-    section = text[start:text.index("\n## ", start)]
+def _doc_table() -> dict[str, dict[str, str]]:
+    """kind -> {key: present} from the results.jsonl table of docs/results.md."""
+    text = DOC.read_text(encoding="utf-8")
+    start = text.index("## results.jsonl")
+    end = text.find("\n## ", start + 1)
+    section = text[start:end if end >= 0 else len(text)]
     table: dict[str, dict[str, str]] = {}
     for row in section.splitlines():
         cells = [c.strip() for c in row.strip().strip("|").split("|")]
@@ -97,17 +98,17 @@ def _kind(body: messages.Msg) -> str:
 def test_every_result_body_type_has_shapes_here() -> None:
     body = typing.get_type_hints(messages.Result)["body"]
     assert set(typing.get_args(body)) == set(SHAPES), (
-        "a new result body type: add its shapes to SHAPES and its keys to the README table")
+        "a new result body type: add its shapes to SHAPES and its keys to docs/results.md")
 
 
-def test_the_readme_table_lists_every_kind() -> None:
+def test_the_doc_table_lists_every_kind() -> None:
     kinds = {_kind(shapes[0]) for shapes in SHAPES.values()}
-    assert set(_readme_table()) == kinds
+    assert set(_doc_table()) == kinds
 
 
 @pytest.mark.parametrize("body_type", list(SHAPES), ids=lambda t: t.__name__)
-def test_normalize_writes_exactly_the_keys_the_readme_documents(body_type: type) -> None:
-    table = _readme_table()
+def test_normalize_writes_exactly_the_keys_the_doc_documents(body_type: type) -> None:
+    table = _doc_table()
     seen: set[str] = set()
     for body in SHAPES[body_type]:
         kind = _kind(body)
@@ -121,20 +122,20 @@ def test_normalize_writes_exactly_the_keys_the_readme_documents(body_type: type)
             assert always <= keys, f"{kind}: documented as always there but missing: " \
                                    f"{sorted(always - keys)}"
     assert seen == set(documented), (
-        f"{kind}: written but not in the README: {sorted(seen - set(documented))}; "
-        f"in the README but never written: {sorted(set(documented) - seen)}")
+        f"{kind}: written but not in docs/results.md: {sorted(seen - set(documented))}; "
+        f"in docs/results.md but never written: {sorted(set(documented) - seen)}")
     conditional = {k for k, present in documented.items() if present != "always"}
     for key in conditional:  # a condition the shapes exercise: some line lacks the key
         assert any(key not in item for body in SHAPES[body_type]
                    for obj in _lines(body) for item in obj.values()), (kind, key)
 
 
-def test_the_readme_examples_of_lines_use_the_documented_keys() -> None:
-    table = _readme_table()
-    text = README.read_text(encoding="utf-8")
+def test_the_doc_examples_of_lines_use_the_documented_keys() -> None:
+    table = _doc_table()
+    text = DOC.read_text(encoding="utf-8")
     examples = [json.loads(block) for block in re.findall(r"```json\n(.*?)\n```", text, re.S)]
     lines = [ex for ex in examples if isinstance(ex, dict) and set(ex) <= set(table)]
-    assert lines, "the README shows no results.jsonl line"
+    assert lines, "docs/results.md shows no results.jsonl line"
     for ex in lines:
         (kind, item), = ex.items()
         always = {k for k, present in table[kind].items() if present == "always"}
@@ -143,6 +144,6 @@ def test_the_readme_examples_of_lines_use_the_documented_keys() -> None:
 
 def test_plugins_doc_points_to_the_results_schema_and_names_rt() -> None:
     """docs/plugins.md describes message bodies; for the file's own keys it defers to the
-    README table, and it says VO's rotation and translation are written as `Rt`."""
-    doc = (README.parent / "docs" / "plugins.md").read_text(encoding="utf-8")
-    assert "README.md#resultsjsonl" in doc and "`Rt`" in doc
+    table of docs/results.md, and it says VO's rotation and translation are written as `Rt`."""
+    doc = (DOC.parent / "plugins.md").read_text(encoding="utf-8")
+    assert "(results.md#resultsjsonl)" in doc and "`Rt`" in doc

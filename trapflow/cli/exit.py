@@ -1,6 +1,6 @@
 """How every command ends on an error: one line on stderr and the policy's exit status.
 
-The policy (see errors.py and the README's "Exit status"): 0 ok, 1 runtime failure,
+The policy (see errors.py and docs/cli.md, "Exit status"): 0 ok, 1 runtime failure,
 2 usage or configuration error. click's own usage errors already exit 2.
 """
 

@@ -54,7 +54,7 @@ class TrapflowGroup(click.Group):
 
 # Every option can come from the environment as TRAPFLOW_<COMMAND>_<OPTION> (a systemd
 # unit's Environment=, a container's env), e.g. TRAPFLOW_START_RUN_DIR; a flag given on the
-# command line wins. See README "Deploy".
+# command line wins. See docs/deploy.md.
 ENVVAR_PREFIX = "TRAPFLOW"
 
 

@@ -23,15 +23,9 @@ from typing import Any
 import zmq
 
 from trapflow.wire import messages
+from trapflow.wire.curve import client_keys, server_keys, start_authenticator
 from trapflow.wire.keys import generate
-from trapflow.wire.transport import (
-    SocketSpec,
-    client_keys,
-    new_context,
-    open_socket,
-    server_keys,
-    start_authenticator,
-)
+from trapflow.wire.transport import SocketSpec, new_context, open_socket
 
 WINDOW = 4  # pairs in flight, as a worker with credit 4
 SECONDS = 3.0  # per throughput run

@@ -37,7 +37,7 @@ from bench_transport import (
 )
 
 from trapflow.wire import frame_msgs, frame_ring, messages
-from trapflow.wire.transport import accept_link, connect_link, listen_link
+from trapflow.wire.links import accept_link, connect_link, listen_link
 
 
 def _shm_consumer(name: str, path: str, conn: Any) -> None:

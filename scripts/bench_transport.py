@@ -29,8 +29,9 @@ import zmq
 from trapflow.config import schema as configmod
 from trapflow.runtime.node import NodeSpec, node_main
 from trapflow.wire import messages
+from trapflow.wire.endpoints import Endpoints
 from trapflow.wire.frame_ring import FrameRing, RingWriter, ring_slots, slot_capacity
-from trapflow.wire.transport import Endpoints, Link, LinkClosed, connect_link
+from trapflow.wire.links import Link, LinkClosed, connect_link
 
 PAGE = 4096
 WINDOW = 4  # pairs in flight per consumer, as in the peer measurements

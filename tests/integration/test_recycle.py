@@ -21,8 +21,9 @@ from trapflow.broker.node import BrokerNode
 from trapflow.config.schema import Config, PoolConfig
 from trapflow.runtime.node import NodeSpec
 from trapflow.wire import identity, messages
+from trapflow.wire.endpoints import make_private
 from trapflow.wire.frame_ring import FrameRing
-from trapflow.wire.transport import LinkClient, make_private
+from trapflow.wire.links import LinkClient
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
 

@@ -18,7 +18,7 @@ from tests.builders import small_source
 from tests.conftest import Pipeline, only_pools, poll_for, write_config
 from tests.reliability import figures
 from trapflow.wire import tap_msgs
-from trapflow.wire.transport import TRIM_INTERVAL_S
+from trapflow.wire.tap_gate import TRIM_INTERVAL_S
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
 

@@ -25,7 +25,7 @@ from tests.builders import small_source
 from tests.conftest import Pipeline, only_pools, poll_for, write_config
 from tests.reliability import figures, scaled
 from trapflow.wire import control_msgs, identity, messages
-from trapflow.wire.transport import Link, LinkClosed, connect_link
+from trapflow.wire.links import Link, LinkClosed, connect_link
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
 

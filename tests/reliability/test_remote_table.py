@@ -24,7 +24,8 @@ from tests.integration.test_remote_workers import SMALL, free_port, keys, remote
 from tests.reliability import figures
 from trapflow.broker.remote_state import MAX_REMOTE_WORKERS
 from trapflow.wire import messages
-from trapflow.wire.transport import CurveKeys, client_keys
+from trapflow.wire.curve import client_keys
+from trapflow.wire.transport import CurveKeys
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
 

@@ -16,7 +16,7 @@ from click.testing import CliRunner
 
 from trapflow.cli.main import main
 from trapflow.config.schema import NetworkConfig
-from trapflow.wire.transport import Endpoints
+from trapflow.wire.endpoints import Endpoints
 
 # Regression (issue 22, item 8): click printed usage, a hint, a blank line and the error (4
 # lines); PyYAML's errors echoed the source (8 lines).

@@ -20,7 +20,8 @@ from trapflow.errors import ProtocolError, StartupError
 from trapflow.runtime.logchannel import LogListener, LogSender, PrivateRotatingFile
 from trapflow.runtime.ratelog import CONSOLE_ONCE
 from trapflow.wire import control_msgs, messages
-from trapflow.wire.transport import Endpoints, check_ports_free, new_context
+from trapflow.wire.endpoints import Endpoints, check_ports_free
+from trapflow.wire.transport import new_context
 
 
 class _Collect(logging.Handler):
@@ -168,7 +169,7 @@ def test_scaled_default_and_value(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def test_a_shared_directory_is_refused_as_run_directory(tmp_path: Path) -> None:
     """make_private would otherwise close /tmp (or any sticky shared folder) to everybody."""
-    from trapflow.wire.transport import make_private
+    from trapflow.wire.endpoints import make_private
 
     shared = tmp_path / "shared"
     shared.mkdir()

@@ -166,7 +166,7 @@ def test_outbox_files_have_the_run_directorys_modes_whatever_the_umask(
     import os
     import stat
 
-    from trapflow.wire.transport import FILE_MODE, RUN_DIR_MODE
+    from trapflow.wire.endpoints import FILE_MODE, RUN_DIR_MODE
 
     old = os.umask(umask)
     try:

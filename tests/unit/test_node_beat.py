@@ -19,7 +19,8 @@ from tests.conftest import poll_for
 from trapflow.config.schema import Config
 from trapflow.runtime.node import ACTIVE, Node, NodeSpec
 from trapflow.wire import messages
-from trapflow.wire.transport import Endpoints, SocketSpec, new_context, open_socket
+from trapflow.wire.endpoints import Endpoints
+from trapflow.wire.transport import SocketSpec, new_context, open_socket
 
 
 def _take(pull: zmq.Socket[bytes], got: list[messages.Heartbeat]) -> int:

@@ -20,15 +20,10 @@ from trapflow.config import schema as configmod
 from trapflow.errors import ConfigError, ProtocolError, StartupError
 from trapflow.pools.remote_worker import config_from
 from trapflow.wire import messages
+from trapflow.wire.curve import client_keys, server_keys
 from trapflow.wire.keys import generate
-from trapflow.wire.transport import (
-    CurveKeys,
-    SocketSpec,
-    TapGate,
-    client_keys,
-    open_socket,
-    server_keys,
-)
+from trapflow.wire.tap_gate import TapGate
+from trapflow.wire.transport import CurveKeys, SocketSpec, open_socket
 
 KEYS = {"server_key": "k/server.key_secret", "authorized_keys": "k/auth"}
 

@@ -10,8 +10,9 @@ import pytest
 import zmq
 
 from tests.conftest import poll_for
-from trapflow.wire import transport
-from trapflow.wire.transport import SocketSpec, TapGate, open_socket
+from trapflow.wire import tap_gate, transport
+from trapflow.wire.tap_gate import TapGate
+from trapflow.wire.transport import SocketSpec, open_socket
 
 
 @pytest.mark.parametrize(("kind", "cap"), [
@@ -59,7 +60,7 @@ def test_a_message_over_the_cap_never_arrives(zctx, tmp_path: Path) -> None:
 
 def _tap(zctx, path: Path) -> tuple[zmq.Socket[bytes], TapGate, str]:
     ep = f"ipc://{path}"
-    sock = open_socket(zctx, SocketSpec(zmq.XPUB, ep, bind=True, rcvhwm=transport.TAP_RCVHWM,
+    sock = open_socket(zctx, SocketSpec(zmq.XPUB, ep, bind=True, rcvhwm=tap_gate.TAP_RCVHWM,
                                         xpub_manual=True))
     return sock, TapGate(sock, (b"meta", b"stats")), ep
 

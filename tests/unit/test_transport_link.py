@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from trapflow.errors import ProtocolError
-from trapflow.wire.transport import LinkClosed, accept_link, connect_link, listen_link
+from trapflow.wire.links import LinkClosed, accept_link, connect_link, listen_link
 
 
 @pytest.fixture

@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 import zmq
 
-from trapflow.wire.transport import Poller, accept_link, connect_link, listen_link, zmq_readable
+from trapflow.wire.links import Poller, accept_link, connect_link, listen_link
+from trapflow.wire.transport import zmq_readable
 
 Sockets = tuple[zmq.Socket[bytes], zmq.Socket[bytes]]
 

@@ -45,17 +45,8 @@ from trapflow.runtime.node import ACTIVE, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog, wire
 from trapflow.wire import control_msgs, frame_msgs, gate_msgs, messages, tap_msgs
 from trapflow.wire.frame_ring import FrameRing
-from trapflow.wire.transport import (
-    PAIR_MAX_MSG_BYTES,
-    Link,
-    LinkClosed,
-    Poller,
-    SocketSpec,
-    accept_link,
-    listen_link,
-    open_socket,
-    zmq_readable,
-)
+from trapflow.wire.links import Link, LinkClosed, Poller, accept_link, listen_link
+from trapflow.wire.transport import PAIR_MAX_MSG_BYTES, SocketSpec, open_socket, zmq_readable
 
 log = logging.getLogger(__name__)
 

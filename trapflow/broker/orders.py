@@ -11,7 +11,8 @@ import zmq
 
 from trapflow.errors import ProtocolError
 from trapflow.wire import control_msgs
-from trapflow.wire.transport import Poller, SocketSpec, open_socket, zmq_readable
+from trapflow.wire.links import Poller
+from trapflow.wire.transport import SocketSpec, open_socket, zmq_readable
 
 BATCH = 64  # orders read per wake-up at most: the pairs' path is never starved
 

@@ -25,16 +25,9 @@ from trapflow.errors import ProtocolError
 from trapflow.runtime.node import release_memory
 from trapflow.runtime.ratelog import RateLimitedLog, wire
 from trapflow.wire import jpeg, messages
-from trapflow.wire.transport import (
-    Poller,
-    SocketSpec,
-    open_monitor,
-    open_socket,
-    read_monitor,
-    server_keys,
-    start_authenticator,
-    zmq_readable,
-)
+from trapflow.wire.curve import open_monitor, read_monitor, server_keys, start_authenticator
+from trapflow.wire.links import Poller
+from trapflow.wire.transport import SocketSpec, open_socket, zmq_readable
 
 log = logging.getLogger(__name__)
 

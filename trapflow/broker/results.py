@@ -10,7 +10,7 @@ from typing import Any
 from trapflow.errors import ProtocolError
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.wire import frame_msgs
-from trapflow.wire.transport import Link
+from trapflow.wire.links import Link
 
 RESULTS_BATCH_BYTES = 64 << 10  # results leave in datagrams of about this size, or less
 MAX_WAITING_RESULTS = 100_000  # kept while no normalizer listens; beyond, the oldest go

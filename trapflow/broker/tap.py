@@ -20,7 +20,9 @@ from trapflow.errors import ProtocolError
 from trapflow.runtime.node import release_memory
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.wire import jpeg, messages, tap_msgs
-from trapflow.wire.transport import TAP_RCVHWM, Poller, SocketSpec, TapGate, open_socket
+from trapflow.wire.links import Poller
+from trapflow.wire.tap_gate import TAP_RCVHWM, TapGate
+from trapflow.wire.transport import SocketSpec, open_socket
 
 log = logging.getLogger(__name__)
 

@@ -31,7 +31,8 @@ from trapflow.sources.factory import open_source
 from trapflow.sources.rig import mismatch, run_calibration
 from trapflow.wire import jpeg, messages, tap_msgs
 from trapflow.wire.frame_ring import RingError, RingWriter
-from trapflow.wire.transport import LinkClient, LinkClosed, SocketSpec, open_socket
+from trapflow.wire.links import LinkClient, LinkClosed
+from trapflow.wire.transport import SocketSpec, open_socket
 
 log = logging.getLogger(__name__)
 

@@ -159,7 +159,7 @@ def record(run_dir: Path, endpoints: tuple[str, ...], output: Path,
     rig, ended = None, None
     if not endpoints:  # pairs from the broker's tap, results from the normalizer's
         from trapflow.config.schema import Config
-        from trapflow.wire.transport import Endpoints
+        from trapflow.wire.endpoints import Endpoints
 
         ep = Endpoints.for_run(Config().network, run_dir)
         endpoints = (ep.tap, ep.results_tap)

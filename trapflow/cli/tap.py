@@ -15,7 +15,8 @@ import zmq
 from trapflow.config import schema as configmod
 from trapflow.errors import ProtocolError, StartupError
 from trapflow.wire import jpeg, tap_msgs
-from trapflow.wire.transport import Endpoints, SocketSpec, new_context, open_socket
+from trapflow.wire.endpoints import Endpoints
+from trapflow.wire.transport import SocketSpec, new_context, open_socket
 
 # Nothing for this long: say once that the tap is waiting (no pipeline may be running yet).
 WAITING_NOTICE_S = 1.0

@@ -118,7 +118,7 @@ def _connect(path: Path) -> sqlite3.Connection:
     a folder it creates is its owner's alone, the file (and SQLite's -wal and -shm, which
     SQLite creates with the file's own mode) read-write for the owner, readable by the group,
     as results.jsonl is."""
-    from trapflow.wire.transport import FILE_MODE, RUN_DIR_MODE  # config imports this module
+    from trapflow.wire.endpoints import FILE_MODE, RUN_DIR_MODE
 
     if not path.parent.exists():
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -28,16 +28,10 @@ from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.tracking.rigpose import RigPoses
 from trapflow.tracking.stage import Observations, Observer
 from trapflow.wire import gate_msgs, messages, tap_msgs
-from trapflow.wire.transport import (
-    LINK_RETRY_S,
-    TAP_RCVHWM,
-    LinkClient,
-    LinkClosed,
-    SocketSpec,
-    TapGate,
-    open_socket,
-    set_file_mode,
-)
+from trapflow.wire.endpoints import set_file_mode
+from trapflow.wire.links import LINK_RETRY_S, LinkClient, LinkClosed
+from trapflow.wire.tap_gate import TAP_RCVHWM, TapGate
+from trapflow.wire.transport import SocketSpec, open_socket
 
 log = logging.getLogger(__name__)
 

@@ -31,7 +31,9 @@ from trapflow.runtime.lifecycle import RECYCLE_EXITS
 from trapflow.runtime.logchannel import LogListener
 from trapflow.runtime.node import JoinSpec, NodeSpec, node_main
 from trapflow.wire import identity, messages
-from trapflow.wire.transport import SocketSpec, client_keys, log_endpoint, new_context, open_socket
+from trapflow.wire.curve import client_keys
+from trapflow.wire.endpoints import log_endpoint
+from trapflow.wire.transport import SocketSpec, new_context, open_socket
 
 log = logging.getLogger(__name__)
 

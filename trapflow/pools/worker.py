@@ -30,14 +30,8 @@ from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec, f
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.wire import frame_msgs, identity, messages
 from trapflow.wire.frame_ring import RingError, RingReader
-from trapflow.wire.transport import (
-    LINK_RETRY_S,
-    Link,
-    LinkClient,
-    LinkClosed,
-    SocketSpec,
-    open_socket,
-)
+from trapflow.wire.links import LINK_RETRY_S, Link, LinkClient, LinkClosed
+from trapflow.wire.transport import SocketSpec, open_socket
 
 log = logging.getLogger(__name__)
 

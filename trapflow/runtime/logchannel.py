@@ -19,7 +19,8 @@ import zmq
 from trapflow.errors import ProtocolError
 from trapflow.runtime.ratelog import CONSOLE_ONCE, RateLimitedLog, wire
 from trapflow.wire import control_msgs, messages
-from trapflow.wire.transport import SocketSpec, new_context, open_socket, set_file_mode
+from trapflow.wire.endpoints import set_file_mode
+from trapflow.wire.transport import SocketSpec, new_context, open_socket
 
 log = logging.getLogger(__name__)
 

@@ -27,7 +27,8 @@ from trapflow.config.schema import Config
 from trapflow.runtime.lifecycle import Lifecycle
 from trapflow.runtime.logchannel import LogSender
 from trapflow.wire import messages
-from trapflow.wire.transport import Endpoints, SocketSpec, log_endpoint, new_context, open_socket
+from trapflow.wire.endpoints import Endpoints, log_endpoint
+from trapflow.wire.transport import SocketSpec, new_context, open_socket
 
 log = logging.getLogger(__name__)
 

@@ -66,15 +66,9 @@ from trapflow.supervisor.setup import (
 )
 from trapflow.supervisor.state import DurationClock, SupervisorState
 from trapflow.wire import control_msgs, identity, messages, tap_msgs
+from trapflow.wire.endpoints import Endpoints, check_ports_free, make_private
 from trapflow.wire.frame_ring import FrameRing
-from trapflow.wire.transport import (
-    Endpoints,
-    SocketSpec,
-    check_ports_free,
-    make_private,
-    new_context,
-    open_socket,
-)
+from trapflow.wire.transport import SocketSpec, new_context, open_socket
 
 log = logging.getLogger(__name__)
 

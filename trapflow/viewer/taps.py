@@ -25,8 +25,8 @@ from trapflow.errors import ProtocolError
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.viewer.state import ViewState
 from trapflow.wire import control_msgs, messages, tap_msgs
+from trapflow.wire.endpoints import Endpoints
 from trapflow.wire.transport import (
-    Endpoints,
     SocketSpec,
     new_context,
     open_socket,

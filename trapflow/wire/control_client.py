@@ -14,7 +14,8 @@ import zmq
 from trapflow.config import schema as configmod
 from trapflow.errors import StartupError
 from trapflow.wire import control_msgs, messages
-from trapflow.wire.transport import Endpoints, SocketSpec, new_context, open_socket
+from trapflow.wire.endpoints import Endpoints
+from trapflow.wire.transport import SocketSpec, new_context, open_socket
 
 
 def request(run_dir: Path, what: str | messages.Msg, timeout_s: float = 3.0,

@@ -3,17 +3,26 @@ and the command line's rejection of bad arguments (no Dask, no processes)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import json
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+import cv2
+import msgspec
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from trapflow.batch.chunk import ChunkTask, chunk_paths, run_chunk
 from trapflow.batch.plan import Chunk, Input, Stitcher, cut, find_inputs, plan_chunks
+from trapflow.batch.run import ordered_pools
 from trapflow.cli.main import main
+from trapflow.config import schema as configmod
+from trapflow.config.schema import Config
 from trapflow.errors import ConfigError
+from trapflow.plugin import Context, Pair, Worker
+from trapflow.wire.messages import Extra
 
 
 def images(root: Path, left: str = "left", right: str = "right") -> Path:
@@ -34,12 +43,12 @@ def test_cut(n: int, size: int, want: list[tuple[int, int]]) -> None:
 
 
 def test_vo_chunks_start_early_by_the_overlap_and_report_from_their_own_start() -> None:
-    chunks = plan_chunks("a", 10, ("mono", "vo"), 5, 4, 2)
+    chunks = plan_chunks("a", 10, ("mono", "vo"), 5, 4, 2, ordered={"vo"})
     assert [(c.pools, c.start, c.first, c.end) for c in chunks] == [
         (("mono",), 0, 0, 5), (("mono",), 5, 5, 10),
         (("vo",), 0, 0, 4), (("vo",), 2, 4, 8), (("vo",), 6, 8, 10)]
     assert len({c.key for c in chunks}) == len(chunks)
-    whole = plan_chunks("a", 10, ("vo",), 5, 0, 2)
+    whole = plan_chunks("a", 10, ("vo",), 5, 0, 2, ordered={"vo"})
     assert [(c.start, c.first, c.end) for c in whole] == [(0, 0, 10)]
 
 
@@ -142,3 +151,62 @@ def test_an_unknown_input_is_a_usage_error(tmp_path: Path) -> None:
     out = CliRunner().invoke(main, ["process", str(tmp_path / "nope")])
     assert out.exit_code == 2
     assert "trapflow: error: input" in out.output and "not found" in out.output
+
+
+class Stateful(Worker):
+    """A plugin that keeps state from pair to pair: each result says how many pairs this
+    instance saw before and the seq it saw last (a stand-in for visual odometry)."""
+
+    needs_images = False
+
+    def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
+        self.seen: list[int] = []
+
+    def process(self, pair: Pair) -> Extra:
+        before = self.seen[-1] if self.seen else -1
+        self.seen.append(pair.header.seq)
+        return Extra(name="stateful", fields={"before": before, "n": len(self.seen)})
+
+
+def ordered_config(policy: str) -> Config:
+    """A pool named `odometry` (not vo) running Stateful under `policy`, and a `vo` pool
+    under `latest`: the name of a pool says nothing, its policy everything."""
+    return configmod.from_data({
+        "source": {"width": 32, "height": 24},
+        "pools": {"odometry": {"count": 1, "plugin": f"{__name__}:Stateful", "policy": policy},
+                  "vo": {"count": 1, "plugin": "example_brightness", "policy": "latest"},
+                  "mono": {"count": 0}, "stereo": {"count": 0}, "tags": {"count": 0}}},
+        "config")
+
+
+def test_a_pool_is_ordered_by_its_policy_not_its_name(tmp_path: Path) -> None:
+    """Regression: `process` took a pool as ordered by its name (vo), the live pipeline by its
+    policy; a stateful plugin in a pool of another name got stateless chunks (its state
+    reset every 64 pairs, its pairs out of order across workers) and a `vo` pool under
+    `latest` a VO grid. Now both decide by PoolConfig.ordered."""
+    cfg = ordered_config("ordered:4")
+    pools = ("odometry", "vo")
+    ordered = ordered_pools(cfg, pools)
+    assert ordered == {"odometry"}
+    assert ordered_pools(ordered_config("fifo:4"), pools) == frozenset()
+    chunks = plan_chunks("a", 6, pools, 2, 3, 1, ordered)
+    assert [(c.pools, c.start, c.first, c.end, c.ordered) for c in chunks] == [
+        (("vo",), 0, 0, 2, False), (("vo",), 2, 2, 4, False), (("vo",), 4, 4, 6, False),
+        (("odometry",), 0, 0, 3, True), (("odometry",), 2, 3, 6, True)]
+    # Run the ordered chunks: each starts a fresh plugin (never one kept from a chunk
+    # before) that sees its pairs in order from the chunk's start, the overlap included.
+    scene = tmp_path / "scene"
+    for side in ("left", "right"):
+        (scene / side).mkdir(parents=True)
+        for i in range(6):
+            cv2.imwrite(str(scene / side / f"{i:06d}.png"), np.full((24, 32, 3), 10 * i, np.uint8))
+    inp = Input("scene", "images", str(scene))
+    data = msgspec.to_builtins(cfg)
+    got = []
+    for c in (c for c in chunks if c.ordered):
+        run_chunk(ChunkTask(data, inp, c, str(tmp_path / "out"), "key"))
+        lines, _ledger = chunk_paths(str(tmp_path / "out"), c)
+        got.append([json.loads(x)["stateful"] for x in lines.read_bytes().splitlines()])
+    assert [[(x["seq"], x["before"], x["n"]) for x in lines] for lines in got] == [
+        [(0, -1, 1), (1, 0, 2), (2, 1, 3)],
+        [(2, -1, 1), (3, 2, 2), (4, 3, 3), (5, 4, 4)]]

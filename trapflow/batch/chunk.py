@@ -23,13 +23,13 @@ import msgspec
 import numpy as np
 
 from trapflow import registry
-from trapflow.batch.plan import SEQUENTIAL_POOLS, Chunk, Input, fingerprint
+from trapflow.batch.plan import Chunk, Input, fingerprint
 from trapflow.calibration.camera import StereoRig
 from trapflow.config import schema as configmod
 from trapflow.config.schema import Config
 from trapflow.errors import WorkerError
 from trapflow.normalizer.result_json import dumps, normalize
-from trapflow.plugin import Context, Pair, Worker
+from trapflow.plugin import Context, Pair, Worker, configure_plugin
 from trapflow.pools.pair_path import Need, process_pair
 from trapflow.sources.base import SkipPair, Source
 from trapflow.sources.factory import open_source
@@ -139,13 +139,14 @@ class _Ledger:
 
 # Configured plugins of this Dask worker process, kept from chunk to chunk: a model loads
 # once per worker, not once per chunk (measured: ~150 ms of every task at 320x240). Only
-# built-in plugins of stateless pools, whose results never depend on earlier pairs; a
-# third-party plugin may keep state, so it starts fresh in every chunk.
+# built-in plugins of pools that are not ordered, whose results never depend on earlier
+# pairs; an ordered pool's plugin, or a third-party one, may keep state, so it starts
+# fresh in every chunk.
 _KEPT: dict[tuple[str, str], tuple[Worker, str]] = {}
 
 
 def _reusable(cfg: Config, pool: str) -> bool:
-    return pool not in SEQUENTIAL_POOLS and cfg.plugin_of(pool) in registry.BUILTIN
+    return not cfg.pools[pool].ordered and cfg.plugin_of(pool) in registry.BUILTIN
 
 
 def _start_plugins(cfg: Config, task: ChunkTask, rig: StereoRig,
@@ -162,7 +163,7 @@ def _start_plugins(cfg: Config, task: ChunkTask, rig: StereoRig,
                           run_dir=Path(task.out), rig=rig, debug=pcfg.debug, save=False,
                           time=pcfg.time, extra={"input": task.input.name,
                                                  "chunk": (task.chunk.first, task.chunk.end)})
-            plugin.configure(pcfg.params, ctx)
+            configure_plugin(plugin, pcfg.params, ctx)
             kept = (plugin, (plugin.rig or rig).id)  # a plugin's own calibration wins
             if _reusable(cfg, pool):
                 if not _KEPT:
@@ -291,7 +292,8 @@ def run_chunk(task: ChunkTask) -> dict[str, Any]:
     lines_path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(lines_path, b"".join(line + b"\n" for line in out))
     done = {"chunk": chunk.key, "start": chunk.start, "first": chunk.first, "end": chunk.end,
-            "pools": list(chunk.pools), "fingerprint": task.fingerprint,
+            "pools": list(chunk.pools), "ordered": chunk.ordered,
+            "fingerprint": task.fingerprint,
             "seconds": round(time.monotonic() - t0, 3), "host": os.uname().nodename,
             **ledger.as_dict()}
     atomic_write(ledger_path, json.dumps(done).encode())

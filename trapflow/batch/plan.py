@@ -3,15 +3,16 @@ VO chunk boundaries stitched, and per-input ledgers merged. No Dask, no files wr
 
 A chunk is a half-open range [start, end) of a finite source's read positions (each
 position is one read(): a pair, or a pair the source skips). Stateless pools share one
-chunk grid; visual odometry has its own, time-ordered grid whose chunks start `overlap`
-positions early so each re-initialises on pairs its predecessor also saw.
+chunk grid; each ordered pool (policy `ordered`, PoolConfig.ordered: visual odometry, or
+any plugin that keeps state from pair to pair) has its own, time-ordered grid whose chunks
+start `overlap` positions early so each re-initialises on pairs its predecessor also saw.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Iterable, Sequence
+from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,8 +25,6 @@ from trapflow.errors import ConfigError
 RECORDING_SUFFIXES = (".mcap", ".db3")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm")
 IMAGE_LAYOUTS = (("left", "right"), ("image_0", "image_1"), ("image_2", "image_3"))
-#: pools whose plugin keeps state from pair to pair; they run in time-ordered chunks
-SEQUENTIAL_POOLS = frozenset({"vo"})
 WHOLE = 0  # a chunk size of 0: the whole sequence in one chunk
 
 
@@ -41,13 +40,15 @@ class Input:
 @dataclass(frozen=True)
 class Chunk:
     """Read positions [start, end) of one input for some pools; `first` is where its
-    results begin (start + overlap for a VO chunk that re-initialises early)."""
+    results begin (start + overlap for a VO chunk that re-initialises early); `ordered`: a
+    chunk of an ordered pool's time-ordered grid."""
 
     input: str
     pools: tuple[str, ...]
     start: int
     end: int
     first: int
+    ordered: bool = False
 
     @property
     def key(self) -> str:
@@ -136,14 +137,15 @@ def cut(n: int, size: int) -> list[tuple[int, int]]:
 
 
 def plan_chunks(name: str, n: int, pools: Sequence[str], size: int, vo_size: int,
-                vo_overlap: int) -> list[Chunk]:
-    """Every chunk of one input of n read positions, stateless pools first, then VO in
-    time order. A VO chunk after the first starts `vo_overlap` positions early."""
-    stateless = tuple(p for p in pools if p not in SEQUENTIAL_POOLS)
+                vo_overlap: int, ordered: Collection[str] = ()) -> list[Chunk]:
+    """Every chunk of one input of n read positions, stateless pools first, then each of
+    the `ordered` pools (those whose config says PoolConfig.ordered) in time order. An
+    ordered chunk after the first starts `vo_overlap` positions early."""
+    stateless = tuple(p for p in pools if p not in ordered)
     chunks = [Chunk(name, stateless, a, b, a) for a, b in cut(n, size)] if stateless else []
-    for pool in (p for p in pools if p in SEQUENTIAL_POOLS):
+    for pool in (p for p in pools if p in ordered):
         for a, b in cut(n, vo_size):
-            chunks.append(Chunk(name, (pool,), max(0, a - vo_overlap), b, a))
+            chunks.append(Chunk(name, (pool,), max(0, a - vo_overlap), b, a, ordered=True))
     return chunks
 
 

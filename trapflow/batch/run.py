@@ -25,7 +25,6 @@ import msgspec
 
 from trapflow.batch.chunk import ChunkTask, atomic_write, chunk_paths, count_positions, run_chunk
 from trapflow.batch.plan import (
-    SEQUENTIAL_POOLS,
     WHOLE,
     Chunk,
     Input,
@@ -170,10 +169,16 @@ def dask_client(opts: Options) -> Iterator[Any]:
         yield client
 
 
-def _plan_key(cfg_data: dict[str, Any], inp: Input, opts: Options) -> str:
+def ordered_pools(cfg: Config, pools: tuple[str, ...]) -> frozenset[str]:
+    """The pools of the run that keep pair order (PoolConfig.ordered, as live)."""
+    return frozenset(p for p in pools if cfg.pools[p].ordered)
+
+
+def _plan_key(cfg_data: dict[str, Any], inp: Input, opts: Options,
+              ordered: frozenset[str]) -> str:
     return fingerprint({"config": cfg_data, "input": [inp.kind, inp.uri],
                         "pools": opts.pools, "chunk": opts.chunk, "vo_chunk": opts.vo_chunk,
-                        "vo_overlap": opts.vo_overlap})
+                        "vo_overlap": opts.vo_overlap, "ordered": sorted(ordered)})
 
 
 def _finished(task: ChunkTask) -> dict[str, Any] | None:
@@ -258,6 +263,7 @@ def process(cfg: Config, inputs: list[Input], out: Path, opts: Options, echo: Ec
         raise ConfigError(f"--workers: pool(s) {', '.join(unknown)} not in the config; "
                           f"expected some of {', '.join(cfg.pools)}")
     cfg_data: dict[str, Any] = msgspec.to_builtins(cfg)
+    ordered = ordered_pools(cfg, opts.pools)
     t0 = time.monotonic()
     out.mkdir(parents=True, exist_ok=True)
     with dask_client(opts) as client:
@@ -281,9 +287,9 @@ def process(cfg: Config, inputs: list[Input], out: Path, opts: Options, echo: Ec
             except Exception as exc:  # noqa: BLE001 - an unreadable input is reported, others go on
                 report.error = f"cannot read the input: {exc}"
                 continue
-            key = _plan_key(cfg_data, inp, opts)
+            key = _plan_key(cfg_data, inp, opts, ordered)
             for chunk in plan_chunks(inp.name, report.positions, opts.pools, opts.chunk,
-                                     opts.vo_chunk, opts.vo_overlap):
+                                     opts.vo_chunk, opts.vo_overlap, ordered):
                 task = ChunkTask(cfg_data, inp, chunk, str(out / inp.name), key)
                 done = _finished(task)
                 if done is not None:
@@ -307,7 +313,8 @@ def process(cfg: Config, inputs: list[Input], out: Path, opts: Options, echo: Ec
             else:
                 why = fut.exception()
                 entry = {"chunk": chunk.key, "start": chunk.start, "first": chunk.first,
-                         "end": chunk.end, "pools": list(chunk.pools), "status": "failed",
+                         "end": chunk.end, "pools": list(chunk.pools),
+                         "ordered": chunk.ordered, "status": "failed",
                          "error": f"{type(why).__name__}: {why}"[:500]}
                 err(f"{task.input.name}: chunk {chunk.key} failed after {opts.retries} "
                     f"retries: {entry['error']}")
@@ -336,7 +343,7 @@ def _sum(chunks: list[dict[str, Any]], what: str, pools: tuple[str, ...]) -> dic
 def ledger_of(report: InputReport, opts: Options) -> dict[str, Any]:
     """The input's ledger: pairs read, processed and failed per pool with reasons, chunks."""
     chunks = sorted(report.chunks, key=lambda c: (c["pools"], c["first"]))
-    stateless = [c for c in chunks if not set(c["pools"]) & SEQUENTIAL_POOLS]
+    stateless = [c for c in chunks if not c.get("ordered")]
     grid = stateless or chunks  # read positions counted once, on one chunk grid
     reasons: dict[str, list[str]] = {}
     skipped: dict[str, int] = {}
@@ -372,14 +379,16 @@ def _write_input(folder: Path, report: InputReport, opts: Options, cfg: Config) 
     for c in sorted(report.chunks, key=lambda c: (c["pools"], c["first"])):
         if c["status"] == "failed":
             continue
-        chunk = Chunk(report.input.name, tuple(c["pools"]), c["start"], c["end"], c["first"])
+        chunk = Chunk(report.input.name, tuple(c["pools"]), c["start"], c["end"], c["first"],
+                      bool(c.get("ordered")))
         path, _ledger = chunk_paths(str(folder), chunk)
         raw = [json.loads(x) for x in path.read_bytes().splitlines() if x.strip()]
         rank = min(order.get(p, 0) for p in chunk.pools)
-        if set(chunk.pools) & SEQUENTIAL_POOLS:
+        if chunk.ordered:  # VO's poses chained; the overlap's other results are the predecessor's
             st = stitchers.setdefault(chunk.pools[0], Stitcher(decimals))
             vo = [x for x in raw if "stereo_vo" in x]
-            raw = [x for x in raw if "stereo_vo" not in x] + st.add(chunk, vo)
+            raw = [x for x in raw if "stereo_vo" not in x
+                   and next(iter(x.values()))["seq"] >= chunk.first] + st.add(chunk, vo)
         lines += [(next(iter(x.values()))["seq"], rank, x) for x in raw]
     for st in stitchers.values():
         boundaries += [b.as_dict() for b in st.boundaries]
@@ -444,7 +453,7 @@ def summary_table(summary: Summary) -> str:
         chunks = r.chunks
         processed = sum(sum(c.get("processed", {}).values()) for c in chunks)
         failed = sum(sum(c.get("failed", {}).values()) for c in chunks)
-        stateless = [c for c in chunks if not set(c["pools"]) & SEQUENTIAL_POOLS] or chunks
+        stateless = [c for c in chunks if not c.get("ordered")] or chunks
         read = sum(c.get("read", 0) for c in stateless)
         ok = sum(1 for c in chunks if c["status"] != "failed")
         rows.append(f"{r.input.name[:32]:<32} {r.positions:>7} {read:>7} {processed:>10} "

@@ -57,11 +57,13 @@ class PoolsType(click.ParamType[tuple[str, ...]]):
 @click.option("--local", type=click.IntRange(min=1, max=256),
               help="Workers of the LocalCluster (default: one per CPU core).")
 @click.option("--chunk", type=click.IntRange(min=1), default=64, show_default=True,
-              help="Pairs per chunk of the stateless pools (mono, stereo, tags).")
+              help="Pairs per chunk of the pools that are not ordered (mono, stereo, tags).")
 @click.option("--vo-chunk", type=ChunkSizeType(), default="whole", show_default=True,
-              help="Pairs per visual-odometry chunk, or 'whole' to keep VO sequential.")
+              help="Pairs per chunk of an ordered pool (policy ordered: visual odometry), "
+              "or 'whole' to keep it sequential.")
 @click.option("--vo-overlap", type=click.IntRange(min=0), default=4, show_default=True,
-              help="Pairs a VO chunk starts early to re-initialise on (the drift is reported).")
+              help="Pairs an ordered pool's chunk starts early to re-initialise on (VO's "
+              "drift is reported).")
 @click.option("--retries", type=click.IntRange(min=0, max=10), default=2, show_default=True,
               help="Dask retries of a failed chunk before it is reported.")
 def process(inputs: tuple[str, ...], pools: tuple[str, ...], config_path: str | None,

@@ -52,8 +52,8 @@ class PoolConfig(_Section):
     """Log each pair's processing time."""
 
     def __post_init__(self) -> None:
-        policy = parse_policy(self.policy)  # raises ValueError, reported with the key path
-        if self.gate == "motion" and policy.kind == "ordered":
+        parse_policy(self.policy)  # raises ValueError, reported with the key path
+        if self.gate == "motion" and self.ordered:
             raise ValueError(
                 f"expected gate: always with policy {self.policy}, got gate: motion: an "
                 "ordered pool (visual odometry) needs every pair in sequence, and each "
@@ -63,6 +63,13 @@ class PoolConfig(_Section):
     def parsed_policy(self) -> Policy:
         """The policy as an object."""
         return parse_policy(self.policy)
+
+    @property
+    def ordered(self) -> bool:
+        """The pool sees its pairs one by one in capture order (policy `ordered`): its plugin
+        may keep state from pair to pair (visual odometry). The broker queues it in order
+        live; `trapflow process` gives it time-ordered chunks of its own."""
+        return self.parsed_policy.kind == "ordered"
 
 
 def _default_pools() -> dict[str, PoolConfig]:

@@ -74,7 +74,7 @@ class Config(Section):
         for name, pool in self.pools.items():
             if not name.isidentifier():
                 raise ValueError(f"pool name {name!r} must be an identifier")
-            if pool.parsed_policy.kind == "ordered" and pool.count > 1:
+            if pool.ordered and pool.count > 1:
                 raise ValueError(
                     f"pool {name!r}: the ordered policy takes count 0 or 1, got {pool.count}"
                 )

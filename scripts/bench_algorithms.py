@@ -26,14 +26,13 @@ from trapflow_workers.scene_classifier import SceneClassifier
 from trapflow_workers.stereo_vo import StereoOdometry
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.kits
-from trapflow_workers.vo_metrics import as_4x4, drift_percent, end_drift_percent, path_length
-
-from tests.kits.context import make_context, make_pair
 from tests.kits.scenes import FloorWorld, circle_path
 from trapflow.calibration.camera import StereoRig
 from trapflow.plugin import Worker
 from trapflow.synth.options import SynthOptions
 from trapflow.synth.render import World
+from trapflow.testing.kit import make_context, make_pair
+from trapflow.testing.vo_metrics import as_4x4, drift_percent, end_drift_percent, path_length
 
 RATE_HZ = 15.0
 

@@ -147,7 +147,7 @@ def part_cpu(rates: list[float], warmup: float, window: float) -> dict[str, Any]
 
 def part_floor(rate: float, warmup: float, window: float,
                extra: tuple[str, ...] | list[str] = ()) -> dict[str, Any]:
-    burn = "trapflow_workers.testing:Burn"
+    burn = "trapflow.testing.plugins:Burn"
     cfg = {"pools": {"stereo": {"plugin": burn, "params": {"cpu_s": 2.0}, "timeout_s": 120.0},
                      "mono": {"plugin": burn, "count": 2, "params": {"cpu_s": 0.1}}}}
     print(f"[bench_cpu] VO floor at {rate:g} pairs/s", file=sys.stderr)

@@ -127,7 +127,7 @@ def detector(rig: StereoRig) -> Detect | None:
         return None
     if not (MODELS_DIR / "crab_detector.onnx").is_file():
         return None
-    from tests.kits.context import make_context, make_pair
+    from trapflow.testing.kit import make_context, make_pair
 
     det = CrabDetector()
     det.configure({"measure": False}, make_context(rig, pool="mono"))

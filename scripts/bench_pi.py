@@ -34,8 +34,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: 
 import bench_cpu
 from bench_algorithms import PLUGINS, _frames
 
-from tests.kits.context import make_context, make_pair
 from trapflow.calibration.camera import StereoRig
+from trapflow.testing.kit import make_context, make_pair
 
 #: (row name, pool, params): the detector as shipped (int8) and as fp32
 ALGORITHMS = (

@@ -46,7 +46,7 @@ def run_sequence(seed: int, moving: bool, pairs: int, rate_hz: float,
     """Measured and true views per animal, VO's and the true poses, CPU ms per stage."""
     from trapflow_workers.stereo_vo import StereoOdometry
 
-    from tests.kits.context import make_context, make_pair
+    from trapflow.testing.kit import make_context, make_pair
 
     rig = StereoRig.from_fov(640, 360, 70.0, 0.12)
     opts = SynthOptions(density=2.0, empty_fraction=0.0, episode_s=12.0)

@@ -31,10 +31,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: 
 
 from tests.conformance import vo_scene
 from tests.conformance.test_vo_scene import _inv, drift
-from tests.kits.context import make_context, make_pair
 from trapflow.calibration.camera import StereoRig
 from trapflow.synth.options import SynthOptions
 from trapflow.synth.render import World
+from trapflow.testing.kit import make_context, make_pair
 
 REPO = Path(__file__).resolve().parents[1]
 # The plugin before the CPU work of issue 27 (24.8 ms a pair at 1280x720 in the CPU bench).

@@ -47,10 +47,10 @@ from trapflow_workers.crab_detector import CrabDetector
 from trapflow_workers.onnx_session import SessionSettings, open_session
 from trapflow_workers.yolo_preprocess import Preprocessor
 
-from tests.kits.context import make_context
 from trapflow.calibration.camera import StereoRig
 from trapflow.plugin import Pair
 from trapflow.pools.pair_path import decode_pair
+from trapflow.testing.kit import make_context
 from trapflow.wire import jpeg
 from trapflow.wire.messages import StereoPair
 

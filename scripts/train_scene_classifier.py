@@ -248,7 +248,7 @@ def evaluate(path: Path, seeds: list[int], per_seed: int) -> dict[str, object]:
     """Accuracy and time per pair through the runtime plugin itself, on full-size frames."""
     from trapflow_workers.scene_classifier import SceneClassifier
 
-    from tests.kits.context import make_context, make_pair
+    from trapflow.testing.kit import make_context, make_pair
 
     clf = SceneClassifier()
     clf.configure({"model": str(path), "providers": ["cpu"], "threshold": 0.0}, make_context())

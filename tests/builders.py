@@ -303,7 +303,7 @@ def vo_plugin(params: dict[str, Any] | None = None) -> Any:
     """The stereo VO plugin configured for VO_RIG (with `params`)."""
     from trapflow_workers.stereo_vo import StereoOdometry
 
-    from tests.kits.context import make_context
+    from trapflow.testing.kit import make_context
 
     vo = StereoOdometry()
     vo.configure(params or {}, make_context(VO_RIG, pool="vo"))

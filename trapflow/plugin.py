@@ -7,11 +7,13 @@ deactivate -> cleanup -> shutdown. Plugins never see sockets or bytes.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar, TypeVar
 
+import msgspec
 import numpy as np
 
 from trapflow.calibration.camera import StereoRig
@@ -34,9 +36,9 @@ from trapflow.wire.messages import (
 
 __all__ = [
     "CONSOLE_ONCE", "YAML_FIELDS", "Body", "ConfigError", "Context", "Detection", "Extra",
-    "Measured", "MonoIR", "Pair", "StereoIR", "StereoPair", "StereoRig", "StereoVO", "Tag",
-    "Tags", "Unmeasured", "Worker", "WorkerError", "measure", "pair_floor", "read_rig_file",
-    "reduced_size",
+    "Measured", "MonoIR", "Pair", "Params", "StereoIR", "StereoPair", "StereoRig", "StereoVO",
+    "Tag", "Tags", "Unmeasured", "Worker", "WorkerError", "check_frame", "configure_plugin",
+    "measure", "pair_floor", "parse_params", "read_rig_file", "reduced_size",
 ]
 
 
@@ -101,9 +103,14 @@ class Worker:
     #: the rig a geometric plugin computes with when it is not the run's (its own
     #: `calibration` param); the worker stamps this rig's id on stereo results as `calib`
     rig: StereoRig | None = None
+    #: the type of the pool's `params:`, a Params Struct: when set, the runtime validates the
+    #: pool's params into it (an error names `pools.<pool>.params.<key>` and what was
+    #: expected) and configure() gets the Struct instead of the mapping
+    params_type: ClassVar[type[Params] | None] = None
 
-    def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
-        """Load models, read parameters. Called once before activate()."""
+    def configure(self, params: Any, ctx: Context) -> None:
+        """Load models, read parameters (the mapping of the pool's `params:`, or an instance
+        of params_type when the plugin declares one). Called once before activate()."""
 
     def activate(self) -> None:
         """Start accepting pairs."""
@@ -120,3 +127,76 @@ class Worker:
 
     def shutdown(self) -> None:
         """Final hook before the process exits."""
+
+
+# --- typed params and the frame check --------------------------------------------------
+
+S = TypeVar("S", bound=msgspec.Struct)
+
+
+class Params(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """Base of every plugin's params Struct: keyword-only, unknown keys rejected."""
+
+
+_AT = re.compile(r" - at `\$(?P<path>[^`]*)`")
+_UNKNOWN = re.compile(r"unknown field `(?P<key>[^`]+)`")
+
+
+def parse_params(params: Mapping[str, Any], cls: type[S], pool: str) -> S:
+    """Validate a pool's params into `cls`; WorkerError names `pools.<pool>.params.<key>`."""
+    prefix = f"pools.{pool}.params"
+    if not isinstance(params, Mapping):
+        raise WorkerError(f"{prefix}: expected a mapping, got {type(params).__name__}")
+    try:
+        return msgspec.convert(dict(params), cls, strict=True)
+    except msgspec.ValidationError as exc:
+        text = str(exc)
+        at = _AT.search(text)
+        path = at.group("path") if at else ""
+        unknown = _UNKNOWN.search(text)
+        if unknown:
+            path += f".{unknown.group('key')}"
+            fields = ", ".join(cls.__struct_fields__)
+            text = f"unknown key (expected one of: {fields})"
+        reason = _AT.sub("", text)
+        raise WorkerError(f"{prefix}{path}: {reason}") from None
+
+
+def check_frame(pair: Pair, size: tuple[int, int] | None = None, what: str = "",
+                grey_ok: bool = False) -> None:
+    """Raise WorkerError unless both images are HxWx3 uint8 (or HxW with grey_ok) of the
+    header's (and `size`'s) size, reduced by pair.reduction (a JPEG decoded at a reduced
+    DCT scale for the plugin's max_size)."""
+    w, h = pair.header.width, pair.header.height
+    iw, ih = reduced_size((w, h), pair.reduction)
+    for side, img in (("left", pair.left), ("right", pair.right)):
+        if (
+            not isinstance(img, np.ndarray)
+            or img.dtype != np.uint8
+            or not ((img.ndim == 3 and img.shape[2] == 3) or (grey_ok and img.ndim == 2))
+        ):
+            shape = getattr(img, "shape", None)
+            raise WorkerError(
+                f"pair {pair.header.seq}: expected a BGR uint8 {side} image, "
+                f"got shape {shape} dtype {getattr(img, 'dtype', None)}"
+            )
+        if img.shape[:2] != (ih, iw):
+            at = f" at 1/{pair.reduction}: {iw}x{ih}" if pair.reduction > 1 else ""
+            raise WorkerError(
+                f"pair {pair.header.seq}: {side} image is "
+                f"{img.shape[1]}x{img.shape[0]}, header says {w}x{h}{at}"
+            )
+    if size is not None and size != (w, h):
+        raise WorkerError(
+            f"pair {pair.header.seq}: frame is {w}x{h}, expected {size[0]}x{size[1]}"
+            f"{' (' + what + ')' if what else ''}"
+        )
+
+
+def configure_plugin(plugin: Worker, params: Mapping[str, Any], ctx: Context) -> None:
+    """Configure a plugin as the runtime does: its params validated into its params_type
+    when it declares one (WorkerError naming the key), else handed over as given."""
+    if plugin.params_type is not None:
+        plugin.configure(parse_params(params, plugin.params_type, ctx.pool), ctx)
+    else:
+        plugin.configure(params, ctx)

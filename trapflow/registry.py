@@ -25,12 +25,16 @@ BUILTIN: dict[str, str] = {
     "histogram": "trapflow_workers.histogram_classifier:HistogramClassifier",
     "flow_vo": "trapflow_workers.flow_vo:FlowOdometry",
     "brightness": "trapflow_workers.example_brightness:Brightness",
-    # For tests and benchmarks.
-    "noop": "trapflow_workers.testing:Noop",
-    "slow": "trapflow_workers.testing:Slow",
-    "crash": "trapflow_workers.testing:Crash",
-    "flaky": "trapflow_workers.testing:Flaky",
-    "digest": "trapflow_workers.testing:Digest",
+}
+
+# The test kit's plugins (trapflow.testing.plugins), by short name for the project's tests and
+# benchmarks: resolved like the others, never listed to users (not in known_names()).
+TEST_KIT: dict[str, str] = {
+    "noop": "trapflow.testing.plugins:Noop",
+    "slow": "trapflow.testing.plugins:Slow",
+    "crash": "trapflow.testing.plugins:Crash",
+    "flaky": "trapflow.testing.plugins:Flaky",
+    "digest": "trapflow.testing.plugins:Digest",
 }
 
 ENTRY_POINT_GROUP = "trapflow.workers"
@@ -48,6 +52,8 @@ def _target(name: str) -> str:
         return name
     if name in BUILTIN:
         return BUILTIN[name]
+    if name in TEST_KIT:
+        return TEST_KIT[name]
     for ep in entry_points(group=ENTRY_POINT_GROUP):
         if ep.name == name:
             return str(ep.value)

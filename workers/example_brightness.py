@@ -6,15 +6,12 @@ or a pool with `plugin: trapflow_workers.example_brightness:Brightness`; docs/pl
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Annotated, Any
+from typing import Annotated
 
 import msgspec
 import numpy as np
 
-from trapflow.plugin import Context, Extra, Pair, Worker
-
-from .common import Params, check_frame, parse_params
+from trapflow.plugin import Context, Extra, Pair, Params, Worker, check_frame
 
 
 class BrightnessParams(Params):
@@ -27,8 +24,10 @@ class BrightnessParams(Params):
 class Brightness(Worker):
     """Reports mean left and right brightness and whether the scene is dark."""
 
-    def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
-        self.p = parse_params(params, BrightnessParams, ctx.pool)
+    params_type = BrightnessParams  # the runtime validates `params:` into it
+
+    def configure(self, params: BrightnessParams, ctx: Context) -> None:
+        self.p = params
 
     def process(self, pair: Pair) -> Extra:
         check_frame(pair)

@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 import pytest
 
-from tests.kits.context import make_context
 from trapflow.calibration.camera import StereoRig
+from trapflow.testing.kit import make_context
 
 REPO = Path(__file__).resolve().parents[2]
 

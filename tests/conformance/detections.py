@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 from trapflow_workers.crab_detector import CrabDetector
 
-from tests.kits.context import make_context, make_pair
+from trapflow.testing.kit import make_context, make_pair
 
 # (label, confidence, (x1, y1, x2, y2) in image pixels)
 Det = tuple[str, float, tuple[float, float, float, float]]

@@ -27,10 +27,10 @@ from trapflow_workers.crab_detector import CrabDetector
 from tests import builders
 from tests.conformance.conftest import kit_path
 from tests.conformance.detections import Det, assert_same
-from tests.kits.context import make_context
 from trapflow.calibration.camera import StereoRig
 from trapflow.plugin import Pair
 from trapflow.pools.pair_path import decode_pair
+from trapflow.testing.kit import make_context
 from trapflow.wire import jpeg
 
 KIT = "04_onnx_detectors"

@@ -23,7 +23,7 @@ import onnxruntime as ort  # noqa: E402
 from trapflow_workers.crab_detector import CrabDetector  # noqa: E402
 
 from tests.conformance.tiny_yolo import yolov5_model  # noqa: E402
-from tests.kits.context import make_context  # noqa: E402
+from trapflow.testing.kit import make_context  # noqa: E402
 
 KIT = "04_onnx_detectors"
 IMAGES = ["bus.jpg", "zidane.jpg"]

@@ -18,7 +18,7 @@ import pytest
 from trapflow_workers.apriltags import C_PIXEL_CENTRE, AprilTags, c_library_detector
 
 from tests.conformance.conftest import PHOTOS, grey_render, kit_path, worker_for
-from tests.kits.context import make_pair
+from trapflow.testing.kit import make_pair
 
 # The reference: pupil-apriltags, the AprilTag C library (its detectors are made through
 # c_library_detector only so that none is freed: its free crashes, see workers/apriltags.py).

@@ -16,7 +16,7 @@ import pytest
 from trapflow_workers.apriltags import C_PIXEL_CENTRE, c_library_detector, tag_object_points
 
 from tests.conformance.conftest import PHOTOS, grey_render, kit_path, worker_for
-from tests.kits.context import make_pair
+from trapflow.testing.kit import make_pair
 
 pytest.importorskip("pupil_apriltags", reason="pupil-apriltags is the reference")
 

@@ -18,8 +18,8 @@ import pytest
 from trapflow_workers.stereo_vo import StereoOdometry
 
 from tests.conformance.conftest import kit_path
-from tests.kits.context import make_context, make_pair
 from trapflow.calibration.camera import StereoRig
+from trapflow.testing.kit import make_context, make_pair
 
 KIT = "01_stereo_checkerboard_opencv"
 BOARD = (9, 6)  # inner corners

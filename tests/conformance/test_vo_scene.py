@@ -18,8 +18,8 @@ import pytest
 from trapflow_workers.stereo_vo import StereoOdometry
 
 from tests.conformance import vo_scene
-from tests.kits.context import make_context, make_pair
 from trapflow.calibration.camera import StereoRig
+from trapflow.testing.kit import make_context, make_pair
 
 pytestmark = pytest.mark.timeout(240)
 

@@ -16,9 +16,7 @@ import pytest
 from trapflow_workers.apriltags import AprilTags
 from trapflow_workers.crab_detector import CrabDetector
 from trapflow_workers.stereo_vo import StereoOdometry
-from trapflow_workers.vo_metrics import as_4x4, drift_percent, end_drift_percent, path_length
 
-from tests.kits.context import make_context, make_pair
 from trapflow.calibration.camera import StereoRig
 from trapflow.config import schema as configmod
 from trapflow.sources import rig as rigmod
@@ -26,6 +24,8 @@ from trapflow.sources.synthetic import SyntheticSource
 from trapflow.synth.dataset import labelled
 from trapflow.synth.options import SynthOptions
 from trapflow.synth.render import World
+from trapflow.testing.kit import make_context, make_pair
+from trapflow.testing.vo_metrics import as_4x4, drift_percent, end_drift_percent, path_length
 
 pytestmark = pytest.mark.slow  # renders and runs the algorithms over long sequences
 

@@ -22,7 +22,7 @@ def test_a_process_that_used_the_c_library_exits_cleanly() -> None:
         "from trapflow.synth.options import SynthOptions\n"
         "from trapflow.synth.render import World\n"
         "from trapflow_workers.apriltags import AprilTags\n"
-        "from tests.kits.context import make_context, make_pair\n"
+        "from trapflow.testing.kit import make_context, make_pair\n"
         "from trapflow.calibration.camera import StereoRig\n"
         "RIG = StereoRig.from_fov(1280, 720, 70.0, 0.12)\n"
         "world = World(RIG, seed=2, moving=True, rate_hz=15.0,\n"

@@ -21,7 +21,7 @@ ort = pytest.importorskip("onnxruntime")
 from trapflow_workers.crab_detector import CrabDetector  # noqa: E402
 from trapflow_workers.scene_classifier import SceneClassifier  # noqa: E402
 
-from tests.kits.context import make_context, make_pair  # noqa: E402
+from trapflow.testing.kit import make_context, make_pair  # noqa: E402
 
 HELD_OUT_SEEDS = [777_001, 777_002, 777_004]  # never used in training (1000+) or cards (9000+)
 

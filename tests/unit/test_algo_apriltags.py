@@ -12,10 +12,10 @@ import pytest
 from trapflow_workers import apriltags
 from trapflow_workers.apriltags import AprilTags, tag_object_points
 
-from tests.kits.context import make_context, make_pair
 from tests.kits.scenes import pose, rot_x, rot_z, tag_image
 from trapflow.calibration.camera import StereoRig
 from trapflow.errors import ConfigError, WorkerError
+from trapflow.testing.kit import make_context, make_pair
 
 RIG = StereoRig.from_fov(1280, 720, 70.0, 0.12)
 # The C library comes with the optional tags extra, which has no wheel on every platform

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from trapflow_workers.scene_classifier import SceneClassifier
 
-from tests.kits.context import make_context, make_pair
 from tests.kits.onnx_models import colour_classifier, constant_detector
 from trapflow.errors import WorkerError
+from trapflow.testing.kit import make_context, make_pair
 
 LABELS = "blue\ngreen\nred\n"
 

@@ -11,9 +11,9 @@ import pytest
 from trapflow_workers.crab_detector import CrabDetector
 from trapflow_workers.onnx_session import open_session
 
-from tests.kits.context import make_context, make_pair
 from tests.kits.onnx_models import constant_detector, yolo_tensor
 from trapflow.errors import WorkerError
+from trapflow.testing.kit import make_context, make_pair
 
 HW = (320, 320)
 # Boxes in model input pixels; a 640x480 frame is scaled by 0.5 and padded 40 px top

@@ -5,16 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.kits.context import make_context, make_pair
 from trapflow import registry
 from trapflow.errors import WorkerError
+from trapflow.plugin import configure_plugin
+from trapflow.testing.kit import make_context, make_pair
 from trapflow.wire.messages import Extra, Result, decode_result, encode
 
 
 def test_example_plugin_by_import_path() -> None:
     cls = registry.resolve("trapflow_workers.example_brightness:Brightness")
     worker = cls()
-    worker.configure({"dark_below": 50}, make_context(pool="brightness"))
+    configure_plugin(worker, {"dark_below": 50}, make_context(pool="brightness"))
     body = worker.process(make_pair(np.full((48, 64, 3), 30, np.uint8)))
     assert body == Extra(name="brightness", fields={"left": 30.0, "right": 30.0, "dark": True})
     res = Result(
@@ -26,4 +27,4 @@ def test_example_plugin_by_import_path() -> None:
 def test_example_plugin_rejects_unknown_params() -> None:
     worker = registry.resolve("trapflow_workers.example_brightness:Brightness")()
     with pytest.raises(WorkerError, match=r"pools\.brightness\.params\.dark: unknown key"):
-        worker.configure({"dark": 1}, make_context(pool="brightness"))
+        configure_plugin(worker, {"dark": 1}, make_context(pool="brightness"))

@@ -8,11 +8,11 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
-from trapflow_workers.vo_metrics import as_4x4, drift_percent
 
 from tests.builders import vo_circle, vo_plugin
-from tests.kits.context import make_pair
 from trapflow.errors import WorkerError
+from trapflow.testing.kit import make_pair
+from trapflow.testing.vo_metrics import as_4x4, drift_percent
 
 
 def _rel(truth: list[np.ndarray], i: int, j: int) -> np.ndarray:

@@ -13,9 +13,9 @@ from click.testing import CliRunner
 
 from tests.builders import rectified_calibration
 from trapflow.calibration.camera import StereoRig
-from trapflow.calibration.checkerboard import render_pair
 from trapflow.calibration.model import save_calibration
 from trapflow.cli.main import main
+from trapflow.testing.checkerboard import render_pair
 
 RIG = StereoRig.from_fov(640, 480, 70.0, 0.12)
 PATTERN = (9, 6)

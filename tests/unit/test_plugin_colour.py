@@ -11,13 +11,13 @@ from trapflow_workers.apriltags import AprilTags
 from trapflow_workers.common import check_frame
 from trapflow_workers.crab_detector import CrabDetector
 from trapflow_workers.stereo_vo import StereoOdometry
-from trapflow_workers.vo_metrics import as_4x4, drift_percent
 
 from tests import builders
 from tests.builders import vo_circle, vo_plugin
-from tests.kits.context import make_pair
 from trapflow.errors import WorkerError
 from trapflow.pools.pair_path import decode_image
+from trapflow.testing.kit import make_pair
+from trapflow.testing.vo_metrics import as_4x4, drift_percent
 
 
 def _jpeg(img: np.ndarray) -> bytes:
@@ -75,10 +75,9 @@ def test_burn_spends_cpu_not_wall_time() -> None:
     """The VO floor bench's recogniser: it must cost CPU (a sleep would leave VO the cores)."""
     import time
 
-    from trapflow_workers.testing import Burn
-
-    from tests.kits.context import make_context
     from trapflow.calibration.camera import StereoRig
+    from trapflow.testing.kit import make_context
+    from trapflow.testing.plugins import Burn
 
     burn = Burn()
     burn.configure({"cpu_s": 0.05}, make_context(StereoRig.from_fov(64, 48, 70.0, 0.12)))

@@ -19,7 +19,7 @@ def test_builtin_plugins_resolve(name: str) -> None:
 
 
 def test_import_path_resolves() -> None:
-    assert registry.resolve("trapflow_workers.testing:Noop").__name__ == "Noop"
+    assert registry.resolve("trapflow.testing.plugins:Noop").__name__ == "Noop"
 
 
 @pytest.mark.parametrize(
@@ -27,7 +27,7 @@ def test_import_path_resolves() -> None:
     [
         ("sonar", "unknown algorithm 'sonar'"),
         ("no_such_module:Thing", "cannot load algorithm"),
-        ("trapflow_workers.testing:Nothing", "cannot load algorithm"),
+        ("trapflow.testing.plugins:Nothing", "cannot load algorithm"),
         ("trapflow.wire.messages:Result", "is not a trapflow.plugin.Worker"),
     ],
 )

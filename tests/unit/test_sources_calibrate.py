@@ -12,12 +12,12 @@ from click.testing import CliRunner
 
 from trapflow.calibration.calibrate import CalibrationError, calibrate_stereo, expand, parse_pattern
 from trapflow.calibration.camera import StereoRig
-from trapflow.calibration.checkerboard import render_pair
 from trapflow.calibration.formats import load_calibration
 from trapflow.calibration.model import save_calibration
 from trapflow.cli.sources import calibrate
 from trapflow.errors import ConfigError
 from trapflow.sources.rectify import Rectifier
+from trapflow.testing.checkerboard import render_pair
 
 RIG = StereoRig.from_fov(640, 480, 65.0, 0.12)
 PATTERN = (9, 6)

@@ -12,8 +12,8 @@ import pytest
 from click.testing import CliRunner
 
 from trapflow.calibration.camera import StereoRig
-from trapflow.calibration.checkerboard import render_pair
 from trapflow.cli.sources import calibrate, lossless_problems, replay
+from trapflow.testing.checkerboard import render_pair
 from trapflow.wire.messages import PoolStats, Stats
 
 

@@ -23,7 +23,7 @@ import zmq
 
 from trapflow import registry
 from trapflow.errors import ProtocolError, WorkerError
-from trapflow.plugin import Context, Worker
+from trapflow.plugin import Context, Worker, configure_plugin
 from trapflow.pools.pair_path import process_pair
 from trapflow.runtime.lifecycle import EXIT_RECYCLED_JOBS, EXIT_RECYCLED_RSS
 from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec, freeze_heap
@@ -118,7 +118,7 @@ class WorkerNode(Node):
                 rig=self.rig, debug=self.pcfg.debug, save=self.pcfg.save,
                 time=self.pcfg.time, tag_size_m=self.spec.tag_size_m,
             )
-            plugin.configure(self.pcfg.params, ctx)
+            configure_plugin(plugin, self.pcfg.params, ctx)
             self.set_state(INACTIVE)
             plugin.activate()
         except Exception as exc:  # noqa: BLE001 - a plugin failure: up, inactive, why
@@ -220,7 +220,7 @@ class WorkerNode(Node):
         try:
             self.plugin.deactivate()
             self.set_state(INACTIVE)
-            self.plugin.configure(self.pcfg.params, ctx)
+            configure_plugin(self.plugin, self.pcfg.params, ctx)
             self.plugin.activate()
         except Exception as exc:  # noqa: BLE001 - bad parameters: a fresh process says why
             why = str(exc) if isinstance(exc, WorkerError) else f"{type(exc).__name__}: {exc}"

@@ -1,4 +1,7 @@
-"""Plugins for tests and benchmarks: no-op, deliberately slow, deliberately crashing."""
+"""Plugins for tests and benchmarks: no-op, deliberately slow, deliberately crashing, flaky,
+and a digest of the bytes each pair carries. Named in a pool by their import path
+(`trapflow.testing.plugins:Noop`) or by the short names trapflow.registry keeps for them
+(noop, slow, crash, flaky, digest), which it resolves but does not list to users."""
 
 from __future__ import annotations
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import REPO, Pipeline
+from trapflow.wire.pool_counters import LEDGER_STATES
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
 
@@ -84,10 +85,13 @@ def test_report_of_a_real_run(spawn, run_dir: Path) -> None:
 
     # Drops and losses: the ledger's numbers, pool by pool.
     ledger = json.loads((run_dir / "ledger.json").read_text())
-    pools = {r[0]: [int(v) for v in r[1:]] for r in page.table("pool", "processed")}
-    assert pools == {name: [q["processed"], q["dropped_by_policy"], q["timed_out"],
-                            q["failed"], q["lost"], q.get("unfinished_at_stop", 0)]
-                     for name, q in ledger["pools"].items()}
+    head, *rows = next(t for t in page.tables if t[0][:2] == ["pool", "processed"])
+    key = {label: k for k, label in LEDGER_STATES}
+    pools = {r[0]: {key[h]: int(v) for h, v in zip(head[1:], r[1:], strict=True)} for r in rows}
+    assert set(pools) == set(ledger["pools"])
+    for name, q in ledger["pools"].items():
+        assert pools[name] == {k: q.get(k, 0) for k in pools[name]}, name
+        assert {k for k, _label in LEDGER_STATES if q.get(k)} <= set(pools[name]), name
 
     # Charts: a rate series per pool, the VO path with one point per ok pose.
     series = {pl["data-name"]: int(pl["data-points"]) for pl in page.polylines}

@@ -3,18 +3,21 @@ pair it shows, chart points, and a /metrics exposition Prometheus's own parser r
 
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
+from trapflow import viewer
 from trapflow.cli.view_params import parse_view
 from trapflow.errors import ProtocolError
 from trapflow.normalizer.result_json import dumps, normalize
 from trapflow.viewer import metrics
 from trapflow.viewer.state import Histogram, ViewState, parse_timestamp
 from trapflow.wire import messages
+from trapflow.wire.pool_counters import IN_PROGRESS, POOL_COUNTERS, UNFINISHED
 
 
 @pytest.mark.parametrize(("text", "expected", "error"), [
@@ -307,3 +310,20 @@ def test_no_energy_yet_gives_empty_gauges(tmp_path: Path) -> None:
     fams = {f.name: f for f in text_string_to_metric_families(
         metrics.exposition(metrics.registry_for(ViewState(), tmp_path)).decode())}
     assert fams["trapflow_energy_watts"].samples == []
+
+
+def test_the_state_carries_every_ledger_state_and_the_page_names_none() -> None:
+    """Regression: the page listed a pool's ledger states by hand and left out gated,
+    dropped_stale and dropped_by_level. The state JSON now carries the list of states with
+    their labels (wire.pool_counters.LEDGER_STATES, derived from POOL_COUNTERS), and the
+    page iterates it."""
+    v = ViewState()
+    v.on_status(_status(ledger={"pools": {"mono": {"processed": 3, "gated": 9}}}))
+    snap = v.snapshot(0.0)
+    keys = [s["key"] for s in snap["ledger_states"]]
+    assert set(keys) == {c.ledger for c in POOL_COUNTERS if c.ledger} | {UNFINISHED, IN_PROGRESS}
+    assert "gated" in keys and len(set(keys)) == len(keys)
+    assert all(s["label"] for s in snap["ledger_states"])
+    js = (Path(viewer.__file__).parent / "static" / "viewer.js").read_text()
+    named = {c.ledger for c in POOL_COUNTERS if c.ledger} - {"processed", "lost"}  # always shown
+    assert not [k for k in named if re.search(rf"\bp\.{k}\b|[\"']{k}[\"']", js)]

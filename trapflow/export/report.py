@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from trapflow.errors import TrapflowError
+from trapflow.wire.pool_counters import LEDGER_STATES
 
 log = logging.getLogger(__name__)
 
@@ -356,17 +357,27 @@ def _energy(energy: dict[str, Any] | None) -> list[str]:
             _table(["role", "CPU s per hour"], [[r, v] for r, v in sorted(per_hour.items())])]
 
 
+def _pool_states(pools: dict[str, dict[str, Any]]) -> str:
+    """Where each pool's pairs went: a column for every ledger state (the list in
+    wire.pool_counters, `gated` and the drops included) that some pool holds pairs in,
+    `processed` and `lost` always; a state no pool reached is left out."""
+    shown = [(key, label) for key, label in LEDGER_STATES
+             if key in ("processed", "lost") or any(_count(p.get(key)) for p in pools.values())]
+    return _table(["pool", *(label for _key, label in shown)],
+                  [[name, *(_count(p.get(key)) for key, _label in shown)]
+                   for name, p in sorted(pools.items())])
+
+
+def _count(value: Any) -> int:
+    return value if isinstance(value, int) else 0
+
+
 def render_html(s: RunSummary) -> str:
     """The page: one HTML string with its styles and SVG charts inline."""
     e = html.escape
     classes = sorted({c for per in s.per_class_hour.values() for c in per})
     per_hour = [[hour, *(per.get(c, 0) for c in classes), sum(per.values())]
                 for hour, per in sorted(s.per_class_hour.items())]
-    pools = s.ledger.get("pools", {})
-    ledger_rows = [[name, p.get("processed", 0), p.get("dropped_by_policy", 0),
-                    p.get("timed_out", 0), p.get("failed", 0), p.get("lost", 0),
-                    p.get("unfinished_at_stop", 0)]
-                   for name, p in sorted(pools.items())]
     capture = [[k, s.ledger[k]] for k in ("produced", "reached_broker", "dropped_at_capture",
                                           "failed_at_capture") if k in s.ledger]
     vo = (f"{s.vo_ok} of {s.vo_total} pairs ok ({100 * s.vo_ok / s.vo_total:.0f} %)"
@@ -399,8 +410,7 @@ def render_html(s: RunSummary) -> str:
         svg_lines("VO path from above", {"left camera": s.vo_path} if s.vo_path else {},
                   "x (m)", "z (m)", equal=True),
         "<h2>Drops and losses</h2>", _table(["capture", "pairs"], capture),
-        _table(["pool", "processed", "dropped by policy", "timed out", "failed", "lost",
-                "unfinished at stop"], ledger_rows)
+        _pool_states(s.ledger.get("pools", {}))
         if s.ledger else "<p>no ledger.json (the run did not end cleanly)</p>",
         "<h2>Energy</h2>", *_energy(s.ledger.get("energy")),
         "<h2>Restarts</h2>", _table(["time", "node", "restart"], [list(r) for r in s.restarts]),

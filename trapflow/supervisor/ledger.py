@@ -19,17 +19,16 @@ import msgspec
 
 from trapflow.supervisor import status_line
 from trapflow.wire.messages import FAILED_PREFIX, CaptureCounters, PoolStats, Stats
-from trapflow.wire.pool_counters import POOL_COUNTERS, SUMMED, settled
+from trapflow.wire.pool_counters import IN_PROGRESS, POOL_COUNTERS, SUMMED, UNFINISHED, settled
 
-__all__ = ["Delivered", "RunLedger", "capture_failures", "combine", "retire", "verdict"]
+__all__ = ["UNFINISHED", "Delivered", "RunLedger", "capture_failures", "combine", "retire",
+           "verdict"]
 
 # The normalizer's heartbeat counters route:<pool>:<kind> say which pool's results become lines
 # of which kind (the first key of a results.jsonl line); results.jsonl itself has no pool.
 ROUTE_PREFIX = "route:"
 # The console's width: the status line never wraps on an 80-column terminal.
 STATUS_WIDTH = 80
-# The ledger's key for pairs a planned stop caught on their way (not lost).
-UNFINISHED = "unfinished_at_stop"
 # Seqs remembered per kind to count a result written twice (resent to a restarted
 # normalizer before it acknowledged) once; resends are never further apart than this.
 RECENT_SEQS = 65536
@@ -293,7 +292,7 @@ class RunLedger:
                 "recycled": dict((supervision or {}).get("recycled", {}).get(name, {})),
             }
             if not final:
-                out["pools"][name]["in_progress"] = in_progress
+                out["pools"][name][IN_PROGRESS] = in_progress
             elif planned_stop:
                 out["pools"][name][UNFINISHED] = in_progress
         if supervision is not None:
@@ -320,7 +319,7 @@ def totals_text(ledger: dict[str, Any]) -> str:
              f"{f', {failed} failed at capture ({kinds})' if failed else ''}"]
     for name, p in ledger["pools"].items():
         kinds = ", ".join(f"{k} {v}" for k, v in p["failures"].items())
-        going = f"in progress {p['in_progress']}, " if "in_progress" in p else ""
+        going = f"in progress {p[IN_PROGRESS]}, " if IN_PROGRESS in p else ""
         if UNFINISHED in p:
             going = f"unfinished at stop {p[UNFINISHED]}, "
         inactive = f", inactive {p['dropped_inactive']}" if p.get("dropped_inactive") else ""

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from trapflow.wire import messages
+from trapflow.wire.pool_counters import LEDGER_STATES
 
 HISTORY = 120  # chart points kept per pool (one per stats message: two minutes)
 RING = 16  # recent previews kept to match a result to the image it was computed on
@@ -304,6 +305,9 @@ class ViewState:
             "counts": self.counts.view(),
             "nodes": st.get("nodes", []),
             "ledger": st.get("ledger"),
+            # The ledger's per-pool states with their labels, in order: the page lists a
+            # pool's pairs by this list, so a new counter shows without a change to it.
+            "ledger_states": [{"key": key, "label": label} for key, label in LEDGER_STATES],
             "ring": st.get("ring"),
             "status_error": self.status_error,
             "modem": ({"state": modem["state"], "reason": modem["reason"],

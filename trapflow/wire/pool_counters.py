@@ -1,7 +1,8 @@
 """The per-pool counters of PoolStats in one ordered list: what each counts, its unit, how
-it adds up over broker restarts, its run-ledger key and its metric name. The broker's
-stats, the run ledger, `trapflow status`, the status line and the viewer's metrics derive
-their lists from here; a unit test holds this list and PoolStats's fields together."""
+it adds up over broker restarts, its run-ledger key, label and metric name. The broker's
+stats, the run ledger, `trapflow status`, the status line, the viewer's metrics and page,
+and the run report derive their lists from here; a unit test holds this list and
+PoolStats's fields together."""
 
 from __future__ import annotations
 
@@ -32,6 +33,11 @@ class PoolCounter:
     def unit(self) -> str:
         """What it counts: processes, pairs, or pairs per second."""
         return {"procs": "procs", "rate": "pairs/s"}.get(self.kind, "pairs")
+
+    @property
+    def label(self) -> str:
+        """Its name in a view of the ledger: the ledger key in words ("dropped by policy")."""
+        return (self.ledger or self.name).replace("_", " ")
 
     @property
     def summed(self) -> bool:
@@ -76,6 +82,19 @@ POOL_COUNTERS: tuple[PoolCounter, ...] = (
                 ledger="lost"),
     PoolCounter("rate", "rate", "pairs processed per second over the last interval",
                 metric="rate_pairs_per_second"),
+)
+
+# The ledger's two states of a pair that no counter holds: on its way when the run stopped
+# as planned (ledger.json at the end), or on its way now (the ledger while the run goes on).
+UNFINISHED = "unfinished_at_stop"
+IN_PROGRESS = "in_progress"
+# Every state a pool of a ledger can give a pair, as (ledger key, label), in the order the
+# views show them: the report, the viewer's page and the totals derive their rows from it,
+# so that a new counter shows everywhere at once.
+LEDGER_STATES: tuple[tuple[str, str], ...] = (
+    *((c.ledger, c.label) for c in POOL_COUNTERS if c.ledger),
+    (UNFINISHED, "unfinished at stop"),
+    (IN_PROGRESS, "in progress"),
 )
 
 # Counts since the run started, summed over broker restarts.

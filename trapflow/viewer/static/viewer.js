@@ -237,10 +237,13 @@ function drawTables(s) {
     rows.push(["captured", s.ledger.produced], ["reached broker", s.ledger.reached_broker],
       ["dropped at capture", s.ledger.dropped_at_capture], ["failed at capture", s.ledger.failed_at_capture]);
     for (const [name, p] of Object.entries(s.ledger.pools)) {
-      const going = p.unfinished_at_stop !== undefined ? `, unfinished at stop ${p.unfinished_at_stop}`
-        : p.in_progress !== undefined ? `, in progress ${p.in_progress}` : "";
-      const inactive = p.dropped_inactive ? `, inactive ${p.dropped_inactive}` : "";
-      rows.push([name, `processed ${p.processed}, dropped ${p.dropped_by_policy} (${p.policy})${inactive}, failed ${p.failed}, timed out ${p.timed_out}, lost ${p.lost}${going}`]);
+      // Every state of the server's list (wire/pool_counters.py) that holds pairs, in its
+      // order; processed, lost and the pairs on their way whenever the ledger has them.
+      const always = ["processed", "lost", "in_progress", "unfinished_at_stop"];
+      const states = s.ledger_states.filter(({ key }) => p[key] !== undefined
+        && (p[key] || always.includes(key)))
+        .map(({ key, label }) => `${label} ${p[key]}`);
+      rows.push([name, `${states.join(", ")} (policy ${p.policy})`]);
     }
     const e = s.ledger.energy; // the power model's estimate so far (ledger.json's energy)
     if (e) {

@@ -54,15 +54,16 @@ def test_interval_counts_round_trip() -> None:
 
 @pytest.mark.parametrize(("news", "kinds"), [
     # a label's first track, alone at its capture time
-    (RunNews(label="crab", max_n=1, new_label=True, track=3), [9]),
+    (RunNews(label="crab", max_n=1, new_label=True, track=3, t_s=T0), [9]),
     # first seen two at once: the new label and the run's MaxN
-    (RunNews(label="urchin", max_n=2, new_label=True, track=12), [9, 10]),
+    (RunNews(label="urchin", max_n=2, new_label=True, track=12, t_s=T0), [9, 10]),
     # a new MaxN of a known label, off the label table
-    (RunNews(label="sea-pen", max_n=4, new_label=False, track=40), [10]),
+    (RunNews(label="sea-pen", max_n=4, new_label=False, track=40,
+             t_s=T0), [10]),
 ])
 def test_news_is_small_and_round_trips(news: RunNews, kinds: list[int]) -> None:
     codec = LinkCodec()
-    recs = modem_news(news, T0)
+    recs = modem_news(news)
     assert [codec.encode(r)[0] for r in recs] == kinds
     for rec in recs:
         data = codec.encode(rec)
@@ -134,7 +135,7 @@ def test_observations_overtake_queued_detections() -> None:
     counts = queue("counts", [(42, modem_counts({"counts": {
         "start_s": T0, "end_s": T0 + 600, "pairs": 10,
         "labels": [{"label": "crab", "visits": 1, "max_n": 1, "dwell_s": 42.0}]}}))])
-    news = [modem_news(RunNews(label="fish", max_n=2, new_label=True, track=9), T0 + 9)]
+    news = [modem_news(RunNews(label="fish", max_n=2, new_label=True, track=9, t_s=T0 + 9))]
     new_label = queue("new_label", [(43, news[0][0])])
     new_max_n = queue("new_max_n", [(44, news[0][1])])
     decision = Schedule(cfg, b"\x01\x02\x03\x04", []).next(

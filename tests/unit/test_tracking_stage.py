@@ -9,6 +9,7 @@ from typing import Any
 import pytest
 
 from trapflow.config.schema import ObserveConfig
+from trapflow.export.report import RunSummary, observations, render_html
 from trapflow.tracking.stage import Observer, View, aggregate
 
 T0_NS = 1_764_000_000 * 10**9
@@ -81,3 +82,29 @@ def test_the_sharpest_half_of_the_lengths_decides() -> None:
     views = [View(float(i), (0.0, 0.0, 1.0), 0.2, 0.01) for i in range(6)]
     views += [View(6.0 + i, (0.0, 0.0, 1.0), 0.5, 0.2) for i in range(4)]
     assert aggregate(views)["length_m"] == pytest.approx(0.2)
+
+
+def test_one_label_per_track_in_tracks_counts_news_and_report() -> None:
+    """Regression (issue 32): counts.jsonl, the report and the modem's news took a visit's
+    label from the track's first box, tracks.jsonl and Camtrap DP its majority label; a
+    crab track of 1 scallop box (its first) and 52 crab boxes became "scallop: 1 visit,
+    MaxN 1". Every output now carries the label of the track's record."""
+    obs = Observer(ObserveConfig(interval_s=600.0))
+    got = []
+    for i in range(53):
+        line = {**_line(100.0 + i), "seq": i, "label": "scallop" if i == 0 else "crab"}
+        got.append(obs.feed(T0_NS + i * 100_000_000, [line]))
+    got.append(obs.finish())
+    tracks = [t["track"] for g in got for t in g.tracks]
+    counts = [c["counts"] for g in got for c in g.counts]
+    news = [n for g in got for n in g.news]
+    assert [(t["label"], t["pairs"]) for t in tracks] == [("crab", 53)]
+    assert [[(lb["label"], lb["visits"], lb["max_n"]) for lb in c["labels"]]
+            for c in counts] == [[("crab", 1, 1)]]
+    assert news == [{"new_label": {"label": "crab", "time": "2025-11-24 16:00:00",
+                                   "track": 1}}]
+    s = RunSummary(run="r")
+    observations(s, counts, tracks)
+    assert {lb for per in s.counts_hour.values() for lb in per} == {"crab"}
+    page = render_html(s)
+    assert "scallop" not in page and "<td>crab</td><td>1</td><td>1</td>" in page

@@ -165,12 +165,14 @@ def test_label_majority_with_share(labels: list[str], label: str, share: float) 
     assert end.best_confidence == pytest.approx(0.5 + 0.1 * best)
 
 
-def test_seen_maps_labels_to_confirmed_tracks() -> None:
+def test_seen_holds_the_confirmed_tracks_without_labels() -> None:
+    """A track's label is decided once, at its end (its record's majority label): seen
+    gives ids only, so no count can take a label from a track's first boxes."""
     movers = [Mover("crab", (100, 100), (0, 0)), Mover("crab", (300, 100), (0, 0)),
               Mover("scallop", (500, 100), (0, 0))]
     _, updates = run(movers, [0.0, 0.1])
-    assert updates[0].seen == {}
-    assert updates[1].seen == {"crab": frozenset({1, 2}), "scallop": frozenset({3})}
+    assert updates[0].seen == frozenset()
+    assert updates[1].seen == frozenset({1, 2, 3})
 
 
 def test_path_is_decimated_and_keeps_both_ends() -> None:

@@ -1,6 +1,15 @@
-"""Interval counts, pure: fed each capture time's confirmed tracks by label (the tracker's
-`Update.seen`) and the tracks that ended, it closes fixed intervals (aligned to multiples
-of the interval from time 0) into per-label visits, MaxN and dwell.
+"""Interval counts, pure: fed each capture time's confirmed tracks (the tracker's
+`Update.seen`, ids only) and the tracks that ended (with their labels), it closes fixed
+intervals (aligned to multiples of the interval from time 0) into per-label visits, MaxN and
+dwell.
+
+One label per track: a track's label is the one its record in tracks.jsonl carries, the
+majority of all its boxes (TrackEnd.label), known when it ends. Everything counted per
+label waits for it: a closed interval is given out once every track seen in it has ended
+(at most `max_gap_s` after the interval, unless an animal stays on), and the news of a
+track once it has ended. Before, a visit took the label its track had when it was first
+seen (its first box, on a tie at confirmation): a crab track of one scallop box and 52 crab
+boxes was counted a scallop.
 
 Definitions: a visit is a track, counted in the interval where it was first seen (as
 confirmed). MaxN is the largest number of tracks of one label seen at one capture time.
@@ -17,7 +26,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Collection, Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import msgspec
 
@@ -44,82 +53,126 @@ class IntervalCounts(msgspec.Struct, frozen=True, kw_only=True):
     labels: list[LabelCount]
 
 
+def _peaks(sets: list[tuple[float, frozenset[int]]], t_s: float, ids: Collection[int]) -> None:
+    """Add one capture time's ids to `sets`, unless they are the same as the last added:
+    MaxN needs every change of who is in view, not every capture time (an animal that
+    stays costs one entry, not one per pair)."""
+    if ids and (not sets or sets[-1][1] != ids):
+        sets.append((t_s, frozenset(ids)))
+
+
+def _by_label(ids: Iterable[int], labels: Mapping[int, str]) -> dict[str, list[int]]:
+    out: dict[str, list[int]] = {}
+    for tid in ids:
+        out.setdefault(labels[tid], []).append(tid)
+    return out
+
+
 @dataclass
-class _Open:
+class _Interval:
+    """One interval's numbers by track id, until every track in it has its label."""
+
     start_s: float
+    end_s: float | None = None  # None while open
     pairs: int = 0
+    visits: set[int] = field(default_factory=set)  # tracks first seen here
+    dwell: dict[int, float] = field(default_factory=dict)
+    seen: list[tuple[float, frozenset[int]]] = field(default_factory=list)  # who, when
+
+    def ids(self) -> set[int]:
+        return set(self.dwell) | self.visits | {i for _t, s in self.seen for i in s}
 
 
 class Counter:
-    """Accumulates one interval at a time; observe() returns the intervals it closed."""
+    """Accumulates one interval at a time by track id; observe(), ended() and flush() return
+    the intervals that are closed and whose tracks have all ended, in time order."""
 
     def __init__(self, interval_s: float = DEFAULT_INTERVAL_S) -> None:
         if not interval_s > 0:
             raise ValueError(f"interval_s: expected more than 0, got {interval_s}")
         self.interval_s = interval_s
-        self._open: _Open | None = None
-        self._visits: dict[str, int] = {}
-        self._max_n: dict[str, int] = {}
-        self._dwell: dict[str, float] = {}
-        self._last: dict[int, float] = {}  # track id -> last sighting
-        self._known: set[int] = set()  # ids already counted as a visit
+        self._intervals: list[_Interval] = []  # closed ones waiting for labels, then the open
+        self._last: dict[int, float] = {}  # live track id -> last sighting
+        self._labels: dict[int, str] = {}  # ended tracks' labels, while an interval needs them
 
-    def observe(self, t_s: float, seen: Mapping[str, Collection[int]]) -> list[IntervalCounts]:
-        """One capture time's confirmed tracks by label; returns the intervals closed first."""
-        closed = self._advance(t_s)
-        assert self._open is not None
-        self._open.pairs += 1
-        for label, ids in seen.items():
-            self._max_n[label] = max(self._max_n.get(label, 0), len(ids))
-            for tid in ids:
-                if tid not in self._known:
-                    self._known.add(tid)
-                    self._visits[label] = self._visits.get(label, 0) + 1
-                elif tid in self._last:
-                    self._dwell[label] = self._dwell.get(label, 0.0) + t_s - self._last[tid]
-                self._last[tid] = t_s
-        return closed
+    def observe(self, t_s: float, seen: Collection[int]) -> list[IntervalCounts]:
+        """One capture time's confirmed tracks; returns the intervals it let out."""
+        self._advance(t_s)
+        now = self._intervals[-1]
+        now.pairs += 1
+        _peaks(now.seen, t_s, seen)
+        for tid in seen:
+            if tid not in self._last and tid not in self._labels:
+                now.visits.add(tid)
+            elif tid in self._last:
+                now.dwell[tid] = now.dwell.get(tid, 0.0) + t_s - self._last[tid]
+            self._last[tid] = t_s
+        return self._release()
 
-    def ended(self, tracks: Iterable[TrackEnd]) -> None:
-        """Forget tracks that ended (they add no more dwell)."""
+    def ended(self, tracks: Iterable[TrackEnd]) -> list[IntervalCounts]:
+        """Tracks that ended, with their labels: they add no more dwell, and the intervals
+        that waited for them may go out (returned)."""
         for tr in tracks:
             self._last.pop(tr.id, None)
-            self._known.discard(tr.id)
+            self._labels[tr.id] = tr.label
+        return self._release()
 
     def flush(self, t_s: float) -> list[IntervalCounts]:
         """Close the open interval at t_s (shutdown): its end is t_s, not the boundary.
-        End the tracker's tracks first (`ended(tracker.flush(t_s))`)."""
-        if self._open is None:
-            return []
-        out = self._close(min(max(t_s, self._open.start_s), self._open.start_s + self.interval_s))
-        self._open = None
-        return [out]
-
-    def _advance(self, t_s: float) -> list[IntervalCounts]:
-        start = math.floor(t_s / self.interval_s) * self.interval_s
-        if self._open is None:
-            self._open = _Open(start_s=start)
-            return []
-        if t_s < self._open.start_s:
-            raise ValueError(f"capture times must not go back: got {t_s} in the interval "
-                             f"from {self._open.start_s}")
-        if start == self._open.start_s:
-            return []
-        # Intervals with no capture time at all are not written: no effort, no record.
-        out = [self._close(self._open.start_s + self.interval_s)]
-        self._open = _Open(start_s=start)
+        End the tracker's tracks first (`ended(tracker.flush(t_s))`): every interval then
+        goes out."""
+        if self._intervals and self._intervals[-1].end_s is None:
+            last = self._intervals[-1]
+            last.end_s = min(max(t_s, last.start_s), last.start_s + self.interval_s)
+        out = self._release()
+        if self._intervals:
+            waiting = sorted(self._intervals[0].ids() - set(self._labels))
+            raise ValueError(f"flush: expected every track seen to have ended first, got "
+                             f"tracks {waiting} without a label")
         return out
 
-    def _close(self, end_s: float) -> IntervalCounts:
-        assert self._open is not None
-        labels = sorted(set(self._visits) | set(self._max_n) | set(self._dwell))
-        rec = IntervalCounts(start_s=self._open.start_s, end_s=end_s, pairs=self._open.pairs,
-                             labels=[LabelCount(label=lb, visits=self._visits.get(lb, 0),
-                                                max_n=self._max_n.get(lb, 0),
-                                                dwell_s=round(self._dwell.get(lb, 0.0), 3))
-                                     for lb in labels])
-        self._visits, self._max_n, self._dwell = {}, {}, {}
-        return rec
+    def _advance(self, t_s: float) -> None:
+        start = math.floor(t_s / self.interval_s) * self.interval_s
+        last = self._intervals[-1] if self._intervals else None
+        if last is not None and last.end_s is None:
+            if t_s < last.start_s:
+                raise ValueError(f"capture times must not go back: got {t_s} in the interval "
+                                 f"from {last.start_s}")
+            if start == last.start_s:
+                return
+            # Intervals with no capture time at all are not written: no effort, no record.
+            last.end_s = last.start_s + self.interval_s
+        self._intervals.append(_Interval(start_s=start))
+
+    def _release(self) -> list[IntervalCounts]:
+        out = []
+        while self._intervals and self._intervals[0].end_s is not None:
+            head = self._intervals[0]
+            if not head.ids() <= set(self._labels):
+                break  # a track of it is still alive: its label is not known yet
+            out.append(self._counts(head))
+            self._intervals.pop(0)
+        if out:  # forget the labels no waiting interval needs
+            needed = set().union(*(iv.ids() for iv in self._intervals))
+            self._labels = {k: v for k, v in self._labels.items() if k in needed}
+        return out
+
+    def _counts(self, iv: _Interval) -> IntervalCounts:
+        assert iv.end_s is not None
+        labels = self._labels
+        visits = {lb: len(ids) for lb, ids in _by_label(iv.visits, labels).items()}
+        dwell: dict[str, float] = {}
+        for tid, d in iv.dwell.items():
+            dwell[labels[tid]] = dwell.get(labels[tid], 0.0) + d
+        max_n: dict[str, int] = {}
+        for _t, ids in iv.seen:
+            for lb, of in _by_label(ids, labels).items():
+                max_n[lb] = max(max_n.get(lb, 0), len(of))
+        return IntervalCounts(start_s=iv.start_s, end_s=iv.end_s, pairs=iv.pairs,
+                              labels=[LabelCount(label=lb, visits=visits.get(lb, 0),
+                                                 max_n=max_n.get(lb, 0),
+                                                 dwell_s=round(dwell.get(lb, 0.0), 3))
+                                      for lb in sorted(set(visits) | set(max_n) | set(dwell))])
 
 
 class RunNews(msgspec.Struct, frozen=True, kw_only=True):
@@ -130,23 +183,43 @@ class RunNews(msgspec.Struct, frozen=True, kw_only=True):
     max_n: int  # tracks of the label seen at this capture time (the run's new MaxN)
     new_label: bool
     track: int  # the lowest id among them
+    t_s: float  # the capture time they were seen at
 
 
 class News:
-    """The run's news, pure: fed each capture time's confirmed tracks by label, it answers
-    when a label is seen for the first time and when a label's run-wide MaxN grows."""
+    """The run's news, pure: fed each capture time's confirmed tracks and the tracks that
+    ended, it answers when a label is seen for the first time and when a label's run-wide
+    MaxN grows. A capture time's tracks count once all of them have ended (their labels
+    are then the tracks' own); capture times are taken in time order among those that
+    became countable at the same call, so a short visit is news while a long one goes on."""
 
     def __init__(self) -> None:
         self._max_n: dict[str, int] = {}
+        self._waiting: list[tuple[float, frozenset[int]]] = []  # who was seen when
+        self._labels: dict[int, str] = {}  # ended tracks' labels, while waiting needs them
 
-    def observe(self, seen: Mapping[str, Collection[int]]) -> list[RunNews]:
-        """The news of one capture time, by label in name order."""
-        out = []
-        for label in sorted(seen):
-            ids = seen[label]
-            before = self._max_n.get(label, 0)
-            if len(ids) > before:
-                self._max_n[label] = len(ids)
-                out.append(RunNews(label=label, max_n=len(ids), new_label=before == 0,
-                                   track=min(ids)))
+    def observe(self, t_s: float, seen: Collection[int]) -> None:
+        """One capture time's confirmed tracks (their news comes when they have ended)."""
+        _peaks(self._waiting, t_s, seen)
+
+    def ended(self, tracks: Iterable[TrackEnd]) -> list[RunNews]:
+        """Tracks that ended, with their labels; returns the news they made known, by
+        capture time, then label in name order."""
+        for tr in tracks:
+            self._labels[tr.id] = tr.label
+        out: list[RunNews] = []
+        keep: list[tuple[float, frozenset[int]]] = []
+        for t_s, ids in self._waiting:
+            if not ids <= self._labels.keys():
+                keep.append((t_s, ids))
+                continue
+            for label, of in sorted(_by_label(ids, self._labels).items()):
+                before = self._max_n.get(label, 0)
+                if len(of) > before:
+                    self._max_n[label] = len(of)
+                    out.append(RunNews(label=label, max_n=len(of), new_label=before == 0,
+                                       track=min(of), t_s=t_s))
+        self._waiting = keep
+        needed = {i for _t, s in keep for i in s}
+        self._labels = {k: v for k, v in self._labels.items() if k in needed}
         return out

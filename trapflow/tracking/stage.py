@@ -144,15 +144,16 @@ def modem_counts(record: dict[str, Any]) -> dict[str, Any]:
                        "pairs": c["pairs"], "labels": c["labels"]}}
 
 
-def modem_news(news: RunNews, t_s: float) -> list[dict[str, Any]]:
-    """The run's news as the modem carries it: `new_label` (kind 9: label, time, the first
-    track's id) and `new_max_n` (kind 10: label, time, the run's new MaxN when above 1)."""
+def modem_news(news: RunNews) -> list[dict[str, Any]]:
+    """The run's news as the modem carries it: `new_label` (kind 9: label, the capture time
+    it was seen at, the first track's id) and `new_max_n` (kind 10: label, time, the run's
+    new MaxN when above 1)."""
     out: list[dict[str, Any]] = []
     if news.new_label:
-        out.append({"new_label": {"label": news.label, "time": _utc(t_s),
+        out.append({"new_label": {"label": news.label, "time": _utc(news.t_s),
                                   "track": news.track}})
     if news.max_n > 1:
-        out.append({"new_max_n": {"label": news.label, "time": _utc(t_s),
+        out.append({"new_max_n": {"label": news.label, "time": _utc(news.t_s),
                                   "max_n": news.max_n}})
     return out
 
@@ -217,10 +218,12 @@ class Observer:
             if tid is not None and "xyz" in it:
                 self.views.setdefault(tid, []).append(View(  # positions at their own time
                     own_s, tuple(it["xyz"]), it.get("length_m"), it.get("length_sd_m")))
-        self.counter.ended(upd.ended)
-        closed = self.counter.observe(t_s, upd.seen)
-        news = [rec for n in self.news.observe(upd.seen) for rec in modem_news(n, t_s)]
-        return Observations(self._records(upd.ended), [count_record(c) for c in closed], news)
+        # Counts and news wait for a track's end: only then is its label its record's.
+        closed = self.counter.ended(upd.ended) + self.counter.observe(t_s, upd.seen)
+        news = self.news.ended(upd.ended)
+        self.news.observe(t_s, upd.seen)
+        return Observations(self._records(upd.ended), [count_record(c) for c in closed],
+                            [rec for n in news for rec in modem_news(n)])
 
     def _records(self, ended: tuple[TrackEnd, ...]) -> list[dict[str, Any]]:
         return [track_record(e, self.views.pop(e.id, None), self.poses) for e in ended]
@@ -230,6 +233,6 @@ class Observer:
         if self.t_s is None:
             return Observations()
         ended = self.tracker.flush(self.t_s)
-        self.counter.ended(ended)
-        return Observations(self._records(ended),
-                            [count_record(c) for c in self.counter.flush(self.t_s)])
+        closed = self.counter.ended(ended) + self.counter.flush(self.t_s)
+        return Observations(self._records(ended), [count_record(c) for c in closed],
+                            [rec for n in self.news.ended(ended) for rec in modem_news(n)])

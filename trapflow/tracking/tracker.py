@@ -50,13 +50,14 @@ class Update:
     """What one call decided.
 
     track_ids[i] is the id of detection i's track, or None when the detection started or
-    extended a tentative track, or matched nothing. seen maps each label to the confirmed
-    tracks matched at this capture time (the input of interval counts). ended lists the
-    tracks that ended at this call.
+    extended a tentative track, or matched nothing. seen: the confirmed tracks matched at
+    this capture time (the input of interval counts and news), without labels: a track's
+    label is decided once, at its end (TrackEnd.label, the majority of all its boxes).
+    ended lists the tracks that ended at this call.
     """
 
     track_ids: tuple[int | None, ...]
-    seen: Mapping[str, frozenset[int]]
+    seen: frozenset[int]
     ended: tuple[TrackEnd, ...]
 
 
@@ -213,13 +214,8 @@ class Tracker:
                 keep[-1].id, self._next_id = self._next_id, self._next_id + 1
                 ids[i] = keep[-1].id
         self._tracks = keep
-        seen: dict[str, set[int]] = {}
-        for tr in matched.values():
-            if tr.id is not None:
-                seen.setdefault(tr.label()[0], set()).add(tr.id)
-        return Update(track_ids=tuple(ids),
-                      seen={k: frozenset(v) for k, v in sorted(seen.items())},
-                      ended=tuple(ended))
+        seen = frozenset(tr.id for tr in matched.values() if tr.id is not None)
+        return Update(track_ids=tuple(ids), seen=seen, ended=tuple(ended))
 
     def flush(self, t_s: float) -> tuple[TrackEnd, ...]:
         """End every confirmed track (at shutdown); tentative ones are forgotten."""

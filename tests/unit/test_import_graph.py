@@ -17,7 +17,31 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[2] / "trapflow"
 PLUGINS = PACKAGE.parent / "workers"
 MAX_TOP_LEVEL_MODULES = 12
-MAX_LINES = 600
+MAX_LINES = 500
+# Modules over MAX_LINES, each with the reason it is one piece. A cap is a signal to split by
+# responsibility (STYLE); a file on this list was looked at and kept whole. The list names
+# only files still over the line, so it shrinks as they are split.
+LONG_ON_PURPOSE = {
+    "broker/node.py": "the broker's event loop: every handler mutates the same in-flight "
+                      "tables (links, jobs, ring slots); its pure decisions are in state.py",
+    "broker/state.py": "one state machine of the pools' queues, credits and ledger counters; "
+                       "pure, tested through its public steps",
+    "calibration/formats.py": "every stereo calibration format people bring (own YAML, ROS "
+                              "camera_info and oST, Kalibr, OpenCV FileStorage) read into one "
+                              "rig with the same checks and errors",
+    "measure/stereo.py": "range, 3-D position and length of one box, pure functions over one "
+                         "derivation of their uncertainties",
+    "modem/codec.py": "the link encoding: every record kind's field table with its encoder "
+                      "and the surface's decoder side by side, so they cannot drift apart",
+    "modem/outbox.py": "the outbox's one SQLite file shared by the appender and the sender: "
+                       "append, resolve and expire under one transaction discipline",
+    "supervisor/shell.py": "the supervisor's loop: spawning, heartbeats, the control socket "
+                           "and the ledger's writes share one process state",
+    "wire/frame_ring.py": "the shared-memory ring: slot layout, claims and releases in one "
+                          "place, so no second module computes offsets",
+    "wire/messages.py": "the one definition of every message on the wire and its size "
+                        "limits; splitting it would make two places define messages",
+}
 MAX_FUNCTION_LINES = 60  # beyond, a "# Long on purpose: ..." comment near the top says why
 WHY = "# Long on purpose"
 
@@ -126,10 +150,12 @@ def test_few_modules_at_the_top() -> None:
     assert len(top) <= MAX_TOP_LEVEL_MODULES, top
 
 
-def test_no_module_past_the_size_guide() -> None:
+def test_no_module_past_the_size_guide_without_a_reason() -> None:
     long = {str(p.relative_to(PACKAGE)): n for p in PACKAGE.rglob("*.py")
             if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_LINES}
-    assert long == {}
+    unexplained = {path: n for path, n in long.items() if path not in LONG_ON_PURPOSE}
+    assert unexplained == {}, "split these by responsibility, or name them in LONG_ON_PURPOSE"
+    assert sorted(set(LONG_ON_PURPOSE) - set(long)) == [], "now short: take them off the list"
 
 
 def long_functions_without_why(root: Path) -> list[str]:

@@ -11,7 +11,7 @@ Lifecycle: an unmatched high-confidence detection starts a tentative track; it i
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import msgspec

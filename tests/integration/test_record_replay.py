@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -20,33 +21,88 @@ from tests.conftest import REPO, Pipeline, only_pools, poll_for, record_until, w
 pytestmark = pytest.mark.slow  # starts whole pipelines
 
 
+@pytest.fixture(scope="module")
+def default_recording(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """A recording of a run of the default config (mono and stereo behind the motion gate,
+    vo) at 320x240 and 10 pairs/s, made once for the module; the pipeline and the recorder
+    are gone before the first test that uses it runs, none of their processes left."""
+    work = tmp_path_factory.mktemp("default-run")
+    p = Pipeline(["--size", "320x240", "--rate", "10"], work / "run")
+    try:
+        p.wait_active()
+        rec = work / "field.mcap"
+
+        def poses() -> int:  # one VO line per pair (a detector writes one per box)
+            return sum("stereo_vo" in x for x in p.results())
+
+        start = poses()
+        code, err = record_until(work / "run", rec, lambda: poses() > start + 40, 30)
+        assert code == 0, err
+        p.stop(signal.SIGINT)
+        leaked = p.leftovers()
+    finally:
+        if p.proc.poll() is None:
+            p.stop(signal.SIGTERM, timeout=10)
+        p.kill_all()
+    assert not leaked, f"processes left behind: {leaked}"
+    yield rec
+
+
+def left_images(rec: Path) -> int:
+    with AnyReader([rec]) as reader:  # readable by ROS 2 tooling's library
+        return sum(1 for c, _, _ in reader.messages()
+                   if c.topic == "/trapflow/left/image/compressed")
+
+
+def replay_cli(args: list[str]) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "trapflow", "replay", *args], cwd=REPO,
+                          capture_output=True, text=True, timeout=120)
+
+
 @pytest.mark.timeout(150)
-def test_record_then_replay_lossless(spawn, run_dir: Path) -> None:
-    work = run_dir.parent
-    p: Pipeline = spawn(["--workers", "vo=1", "--size", "320x240", "--rate", "10"], run_dir)
-    p.wait_active()
-    rec = work / "field.mcap"
-    code, err = record_until(run_dir, rec, lambda: len(p.results()) > 40, 30)
-    assert code == 0, err
-    p.stop(signal.SIGINT)
+def test_record_then_replay_lossless(default_recording: Path, tmp_path: Path) -> None:
+    rec = default_recording
     with AnyReader([rec]) as reader:  # readable by ROS 2 tooling's library
         topics = {c.topic: c.msgtype for c in reader.connections}
-        n_left = sum(1 for c, _, _ in reader.messages()
-                     if c.topic == "/trapflow/left/image/compressed")
+    n_left = left_images(rec)
     assert topics["/trapflow/left/image/compressed"] == "sensor_msgs/msg/CompressedImage"
     assert n_left >= 10
-    cfg = write_config(work / "replay.yaml", {
+    cfg = write_config(tmp_path / "replay.yaml", {
         "source": small_source(None),
         "pools": only_pools({"every": {"plugin": "digest", "policy": "ordered:64"}}),
     })
-    replay = subprocess.run(
-        [sys.executable, "-m", "trapflow", "replay", str(rec), "--rate", "0", "--assert-lossless",
-         "-c", str(cfg), "--workers", "every=1", "--run-dir", str(work / "replayed")],
-        cwd=REPO, capture_output=True, text=True, timeout=120)
+    replay = replay_cli([str(rec), "--rate", "0", "--assert-lossless", "-c", str(cfg),
+                         "--workers", "every=1", "--run-dir", str(tmp_path / "replayed")])
     assert replay.returncode == 0, replay.stderr + replay.stdout
     assert f"pairs read {n_left}, delivered {n_left}" in replay.stdout
-    lines = (work / "replayed" / "results.jsonl").read_text().splitlines()
+    lines = (tmp_path / "replayed" / "results.jsonl").read_text().splitlines()
     assert len(lines) == n_left
+
+
+@pytest.mark.timeout(240)
+def test_a_default_run_replays_every_pair_to_every_pool(default_recording: Path,
+                                                        tmp_path: Path) -> None:
+    """Regression (issue 32, item 1): a default-config run recorded, then `trapflow replay
+    REC --rate 0 --assert-lossless` exited 1 ("pool mono: processed 36 of 193"): the motion
+    gate, on by default for mono and stereo, withheld the rest. A replay now feeds every
+    pair to every pool; with --gate the gate runs as configured and --assert-lossless
+    accounts for what it withheld (processed + gated = read, nothing lost)."""
+    rec = default_recording
+    n = left_images(rec)
+    out = replay_cli([str(rec), "--size", "320x240", "--rate", "0", "--assert-lossless",
+                      "--run-dir", str(tmp_path / "all")])
+    assert out.returncode == 0, out.stderr + out.stdout
+    assert f"pairs read {n}, delivered {n}" in out.stdout
+    assert "motion gate on" not in out.stdout
+    ledger = json.loads((tmp_path / "all" / "ledger.json").read_text())
+    assert {name: p["processed"] for name, p in ledger["pools"].items()} == {
+        "mono": n, "stereo": n, "vo": n}
+    gated = replay_cli([str(rec), "--size", "320x240", "--rate", "0", "--assert-lossless",
+                        "--gate", "--workers", "mono=1", "--run-dir", str(tmp_path / "gated")])
+    assert gated.returncode == 0, gated.stderr + gated.stdout
+    mono = json.loads((tmp_path / "gated" / "ledger.json").read_text())["pools"]["mono"]
+    assert mono["processed"] + mono["gated"] == n and mono["gated"] > 0, mono
+    assert f"motion gate on: mono gated {mono['gated']}" in gated.stdout
 
 
 @pytest.mark.timeout(150)

@@ -4,6 +4,8 @@ check (the record command's clean Ctrl-C, a real process, is in tests/integratio
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
 
 import cv2
 import msgspec
@@ -91,3 +93,46 @@ def test_lossless_judges_every_pool_that_ran_though_its_workers_have_stopped() -
 
 def msgspec_replace(stats: Stats, **kw: object) -> Stats:
     return msgspec.structs.replace(stats, **kw)
+
+
+def test_lossless_accounts_for_what_the_gate_withheld_in_a_gated_pool() -> None:
+    """With --gate, a pool behind the motion gate ends a pair as processed or as gated
+    (withheld by design, not lost); a pool without the gate must still process every pair,
+    and a pair still kept as the gate's pre-roll has not ended."""
+    stats = Stats(t_wall_ns=0, uptime_s=9, pairs_in=10, rate_in=0, malformed=0, pools={
+        "mono": PoolStats(processed=4, gated=6), "vo": PoolStats(processed=10)})
+    assert lossless_problems(10, stats, ["mono", "vo"], gated=["mono"]) == []
+    # Without the gate asked for, gated pairs are pairs a pool did not process.
+    assert lossless_problems(10, stats, ["mono", "vo"]) == [
+        "pool mono: processed 4 of 10 (dropped 0, failed 0, timed out 0, lost 0)"]
+    held = msgspec_replace(stats, pools={"mono": PoolStats(processed=4, gated=5, kept=1)})
+    assert lossless_problems(10, held, ["mono"], gated=["mono"]) == [
+        "pool mono: processed 4 of 10 (gated 5, still kept 1, dropped 0, failed 0, "
+        "timed out 0, lost 0)"]
+
+
+@pytest.mark.parametrize(("flags", "gates", "idle_after_s"), [
+    # (replay's flags, each pool's gate, duty cycling's idle_after_s)
+    ([], {"mono": "always", "stereo": "always", "vo": "always", "tags": "always"}, 0.0),
+    (["--gate"], {"mono": "motion", "stereo": "motion", "vo": "always", "tags": "always"}, 30.0),
+])
+def test_replay_feeds_every_pair_unless_the_gate_is_asked_for(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, flags: list[str],
+        gates: dict[str, str], idle_after_s: float) -> None:
+    """Regression (issue 32, item 1): a replay of a default-config recording ran mono and
+    stereo behind the motion gate (on by default) and --assert-lossless failed on the pairs
+    it withheld. Without --gate every pool takes every pair and duty cycling is off."""
+    import trapflow.supervisor.run as supervisor_run
+    from trapflow.sources.replay import ReplaySource
+
+    seen: list[Any] = []
+    monkeypatch.setattr(ReplaySource, "count_pairs", lambda self: 3)
+    monkeypatch.setattr(supervisor_run, "run", lambda cfg, *a, **k: seen.append(cfg)
+                        or SimpleNamespace(code=0, stats=None, failure=""))
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("gate: {idle_after_s: 30}\n")
+    res = CliRunner().invoke(replay, [str(tmp_path / "x.mcap"), "-c", str(cfg), *flags])
+    assert res.exit_code == 0, res.output
+    (got,) = seen
+    assert {name: p.gate for name, p in got.pools.items()} == gates
+    assert got.gate.idle_after_s == idle_after_s

@@ -217,31 +217,42 @@ def _running_rig(run_dir: Path) -> StereoRig | None:
 
 
 def lossless_problems(pairs_read: int, stats: Stats, pools: Iterable[str],
-                      capture_failures: Mapping[str, int] | None = None) -> list[str]:
+                      capture_failures: Mapping[str, int] | None = None,
+                      gated: Iterable[str] = ()) -> list[str]:
     """Why a replay was not lossless: pairs capture could not read, pairs that did not
-    enter, or a pool that ran and did not process every pair (dropped, failed, lost)."""
+    enter, or a pool that ran and did not end every pair as processed (dropped, failed,
+    timed out, lost). A pool in `gated` (replayed with --gate, `gate: motion`) may also end
+    a pair as withheld by the motion gate (`gated`): accounted for, by design, not lost;
+    none may still be held as the gate's pre-roll."""
     problems = []
     if failed := sum((capture_failures or {}).values()):
         kinds = ", ".join(f"{k} {n}" for k, n in sorted((capture_failures or {}).items()))
         problems.append(f"{failed} pairs failed at capture ({kinds})")
     if stats.pairs_in != pairs_read:
         problems.append(f"read {pairs_read} pairs from the recording, {stats.pairs_in} entered")
+    behind_gate = set(gated)
     for name in sorted(pools):
         pool = stats.pools.get(name, PoolStats())
-        if pool.processed != pairs_read or pool.errors or pool.timed_out:
+        withheld = pool.gated if name in behind_gate else 0
+        if (pool.processed + withheld != pairs_read or pool.errors or pool.timed_out
+                or pool.kept):
+            gate = (f"gated {pool.gated}, still kept {pool.kept}, " if name in behind_gate
+                    else "")
             problems.append(f"pool {name}: processed {pool.processed} of {pairs_read} "
-                            f"(dropped {pool.dropped}, failed {pool.errors}, "
+                            f"({gate}dropped {pool.dropped}, failed {pool.errors}, "
                             f"timed out {pool.timed_out}, lost {pool.lost})")
     return problems
 
 
 def _replay_config(path: Path, config_path: str | None, loop: bool, opts: dict[str, Any],
-                   workers: dict[str, int] | None, size: tuple[int, int] | None) -> Config:
-    """The config of a replay: the file's, with the replay source and the flags over it."""
+                   workers: dict[str, int] | None, size: tuple[int, int] | None,
+                   gate: bool) -> Config:
+    """The config of a replay: the file's, with the replay source and the flags over it;
+    without `gate` every pool takes every pair (config.schema.with_gate)."""
     from trapflow import registry
     from trapflow.config import schema as config_mod
 
-    cfg = config_mod.load(config_path)
+    cfg = config_mod.with_gate(config_mod.load(config_path), gate)
     src: dict[str, Any] = {"kind": "replay", "uri": str(path), "loop": loop,
                            "options": {**cfg.source.options, **opts}}
     if size is not None:
@@ -258,7 +269,11 @@ def _replay_config(path: Path, config_path: str | None, loop: bool, opts: dict[s
               help="Speed relative to the original timing; 0 = as fast as the slowest pool.")
 @click.option("--loop", is_flag=True, help="Start over at the end instead of stopping.")
 @click.option("--assert-lossless", is_flag=True,
-              help="Fail (status 1) unless every pair read was processed by every pool.")
+              help="Fail (status 1) unless every pair read was processed by every pool (with "
+              "--gate: processed, or withheld by the motion gate and counted gated).")
+@click.option("--gate", is_flag=True,
+              help="Apply the motion gate as configured (pools with gate: motion get only the "
+              "pairs it lets through); default: every pair to every pool.")
 @click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False), default=None)
 @click.option("--workers", type=WorkersType(),
               help="Pools to run and their sizes, e.g. vo=1,tags=2 (others off).")
@@ -269,7 +284,7 @@ def _replay_config(path: Path, config_path: str | None, loop: bool, opts: dict[s
               help="Replay option (left_topic, right_topic, tolerance_s, msg_type, msg_def...).")
 @click.option("--run-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Where results, logs and sockets go (default: runs/<timestamp>).")
-def replay(path: Path, rate: float, loop: bool, assert_lossless: bool,
+def replay(path: Path, rate: float, loop: bool, assert_lossless: bool, gate: bool,
            config_path: str | None, workers: dict[str, int] | None,
            size: tuple[int, int] | None, duration: float | None, options: tuple[str, ...],
            run_dir: Path | None) -> None:
@@ -293,7 +308,7 @@ def replay(path: Path, rate: float, loop: bool, assert_lossless: bool,
         opts[key] = value
     with contextlib.ExitStack() as stack:
         try:
-            cfg = _replay_config(path, config_path, loop, opts, workers, size)
+            cfg = _replay_config(path, config_path, loop, opts, workers, size, gate)
             if path.name.endswith(PART_SUFFIX) and path.is_file():
                 tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="trapflow-")))
                 whole = tmp / path.name[: -len(PART_SUFFIX)]
@@ -320,8 +335,12 @@ def replay(path: Path, rate: float, loop: bool, assert_lossless: bool,
         return
     click.echo(f"pairs read {pairs}, delivered {stats.pairs_in}")
     ran = [name for name, pool in cfg.pools.items() if pool.count > 0]
+    gated = [name for name in ran if cfg.pools[name].gate == "motion"]
+    if gated:
+        click.echo("motion gate on: " + ", ".join(
+            f"{name} gated {stats.pools.get(name, PoolStats()).gated}" for name in gated))
     if assert_lossless and (problems := lossless_problems(pairs, stats, ran,
-                                                          result.capture_failures)):
+                                                          result.capture_failures, gated)):
         raise failed("replay was not lossless: " + "; ".join(problems))
 
 

@@ -211,6 +211,19 @@ def with_source(cfg: Config, **changes: Any) -> Config:
     ).validated()
 
 
+def with_gate(cfg: Config, gate: bool) -> Config:
+    """A re-analysis' config (`trapflow replay`): with `gate`, the config as it is (pools with
+    `gate: motion` get only the pairs the motion gate lets through); without, every pool
+    takes every pair (`gate: always`) and duty cycling is off, since a recording is
+    re-analysed to see all of it (`--gate` asks for the gate)."""
+    if gate:
+        return cfg
+    pools = {name: msgspec.structs.replace(p, gate="always") for name, p in cfg.pools.items()}
+    return msgspec.structs.replace(
+        cfg, pools=pools, gate=msgspec.structs.replace(cfg.gate, idle_after_s=0.0)
+    ).validated()
+
+
 def with_section(cfg: Config, section: str, **changes: Any) -> Config:
     """Override fields of one section (from command-line flags), re-validated."""
     if not changes:

@@ -307,10 +307,8 @@ class CrabDetector(Worker):
             # one frame pixel, in input pixels (an image reduced by r has r-pixel pixels)
             pixel=lb.scale / pair.reduction if self.edge_pixel else 0.0,
         )
+        # In the image's pixels: the runtime maps a reduced image's boxes to the frame's.
         mapped = lb.to_image(boxes[keep], image.shape[1], image.shape[0])
-        if pair.reduction > 1:  # back to frame pixels: image pixel x is frame pixel r * x
-            w, h = pair.header.width, pair.header.height
-            mapped = np.minimum(mapped * pair.reduction, np.array([w, h, w, h], np.float64))
         dets = [
             Detection(
                 label=self._label(int(ids[k])),
@@ -325,20 +323,18 @@ class CrabDetector(Worker):
 
     def _measure(self, pair: Pair, dets: list[Detection]) -> list[Detection]:
         """Each box measured on the pair (images as they came: reduced ones with the rig
-        reduced alike, boxes back in frame pixels)."""
-        r = pair.reduction
+        reduced alike; boxes and disparities in the image's pixels, as the runtime expects)."""
         grey = [img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
                 for img in (pair.left, pair.right)]
         rig = self.rig_at(grey[0].shape[1], grey[0].shape[0])
         floor = pair_floor(grey[0], grey[1], rig)  # the slant every box on the floor shares
         out = []
         for d in dets:
-            box = (d.box[0] / r, d.box[1] / r, d.box[2] / r, d.box[3] / r)
-            m = measure(grey[0], grey[1], rig, box, floor=floor)
+            m = measure(grey[0], grey[1], rig, d.box, floor=floor)
             if isinstance(m, Measured):
                 out.append(msgspec.structs.replace(
                     d, range_m=m.range_m, range_sd_m=m.range_sd_m, xyz=m.xyz,
-                    disparity_px=m.disparity_px * r, length_m=m.length_m,
+                    disparity_px=m.disparity_px, length_m=m.length_m,
                     length_sd_m=m.length_sd_m, length_method=m.length_method))
             else:
                 out.append(msgspec.structs.replace(d, unmeasured=m.reason))

@@ -29,9 +29,10 @@ from tests.conformance.conftest import kit_path
 from tests.conformance.detections import Det, assert_same
 from trapflow.calibration.camera import StereoRig
 from trapflow.plugin import Pair
-from trapflow.pools.pair_path import decode_pair
+from trapflow.pools.pair_path import process_pair
 from trapflow.testing.kit import make_context
 from trapflow.wire import jpeg
+from trapflow.wire.messages import MonoIR
 
 KIT = "04_onnx_detectors"
 PARAMS = {"confidence": 0.25, "iou": 0.7, "max_detections": 300, "providers": ["cpu"]}
@@ -71,10 +72,13 @@ def test_reduced_decode_gives_the_full_decodes_detections(realdata: Path, image:
     det = CrabDetector()
     rig = StereoRig.from_fov(w, h, 70.0, 0.12)
     det.configure({"model": str(model), **PARAMS}, make_context(rig, pool="mono"))
-    pair = decode_pair(det, header, data, data)  # as a worker decodes the detector's job
+    # as a worker runs the detector's job: decoded at the reduction, boxes back in the frame's
+    done = process_pair(det, header, data, data, pool="mono", worker="mono:0", calib="")
+    pair = done.pair
     assert pair.reduction == reduction
     assert pair.left.shape[:2] == (-(-h // reduction), -(-w // reduction))
-    got = [(d.label, d.confidence, d.box) for d in det.process(pair).detections]
+    assert isinstance(done.result.body, MonoIR)
+    got = [(d.label, d.confidence, d.box) for d in done.result.body.detections]
     full = Pair(header=header, left=whole, right=whole)
     want = [(d.label, d.confidence, d.box) for d in det.process(full).detections]
     assert len(want) >= 3, f"{image}: the full decode found only {want}"

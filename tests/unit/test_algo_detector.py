@@ -14,6 +14,7 @@ from trapflow_workers.onnx_session import open_session
 from tests.kits.onnx_models import constant_detector, yolo_tensor
 from trapflow.errors import WorkerError
 from trapflow.testing.kit import make_context, make_pair
+from trapflow.wire.messages import MonoIR
 
 HW = (320, 320)
 # Boxes in model input pixels; a 640x480 frame is scaled by 0.5 and padded 40 px top
@@ -205,7 +206,7 @@ def test_jpeg_decoded_at_reduced_scale_gives_boxes_in_frame_pixels(
     output ignores the pixels the boxes equal those of the full frame exactly."""
     from tests import builders
     from trapflow.calibration.camera import StereoRig
-    from trapflow.pools.pair_path import decode_pair
+    from trapflow.pools.pair_path import decode_pair, to_frame_pixels
 
     w, h = size
     det = CrabDetector()
@@ -218,7 +219,9 @@ def test_jpeg_decoded_at_reduced_scale_gives_boxes_in_frame_pixels(
     pair = decode_pair(det, builders.pair_header(3, w, h, "jpeg"), data, data)
     assert pair.reduction == reduction
     assert pair.left.shape == (h // reduction, w // reduction, 3)
-    got = [d.box for d in det.process(pair).detections]
+    body = det.process(pair)  # in the reduced image's pixels; the runtime maps them back
+    assert isinstance(body, MonoIR)
+    got = [d.box for d in to_frame_pixels(body, pair.reduction, w, h).detections]
     want = [d.box for d in det.process(make_pair(img)).detections]
     assert len(got) == 2
     np.testing.assert_allclose(got, want, atol=1e-3)

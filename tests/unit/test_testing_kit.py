@@ -25,7 +25,7 @@ def test_run_plugin_gives_the_normalizer_lines_of_each_pair() -> None:
     pairs = [_pair(20, 1), _pair(120, 2)]
     lines = run_plugin("brightness", pairs, params={"dark_below": 40})
     assert [line["brightness"]["seq"] for line in lines] == [0, 1]
-    for line, (left, right) in zip(lines, pairs):
+    for line, (left, right) in zip(lines, pairs, strict=True):
         body = line["brightness"]
         # numpy's own mean of the images, as the example documents its fields
         assert body["left"] == round(float(left.mean()), 1)

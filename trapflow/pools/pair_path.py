@@ -65,6 +65,23 @@ def _as_bytes(frame: Any) -> np.ndarray:
     return np.frombuffer(frame.buffer if hasattr(frame, "buffer") else frame, dtype=np.uint8)
 
 
+def to_frame_pixels(body: messages.Body, reduction: int, width: int, height: int
+                    ) -> messages.Body:
+    """A body a plugin computed on images reduced by `reduction` (its max_size), in the
+    frame's pixels: boxes scaled (image pixel x is frame pixel x * reduction) and kept
+    inside the frame, disparities scaled alike. Metric fields (range, length, position)
+    do not depend on the pixel size and stay as they are."""
+    if not isinstance(body, messages.MonoIR) or not body.detections:
+        return body
+    r = float(reduction)
+    dets = [msgspec.structs.replace(
+        d, box=(min(d.box[0] * r, width), min(d.box[1] * r, height),
+                min(d.box[2] * r, width), min(d.box[3] * r, height)),
+        disparity_px=None if d.disparity_px is None else d.disparity_px * r)
+        for d in body.detections]
+    return msgspec.structs.replace(body, detections=dets)
+
+
 @dataclass(frozen=True)
 class Processed:
     """A pair through a plugin: the pair as decoded, its result, and the CPU time (all
@@ -92,6 +109,8 @@ def process_pair(plugin: Worker, header: messages.StereoPair, left: Any, right: 
     body = plugin.process(pair)
     proc_ns = time.monotonic_ns() - t0
     cpu_ns = time.process_time_ns() - c0
+    if pair.reduction > 1:
+        body = to_frame_pixels(body, pair.reduction, header.width, header.height)
     if isinstance(body, STAMPED) and not body.calib:
         body = msgspec.structs.replace(body, calib=calib)
     result = messages.Result(seq=header.seq, t_wall_ns=header.t_wall_ns,

@@ -250,6 +250,7 @@ class CaptureNode(Node):
             # A recording's own capture time; a camera's is now (a label only).
             t_wall_ns=time.time_ns() if f.t_wall_ns is None else f.t_wall_ns,
             t_mono_ns=time.monotonic_ns(),  # stamped after encoding: transport latency
+            source_time=f.t_wall_ns is not None,  # durations on a recording's own stamps
             t_left_ns=f.t_left_ns,
             t_right_ns=f.t_right_ns,
             skew_ns=f.right_minus_left_ns(),

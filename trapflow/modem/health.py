@@ -27,6 +27,14 @@ def _timestamp(t: float) -> str:
     return time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(t)) + f".{ms:03d}"
 
 
+def host_uptime_s() -> float:
+    """Seconds since the host booted, on a clock no wall-clock step moves (before, the wall
+    clock minus the boot time: an NTP fix an hour back made it -775 s, a record the link
+    refused)."""
+    clock = getattr(time, "CLOCK_BOOTTIME", time.CLOCK_MONOTONIC)
+    return time.clock_gettime(clock)
+
+
 def _temperature() -> float | None:
     try:
         sensors = psutil.sensors_temperatures()
@@ -50,11 +58,15 @@ class HealthMonitor:
         disk_path: str | Path = ".",
         pool_rates: Callable[[], PoolRates] | None = None,
         energy: EnergyConfig | None = None,
+        wall: Callable[[], float] = time.time,
+        uptime: Callable[[], float] = host_uptime_s,
     ) -> None:
         self.cfg = cfg or HealthConfig()
         self.energy = energy  # with it, the record says watts (and days on the battery)
         self.disk_path = Path(disk_path)
         self.pool_rates = pool_rates
+        self.wall = wall  # the record's timestamp: a label
+        self.uptime = uptime
         self._next = 0.0
         self.level = ""  # the ladder's level, from the broker's stats ("": none)
         self._level_due = False
@@ -64,10 +76,9 @@ class HealthMonitor:
         self, backlog: int = 0, link: str = "", pools: PoolRates | None = None
     ) -> dict[str, Any]:
         """One health record now."""
-        now = time.time()
         body: dict[str, Any] = {
-            "timestamp": _timestamp(now),
-            "uptime_s": int(now - psutil.boot_time()),
+            "timestamp": _timestamp(self.wall()),
+            "uptime_s": max(0, int(self.uptime())),
             "cpu_pct": round(psutil.cpu_percent(None), 1),
             "load1": round(psutil.getloadavg()[0], 2),
         }

@@ -5,6 +5,13 @@ sender, each its own process. Records are append-only and checksummed; the sende
 marks them resolved (acknowledged, expired, aggregated) in a separate table. A fresh
 outbox draws a random session id, kept in the file: the link carries it so the surface
 tells this outbox's record numbers from those of an earlier one.
+
+Two clocks: a record's `t_ns` is the wall clock at append, its label (and the aggregation
+buckets'); every time-to-live, the retention of resolved records and the hourly byte budget
+are measured on the outbox's own clock (`clock_ns`), the monotonic clock plus an offset
+kept in the file: it never steps with the wall clock, and after a reboot (a power cut) it
+goes on from the newest time the file holds, so the time the trap was off does not count.
+Before, a step of the wall clock a day forward expired every waiting record at once.
 """
 
 from __future__ import annotations
@@ -24,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import msgspec
+import psutil
 
 from trapflow.config.modem import OutboxConfig
 from trapflow.errors import TrapflowError
@@ -41,16 +49,17 @@ STATE_NAMES = {ACKED: "acked", EXPIRED: "expired", AGGREGATED: "aggregated", REJ
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS records(
     seq INTEGER PRIMARY KEY AUTOINCREMENT,  -- monotonic, never reused (AUTOINCREMENT)
-    t_ns INTEGER NOT NULL,                  -- wall clock at append: TTL and retention
+    t_ns INTEGER NOT NULL,                  -- wall clock at append: a label
     cls TEXT NOT NULL,                      -- message class, e.g. stereo_ir/scallop
     body BLOB NOT NULL,                     -- the record as JSON
-    crc INTEGER NOT NULL                    -- crc32 of seq, t_ns, cls and body
+    crc INTEGER NOT NULL,                   -- crc32 of seq, t_ns, cls and body
+    up_ns INTEGER NOT NULL DEFAULT 0        -- the outbox's clock at append: time-to-live
 );
 CREATE INDEX IF NOT EXISTS records_cls ON records(cls, seq);
 CREATE TABLE IF NOT EXISTS resolved(
     seq INTEGER PRIMARY KEY,
     state INTEGER NOT NULL,
-    t_ns INTEGER NOT NULL                   -- wall clock when resolved: retention
+    t_ns INTEGER NOT NULL                   -- the outbox's clock when resolved: retention
 );
 CREATE TABLE IF NOT EXISTS tried(           -- records sent at least once: never aggregated
     seq INTEGER PRIMARY KEY
@@ -60,7 +69,7 @@ CREATE TABLE IF NOT EXISTS meta(           -- the outbox's identity: 'session' -
     value BLOB NOT NULL
 );
 CREATE TABLE IF NOT EXISTS sent(            -- link ledger for the hourly byte budget
-    t_ns INTEGER NOT NULL,
+    t_ns INTEGER NOT NULL,                  -- the outbox's clock when sent
     bytes INTEGER NOT NULL
 );
 """
@@ -84,6 +93,7 @@ class Stored(msgspec.Struct, frozen=True):
     cls: str
     body: bytes
     intact: bool
+    up_ns: int = 0  # the outbox's clock at append (time-to-live)
 
     def record(self) -> dict[str, Any]:
         """The record as a dict (the normalizer's JSON shape)."""
@@ -140,6 +150,44 @@ def _connect(path: Path) -> sqlite3.Connection:
     return db
 
 
+def _boot_id() -> bytes:
+    """This boot's id (the monotonic clock restarts with it): the kernel's, or else the
+    boot time to the second."""
+    try:
+        with open("/proc/sys/kernel/random/boot_id", "rb") as fh:
+            return fh.read().strip()
+    except OSError:
+        return f"{psutil.boot_time():.0f}".encode()
+
+
+def _clock_offset(db: sqlite3.Connection, now_ns: int, boot: bytes) -> int:
+    """The outbox clock's offset from the monotonic clock: kept while the boot is the same;
+    on a new boot (or a file from before the clock) chosen so the clock goes on from the
+    newest time the file holds. Every opener agrees (one write transaction decides)."""
+    db.execute("BEGIN IMMEDIATE")
+    try:
+        cols = {r[1] for r in db.execute("PRAGMA table_info(records)")}
+        if "up_ns" not in cols:  # a file from before the outbox clock: start it now
+            db.execute("ALTER TABLE records ADD COLUMN up_ns INTEGER NOT NULL DEFAULT 0")
+            db.execute("UPDATE resolved SET t_ns = 0")
+            db.execute("DELETE FROM sent")
+        rows = dict(db.execute("SELECT key, value FROM meta WHERE key IN ('boot', 'clock')"))
+        if rows.get("boot") == boot and "clock" in rows:
+            offset = int(_PACK.unpack(bytes(rows["clock"]))[0])
+        else:
+            newest = max(int(db.execute(q).fetchone()[0] or 0) for q in (
+                "SELECT MAX(up_ns) FROM records", "SELECT MAX(t_ns) FROM resolved",
+                "SELECT MAX(t_ns) FROM sent"))
+            offset = newest - now_ns
+            db.executemany("INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)",
+                           [("boot", boot), ("clock", _PACK.pack(offset, 0))])
+        db.execute("COMMIT")
+    except BaseException:
+        db.execute("ROLLBACK")
+        raise
+    return offset
+
+
 class _Store:
     """A connection to the outbox file plus the interval fsync of its WAL."""
 
@@ -147,6 +195,7 @@ class _Store:
         self.path = Path(path)
         self.cfg = cfg
         self._db = _connect(self.path)
+        self._clock_offset = _clock_offset(self._db, time.monotonic_ns(), _boot_id())
         self._lock = threading.RLock()
         self._dirty = False
         self._last_sync = time.monotonic()
@@ -188,6 +237,11 @@ class _Store:
             os.fsync(fd)
         finally:
             os.close(fd)
+
+    def clock_ns(self) -> int:
+        """The outbox's clock: every duration it measures (time-to-live, retention, the
+        hourly budget) is a difference of two of its readings."""
+        return time.monotonic_ns() + self._clock_offset
 
     def _next_seq(self) -> int:
         """The seq the next record gets; call inside a write transaction."""
@@ -258,7 +312,7 @@ class _Store:
 
     def purge(self, now_ns: int | None = None, keep_s: float | None = None) -> int:
         """Delete resolved records older than the retention; returns how many went."""
-        now_ns = time.time_ns() if now_ns is None else now_ns
+        now_ns = self.clock_ns() if now_ns is None else now_ns
         keep = self.cfg.retention_s if keep_s is None else keep_s
         cutoff = now_ns - int(keep * 1e9)
         with self._lock, self._transaction():
@@ -291,13 +345,13 @@ class _Store:
         with self._lock:
             if seqs is None:
                 rows = self._db.execute(
-                    "SELECT seq, t_ns, cls, body, crc FROM records ORDER BY seq"
+                    "SELECT seq, t_ns, cls, body, crc, up_ns FROM records ORDER BY seq"
                 )
                 return [_stored(r) for r in rows]
             out = []
             for seq in seqs:
                 row = self._db.execute(
-                    "SELECT seq, t_ns, cls, body, crc FROM records WHERE seq=?", (seq,)
+                    "SELECT seq, t_ns, cls, body, crc, up_ns FROM records WHERE seq=?", (seq,)
                 ).fetchone()
                 if row is not None:
                     out.append(_stored(row))
@@ -311,10 +365,10 @@ class _Store:
             self._db.close()
 
 
-def _stored(row: tuple[int, int, str, bytes, int]) -> Stored:
-    seq, t_ns, cls, body, crc = row
+def _stored(row: tuple[int, int, str, bytes, int, int]) -> Stored:
+    seq, t_ns, cls, body, crc, up_ns = row
     body = bytes(body)
-    return Stored(seq, t_ns, cls, body, record_crc(seq, t_ns, cls, body) == crc)
+    return Stored(seq, t_ns, cls, body, record_crc(seq, t_ns, cls, body) == crc, up_ns)
 
 
 class Outbox(_Store):
@@ -407,7 +461,7 @@ class Outbox(_Store):
         except OutboxFull:
             self.refused += len(records)
             raise
-        t_ns = time.time_ns()
+        t_ns, up_ns = time.time_ns(), self.clock_ns()
         with self._lock:
             with self._transaction():
                 # Read the counter inside the write lock: the sender also appends (aggregates).
@@ -416,9 +470,10 @@ class Outbox(_Store):
                 for i, (rec, body) in enumerate(zip(records, bodies, strict=True)):
                     seq = first + i
                     cls = message_class(rec, self.cfg.class_fields)
-                    rows.append((seq, t_ns, cls, body, record_crc(seq, t_ns, cls, body)))
+                    rows.append((seq, t_ns, cls, body, record_crc(seq, t_ns, cls, body), up_ns))
                 self._db.executemany(
-                    "INSERT INTO records(seq, t_ns, cls, body, crc) VALUES (?,?,?,?,?)", rows
+                    "INSERT INTO records(seq, t_ns, cls, body, crc, up_ns) VALUES (?,?,?,?,?,?)",
+                    rows,
                 )
             self._last_seq = first + len(records) - 1
             self.appended += len(records)
@@ -471,7 +526,7 @@ class OutboxQueue(_Store):
         """Up to limit unresolved records of one class with seq > after, oldest first."""
         with self._lock:
             rows = self._db.execute(
-                "SELECT seq, t_ns, cls, body, crc FROM records WHERE cls=? AND seq>? "
+                "SELECT seq, t_ns, cls, body, crc, up_ns FROM records WHERE cls=? AND seq>? "
                 "AND seq NOT IN (SELECT seq FROM resolved) ORDER BY seq LIMIT ?",
                 (cls, after, limit),
             )
@@ -491,21 +546,23 @@ class OutboxQueue(_Store):
             return (int(row[0]) if row else 0) + 1
 
     def resolve(self, seqs: Iterable[int], state: int, now_ns: int | None = None) -> None:
-        """Mark records acknowledged, expired, aggregated or rejected (idempotent)."""
-        t = time.time_ns() if now_ns is None else now_ns
+        """Mark records acknowledged, expired, aggregated or rejected (idempotent); now_ns
+        is on the outbox's clock (clock_ns), now when None."""
+        t = self.clock_ns() if now_ns is None else now_ns
         self._write(
             "INSERT OR IGNORE INTO resolved(seq, state, t_ns) VALUES (?,?,?)",
             [(s, state, t) for s in seqs],
         )
 
     def expire(self, cls: str, before_ns: int, keep: Iterable[int] = ()) -> int:
-        """Resolve as expired every waiting record of cls appended before before_ns."""
+        """Resolve as expired every waiting record of cls appended before before_ns (on the
+        outbox's clock: clock_ns)."""
         kept = set(keep)
         with self._lock:
             seqs = [
                 r[0]
                 for r in self._db.execute(
-                    "SELECT seq FROM records WHERE cls=? AND t_ns<? "
+                    "SELECT seq FROM records WHERE cls=? AND up_ns<? "
                     "AND seq NOT IN (SELECT seq FROM resolved)",
                     (cls, before_ns),
                 )
@@ -518,24 +575,25 @@ class OutboxQueue(_Store):
     def replace(self, record: dict[str, Any], cls: str, covered: Sequence[int]) -> int:
         """Append an aggregate and resolve what it covers in one transaction; returns its seq."""
         body = msgspec.json.encode(record)
-        t_ns = time.time_ns()
+        t_ns, up_ns = time.time_ns(), self.clock_ns()
         with self._lock:
             with self._transaction():
                 seq = self._next_seq()
                 self._db.execute(
-                    "INSERT INTO records(seq, t_ns, cls, body, crc) VALUES (?,?,?,?,?)",
-                    (seq, t_ns, cls, body, record_crc(seq, t_ns, cls, body)),
+                    "INSERT INTO records(seq, t_ns, cls, body, crc, up_ns) VALUES (?,?,?,?,?,?)",
+                    (seq, t_ns, cls, body, record_crc(seq, t_ns, cls, body), up_ns),
                 )
                 self._db.executemany(
                     "INSERT OR IGNORE INTO resolved(seq, state, t_ns) VALUES (?,?,?)",
-                    [(s, AGGREGATED, t_ns) for s in covered],
+                    [(s, AGGREGATED, up_ns) for s in covered],
                 )
             self._maybe_sync()
         return seq
 
     def record_sent(self, nbytes: int, seqs: Sequence[int] = (), now_ns: int | None = None) -> None:
-        """Add a transmission to the budget ledger and note the records it carried."""
-        t = time.time_ns() if now_ns is None else now_ns
+        """Add a transmission to the budget ledger (at now_ns on the outbox's clock, now when
+        None) and note the records it carried."""
+        t = self.clock_ns() if now_ns is None else now_ns
         with self._lock, self._transaction():
             self._db.execute("INSERT INTO sent(t_ns, bytes) VALUES (?,?)", (t, nbytes))
             self._db.executemany(
@@ -552,7 +610,7 @@ class OutboxQueue(_Store):
             }
 
     def sent_since(self, since_ns: int) -> list[tuple[int, int]]:
-        """(t_ns, bytes) of transmissions since a time, oldest first."""
+        """(t_ns, bytes) of transmissions since a time on the outbox's clock, oldest first."""
         with self._lock:
             rows = self._db.execute(
                 "SELECT t_ns, bytes FROM sent WHERE t_ns>=? ORDER BY t_ns", (since_ns,)

@@ -78,7 +78,7 @@ class ModemSender:
         # The decisions: bit rate, window, priorities, back-off and the hourly byte budget
         # (counting what was sent in the last hour, before a restart too).
         self.schedule = Schedule(self.cfg, self.session,
-                                 self.queue.sent_since(time.time_ns() - HOUR_NS))
+                                 self.queue.sent_since(self.queue.clock_ns() - HOUR_NS))
         self.counters = collections.Counter[str]()
         self._told: set[tuple[str, str]] = set()  # unsendable records logged, once per kind
         self.blocked = ""
@@ -247,7 +247,7 @@ class ModemSender:
             self._backlog = self.queue.counts()[2]
         wall = time.time_ns()
         for cls in list(self.classes.values()):
-            self._expire(cls, wall)
+            self._expire(cls, self.queue.clock_ns())
             self._load(cls)
             if self.cfg.aggregates(cls.name) and len(cls.queue) > self.cfg.aggregate_backlog:
                 self._aggregate(cls, wall)
@@ -259,15 +259,16 @@ class ModemSender:
             self._next_purge = now + PURGE_INTERVAL_S
             self.queue.purge()
 
-    def _expire(self, cls: ClassQueue, wall_ns: int) -> None:
+    def _expire(self, cls: ClassQueue, now_ns: int) -> None:
+        """Time-to-live on the outbox's clock (now_ns): no wall-clock step expires a record."""
         ttl = self.cfg.ttl_of(cls.name)
         if ttl <= 0:
             return
-        before = wall_ns - int(ttl * 1e9)
+        before = now_ns - int(ttl * 1e9)
         gone = self.queue.expire(cls.name, before, keep=[m.stored.seq for m in cls.inflight])
         if gone:
             self.counters["expired"] += gone
-            cls.queue = collections.deque(m for m in cls.queue if m.stored.t_ns >= before)
+            cls.queue = collections.deque(m for m in cls.queue if m.stored.up_ns >= before)
 
     def _aggregate(self, cls: ClassQueue, wall_ns: int) -> None:
         interval_ns = int(self.cfg.aggregate_interval_s * 1e9)
@@ -341,7 +342,7 @@ class ModemSender:
 
     def _send(self, now: float) -> bool:
         """At most one frame out, as the schedule decides; False when none left."""
-        wall = time.time_ns()
+        wall = self.queue.clock_ns()  # the hourly budget's clock: the outbox's, never stepped
         d = self.schedule.next(now, wall, self.replies, len(self._frames),
                                self.classes.values(), self._last_known)
         if isinstance(d, Wait):

@@ -200,17 +200,17 @@ class NormalizerNode(Node):
                 and self.vo_pool in (None, res.pool)):
             self.vo_pool = res.pool
             b = res.body
-            self.rig_poses.add(res.t_wall_ns / 1e9, b.pose, b.ok, b.reinit)
+            self.rig_poses.add(res.capture_ns() / 1e9, b.pose, b.ok, b.reinit)
         if self.obs_files and isinstance(res.body, messages.MonoIR):
             observer = self.observers.get(res.pool)
             if observer is None:
                 observer = self.observers[res.pool] = Observer(self.cfg.observe, self.rig_poses)
             items = [obj["mono_ir"] for obj in objs]
-            self._write_observations(observer.feed(res.t_wall_ns, items))
+            self._write_observations(observer.feed(res.capture_ns(), items, res.t_wall_ns))
             self.tracked_at = time.monotonic()
         elif self.rig is not None and isinstance(res.body, messages.StereoVO):
             vo = res.body
-            if self.rig.vo(res.t_wall_ns / 1e9, vo.ok and not vo.reinit, vo.rotation,
+            if self.rig.vo(res.capture_ns() / 1e9, vo.ok and not vo.reinit, vo.rotation,
                            vo.translation) is not None:
                 log.debug("visual odometry: the rig %s", "moves" if self.rig.moving
                           else "is still")

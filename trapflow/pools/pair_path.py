@@ -115,5 +115,5 @@ def process_pair(plugin: Worker, header: messages.StereoPair, left: Any, right: 
         body = msgspec.structs.replace(body, calib=calib)
     result = messages.Result(seq=header.seq, t_wall_ns=header.t_wall_ns,
                              t_mono_ns=header.t_mono_ns, pool=pool, worker=worker,
-                             proc_ns=proc_ns, body=body)
+                             proc_ns=proc_ns, body=body, source_time=header.source_time)
     return Processed(pair=pair, result=result, cpu_ns=cpu_ns)

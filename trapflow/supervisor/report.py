@@ -268,7 +268,8 @@ class Report:
         ledger = self.ledger(snap=snap)
         (run_dir / "ledger.json").write_text(json.dumps(ledger, indent=1) + "\n")
         meta = run_meta.run_metadata(self.cfg, snap.rig, snap.rig_origin, self.started_ns,
-                                     time.time_ns(), run_meta.versions())
+                                     time.time_ns(), run_meta.versions(),
+                                     duration_s=time.monotonic() - self.t0)
         (run_dir / "run.json").write_text(json.dumps(meta, indent=1) + "\n")
         if snap.stats is not None:
             out.write(run_ledger.totals_text(ledger))

@@ -39,8 +39,11 @@ def config_digest(cfg: Config) -> str:
 
 
 def run_metadata(cfg: Config, rig: StereoRig | None, rig_origin: str, started_ns: int,
-                 ended_ns: int, found_versions: dict[str, str]) -> dict[str, Any]:
-    """run.json's content (wall-clock times in ns since the epoch, labels only)."""
+                 ended_ns: int, found_versions: dict[str, str],
+                 duration_s: float) -> dict[str, Any]:
+    """run.json's content: started and ended are wall-clock times in ns since the epoch,
+    labels only; duration_s is measured on the monotonic clock (their difference is not
+    the run's length when the wall clock stepped: an NTP fix made it -3413 s)."""
     src = cfg.source
 
     def utc(ns: int) -> str:
@@ -49,7 +52,7 @@ def run_metadata(cfg: Config, rig: StereoRig | None, rig_origin: str, started_ns
 
     return {
         "started": utc(started_ns), "ended": utc(ended_ns),
-        "duration_s": round((ended_ns - started_ns) / 1e9, 1),
+        "duration_s": round(duration_s, 1),
         "config": {
             "digest": config_digest(cfg),
             "source": {"kind": src.kind, "uri": src.uri, "size": f"{src.width}x{src.height}",

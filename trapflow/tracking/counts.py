@@ -3,6 +3,16 @@
 intervals (aligned to multiples of the interval from time 0) into per-label visits, MaxN and
 dwell.
 
+Two clocks: the capture time `t_s` measures (a monotonic clock, or a recording's stamps),
+`label_s` names (the pair's wall clock; the same as t_s when one clock does both). An
+interval starts at the multiple of the interval at or before its first pair's label, and
+closes when its length has passed on the measuring clock, at the next multiple as the label
+clock read at its start: with no step of the wall clock that is the next multiple, as
+before. When the wall clock steps (an NTP fix after a boot without a real-time clock), the
+open interval still closes on elapsed time, and the next one is aligned again to the new
+wall clock: its label may then overlap or skip the one before, but every interval lasts at
+most `interval_s`, and pairs, visits, MaxN and dwell are counted once each.
+
 One label per track: a track's label is the one its record in tracks.jsonl carries, the
 majority of all its boxes (TrackEnd.label), known when it ends. Everything counted per
 label waits for it: a closed interval is given out once every track seen in it has ended
@@ -72,7 +82,9 @@ def _by_label(ids: Iterable[int], labels: Mapping[int, str]) -> dict[str, list[i
 class _Interval:
     """One interval's numbers by track id, until every track in it has its label."""
 
-    start_s: float
+    start_s: float  # on the measuring clock
+    due_s: float  # when it closes, on the measuring clock
+    label_s: float  # its start on the label clock (a multiple of the interval)
     end_s: float | None = None  # None while open
     pairs: int = 0
     visits: set[int] = field(default_factory=set)  # tracks first seen here
@@ -95,9 +107,11 @@ class Counter:
         self._last: dict[int, float] = {}  # live track id -> last sighting
         self._labels: dict[int, str] = {}  # ended tracks' labels, while an interval needs them
 
-    def observe(self, t_s: float, seen: Collection[int]) -> list[IntervalCounts]:
-        """One capture time's confirmed tracks; returns the intervals it let out."""
-        self._advance(t_s)
+    def observe(self, t_s: float, seen: Collection[int],
+                label_s: float | None = None) -> list[IntervalCounts]:
+        """One capture time's confirmed tracks (`t_s` on the measuring clock, `label_s` the
+        same instant on the label clock, t_s when None); returns the intervals it let out."""
+        self._advance(t_s, t_s if label_s is None else label_s)
         now = self._intervals[-1]
         now.pairs += 1
         _peaks(now.seen, t_s, seen)
@@ -123,7 +137,7 @@ class Counter:
         goes out."""
         if self._intervals and self._intervals[-1].end_s is None:
             last = self._intervals[-1]
-            last.end_s = min(max(t_s, last.start_s), last.start_s + self.interval_s)
+            last.end_s = min(max(t_s, last.start_s), last.due_s)
         out = self._release()
         if self._intervals:
             waiting = sorted(self._intervals[0].ids() - set(self._labels))
@@ -131,18 +145,22 @@ class Counter:
                              f"tracks {waiting} without a label")
         return out
 
-    def _advance(self, t_s: float) -> None:
-        start = math.floor(t_s / self.interval_s) * self.interval_s
+    def _advance(self, t_s: float, label_s: float) -> None:
         last = self._intervals[-1] if self._intervals else None
         if last is not None and last.end_s is None:
             if t_s < last.start_s:
                 raise ValueError(f"capture times must not go back: got {t_s} in the interval "
                                  f"from {last.start_s}")
-            if start == last.start_s:
+            if t_s < last.due_s:
                 return
             # Intervals with no capture time at all are not written: no effort, no record.
-            last.end_s = last.start_s + self.interval_s
-        self._intervals.append(_Interval(start_s=start))
+            last.end_s = last.due_s
+        aligned = math.floor(label_s / self.interval_s) * self.interval_s
+        start = t_s - (label_s - aligned)
+        if last is not None and last.end_s is not None and start < last.end_s:
+            start = last.end_s  # the label clock stepped back: no overlap on the measuring one
+        self._intervals.append(_Interval(start_s=start, label_s=label_s - (t_s - start),
+                                         due_s=t_s + (aligned + self.interval_s - label_s)))
 
     def _release(self) -> list[IntervalCounts]:
         out = []
@@ -168,7 +186,8 @@ class Counter:
         for _t, ids in iv.seen:
             for lb, of in _by_label(ids, labels).items():
                 max_n[lb] = max(max_n.get(lb, 0), len(of))
-        return IntervalCounts(start_s=iv.start_s, end_s=iv.end_s, pairs=iv.pairs,
+        return IntervalCounts(start_s=iv.label_s, end_s=iv.label_s + (iv.end_s - iv.start_s),
+                              pairs=iv.pairs,
                               labels=[LabelCount(label=lb, visits=visits.get(lb, 0),
                                                  max_n=max_n.get(lb, 0),
                                                  dwell_s=round(dwell.get(lb, 0.0), 3))

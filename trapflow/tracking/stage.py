@@ -5,6 +5,15 @@ The normalizer runs it in its own process, on results as they arrive: lines are 
 once, never held back. Results of a pool with several workers can arrive slightly out of
 capture order; such a result is tracked at the newest capture time seen (its motion
 prediction is a few tens of ms off, well inside the IoU gate), not dropped.
+
+Two clocks: every duration (a track's age, gaps and duration, a counting interval's length,
+a speed) is measured on the pairs' capture times on a clock that does not step (the
+monotonic clock at capture, or a recording's own stamps: `messages.Result.capture_ns`); the
+times written (a track's first_s, last_s and path, an interval's start and end, news) are
+wall-clock labels: the measured time plus the newest pair's offset between its label and
+its measured time, so a track that spans a step of the wall clock is named in the clock
+after the step (after an NTP fix, the right one). Before, the tracker ran on the wall clock:
+stepped back an hour, most tracks lasted 0.0 s, some never ended, and no interval closed.
 """
 
 from __future__ import annotations
@@ -95,14 +104,18 @@ def _speed(views: list[View], poses: RigPoses | None) -> dict[str, Any]:
 
 
 def track_record(end: TrackEnd, views: list[View] | None = None,
-                 poses: RigPoses | None = None) -> dict[str, Any]:
-    """A finished track as one tracks.jsonl object (times in UTC seconds, 3 decimals)."""
+                 poses: RigPoses | None = None, label_offset_s: float = 0.0) -> dict[str, Any]:
+    """A finished track as one tracks.jsonl object (times in UTC seconds, 3 decimals): the
+    tracker's measured times plus `label_offset_s` (the wall clock's lead on them)."""
     out: dict[str, Any] = msgspec.to_builtins(end)
+    out["first_s"] = end.first_s + label_offset_s
+    out["last_s"] = end.last_s + label_offset_s
     for key in ("first_s", "last_s", "label_share", "best_confidence"):
         out[key] = round(out[key], 3)
     out["duration_s"] = round(end.last_s - end.first_s, 3)
     out["best_box"] = [round(v, 1) for v in end.best_box]
-    out["path"] = [[round(t, 3), round(x, 1), round(y, 1)] for t, x, y in end.path]
+    out["path"] = [[round(t + label_offset_s, 3), round(x, 1), round(y, 1)]
+                   for t, x, y in end.path]
     out.update(aggregate(views or [], poses))
     return {"track": out}
 
@@ -195,17 +208,24 @@ class Observer:
         self.counter = Counter(cfg.interval_s)
         self.news = News()
         self.views: dict[int, list[View]] = {}  # stereo measurements of live tracks
-        self.t_s: float | None = None  # newest capture time fed
+        self.t_s: float | None = None  # newest capture time fed (measured, plus `shift_s`)
+        self.label_offset_s = 0.0  # the newest pair's label minus its measured time
+        self.shift_s = 0.0  # added to measured times (a restore on a clock that restarted)
         self.late = 0  # results tracked at a newer capture time than their own
 
-    def feed(self, t_wall_ns: int, items: list[dict[str, Any]]) -> Observations:
-        """One pair's mono_ir items (dicts with label, confidence, box): each gets `track`,
-        its confirmed track's id or None; returns what ended."""
-        t_s = own_s = t_wall_ns / 1e9
+    def feed(self, t_ns: int, items: list[dict[str, Any]],
+             label_ns: int | None = None) -> Observations:
+        """One pair's mono_ir items (dicts with label, confidence, box) at capture time
+        `t_ns` (measured: Result.capture_ns) labelled `label_ns` (its wall clock; t_ns when
+        None): each gets `track`, its confirmed track's id or None; returns what ended."""
+        own_s = t_ns / 1e9
+        t_s = own_s + self.shift_s
         if self.t_s is not None and t_s < self.t_s:
             self.late += 1
             t_s = self.t_s
         self.t_s = t_s
+        label_s = t_s if label_ns is None else label_ns / 1e9 - (own_s + self.shift_s - t_s)
+        self.label_offset_s = label_s - t_s
         boxed = [it for it in items if it.get("label") != NO_DETECTION and len(it["box"]) == 4]
         dets = [Det(label=it["label"], confidence=float(it["confidence"]),
                     box=(it["box"][0], it["box"][1], it["box"][2], it["box"][3]))
@@ -219,14 +239,15 @@ class Observer:
                 self.views.setdefault(tid, []).append(View(  # positions at their own time
                     own_s, tuple(it["xyz"]), it.get("length_m"), it.get("length_sd_m")))
         # Counts and news wait for a track's end: only then is its label its record's.
-        closed = self.counter.ended(upd.ended) + self.counter.observe(t_s, upd.seen)
+        closed = self.counter.ended(upd.ended) + self.counter.observe(t_s, upd.seen, label_s)
         news = self.news.ended(upd.ended)
-        self.news.observe(t_s, upd.seen)
+        self.news.observe(label_s, upd.seen)
         return Observations(self._records(upd.ended), [count_record(c) for c in closed],
                             [rec for n in news for rec in modem_news(n)])
 
     def _records(self, ended: tuple[TrackEnd, ...]) -> list[dict[str, Any]]:
-        return [track_record(e, self.views.pop(e.id, None), self.poses) for e in ended]
+        return [track_record(e, self.views.pop(e.id, None), self.poses, self.label_offset_s)
+                for e in ended]
 
     def finish(self) -> Observations:
         """At the end of a run: every track still alive ends, the open interval closes."""

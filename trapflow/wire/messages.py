@@ -46,6 +46,9 @@ class StereoPair(Msg, frozen=True, tag="pair"):
     motion: bool | None = None  # what the motion gate saw in the left image (None: no gate)
     motion_score: float = 0.0  # share of the gate's small image that moved
     motion_regions: tuple[tuple[int, int, int, int], ...] = ()  # x1 y1 x2 y2 px, largest first
+    # True: t_wall_ns is the source's own capture time (a recording's stamps), and durations
+    # are measured on it, as recorded (a replay at any pace); False: on t_mono_ns.
+    source_time: bool = False
 
 
 class Job(Msg, frozen=True, tag="job"):
@@ -141,6 +144,14 @@ class Result(Msg, frozen=True, tag="result"):
     worker: str
     proc_ns: int
     body: Body
+    source_time: bool = False  # as the pair's (StereoPair.source_time)
+
+    def capture_ns(self) -> int:
+        """The pair's capture time on the clock durations are measured on (a track's age
+        and gaps, a counting interval's length): the monotonic clock at capture, or a
+        recording's own stamps. Never the wall clock of a live run, which an NTP fix steps;
+        t_wall_ns stays the pair's label."""
+        return self.t_wall_ns if self.source_time else self.t_mono_ns
 
 
 # --- ground truth (synthetic sources only; never shown to algorithms) -------------

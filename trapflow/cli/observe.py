@@ -20,16 +20,24 @@ from trapflow.tracking.stage import tracker_config
               help="Tracks in MOTChallenge format (frame,id,x,y,w,h,conf,...).")
 @click.option("--fps", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Frame rate of the sequence (default: seqinfo.ini beside the file).")
-def track(detections: Path, out: Path, fps: float | None) -> None:
+@click.option("--max-boxes", type=click.IntRange(min=1, max=100_000),
+              default=ObserveConfig().max_boxes, show_default=True,
+              help="Most detections of one frame tracked, the most confident "
+                   "(observe.max_boxes).")
+def track(detections: Path, out: Path, fps: float | None, max_boxes: int) -> None:
     """Track DETECTIONS (MOTChallenge `frame,-1,x,y,w,h,conf[,class]`) into tracks with
     ids, with the tracker of a live run (observe defaults)."""
     try:
-        summary = track_file(detections, out, fps, tracker_config(ObserveConfig()))
+        summary = track_file(detections, out, fps,
+                             tracker_config(ObserveConfig(max_boxes=max_boxes)))
     except TrapflowError as exc:
         raise bad_input(exc) from None
     click.echo(f"{summary.detections} detections in {summary.frames} frames at "
                f"{summary.fps:g} fps: {summary.tracks} tracks, {summary.tracked} detections "
                f"tracked -> {out}")
+    if summary.capped:  # once for the whole file, not per frame
+        click.echo(f"{summary.capped} detections not tracked: past the {max_boxes} most "
+                   "confident of their frame (--max-boxes)")
 
 
 COMMANDS = (track,)

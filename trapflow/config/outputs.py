@@ -85,6 +85,9 @@ class ObserveConfig(_Section):
     """Detections that confirm a track and give it its id."""
     max_gap_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 3.0
     """A track not seen for this long (capture time) has ended."""
+    max_boxes: Annotated[int, msgspec.Meta(ge=1, le=100000)] = 300
+    """Most boxes of one pair that tracking takes, the most confident; the rest get track
+    null and are counted (normalizer counter capped_for_tracking)."""
 
     def __post_init__(self) -> None:
         if self.low > self.high:

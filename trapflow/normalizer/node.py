@@ -92,6 +92,7 @@ class NormalizerNode(Node):
         out = {"lines": self.lines, "malformed": self.malformed, "outbox_refused": self.refused,
                "tracks": self.tracks, "late_for_tracking": sum(o.late for o in
                                                               self.observers.values()),
+               "capped_for_tracking": sum(o.capped for o in self.observers.values()),
                "refused_subscriptions": self.gate.refused}
         out.update(dict.fromkeys(self.routes, 1))
         return out
@@ -206,7 +207,13 @@ class NormalizerNode(Node):
             if observer is None:
                 observer = self.observers[res.pool] = Observer(self.cfg.observe, self.rig_poses)
             items = [obj["mono_ir"] for obj in objs]
+            capped = observer.capped
             self._write_observations(observer.feed(res.capture_ns(), items, res.t_wall_ns))
+            if observer.capped and not capped:  # said once per pool, then only counted
+                log.warning("pool %s: a pair brought %d boxes, more than observe.max_boxes "
+                            "(%d): tracking takes the most confident, the rest get track "
+                            "null (counted as capped_for_tracking; said once)", res.pool,
+                            len(items), self.cfg.observe.max_boxes)
             self.tracked_at = time.monotonic()
         elif self.rig is not None and isinstance(res.body, messages.StereoVO):
             vo = res.body

@@ -238,11 +238,16 @@ class RunLedger:
         return max(self.capture().produced, s.pairs_in, *accounted)
 
     def drained(self) -> bool:
-        """Every pair capture produced reached the broker and left every pool."""
+        """Every pair capture produced reached the broker and left every pool, and every
+        result a broker answered is in results.jsonl: a normalizer that lags behind the
+        pools is waited for (within the drain's time), not cut off (issue 36 item 1)."""
         s = self.stats
         produced = self.capture().produced if self.seen_capture else -1
+        written = self.delivered.by_pool(self.routes)
         return (s is not None and s.pairs_in >= produced
-                and all(p.pending == 0 and p.in_flight == 0 for p in s.pools.values()))
+                and all(p.pending == 0 and p.in_flight == 0
+                        and written.get(name, 0) >= p.processed
+                        for name, p in s.pools.items()))
 
     def ledger(self, policies: dict[str, str], restarts: dict[str, int],
                supervision: dict[str, Any] | None = None, final: bool = True,
@@ -256,7 +261,11 @@ class RunLedger:
         lost when it is retired). At its end they can no longer finish: after a planned stop
         (duration, a stop request, a signal, a drained source) those that no broker counted
         as lost were merely on their way (capture link, queue, worker, normalizer) and are
-        "unfinished at stop", counted apart; after a failure they are lost."""
+        "unfinished at stop", counted apart; after a failure they are lost. A pair a broker
+        answered whose result never reached results.jsonl (the normalizer could not keep
+        up, and the broker's queue to it ended with the broker) is lost either way, and
+        counted in `unwritten` too: a stop never hides a normalizer that fell behind
+        (issue 36 item 1: 87 of 602 results written, "lost 0")."""
         cap = self.capture()
         s = self.stats
         produced = self.produced()
@@ -273,21 +282,18 @@ class RunLedger:
         for name, p in (s.pools.items() if s else ()):
             # Processed: the results written for this pool (known once its results are
             # routed); lost: whatever else is not in a state, as the brokers counted them.
-            processed = delivered.get(name, p.processed)
+            written = delivered.get(name)
+            processed = p.processed if written is None else written
+            unwritten = 0 if written is None else max(0, p.processed - written)
             rest = max(0, produced - settled(p, processed))
-            if not final:  # only what a broker counted lost is lost while the run goes on
-                # (pending, in flight, kept as the gate's pre-roll, on a link: in progress)
-                in_progress = rest - min(rest, p.lost)
-            elif planned_stop:  # what no broker had counted lost when the stop began
-                lost = p.lost if self.lost_at_stop is None else self.lost_at_stop.get(name, 0)
-                in_progress = rest - min(rest, lost)
-            else:
-                in_progress = 0
+            in_progress = self._unfinished(name, p, rest, unwritten, final, planned_stop)
             states = {c.ledger: getattr(p, c.name) for c in POOL_COUNTERS if c.ledger}
             out["pools"][name] = {
                 **states, "processed": processed, "lost": rest - in_progress,
                 "policy": policies.get(name, ""), "failures": p.failures,
                 "restarts": restarts.get(name, 0),
+                # Of those lost (or, live, in progress): answered, not (yet) written.
+                "unwritten": unwritten,
                 # Replaced on purpose (max_rss_mb, max_jobs), by why; not restarts.
                 "recycled": dict((supervision or {}).get("recycled", {}).get(name, {})),
             }
@@ -299,6 +305,18 @@ class RunLedger:
             out["supervision"] = supervision
         return out
 
+    def _unfinished(self, name: str, p: PoolStats, rest: int, unwritten: int, final: bool,
+                    planned_stop: bool) -> int:
+        """Of a pool's `rest` (pairs in no state), those still on their way: the others
+        are lost (ledger's docstring)."""
+        if not final:  # only what a broker counted lost is lost while the run goes on
+            # (pending, in flight, kept as the gate's pre-roll, on a link: in progress)
+            return rest - min(rest, p.lost)
+        if planned_stop:  # what no broker had counted lost when the stop began
+            lost = p.lost if self.lost_at_stop is None else self.lost_at_stop.get(name, 0)
+            return rest - min(rest, lost + unwritten)
+        return 0
+
     def status_text(self, up: float, restarts: dict[str, int], width: int = STATUS_WIDTH,
                     level: str = "", stale_s: float = 0.0) -> str:
         """One line of at most `width` columns with every pool (trapflow.supervisor.
@@ -308,6 +326,12 @@ class RunLedger:
             return f"{up:6.1f}s | waiting for stats"[:width]
         return status_line.render(self.stats, self.capture(), up, restarts, width,
                                   level=level, stale_s=stale_s)
+
+
+def unwritten_text(pool: dict[str, Any]) -> str:
+    """ " (N answered, never written)" when the normalizer fell behind, else ""."""
+    n = min(int(pool.get("unwritten", 0)), int(pool["lost"]))
+    return f" ({n} answered, never written)" if n else ""
 
 
 def totals_text(ledger: dict[str, Any]) -> str:
@@ -333,7 +357,8 @@ def totals_text(ledger: dict[str, Any]) -> str:
         lines.append(
             f"  {name}: processed {p['processed']}, dropped {p['dropped_by_policy']} "
             f"({p['policy']}){inactive}, timed out {p['timed_out']}, failed {p['failed']}"
-            f"{f' ({kinds})' if kinds else ''}, lost {p['lost']}, {going}"
+            f"{f' ({kinds})' if kinds else ''}, lost {p['lost']}"
+            f"{unwritten_text(p) if 'unwritten' in p and p['lost'] else ''}, {going}"
             f"restarts {p['restarts']}{f', recycled {recycled}' if recycled else ''}")
     sup = ledger.get("supervision")
     if sup and (sup["gave_up"] or sup["retries"]):

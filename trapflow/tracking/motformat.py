@@ -42,6 +42,7 @@ class TrackSummary(msgspec.Struct, frozen=True, kw_only=True):
     tracked: int  # detections written with a track id
     tracks: int
     fps: float
+    capped: int = 0  # detections past the tracker's max_boxes in their frame: not tracked
 
 
 def _number(text: str, what: str, where: str) -> float:
@@ -131,9 +132,10 @@ def write_mot(path: Path, rows: Iterable[MotRow]) -> None:
     path.write_text("".join(format_row(r) + "\n" for r in ordered))
 
 
-def track_rows(rows: Sequence[MotRow], fps: float, config: TrackerConfig | None = None
-               ) -> list[MotRow]:
-    """The tracker over detection rows (time = (frame - 1) / fps): the rows it gave an id."""
+def track_rows(rows: Sequence[MotRow], fps: float, config: TrackerConfig | None = None,
+               capped: list[int] | None = None) -> list[MotRow]:
+    """The tracker over detection rows (time = (frame - 1) / fps): the rows it gave an id.
+    `capped`, when given, gets the detections each frame left out (past max_boxes)."""
     by_frame: dict[int, list[MotRow]] = {}
     for r in rows:
         by_frame.setdefault(r.frame, []).append(r)
@@ -144,6 +146,8 @@ def track_rows(rows: Sequence[MotRow], fps: float, config: TrackerConfig | None 
         upd = tracker.update((frame - 1) / fps, [
             Det(label=str(r.cls) if r.cls >= 0 else NO_CLASS_LABEL, confidence=r.conf,
                 box=(r.x, r.y, r.x + r.w, r.y + r.h)) for r in dets])
+        if capped is not None and upd.capped:
+            capped.append(upd.capped)
         out += [msgspec.structs.replace(r, id=tid)
                 for r, tid in zip(dets, upd.track_ids, strict=True) if tid is not None]
     return out
@@ -157,7 +161,9 @@ def track_file(det_path: Path, out_path: Path, fps: float | None = None,
     elif not fps > 0:
         raise MotFormatError(f"fps: expected more than 0, got {fps}")
     rows = read_mot(det_path)
-    tracked = track_rows(rows, fps, config)
+    capped: list[int] = []
+    tracked = track_rows(rows, fps, config, capped)
     write_mot(out_path, tracked)
     return TrackSummary(frames=len({r.frame for r in rows}), detections=len(rows),
-                        tracked=len(tracked), tracks=len({r.id for r in tracked}), fps=fps)
+                        tracked=len(tracked), tracks=len({r.id for r in tracked}), fps=fps,
+                        capped=sum(capped))

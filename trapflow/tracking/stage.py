@@ -40,7 +40,8 @@ def tracker_config(cfg: ObserveConfig) -> TrackerConfig:
     """The tracker's thresholds from the `observe` config section."""
     return TrackerConfig(high=cfg.high, low=cfg.low, iou_gate=cfg.iou_gate,
                          dist_gate=cfg.dist_gate, dup_iou=cfg.dup_iou,
-                         min_hits=cfg.min_hits, max_gap_s=cfg.max_gap_s)
+                         min_hits=cfg.min_hits, max_gap_s=cfg.max_gap_s,
+                         max_boxes=cfg.max_boxes)
 
 
 # Fewest measured views for a track's speed (a line through fewer is mostly noise).
@@ -212,6 +213,7 @@ class Observer:
         self.label_offset_s = 0.0  # the newest pair's label minus its measured time
         self.shift_s = 0.0  # added to measured times (a restore on a clock that restarted)
         self.late = 0  # results tracked at a newer capture time than their own
+        self.capped = 0  # boxes left out of tracking: more than max_boxes in their pair
 
     def feed(self, t_ns: int, items: list[dict[str, Any]],
              label_ns: int | None = None) -> Observations:
@@ -231,6 +233,7 @@ class Observer:
                     box=(it["box"][0], it["box"][1], it["box"][2], it["box"][3]))
                 for it in boxed]
         upd = self.tracker.update(t_s, dets)
+        self.capped += upd.capped
         for it, tid in zip(boxed, upd.track_ids, strict=True):
             it["track"] = tid
             if "v" in it:  # the shape's version stays the line's last key

@@ -17,8 +17,14 @@ from dataclasses import dataclass, field
 import msgspec
 import numpy as np
 
-from trapflow.tracking.assign import assign, iou_matrix
-from trapflow.tracking.kalman import BoxFilter, Noise
+from trapflow.tracking.assign import iou_pairs, match_edges
+from trapflow.tracking.kalman import (
+    BoxFilter,
+    Noise,
+    distance2_many,
+    predict_many,
+    update_many,
+)
 
 Box = tuple[float, float, float, float]
 
@@ -53,12 +59,14 @@ class Update:
     extended a tentative track, or matched nothing. seen: the confirmed tracks matched at
     this capture time (the input of interval counts and news), without labels: a track's
     label is decided once, at its end (TrackEnd.label, the majority of all its boxes).
-    ended lists the tracks that ended at this call.
+    ended lists the tracks that ended at this call. capped: detections left out of this
+    call because more than `max_boxes` came (the least confident; their ids are None).
     """
 
     track_ids: tuple[int | None, ...]
     seen: frozenset[int]
     ended: tuple[TrackEnd, ...]
+    capped: int = 0
 
 
 @dataclass(frozen=True)
@@ -96,6 +104,10 @@ class TrackerConfig:
     its first miss, as ByteTrack drops unconfirmed tracks)."""
     path_points: int = 32
     """Most box centres kept in a finished track's path."""
+    max_boxes: int = 300
+    """Most detections one call takes, the most confident (ties: the earlier); the rest
+    get no track. Bounds one call's work: a detector returning 10,000 boxes a pair
+    stalled the normalizer (issue 36 item 1)."""
     noise: Noise = field(default_factory=Noise)
     """The motion model's noise levels."""
 
@@ -109,6 +121,8 @@ class TrackerConfig:
             raise ValueError(f"dist_gate: expected >= 0 (0: off), got {self.dist_gate}")
         if not 0.0 < self.dup_iou <= 1.0:
             raise ValueError(f"dup_iou: expected in (0, 1] (1: off), got {self.dup_iou}")
+        if self.max_boxes < 1:
+            raise ValueError(f"max_boxes: expected >= 1, got {self.max_boxes}")
         if self.min_hits < 1 or self.max_gap_s <= 0 or self.path_points < 2:
             raise ValueError(f"expected min_hits >= 1, max_gap_s > 0, path_points >= 2, got "
                              f"{self.min_hits}, {self.max_gap_s}, {self.path_points}")
@@ -179,11 +193,13 @@ class Tracker:
             raise ValueError(f"capture times must not go back: got {t_s} after {self._t}")
         self._t = t_s
         ended = self._end_stale(t_s)
+        predict_many([tr.filter for tr in self._tracks],
+                     np.array([t_s - tr.t_filter for tr in self._tracks]))
         for tr in self._tracks:
-            tr.filter.predict(t_s - tr.t_filter)
             tr.t_filter = t_s
         ids: list[int | None] = [None] * len(detections)
-        kept = _distinct(detections, cfg.dup_iou)
+        taken = _most_confident(detections, cfg.max_boxes)
+        kept = _distinct(detections, taken, cfg.dup_iou)
         high = [i for i in kept if detections[i].confidence >= cfg.high]
         low = [i for i in kept if cfg.low <= detections[i].confidence < cfg.high]
         # Stage 1: high-confidence detections against every track, confirmed or not.
@@ -197,9 +213,10 @@ class Tracker:
         confirmed_left = [k for k in left_tracks if self._tracks[k].id is not None]
         pairs2, _, _ = self._match(confirmed_left, low, detections)
         matched: dict[int, _Track] = {}
+        update_many([self._tracks[k].filter for k, _ in pairs + pairs2],
+                    np.array([detections[i].box for _, i in pairs + pairs2], dtype=float))
         for k, i in pairs + pairs2:
             tr = self._tracks[k]
-            tr.filter.update(np.asarray(detections[i].box, dtype=float))
             tr.record(detections[i], t_s, cfg.path_points)
             if tr.id is None and tr.hits >= cfg.min_hits:
                 tr.id, self._next_id = self._next_id, self._next_id + 1
@@ -215,7 +232,8 @@ class Tracker:
                 ids[i] = keep[-1].id
         self._tracks = keep
         seen = frozenset(tr.id for tr in matched.values() if tr.id is not None)
-        return Update(track_ids=tuple(ids), seen=seen, ended=tuple(ended))
+        return Update(track_ids=tuple(ids), seen=seen, ended=tuple(ended),
+                      capped=len(detections) - len(taken))
 
     def flush(self, t_s: float) -> tuple[TrackEnd, ...]:
         """End every confirmed track (at shutdown); tentative ones are forgotten."""
@@ -242,14 +260,12 @@ class Tracker:
         if not tracks or not dets:
             return [], list(tracks), list(dets)
         boxes = np.array([detections[i].box for i in dets], dtype=float)
-        d2 = np.array([self._tracks[k].filter.distance2(boxes) for k in tracks])
+        d2 = distance2_many([self._tracks[k].filter for k in tracks], boxes)
         gate = self.config.dist_gate
-        cost = np.where(d2 <= gate, d2, gate * 2.0 + 1.0)
-        pairs = [(tracks[r], dets[c]) for r, c in assign(cost) if d2[r, c] <= gate]
-        used_t = {k for k, _ in pairs}
-        used_d = {i for _, i in pairs}
-        return (pairs, [k for k in tracks if k not in used_t],
-                [i for i in dets if i not in used_d])
+        r, c = np.nonzero(d2 <= gate)
+        # A pair under the gate weighs more the closer it is; any weighs more than none.
+        got = match_edges(len(tracks), len(dets), r, c, gate * 2.0 + 1.0 - d2[r, c])
+        return _split(tracks, dets, [(tracks[a], dets[b]) for a, b in got])
 
     def _match(self, tracks: list[int], dets: list[int], detections: Sequence[Det]
                ) -> tuple[list[tuple[int, int]], list[int], list[int]]:
@@ -259,28 +275,52 @@ class Tracker:
             return [], list(tracks), list(dets)
         pred = np.array([self._tracks[k].filter.box() for k in tracks])
         boxes = np.array([detections[i].box for i in dets], dtype=float)
-        iou = iou_matrix(pred, boxes)
-        # A gated pair costs as much as no overlap, so it is never chosen over a real one.
-        cost = np.where(iou >= self.config.iou_gate, 1.0 - iou, 1.0)
-        pairs = [(tracks[r], dets[c]) for r, c in assign(cost)
-                 if iou[r, c] >= self.config.iou_gate]
-        used_t = {k for k, _ in pairs}
-        used_d = {i for _, i in pairs}
-        return (pairs, [k for k in tracks if k not in used_t],
-                [i for i in dets if i not in used_d])
+        # Only pairs over the gate may match: the most total IoU among them, which is
+        # the least total (1 - IoU) cost over the whole matrix with a gated pair at 1.
+        r, c, iou = iou_pairs(pred, boxes, self.config.iou_gate)
+        got = match_edges(len(tracks), len(dets), r, c, iou)
+        return _split(tracks, dets, [(tracks[a], dets[b]) for a, b in got])
 
 
+def _split(tracks: list[int], dets: list[int], pairs: list[tuple[int, int]]
+           ) -> tuple[list[tuple[int, int]], list[int], list[int]]:
+    """The matched pairs, and the tracks and detections they leave."""
+    used_t = {k for k, _ in pairs}
+    used_d = {i for _, i in pairs}
+    return (pairs, [k for k in tracks if k not in used_t], [i for i in dets if i not in used_d])
 
-def _distinct(detections: Sequence[Det], dup_iou: float) -> list[int]:
-    """Indices of the detections that overlap no more confident one by dup_iou or more
-    (greedy, most confident first; ties to the earlier detection), in their order."""
-    if dup_iou >= 1.0 or len(detections) < 2:
+
+def _most_confident(detections: Sequence[Det], most: int) -> list[int]:
+    """Indices of the `most` most confident detections (ties to the earlier), in order."""
+    if len(detections) <= most:
         return list(range(len(detections)))
-    boxes = np.array([d.box for d in detections], dtype=float)
-    iou = iou_matrix(boxes, boxes)
-    order = sorted(range(len(detections)), key=lambda i: -detections[i].confidence)
-    kept: list[int] = []
-    for i in order:
-        if all(iou[i, j] < dup_iou for j in kept):
-            kept.append(i)
-    return sorted(kept)
+    conf = np.array([d.confidence for d in detections], dtype=float)
+    return sorted(np.argsort(-conf, kind="stable")[:most].tolist())
+
+
+def _distinct(detections: Sequence[Det], taken: list[int], dup_iou: float) -> list[int]:
+    """Of the detections `taken`, those that overlap no more confident one by dup_iou or
+    more (greedy, most confident first; ties to the earlier detection), in their order.
+    Only overlapping pairs are looked at, never an N x N matrix (issue 36 item 1)."""
+    if dup_iou >= 1.0 or len(taken) < 2:
+        return list(taken)
+    boxes = np.array([detections[i].box for i in taken], dtype=float)
+    conf = np.array([detections[i].confidence for i in taken], dtype=float)
+    rank = np.empty(len(taken), dtype=np.int64)
+    rank[np.argsort(-conf, kind="stable")] = np.arange(len(taken))
+    r, c, _ = iou_pairs(boxes, boxes, dup_iou)
+    # Each overlap once, from the more confident box to the one it may leave out.
+    keep = rank[r] < rank[c]
+    r, c = r[keep], c[keep]
+    if len(r) == 0:
+        return list(taken)
+    out = np.ones(len(taken), dtype=bool)
+    # Grouped by the more confident box, the groups in confidence order: a box still kept
+    # when its group comes (no kept box above it overlaps it) leaves out its group.
+    order = np.argsort(rank[r], kind="stable")
+    r, c = r[order], c[order]
+    _, starts = np.unique(rank[r], return_index=True)
+    for s, e in zip(starts.tolist(), [*starts[1:].tolist(), len(r)], strict=True):
+        if out[r[s]]:
+            out[c[s:e]] = False
+    return [taken[k] for k in np.flatnonzero(out)]

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
+
+import pytest
 
 from click.testing import CliRunner
 
@@ -32,3 +35,23 @@ def test_no_frame_rate_anywhere_is_a_clear_error(tmp_path: Path) -> None:
     det.write_text("1,-1,100,50,40,30,0.9\n")
     res = CliRunner().invoke(main, ["track", str(det), "-o", str(tmp_path / "o.txt")])
     assert res.exit_code == 2 and "seqinfo.ini" in res.output
+
+
+@pytest.mark.parametrize(("rows", "field"), [
+    ("1,-1,1,2,3,4,0.9\n1e300,-1,1,2,3,4,0.9\n", "frame"),
+    ("1,-1,1e308,2,1e308,4,0.9\n2,-1,1e308,2,1e308,4,0.9\n", "x"),
+])
+def test_a_field_out_of_range_is_one_line_and_exits_2(tmp_path: Path, rows: str,
+                                                      field: str) -> None:
+    """Regression for issue 36 item 8: a frame number of 1e300 printed an OverflowError
+    traceback; 1e308 coordinates gave numpy overflow warnings and exit 0."""
+    det = tmp_path / "det.txt"
+    det.write_text(rows)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a numpy overflow warning fails the test
+        res = CliRunner().invoke(main, ["track", str(det), "-o", str(tmp_path / "o.txt"),
+                                        "--fps", "10"])
+    assert res.exit_code == 2, res.output
+    assert f"{det}:{rows.count(chr(10)) if field == 'frame' else 1}: {field}: expected" \
+        in res.output
+    assert "Traceback" not in res.output and len(res.output.strip().splitlines()) <= 3

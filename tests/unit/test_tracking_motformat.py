@@ -55,6 +55,15 @@ BAD_LINES = [
     ("1,-1,10,20,30,40,nan", "conf: expected a finite number, got 'nan'"),
     # Tab-separated: one column.
     ("1\t-1\t10\t20\t30\t40", "at least 6 comma-separated columns"),
+    # Out of range (issue 36 item 8: an OverflowError traceback, or numpy overflow warnings
+    # and exit 0): one line naming the field.
+    ("1e300,-1,10,20,30,40,0.9", "frame: expected a number from -1e+09 to 1e+09, got '1e300'"),
+    ("1,1e300,10,20,30,40,0.9", "id: expected a number from -1e+09 to 1e+09"),
+    ("1,-1,1e308,20,30,40,0.9", "x: expected a number from -1e+07 to 1e+07, got '1e308'"),
+    ("1,-1,10,20,1e308,40,0.9", "w: expected a number from -1e+07 to 1e+07, got '1e308'"),
+    ("1,-1,10,-1e308,30,40,0.9", "y: expected a number from -1e+07 to 1e+07"),
+    ("1,-1,10,20,30,40,1e300", "conf: expected a number from -1e+06 to 1e+06"),
+    ("1,-1,10,20,30,40,0.9,1e300", "class: expected a number from -1e+09 to 1e+09"),
 ]
 
 

@@ -45,18 +45,30 @@ class TrackSummary(msgspec.Struct, frozen=True, kw_only=True):
     capped: int = 0  # detections past the tracker's max_boxes in their frame: not tracked
 
 
-def _number(text: str, what: str, where: str) -> float:
+# Bounds of a row's fields: far past any real sequence, near enough that the tracker's
+# times and boxes stay well inside a float's range (a frame of 1e300 was an OverflowError
+# traceback, boxes of 1e308 pixels numpy overflow warnings and exit 0: issue 36 item 8).
+MAX_FRAME = 10**9  # frames (and track ids)
+MAX_PIXELS = 1e7  # |x|, |y|, w and h, in pixels
+MAX_CONF = 1e6  # |conf| (a detector's raw score may exceed 1)
+MIN_FPS, MAX_FPS = 1e-3, 1e6
+
+
+def _number(text: str, what: str, where: str, bound: float = math.inf) -> float:
     try:
         value = float(text)
     except ValueError:
         raise MotFormatError(f"{where}: {what}: expected a number, got {text!r}") from None
     if not math.isfinite(value):
         raise MotFormatError(f"{where}: {what}: expected a finite number, got {text!r}")
+    if abs(value) > bound:
+        raise MotFormatError(f"{where}: {what}: expected a number from {-bound:g} to "
+                             f"{bound:g}, got {text!r}")
     return value
 
 
-def _integer(text: str, what: str, where: str) -> int:
-    value = _number(text, what, where)
+def _integer(text: str, what: str, where: str, bound: int = MAX_FRAME) -> int:
+    value = _number(text, what, where, bound)
     if value != int(value):
         raise MotFormatError(f"{where}: {what}: expected a whole number, got {text!r}")
     return int(value)
@@ -75,11 +87,12 @@ def parse_line(line: str, where: str) -> MotRow | None:
     if frame < 1:
         raise MotFormatError(f"{where}: frame: expected 1 or more, got {cols[0]!r}")
     tid = _integer(cols[1], "id", where)
-    x, y, w, h = (_number(c, n, where) for c, n in zip(cols[2:6], "xywh", strict=True))
+    x, y, w, h = (_number(c, n, where, MAX_PIXELS)
+                  for c, n in zip(cols[2:6], "xywh", strict=True))
     if w <= 0 or h <= 0:
         raise MotFormatError(f"{where}: expected a box of positive width and height, "
                              f"got w={cols[4]} h={cols[5]}")
-    conf = _number(cols[6], "conf", where) if len(cols) > 6 else 1.0
+    conf = _number(cols[6], "conf", where, MAX_CONF) if len(cols) > 6 else 1.0
     cls = _integer(cols[7], "class", where) if len(cols) > 7 else -1
     return MotRow(frame=frame, id=tid, x=x, y=y, w=w, h=h, conf=conf, cls=cls)
 
@@ -158,8 +171,10 @@ def track_file(det_path: Path, out_path: Path, fps: float | None = None,
     """Track a MOT detection file into a MOT track file; fps None: from seqinfo.ini."""
     if fps is None:
         fps = read_fps(det_path)
-    elif not fps > 0:
+    if not fps > 0:
         raise MotFormatError(f"fps: expected more than 0, got {fps}")
+    if not MIN_FPS <= fps <= MAX_FPS:
+        raise MotFormatError(f"fps: expected {MIN_FPS:g} to {MAX_FPS:g}, got {fps:g}")
     rows = read_mot(det_path)
     capped: list[int] = []
     tracked = track_rows(rows, fps, config, capped)

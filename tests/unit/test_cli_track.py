@@ -6,7 +6,6 @@ import warnings
 from pathlib import Path
 
 import pytest
-
 from click.testing import CliRunner
 
 from trapflow.cli.main import main

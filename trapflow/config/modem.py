@@ -133,7 +133,8 @@ class OutboxConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     quota_bytes: Annotated[int, msgspec.Meta(ge=1 << 16)] = 256 << 20
     """The outbox never grows past this; resolved records go first, then appends are refused."""
     min_free_bytes: Annotated[int, msgspec.Meta(ge=0)] = 64 << 20
-    """Appends are refused when the disk has less free space than this."""
+    """Appends are refused when the disk has less free space than this, or than 5 % of its
+    partition where that is less (a small partition still takes records)."""
     max_record_bytes: Annotated[int, msgspec.Meta(ge=64, le=1 << 20)] = 16384
     """A record whose JSON is larger is refused."""
     class_fields: dict[str, str] = msgspec.field(

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import secrets
+import sqlite3
 import time
 from typing import Any
 
@@ -44,7 +45,9 @@ from trapflow.modem.frame import (
     Command,
 )
 from trapflow.modem.health import HealthMonitor
+from trapflow.modem.outbox import OutboxFull
 from trapflow.modem.sender import ModemSender
+from trapflow.runtime.files import SpaceReserve, is_disk_full
 from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog, wire
 from trapflow.wire import tap_msgs
@@ -53,6 +56,8 @@ from trapflow.wire.transport import SocketSpec, open_socket
 
 log = logging.getLogger(__name__)
 
+OUTBOX_RESERVE = ".outbox.reserve"  # beside the outbox: space kept for a full disk
+OUTBOX_RESERVE_BYTES = 1 << 20  # thousands of health records
 COUNTER_FILE = "commands.json"  # beside the outbox: the last accepted surface command
 
 
@@ -89,15 +94,34 @@ class ModemNode(Node):
                                         self.cfg.energy)
         self.running: tuple[int, Command] | None = None
         self.ratelog = RateLimitedLog(log)
+        # Space kept for the outbox's own writes (health records, acknowledgements) when the
+        # run's disk fills up: freed at the first write the full disk refused.
+        self.reserve = SpaceReserve(outbox.with_name(OUTBOX_RESERVE), OUTBOX_RESERVE_BYTES)
+        self.disk_full = 0  # sender steps a full disk refused
 
     def counters(self) -> dict[str, int]:
         out = {k: v for k, v in self.sender.stats().items() if isinstance(v, int)}
         out.update({f"commands_{k}": n for k, n in self.guard.counts.items()})
+        out["disk_full"] = self.disk_full
         return out
+
+    def _step(self) -> float:
+        """One sender step; a full disk is survived: the reserve is freed once (so health
+        records can say what happened), the step counted, and tried again a second later."""
+        try:
+            return self.sender.step()
+        except (OutboxFull, sqlite3.OperationalError) as exc:
+            if not (isinstance(exc, OutboxFull) or is_disk_full(exc)):
+                raise
+            self.disk_full += 1
+            freed = self.reserve.release()
+            self.ratelog.log(logging.ERROR, "disk", "outbox: the disk is full (%s)%s", exc,
+                               f"; freed the {freed} bytes kept for it" if freed else "")
+            return 1.0
 
     def run(self) -> int:
         while not self.stopping:
-            delay = self.sender.step()
+            delay = self._step()
             st: dict[str, Any] = self.sender.stats()
             if st.get("state") == "active":
                 self.set_state(ACTIVE)

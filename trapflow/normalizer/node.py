@@ -23,6 +23,7 @@ from trapflow.gate.hint import HintPacer, RigMotion
 from trapflow.gate.policy import gated_pools, rig_config
 from trapflow.modem.outbox import Outbox, OutboxFull
 from trapflow.normalizer.result_json import dumps, normalize
+from trapflow.runtime.files import append_whole, is_disk_full
 from trapflow.runtime.node import ACTIVE, FINALIZED, Node, NodeSpec, release_memory
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.tracking.rigpose import RigPoses
@@ -86,6 +87,10 @@ class NormalizerNode(Node):
         self.lines = 0
         self.malformed = 0
         self.routes: set[str] = set()  # route:<pool>:<kind>: a pool's results become these lines
+        # Lines a full disk kept out of each file (ledger.json's not_written_disk_full): the
+        # run goes on (the taps, VO, the modem) and what could not be written is counted.
+        self.disk_full: dict[str, int] = {}
+        self.full_now = False  # the last write found the disk full
         self.ratelog = RateLimitedLog(log)
 
     def counters(self) -> dict[str, int]:
@@ -95,7 +100,23 @@ class NormalizerNode(Node):
                "capped_for_tracking": sum(o.capped for o in self.observers.values()),
                "refused_subscriptions": self.gate.refused}
         out.update(dict.fromkeys(self.routes, 1))
+        out.update({f"disk_full:{name}": n for name, n in self.disk_full.items()})
         return out
+
+    def _append(self, name: str, fh: IO[bytes], data: bytes, lines: int) -> None:
+        """Append whole lines to one of the run's files; on a full disk count them as not
+        written (said once, and once more when the disk has room again)."""
+        if append_whole(fh, data):
+            if self.full_now:
+                self.full_now = False
+                log.warning("the disk has room again: %s written again", name)
+            return
+        if not self.full_now:
+            log.error("the disk of the run directory is full: lines of %s are not written, "
+                      "only counted (ledger.json's not_written_disk_full); the run goes on",
+                      name)
+        self.full_now = True
+        self.disk_full[name] = self.disk_full.get(name, 0) + lines
 
     def run(self) -> int:
         ncfg = self.cfg.normalizer
@@ -113,7 +134,7 @@ class NormalizerNode(Node):
                 self.file.flush()
                 next_flush = now + ncfg.flush_interval_s
                 if now >= next_sync:
-                    os.fsync(self.file.fileno())
+                    self._fsync(self.file)
                     next_sync = now + ncfg.fsync_interval_s
                 dirty = False
             self.beat()
@@ -124,12 +145,21 @@ class NormalizerNode(Node):
             self._write_observations(obs.finish())
         for fh in (self.file, *self.obs_files.values()):
             fh.flush()
-            os.fsync(fh.fileno())
+            self._fsync(fh)
             fh.close()
         if self.outbox is not None:
             self.outbox.close()
         self.set_state(FINALIZED)
         return 0
+
+    def _fsync(self, fh: IO[bytes]) -> None:
+        """fsync one file; a full disk (some filesystems say so only here) is logged."""
+        try:
+            os.fsync(fh.fileno())
+        except OSError as exc:
+            if not is_disk_full(exc):
+                raise
+            self.ratelog.warning("fsync", "fsync of %s: the disk is full", fh.name)
 
     def _receive(self, timeout_ms: int) -> bool:
         """Handle the batches of results waiting (up to timeout_ms for the first)."""
@@ -158,7 +188,7 @@ class NormalizerNode(Node):
                 for data in batch:  # the broker sends a pass's results together
                     dirty |= self._handle(data, lines)
                 if lines:
-                    self.file.write(b"".join(lines))
+                    self._append(self.path.name, self.file, b"".join(lines), len(lines))
                 written += len(batch)
             if written:  # one acknowledgement for all the batches written in this pass
                 link.send([messages.encode(messages.ResultsAck(count=written))])
@@ -246,7 +276,8 @@ class NormalizerNode(Node):
         ocfg = self.cfg.observe
         for name, objs in ((ocfg.tracks_file, obs.tracks), (ocfg.counts_file, obs.counts)):
             if objs:
-                self.obs_files[name].write(b"".join(dumps(o) + b"\n" for o in objs))
+                self._append(name, self.obs_files[name],
+                             b"".join(dumps(o) + b"\n" for o in objs), len(objs))
         self.tracks += len(obs.tracks)
         if self.outbox is not None and (records := obs.for_modem()):
             try:

@@ -19,6 +19,7 @@ import msgspec
 from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import Config, EnergyConfig
 from trapflow.power.energy import BOARDS, estimate
+from trapflow.runtime.files import SpaceReserve, is_disk_full, write_atomically
 from trapflow.supervisor import ledger as run_ledger
 from trapflow.supervisor import run_meta, status_line
 from trapflow.supervisor import summary as run_summary
@@ -33,6 +34,12 @@ RESULTS_READS_AT_END = 10_000
 # counts.jsonl's last line is looked for in this much of its end (a line is a few hundred
 # bytes per label).
 COUNTS_TAIL_BYTES = 64 << 10
+# Space put aside at the start for ledger.json and run.json, freed to write them at the end:
+# a run whose disk filled up still leaves its ledger (a few kB; a long run's timeline more).
+LEDGER_RESERVE_BYTES = 1 << 20
+LEDGER_RESERVE = ".ledger.reserve"
+# The normalizer's counters of lines a full disk kept out of its files, by file.
+DISK_FULL_PREFIX = "disk_full:"
 
 
 @dataclass(frozen=True)
@@ -130,6 +137,7 @@ class Report:
         self.ledger_model = ledger_model
         self.snapshot = snapshot
         self._shown: tuple[int, bool] | None = None  # the stats last printed, and stale
+        self.reserve = SpaceReserve(run_dir / LEDGER_RESERVE, LEDGER_RESERVE_BYTES)
 
     def starting(self, processes: int) -> None:
         """The one line while the processes start (stats come seconds later)."""
@@ -242,6 +250,10 @@ class Report:
                       p.gate == "motion" for p in self.cfg.pools.values()) else None)
         out["energy"] = energy_section(self.cfg.energy, snap.cpu_s, time.monotonic() - self.t0,
                                        gate_s)
+        norm = next((c.counters for c in snap.nodes if c.name == "normalizer"), {})
+        # Lines the normalizer could not write, the disk being full: counted, never silent.
+        out["not_written_disk_full"] = {k[len(DISK_FULL_PREFIX):]: n for k, n in
+                                        sorted(norm.items()) if k.startswith(DISK_FULL_PREFIX)}
         return out
 
     def read_results(self) -> None:
@@ -266,13 +278,22 @@ class Report:
             if self.ledger_model.delivered.offset == before:
                 break
         ledger = self.ledger(snap=snap)
-        (run_dir / "ledger.json").write_text(json.dumps(ledger, indent=1) + "\n")
         meta = run_meta.run_metadata(self.cfg, snap.rig, snap.rig_origin, self.started_ns,
                                      time.time_ns(), run_meta.versions(),
                                      duration_s=time.monotonic() - self.t0)
-        (run_dir / "run.json").write_text(json.dumps(meta, indent=1) + "\n")
+        self.reserve.release()  # the space kept for these two files
+        for name, obj in (("ledger.json", ledger), ("run.json", meta)):
+            try:  # whole or not at all: a full disk leaves the previous file as it was
+                write_atomically(run_dir / name, (json.dumps(obj, indent=1) + "\n").encode())
+            except OSError as exc:
+                if not is_disk_full(exc):
+                    raise
+                out.write(f"{name} not written: the disk is full ({exc.strerror})\n")
         if snap.stats is not None:
             out.write(run_ledger.totals_text(ledger))
+        if lost := ledger["not_written_disk_full"]:
+            out.write("not written, the disk full: " + ", ".join(
+                f"{n} lines of {name}" for name, n in lost.items()) + "\n")
         out.write(energy_text(ledger["energy"]))
         c = self.cfg
         out.write("".join(f"{line}\n" for line in run_summary.summary_lines(

@@ -16,6 +16,7 @@ from tests.integration.viewer_util import (
     browser_skip_reason,
     chromium,
     free_port,
+    page_url,
     profile_dir,
 )
 
@@ -45,7 +46,7 @@ def _start(spawn: Any, run_dir: Path, *args: str) -> tuple[Pipeline, str]:
     port = free_port()
     p: Pipeline = spawn(["--size", "640x360", "--view", f"127.0.0.1:{port}", *args], run_dir)
     p.wait_active(90)
-    return p, f"http://127.0.0.1:{port}/"
+    return p, page_url(port, run_dir)
 
 
 @pytest.mark.timeout(150)

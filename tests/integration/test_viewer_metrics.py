@@ -11,7 +11,7 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from tests.conftest import Pipeline, poll_for
-from tests.integration.viewer_util import attach_viewer, free_port, get, get_json, post
+from tests.integration.viewer_util import attach_viewer, free_port, get, get_json, post, use_token
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
 
@@ -32,6 +32,7 @@ def test_metrics_scrape_and_textfile(spawn, run_dir: Path) -> None:
     p: Pipeline = spawn(["--size", "320x240", "--view", str(port), "--metrics-file", str(prom)],
                         run_dir)
     p.wait_active(90)
+    use_token(port, run_dir)
     url = f"http://127.0.0.1:{port}/metrics"
 
     def scrape() -> dict[Any, float] | None:

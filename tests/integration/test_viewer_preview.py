@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import Pipeline, poll_for
-from tests.integration.viewer_util import attach_viewer, free_port, get, get_json
+from tests.integration.viewer_util import attach_viewer, free_port, get, get_json, use_token
 from trapflow.viewer.server import PAGE_OPEN_S
 
 pytestmark = pytest.mark.slow  # starts a whole pipeline
@@ -54,6 +54,7 @@ def test_no_preview_is_made_without_a_page(spawn, run_dir: Path) -> None:
     port = free_port()
     base = f"http://127.0.0.1:{port}"
     p: Pipeline = spawn(["--size", "1280x720", "--view", f"127.0.0.1:{port}"], run_dir)
+    use_token(port, run_dir)
     p.wait_active(90)
     # No page: pairs flow for a while, and not one preview is encoded for the viewer.
     start = _broker(p)["pairs_in"]

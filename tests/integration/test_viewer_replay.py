@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import Pipeline, poll_for
-from tests.integration.viewer_util import free_port, get, get_json
+from tests.integration.viewer_util import free_port, get, get_json, use_token
 from trapflow.calibration.camera import StereoRig
 from trapflow.recording.recorder import Recorder
 from trapflow.synth.render import World
@@ -45,6 +45,7 @@ def test_viewer_shows_a_replayed_recording(spawn, run_dir: Path, tmp_path: Path)
     p: Pipeline = spawn(["--source", f"replay:{rec}", "--loop", "--workers", "mono=1,vo=1",
                          "--view", str(port)], run_dir)
     p.wait_active(90)
+    use_token(port, run_dir)
     url = f"http://127.0.0.1:{port}/api/state"
     state = poll_for(lambda: (s := get_json(url)) and s["frame"] and len(s["vo"]["path"]) >= 10
                      and len(s["pools"].get("vo", {}).get("rate", [])) >= 2 and s,

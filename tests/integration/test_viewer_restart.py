@@ -10,7 +10,7 @@ import psutil
 import pytest
 
 from tests.conftest import Pipeline, poll_for, write_config
-from tests.integration.viewer_util import free_port, get_json
+from tests.integration.viewer_util import free_port, get_json, use_token
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
 
@@ -37,6 +37,7 @@ def test_a_crashing_viewer_never_stops_the_pipeline(spawn, run_dir: Path) -> Non
     cfg = write_config(run_dir.parent / "one-restart.yaml",
                        {"supervisor": {"max_restarts": 1, "restart_window_s": 600}})
     port = free_port()
+    use_token(port, run_dir)
     url = f"http://127.0.0.1:{port}/api/state"
     p: Pipeline = spawn(["--config", str(cfg), "--size", "320x240", "--workers", "vo=1",
                          "--view", str(port)], run_dir)

@@ -1,4 +1,9 @@
-"""Helpers of the viewer tests: a free port, HTTP without a client library, the browser."""
+"""Helpers of the viewer tests: a free port, HTTP without a client library, the browser.
+
+Every viewer asks for its token, loopback included (issue 36 item 3): `use_token` says
+which run's viewer serves a port, and get, get_json and post to that port send its token
+(read from the run directory's 0600 token file); `page_url` is the address a browser opens
+(with ?token=, as the console prints it)."""
 
 from __future__ import annotations
 
@@ -12,11 +17,42 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
+
+from trapflow.viewer.access import TOKEN_FILE, load_token
 
 # Launch flags that work in a container without a display, GPU or network.
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update",
                  "--disable-sync"]
+
+
+_TOKEN_FILES: dict[int, Path] = {}  # port -> the token file of the viewer serving it
+
+
+def use_token(port: int, run_dir: Path) -> None:
+    """get, get_json and post to this port send the token of run_dir's viewer."""
+    _TOKEN_FILES[port] = run_dir / TOKEN_FILE
+
+
+def token_of(port: int) -> str | None:
+    """The token of the viewer at this port, once its file is there."""
+    path = _TOKEN_FILES.get(port)
+    return load_token(path) if path is not None and path.exists() else None
+
+
+def page_url(port: int, run_dir: Path) -> str:
+    """The page's address with its token, as the console of the user who started it shows."""
+    use_token(port, run_dir)
+    return f"http://127.0.0.1:{port}/?token={token_of(port)}"
+
+
+def _with_token(url: str, headers: dict[str, str] | None) -> dict[str, str]:
+    out = dict(headers or {})
+    token = token_of(urlsplit(url).port or 80)
+    if token is not None and "Authorization" not in out:
+        out["Authorization"] = f"Bearer {token}"
+    return out
 
 
 def free_port() -> int:
@@ -40,13 +76,17 @@ def attach_viewer(run_dir: Path, started: list[subprocess.Popen[bytes]],
         [sys.executable, "-m", "trapflow", "view", "--run-dir", str(run_dir), "--listen",
          f"127.0.0.1:{port}"], stdout=out, stderr=out, cwd=REPO)
     started.append(view)
+    use_token(port, run_dir)
     return view, port
 
 
-def get(url: str, timeout: float = 2.0) -> tuple[int, bytes]:
-    """Status and body of a GET; (0, b"") when nothing answers."""
+def get(url: str, timeout: float = 2.0, headers: dict[str, str] | None = None
+        ) -> tuple[int, bytes]:
+    """Status and body of a GET (with the port's viewer token, if any); (0, b"") when
+    nothing answers."""
+    req = urllib.request.Request(url, headers=_with_token(url, headers))
     try:
-        with urllib.request.urlopen(url, timeout=timeout) as r:
+        with urllib.request.urlopen(req, timeout=timeout) as r:
             return r.status, r.read()
     except urllib.error.HTTPError as exc:
         return exc.code, exc.read()
@@ -60,7 +100,7 @@ def get_json(url: str) -> Any:
 
 
 def post(url: str, headers: dict[str, str] | None = None) -> int:
-    req = urllib.request.Request(url, data=b"", method="POST", headers=headers or {})
+    req = urllib.request.Request(url, data=b"", method="POST", headers=_with_token(url, headers))
     try:
         with urllib.request.urlopen(req, timeout=2.0) as r:
             status: int = r.status

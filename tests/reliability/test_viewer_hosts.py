@@ -3,7 +3,9 @@ viewer's aiohttp application on an ephemeral loopback port).
 
 Regression for issue 26 item 2: on loopback, /api/state, frames and /metrics answered a
 foreign Host (readable by a DNS-rebinding page), and a bind to 0.0.0.0 asked for nothing,
-so anyone on the network (or a rebinding page) could stop the pipeline.
+so anyone on the network (or a rebinding page) could stop the pipeline; and issue 36 item 3:
+on loopback no token was asked, so another user of the machine read live frames, switched
+a pool off and stopped the pipeline.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import pytest
 from aiohttp.test_utils import TestClient, TestServer
 
 from trapflow.config.schema import Config, ViewerConfig
-from trapflow.viewer.access import COOKIE
+from trapflow.viewer.access import COOKIE, TOKEN_FILE, console_address
 from trapflow.viewer.server import CONTROL_HEADER, Viewer
 from trapflow.viewer.state import Frame
 
@@ -31,6 +33,7 @@ def with_viewer(tmp_path: Path, body: Body, **viewer: object) -> None:
     cfg = Config(viewer=ViewerConfig(**viewer))  # type: ignore[arg-type]
 
     async def main() -> None:
+        (tmp_path / "run").mkdir(exist_ok=True)
         v = Viewer(cfg, tmp_path / "run")
         v.state.shown = Frame(seq=1, width=2, height=2, left=b"\xff\xd8L",
                               right=b"\xff\xd8R", t_wall_ns=0)
@@ -65,19 +68,30 @@ def test_loopback_refuses_foreign_hosts_for_reads_and_writes(tmp_path: Path) -> 
                                 **{CONTROL_HEADER: "pool"}) == 403
         async with client.get("/api/state", headers={"Host": "evil.example"}) as r:
             assert "not one of the viewer's names" in await r.text()
-        # the viewer's own names read, and no token is asked on loopback
+        # the viewer's own names read with the token; without it, another local user
+        # neither reads nor drives it (issue 36 item 3)
+        bearer = f"Bearer {v.access.token}"
         for host in (f"127.0.0.1:{port}", f"localhost:{port}", f"[::1]:{port}"):
             for path in READS:
-                assert await status(client, "GET", path, Host=host) == 200, (host, path)
-        assert v.url("127.0.0.1", port) == f"http://127.0.0.1:{port}/"
+                assert await status(client, "GET", path, Host=host) == 401, (host, path)
+                assert await status(client, "GET", path, Host=host,
+                                    Authorization=bearer) == 200, (host, path)
+            for path, header in (("/api/stop", "stop"), ("/api/pool", "pool")):
+                assert await status(client, "POST", path, Host=host,
+                                    **{CONTROL_HEADER: header}) == 401, (host, path)
+        # the address the node's state carries names the token's file, never the token
+        assert v.url("127.0.0.1", port) == (f"http://127.0.0.1:{port}/ (token: "
+                                            f"{tmp_path / 'run' / TOKEN_FILE})")
+        assert v.access.token not in v.url("127.0.0.1", port)
 
     with_viewer(tmp_path, body)
 
 
 @pytest.mark.timeout(30)
 def test_configured_host_name_is_allowed(tmp_path: Path) -> None:
-    async def body(client: TestClient, _v: Viewer) -> None:
-        assert await status(client, "GET", "/api/state", Host="trap.lan:8090") == 200
+    async def body(client: TestClient, v: Viewer) -> None:
+        assert await status(client, "GET", "/api/state", Host="trap.lan:8090",
+                            Authorization=f"Bearer {v.access.token}") == 200
         assert await status(client, "GET", "/api/state", Host="evil.example:8090") == 403
 
     with_viewer(tmp_path, body, allowed_hosts=["trap.lan"])
@@ -117,7 +131,8 @@ def test_off_loopback_a_token_is_needed(tmp_path: Path) -> None:
         for path in READS:
             assert await status(client, "GET", path, Host=host,
                                 Cookie=f"{COOKIE}={TOKEN}") == 200, path
-        assert v.url("0.0.0.0", 8090).endswith(f"(token: the contents of {token_file})")
+        assert console_address(v.url("0.0.0.0", 8090)).endswith(
+            f"(token: the contents of {token_file})")
 
     with_viewer(tmp_path, body, host="0.0.0.0", token_file=str(token_file))
 
@@ -125,7 +140,8 @@ def test_off_loopback_a_token_is_needed(tmp_path: Path) -> None:
 @pytest.mark.timeout(30)
 def test_off_loopback_without_a_file_a_token_is_made_and_printed(tmp_path: Path) -> None:
     async def body(client: TestClient, v: Viewer) -> None:
-        url = v.url("0.0.0.0", 8090)
+        assert v.access.token not in v.url("0.0.0.0", 8090)
+        url = console_address(v.url("0.0.0.0", 8090))
         assert url.startswith("http://0.0.0.0:8090/?token=")
         token = url.split("=", 1)[1]
         assert len(token) >= 32 and token == v.access.token

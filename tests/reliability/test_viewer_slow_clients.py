@@ -28,10 +28,10 @@ def _free_port() -> int:
         return port
 
 
-async def _get_state(port: int) -> bytes:
+async def _get_state(port: int, token: str) -> bytes:
     reader, writer = await asyncio.open_connection("127.0.0.1", port)
     writer.write(f"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n"
-                 "Connection: close\r\n\r\n".encode())
+                 f"Authorization: Bearer {token}\r\nConnection: close\r\n\r\n".encode())
     data = await asyncio.wait_for(reader.read(), 5.0)
     writer.close()
     return data
@@ -40,6 +40,7 @@ async def _get_state(port: int) -> bytes:
 @pytest.mark.timeout(60)
 def test_half_requests_are_closed_and_the_page_still_answers(tmp_path: Path) -> None:
     async def main() -> tuple[int, float, bytes]:
+        (tmp_path / "run").mkdir()
         v = Viewer(Config(), tmp_path / "run")
         port = _free_port()
         runner = await v.start("127.0.0.1", port)
@@ -52,7 +53,7 @@ def test_half_requests_are_closed_and_the_page_still_answers(tmp_path: Path) -> 
                 slow.append(reader)
                 writers.append(writer)
             t0 = time.monotonic()
-            answer = await _get_state(port)  # a real reader is answered meanwhile
+            answer = await _get_state(port, v.access.token)  # a real reader is answered meanwhile
 
             async def closed(r: asyncio.StreamReader) -> bool:
                 try:

@@ -1,10 +1,14 @@
 """Who may use the viewer (trapflow.viewer.access, no sockets): Host names per bind, the
 token's ways in, the token file's rules, and the config's documented defaults. Pins issue 26
-item 2: reads answered any Host, and a bind off loopback asked for nothing."""
+item 2: reads answered any Host, and a bind off loopback asked for nothing; and issue 36
+items 3 and 4: on loopback no token was asked (another local user read frames, switched a
+pool off and stopped the pipeline), and the token rode on the node's state into the log,
+`trapflow status` and /api/state."""
 
 from __future__ import annotations
 
 import socket
+import stat
 from pathlib import Path
 
 import pytest
@@ -13,29 +17,38 @@ from trapflow.config import schema as configmod
 from trapflow.config.schema import ViewerConfig
 from trapflow.errors import ConfigError
 from trapflow.viewer.access import (
+    TOKEN_FILE,
     Access,
     Allow,
     Deny,
     SetCookie,
     allowed_hosts,
     bearer_of,
+    console_address,
     host_name,
     load_token,
     make_access,
+    public_address,
 )
 
 TOKEN = "t" * 32
 REPO = Path(__file__).resolve().parents[2]
-LOOP = Access(allowed_hosts("127.0.0.1", []), False, "")
+LOOP = Access(allowed_hosts("127.0.0.1", []), False, TOKEN)
 LAN = Access(allowed_hosts("0.0.0.0", ["trap.lan"]), True, TOKEN)
 
 
 @pytest.mark.parametrize(("access", "host", "path", "bearer", "cookie", "query", "want"), [
-    # loopback: the loopback names, with or without port, no token asked
-    (LOOP, "127.0.0.1:8090", "/api/state", None, None, None, Allow()),
-    (LOOP, "localhost:8090", "/metrics", None, None, None, Allow()),
-    (LOOP, "[::1]:8090", "/", None, None, None, Allow()),
-    (LOOP, "LOCALHOST.", "/", None, None, None, Allow()),
+    # loopback: the loopback names, with or without port, with the token
+    (LOOP, "127.0.0.1:8090", "/api/state", TOKEN, None, None, Allow()),
+    (LOOP, "localhost:8090", "/metrics", None, TOKEN, None, Allow()),
+    (LOOP, "[::1]:8090", "/", TOKEN, None, None, Allow()),
+    (LOOP, "LOCALHOST.", "/", None, None, TOKEN, SetCookie("/")),
+    # loopback without the token (another local user): reads and controls refused
+    (LOOP, "127.0.0.1:8090", "/api/state", None, None, None, 401),
+    (LOOP, "127.0.0.1:8090", "/frame/1/left.jpg", None, None, None, 401),
+    (LOOP, "127.0.0.1:8090", "/api/stop", None, None, None, 401),
+    (LOOP, "127.0.0.1:8090", "/api/pool", "x" * 32, None, None, 401),
+    (LOOP, "127.0.0.1:8090", "/metrics", None, None, None, 401),
     # a rebinding page sends its own name: refused, reads like writes
     (LOOP, "evil.example:8090", "/api/state", None, None, None, 403),
     (LOOP, "evil.example", "/frame/1/left.jpg", None, None, None, 403),
@@ -85,16 +98,38 @@ def test_hosts_per_bind() -> None:
 
 
 def test_make_access_per_bind(tmp_path: Path) -> None:
-    loop, made = make_access("127.0.0.1", [], "")
-    assert loop.token == "" and not made and not loop.any_ip
-    a, made = make_access("0.0.0.0", [], "")
-    b, _ = make_access("0.0.0.0", [], "")
-    assert made and len(a.token) >= 32 and a.token != b.token  # one per run
+    """Every bind asks for a token; one made for the run is in the run directory's 0600
+    file, kept for a restart of the viewer in the same run."""
+    loop, path = make_access("127.0.0.1", [], "", tmp_path)
+    assert len(loop.token) >= 32 and not loop.any_ip
+    assert path == tmp_path / TOKEN_FILE and load_token(path) == loop.token
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    again, _ = make_access("127.0.0.1", [], "", tmp_path)
+    assert again.token == loop.token  # the viewer restarted: its printed address still works
+    other = tmp_path / "other"
+    other.mkdir()
+    a, _ = make_access("0.0.0.0", [], "", other)
+    assert a.any_ip and a.token != loop.token  # one per run
     f = tmp_path / "token"
     f.write_text(TOKEN + "\n")
     f.chmod(0o600)
-    c, made = make_access("::", [], str(f))
-    assert c.token == TOKEN and not made
+    c, path = make_access("::", [], str(f), tmp_path)
+    assert c.token == TOKEN and path == f
+
+
+def test_the_token_is_on_the_console_only(tmp_path: Path) -> None:
+    """The address the node's state (and so the log, status and /api/state) carries names
+    the token's file; the console's has the token, or names the operator's own file."""
+    access, path = make_access("127.0.0.1", [], "", tmp_path)
+    public = public_address("http://127.0.0.1:8090/", path)
+    assert access.token not in public and str(path) in public
+    assert console_address(public) == f"http://127.0.0.1:8090/?token={access.token}"
+    own = tmp_path / "mine"
+    own.write_text(TOKEN)
+    own.chmod(0o600)
+    line = console_address(public_address("http://h:1/", own))
+    assert TOKEN not in line and str(own) in line
+    assert console_address("http://h:1/") == "http://h:1/"
 
 
 @pytest.mark.parametrize(("mode", "content", "error"), [

@@ -13,6 +13,7 @@ from trapflow.cli.sources import SizeType, SourceSpecType, WorkersType
 from trapflow.cli.view_params import ViewAddressType
 from trapflow.config import schema as configmod
 from trapflow.errors import EXIT_USAGE, TrapflowError
+from trapflow.viewer.access import console_address
 
 
 def _fail(exc: TrapflowError) -> NoReturn:
@@ -164,7 +165,8 @@ def view(run_dir: Path, config_path: str | None, listen: tuple[str, int] | None,
     v = cfg.viewer
     try:
         asyncio.run(serve(cfg, run_dir, v.host, v.port,
-                          ready=lambda url: click.echo(f"viewer: {url}", err=True)))
+                          ready=lambda url: click.echo(f"viewer: {console_address(url)}",
+                                                         err=True)))
     except KeyboardInterrupt:
         pass
     except OSError as exc:

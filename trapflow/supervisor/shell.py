@@ -65,6 +65,7 @@ from trapflow.supervisor.setup import (
     preflight,
 )
 from trapflow.supervisor.state import DurationClock, SupervisorState
+from trapflow.viewer.access import console_address
 from trapflow.wire import control_msgs, identity, messages, tap_msgs
 from trapflow.wire.endpoints import Endpoints, check_ports_free, make_private
 from trapflow.wire.frame_ring import FrameRing
@@ -231,7 +232,9 @@ class Supervisor:
             self.report.starting(len(self.children))
             self._wait_started()  # every consumer is ready before the first pair exists
             if self.cfg.viewer.enabled and (url := self.core.node("viewer").reason):
-                self.report.notice(f"viewer: {url}")  # its address, with its token if any
+                # Its address with its token, on this console only (the node's state, and so
+                # the log and status, name the token's file, never the token).
+                self.report.notice(f"viewer: {console_address(url)}")
             self._spawn(self._child("capture"), time.monotonic())
             self.started = True
             if self.latest:

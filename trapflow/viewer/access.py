@@ -1,17 +1,26 @@
 """Who may use the viewer, pure (no sockets): the Host allowlist every request passes, and
-the token a non-loopback bind asks for. The server (trapflow.viewer.server) turns the
-decision of `Access.decide` into a response.
+the token every request needs, loopback included. The server (trapflow.viewer.server) turns
+the decision of `Access.decide` into a response.
 
 Why both: a page of any site the operator opens can rebind its own name to the viewer's
 address (DNS rebinding) and then read and drive the viewer as same-origin; it cannot make
-the browser send a Host other than its own name, so a Host allowlist shuts it out. A
-machine on the network needs no browser trick at all, so a bind off loopback also asks for
-a token (given once as `?token=` on the page, then kept in an HttpOnly SameSite=Strict
-cookie, or sent as `Authorization: Bearer TOKEN` by scripts and Prometheus).
+the browser send a Host other than its own name, so a Host allowlist shuts it out. Another
+user of this machine, or a machine on the network, needs no browser trick at all, so every
+bind asks for a token (given once as `?token=` on the page, then kept in an HttpOnly
+SameSite=Strict cookie, or sent as `Authorization: Bearer TOKEN` by scripts and Prometheus):
+on loopback another local user read live frames, switched a pool off and stopped the
+pipeline (issue 36 item 3).
+
+Where the token is: the operator's `viewer.token_file`, or one made for the run and kept in
+the run directory's TOKEN_FILE (mode 600, so only the user who started the run reads it);
+the page's address with it is printed to that user's console only. The node's state, the
+log, `trapflow status` and /api/state carry the address and the token file's path, never
+the token (issue 36 item 4).
 """
 
 from __future__ import annotations
 
+import contextlib
 import hmac
 import ipaddress
 import os
@@ -28,6 +37,8 @@ LOOPBACK_NAMES = ("127.0.0.1", "localhost", "::1")
 WILDCARDS = ("0.0.0.0", "::", "")
 COOKIE = "trapflow_token"
 MIN_TOKEN_CHARS = 16
+TOKEN_FILE = "viewer.token"  # in the run directory: the token made for the run (mode 600)
+_TOKEN_NOTE = " (token: "
 
 
 def is_loopback(host: str) -> bool:
@@ -114,7 +125,7 @@ Decision = Allow | SetCookie | Deny
 
 @dataclass(frozen=True)
 class Access:
-    """The rules of one viewer: which Host names, which token ("" on loopback: none)."""
+    """The rules of one viewer: which Host names, which token (never empty)."""
 
     hosts: frozenset[str]
     any_ip: bool  # off loopback: an IP literal is allowed (a rebinding page sends its name)
@@ -129,28 +140,67 @@ class Access:
         if name not in self.hosts and not (self.any_ip and _is_ip(name)):
             return Deny(403, f"Host {name[:64]!r} is not one of the viewer's names "
                              "(viewer.allowed_hosts)")
-        if not self.token:
-            return Allow()
         for given in (bearer, cookie):
             if given is not None and hmac.compare_digest(given.encode(), self.token.encode()):
                 return Allow()
         if (path == "/" and query_token is not None
                 and hmac.compare_digest(query_token.encode(), self.token.encode())):
             return SetCookie("/")
-        return Deny(401, "expected the viewer's token: open the URL it printed (?token=), or "
-                         "send Authorization: Bearer TOKEN")
+        return Deny(401, "expected the viewer's token: open the address printed on the "
+                         "console of the user who started it (?token=), or send "
+                         "Authorization: Bearer TOKEN")
 
 
-def make_access(bind: str, configured: Iterable[str], token_file: str) -> tuple[Access, bool]:
-    """The rules for a bind address, and whether the token was generated for this run (to be
-    printed with the URL). A loopback bind needs no token."""
-    loopback = is_loopback(bind)
+def make_access(bind: str, configured: Iterable[str], token_file: str, run_dir: Path
+                ) -> tuple[Access, Path]:
+    """The rules for a bind address, loopback or not, and the file the token is in: the
+    configured one, or the run directory's TOKEN_FILE (the token made by an earlier start
+    of the viewer in this run when it is there and sound, else a new one, written 0600)."""
     hosts = allowed_hosts(bind, configured)
-    if loopback:
-        return Access(hosts, False, ""), False
+    any_ip = not is_loopback(bind)
     if token_file:
-        return Access(hosts, True, load_token(token_file)), False
-    return Access(hosts, True, secrets.token_urlsafe(24)), True
+        return Access(hosts, any_ip, load_token(token_file)), Path(token_file)
+    path = run_dir / TOKEN_FILE
+    try:
+        token = load_token(path)
+    except ConfigError:  # none yet (or unusable): a new one replaces it
+        token = secrets.token_urlsafe(24)
+        write_token(path, token)
+    return Access(hosts, any_ip, token), path
+
+
+def write_token(path: Path, token: str) -> None:
+    """The token to its file, created 0600 whatever the umask (never readable by others,
+    not even for a moment), replacing what was there."""
+    tmp = path.with_name(path.name + ".tmp")
+    with contextlib.suppress(FileNotFoundError):
+        tmp.unlink()
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(token + "\n")
+    os.replace(tmp, path)
+
+
+def public_address(base: str, token_path: Path) -> str:
+    """The page's address as the node's state, the log and `trapflow status` carry it:
+    where the token is, never the token."""
+    return f"{base}{_TOKEN_NOTE}{token_path})"
+
+
+def console_address(public: str) -> str:
+    """The page's address for the console of the user who started the viewer: with
+    `?token=` read from the run's token file (that user's, mode 600); an operator's own
+    token file is named, not printed. Unchanged when it names no token file."""
+    base, sep, rest = public.partition(_TOKEN_NOTE)
+    if not sep or not rest.endswith(")"):
+        return public
+    path = Path(rest[:-1])
+    if path.name != TOKEN_FILE:
+        return f"{base} (token: the contents of {path})"
+    try:
+        return f"{base}?token={load_token(path)}"
+    except ConfigError:
+        return public
 
 
 def bearer_of(authorization: str | None) -> str | None:

@@ -1,5 +1,5 @@
 """The viewer's web server (aiohttp): the page, its JSON state, the shown pair, /metrics.
-Every request passes the Host allowlist and, off loopback, the token check first
+Every request passes the Host allowlist and the token check first, on any bind
 (trapflow.viewer.access decides).
 
 One asyncio loop in one process: a pump task drains the taps every PUMP_S and asks the
@@ -24,7 +24,15 @@ from aiohttp import web
 from trapflow.config.schema import Config
 from trapflow.errors import ProtocolError, unreachable
 from trapflow.viewer import metrics
-from trapflow.viewer.access import COOKIE, Allow, Deny, SetCookie, bearer_of, make_access
+from trapflow.viewer.access import (
+    COOKIE,
+    Allow,
+    Deny,
+    SetCookie,
+    bearer_of,
+    make_access,
+    public_address,
+)
 from trapflow.viewer.state import ViewState
 from trapflow.viewer.taps import PipelineTaps
 from trapflow.wire import control_msgs, messages
@@ -70,7 +78,8 @@ class Viewer:
         self.metrics_file = Path(mf) if mf else None
         self._page_seen = -PAGE_OPEN_S  # monotonic time of the page's last request
         v = cfg.viewer
-        self.access, self.token_generated = make_access(v.host, v.allowed_hosts, v.token_file)
+        self.access, self.token_path = make_access(v.host, v.allowed_hosts, v.token_file,
+                                                   run_dir)
         self.app = web.Application(middlewares=[self._guard])
         self.app.add_routes([
             web.get("/", self._static), web.get("/static/{name}", self._static),
@@ -120,13 +129,10 @@ class Viewer:
         return runner
 
     def url(self, host: str, port: int) -> str:
-        """The page's address as printed: with the token when it was made for this run."""
-        base = f"http://{host}:{port}/"
-        if self.token_generated:
-            return f"{base}?token={self.access.token}"
-        if self.access.token:
-            return f"{base} (token: the contents of {self.cfg.viewer.token_file})"
-        return base
+        """The page's address and where its token is, never the token: it rides on the
+        node's state into the log and `trapflow status` (access.console_address adds the
+        token for the console)."""
+        return public_address(f"http://{host}:{port}/", self.token_path)
 
     def close(self) -> None:
         self.taps.close()

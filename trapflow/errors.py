@@ -32,6 +32,11 @@ class StartupError(TrapflowError):
     """A pipeline piece cannot start (socket in use, run directory locked...)."""
 
 
+class NodeDiedError(TrapflowError):
+    """A pipeline process died on its own account while the pipeline started (killed by a
+    signal, or gone without a word): a runtime failure (1), not a usage error."""
+
+
 def exit_code(exc: TrapflowError) -> int:
     """The exit status for an error that ends a command: 2 for usage or config, else 1."""
     return EXIT_USAGE if isinstance(exc, (ConfigError, StartupError)) else EXIT_FAILURE

@@ -191,6 +191,23 @@ def test_plugin_that_cannot_start_fails_the_start_with_one_line(spawn, run_dir: 
 
 
 @pytest.mark.timeout(60)
+def test_a_worker_killed_while_the_pipeline_starts_is_a_runtime_failure(
+        spawn, run_dir: Path) -> None:
+    """Regression for issue 36 item 6: a worker killed while the pipeline started ended the
+    run with exit 2, a usage error, 3 tries of 3; it is a runtime failure (1)."""
+    cfg = write_config(run_dir.parent / "killed.yaml", {
+        "source": SMALL, "pools": only_pools({"mono": {"plugin": "crash",
+                                                       "params": {"kill": True}}}),
+    })
+    p: Pipeline = spawn(["--config", str(cfg), "--duration", "30"], run_dir)
+    code, _, err = p.wait(45)
+    assert code == 1, err
+    errors = [line for line in err.splitlines() if line.startswith("trapflow: error:")]
+    assert errors == ["trapflow: error: worker:mono:0 died while the pipeline started: "
+                      "killed by SIGKILL"], err
+
+
+@pytest.mark.timeout(60)
 def test_run_dir_in_use_is_refused(spawn, run_dir: Path) -> None:
     first: Pipeline = spawn(["--workers", "vo=1", "--size", "320x240"], run_dir)
     first.wait_active()

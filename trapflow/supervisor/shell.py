@@ -64,7 +64,7 @@ from trapflow.supervisor.setup import (
     lock_run_dir,
     preflight,
 )
-from trapflow.supervisor.state import DurationClock, SupervisorState
+from trapflow.supervisor.state import DurationClock, SupervisorState, died_at_start
 from trapflow.viewer.access import console_address
 from trapflow.wire import control_msgs, identity, messages, tap_msgs
 from trapflow.wire.endpoints import Endpoints, check_ports_free, make_private
@@ -285,8 +285,7 @@ class Supervisor:
                         self._act(self.core.exited(c.name, c.proc.exitcode, now), now)
                         continue
                     self._poll(0.2)  # the dying node's last heartbeat carries its reason
-                    why = node.reason or f"exited with status {c.proc.exitcode}"
-                    raise StartupError(f"{c.name} cannot start: {why}")
+                    raise died_at_start(c.name, c.proc.exitcode, node.reason)
             problem = self.core.start_problem([c.name for c in started], now)
             if problem is not None:
                 raise StartupError(problem)

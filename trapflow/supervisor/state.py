@@ -20,10 +20,12 @@ actions are trapflow.supervisor.actions'.
 
 from __future__ import annotations
 
+import signal
 from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
 
+from trapflow.errors import NodeDiedError, StartupError
 from trapflow.runtime.lifecycle import RECYCLE_EXITS, Lifecycle
 from trapflow.supervisor.actions import (
     Budget,
@@ -217,6 +219,24 @@ class SupervisorState:
         """Give-ups, retries, capped restarts, control changes and recycles over the run
         (the timeline keeps the last)."""
         return dict(self._counts)
+
+
+def died_at_start(name: str, exitcode: int | None, reason: str
+                  ) -> StartupError | NodeDiedError:
+    """The error that ends a start-up in which a node died. Killed by a signal, or gone
+    without saying why: a runtime failure (exit 1; a worker killed while the pipeline
+    started ended the run with 2, a usage error, issue 36 item 6). Gone saying why it
+    cannot start (a plugin that cannot load, a port taken): a start-up error (2)."""
+    if exitcode is not None and exitcode < 0:
+        try:
+            how = f"killed by {signal.Signals(-exitcode).name}"
+        except ValueError:
+            how = f"killed by signal {-exitcode}"
+        return NodeDiedError(f"{name} died while the pipeline started: {how}")
+    if reason:
+        return StartupError(f"{name} cannot start: {reason}")
+    return NodeDiedError(f"{name} died while the pipeline started: exited with status "
+                         f"{exitcode}")
 
 
 @dataclass

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import signal
 import time
 from collections.abc import Mapping
 from typing import Any
@@ -93,13 +94,17 @@ class Flaky(Worker):
 
 
 class Crash(Worker):
-    """Exits the process hard after `after` pairs, or fails configure when `fail` is set."""
+    """Exits the process hard after `after` pairs, fails configure when `fail` is set, or
+    is killed by SIGKILL in configure when `kill` is set (a worker killed while the
+    pipeline starts)."""
 
     needs_images = False
 
     def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
         if params.get("fail"):
             raise RuntimeError(str(params["fail"]))
+        if params.get("kill"):
+            os.kill(os.getpid(), signal.SIGKILL)
         self.left = int(params.get("after", 5))
 
     def process(self, pair: Pair) -> Extra:

@@ -22,6 +22,7 @@ from trapflow.errors import ProtocolError
 from trapflow.gate.hint import HintPacer, RigMotion
 from trapflow.gate.policy import gated_pools, rig_config
 from trapflow.modem.outbox import Outbox, OutboxFull
+from trapflow.normalizer import checkpoint
 from trapflow.normalizer.result_json import dumps, normalize
 from trapflow.runtime.files import append_whole, is_disk_full
 from trapflow.runtime.node import ACTIVE, FINALIZED, Node, NodeSpec, release_memory
@@ -66,6 +67,10 @@ class NormalizerNode(Node):
             self.outbox = Outbox(spec.run_dir / self.cfg.outbox.path, self.cfg.outbox)
         # One tracker per detector pool; finished tracks and counts go to their own files.
         self.observers: dict[str, Observer] = {}
+        # A run started again in its run directory (after a power cut) goes on with the
+        # tracks, open interval and news memory it had (normalizer/checkpoint.py).
+        self.saved_at = time.monotonic()  # when the observation state was last saved
+        self.fed = False  # pairs tracked since
         # VO's poses, which every tracker uses for its tracks' speed over the ground; one
         # VO pool's chain only (two pools' worlds are not the same frame).
         self.rig_poses = RigPoses()
@@ -77,6 +82,10 @@ class NormalizerNode(Node):
                 self.obs_files[name] = open(path, "ab", buffering=0)  # noqa: SIM115
                 set_file_mode(path)
         self.tracks = 0
+        if self.obs_files:
+            self.observers = checkpoint.load(spec.run_dir)
+            for obs in self.observers.values():
+                obs.poses = self.rig_poses
         # With a gated pool, the broker's gate hears of live tracks and of a moving rig.
         self.rig: RigMotion | None = None
         if gated_pools(self.cfg):
@@ -137,12 +146,17 @@ class NormalizerNode(Node):
                     self._fsync(self.file)
                     next_sync = now + ncfg.fsync_interval_s
                 dirty = False
+            if self.fed and now - self.saved_at >= checkpoint.CHECKPOINT_S:
+                self._save()
             self.beat()
         # Take what the broker already sent before closing the file.
         while self.link.link is not None and self._receive(0):
             pass
-        for obs in self.observers.values():  # tracks still alive end with the run
-            self._write_observations(obs.finish())
+        ended = [obs.finish() for obs in self.observers.values()]  # live tracks end now
+        if self.observers:
+            self._save()  # the news memory stays for a run started again here
+        for got in ended:
+            self._write_observations(got)
         for fh in (self.file, *self.obs_files.values()):
             fh.flush()
             self._fsync(fh)
@@ -151,6 +165,12 @@ class NormalizerNode(Node):
             self.outbox.close()
         self.set_state(FINALIZED)
         return 0
+
+    def _save(self) -> None:
+        """Save the observation state (live tracks, open interval, news memory)."""
+        if not checkpoint.save(self.spec.run_dir, self.observers):
+            self.ratelog.warning("checkpoint", "observation state not saved: the disk is full")
+        self.saved_at, self.fed = time.monotonic(), False
 
     def _fsync(self, fh: IO[bytes]) -> None:
         """fsync one file; a full disk (some filesystems say so only here) is logged."""
@@ -238,7 +258,11 @@ class NormalizerNode(Node):
                 observer = self.observers[res.pool] = Observer(self.cfg.observe, self.rig_poses)
             items = [obj["mono_ir"] for obj in objs]
             capped = observer.capped
-            self._write_observations(observer.feed(res.capture_ns(), items, res.t_wall_ns))
+            got = observer.feed(res.capture_ns(), items, res.t_wall_ns)
+            self.fed = True
+            if got.tracks or got.counts or got.news:
+                self._save()  # before they are written or sent: never twice after a cut
+            self._write_observations(got)
             if observer.capped and not capped:  # said once per pool, then only counted
                 log.warning("pool %s: a pair brought %d boxes, more than observe.max_boxes "
                             "(%d): tracking takes the most confident, the rest get track "

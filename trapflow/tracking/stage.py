@@ -214,6 +214,27 @@ class Observer:
         self.shift_s = 0.0  # added to measured times (a restore on a clock that restarted)
         self.late = 0  # results tracked at a newer capture time than their own
         self.capped = 0  # boxes left out of tracking: more than max_boxes in their pair
+        self.resumed = False  # restored from a checkpoint, not fed since
+
+    def __getstate__(self) -> dict[str, Any]:
+        """What a checkpoint keeps (normalizer/checkpoint.py): all but the shared poses."""
+        return {**self.__dict__, "poses": None}
+
+    def resume(self) -> None:
+        """Restored after a cut: the next pair's clock may have restarted (a reboot)."""
+        self.resumed = True
+
+    def _resume_clock(self, own_s: float, label_ns: int | None) -> None:
+        """The first pair after a restore: on a monotonic clock that restarted (a reboot),
+        go on from the newest time restored plus the wall clock's time off (none when it
+        went back), so tracks end or continue as the time off says; the same clock (a
+        process killed and restarted) needs nothing."""
+        self.resumed = False
+        if self.t_s is None or own_s + self.shift_s >= self.t_s:
+            return
+        off = 0.0 if label_ns is None else max(
+            0.0, label_ns / 1e9 - (self.t_s + self.label_offset_s))
+        self.shift_s = self.t_s + off - own_s
 
     def feed(self, t_ns: int, items: list[dict[str, Any]],
              label_ns: int | None = None) -> Observations:
@@ -221,6 +242,8 @@ class Observer:
         `t_ns` (measured: Result.capture_ns) labelled `label_ns` (its wall clock; t_ns when
         None): each gets `track`, its confirmed track's id or None; returns what ended."""
         own_s = t_ns / 1e9
+        if self.resumed:
+            self._resume_clock(own_s, label_ns)
         t_s = own_s + self.shift_s
         if self.t_s is not None and t_s < self.t_s:
             self.late += 1

@@ -11,7 +11,8 @@ from typing import Any
 import pytest
 
 from trapflow.config.modem import BITS_PER_BYTE, ModemConfig
-from trapflow.modem.frame import DATA, OVERHEAD, REPLY, Deframer, frame, parse_data
+from trapflow.modem.command import CommandGuard, CounterState, Reply, sign
+from trapflow.modem.frame import COMMAND, DATA, OVERHEAD, REPLY, Deframer, frame, parse_data
 from trapflow.modem.outbox import Stored
 from trapflow.modem.schedule import (
     BIT_RATE,
@@ -19,8 +20,11 @@ from trapflow.modem.schedule import (
     HOUR_NS,
     IDLE_WAIT_S,
     NEWS_IN_FLIGHT,
+    REPEAT_AIRTIME_SHARE,
     REPEAT_SHARE,
     REPEAT_SHARE_SPENT,
+    REPLY_AIRTIME_SHARE,
+    REPLY_RESERVE,
     WINDOW_FULL,
     ClassQueue,
     Decision,
@@ -210,10 +214,12 @@ def test_idle_wait(free_in_s: float | None, want: float) -> None:
 def test_overhead_counts_in_the_budget() -> None:
     """The budget is checked on the whole frame (payload and OVERHEAD), as before the move."""
     payload = 4 + 1 + 12  # session, floor, one 10-byte record
-    at_limit = schedule([(WALL, 0)], bytes_per_hour=payload + OVERHEAD)
+    # Data stops short of REPLY_RESERVE: 900 of a 1000-byte budget.
+    data_part = int(1000 * (1 - REPLY_RESERVE))
+    at_limit = schedule([(WALL, data_part - payload - OVERHEAD)], bytes_per_hour=1000)
     assert what(at_limit.next(NOW, WALL, [], 0, classes([(0, [(1, 10)], [])]), 0)) == (
         "data", [1])
-    short = schedule([(WALL, 1)], bytes_per_hour=payload + OVERHEAD)
+    short = schedule([(WALL, data_part - payload - OVERHEAD + 1)], bytes_per_hour=1000)
     assert what(short.next(NOW, WALL, [], 0, classes([(0, [(1, 10)], [])]), 0)) == (
         "wait", BUDGET_SPENT)
 
@@ -238,8 +244,11 @@ SHARE = int(B * REPEAT_SHARE)  # the repeats' bytes per hour
     (False, [(WALL, SHARE)], [(WALL, SHARE)], ("reply",)),
     # ... only by the whole budget
     (False, [(WALL, B)], [], ("wait", BUDGET_SPENT)),
-    # a repeat within its share still waits for the whole budget
-    (True, [(WALL, B)], [], ("wait", BUDGET_SPENT)),
+    # data spent its part: a new command's reply has its reserve (issue 36 item 5) ...
+    (False, [(WALL, int(B * (1 - REPLY_RESERVE)))], [], ("reply",)),
+    # ... a repeat, within its share, does not: dropped as data would wait
+    (True, [(WALL, int(B * (1 - REPLY_RESERVE)))], [], ("drop", BUDGET_SPENT)),
+    (True, [(WALL, B)], [], ("drop", BUDGET_SPENT)),
 ])
 def test_repeated_replies_get_a_share_of_the_budget(
         repeat: bool, sent: list[tuple[int, int]], repeats: list[tuple[int, int]],
@@ -276,3 +285,59 @@ def test_repeats_spend_their_share_then_data_goes_out() -> None:
     assert s.repeat_bytes_last_hour <= 8000 * REPEAT_SHARE
     assert kinds.count("SendData") > 50 and kinds[-1] in ("SendData", "Wait")
     assert kinds.count("SendReply") == s.repeat_bytes_last_hour // len(frame(REPLY, bytes(30)))
+
+
+def _replays_through_the_link(budget: int) -> tuple[float, float, int, int]:
+    """Four recorded command frames, each replayed once a second for 90 s, through the
+    guard (as the modem node dispatches it) and this schedule on a 300 bit/s link, with
+    a record to send always waiting: (replies' share of the air time, repeats' share,
+    replies sent, data frames sent)."""
+    key = bytes(range(32))
+    session = SESSION
+    guard = CommandGuard(key, session, CounterState(session=session.hex(), counter=50))
+    frames = [sign(key, COMMAND, session, c, bytes((9,))) for c in (11, 12, 13, 14)]
+    s = Schedule(ModemConfig(bit_rate=300.0, bytes_per_hour=budget, window=2), session, [])
+    cs = classes([(0, [(i, 10) for i in range(1, 2000)], [])])
+    replies: list[OutReply] = []
+    air = {"reply": 0.0, "repeat": 0.0}
+    sent = {"reply": 0, "data": 0}
+    t, end, next_replay = NOW, NOW + 90.0, NOW
+    while t < end:
+        if t >= next_replay:  # each frame once a second, a little apart
+            for k, f in enumerate(frames):
+                d = guard.receive(f, t + k * 0.01)
+                if isinstance(d, Reply) and len(replies) < 4:
+                    replies.append(OutReply(d.payload, d.repeat))
+            next_replay += 1.0
+        d = s.next(t, WALL, replies, 0, cs, 0)
+        if isinstance(d, DropReply):
+            replies.pop(0)
+            continue
+        if isinstance(d, SendReply):
+            replies.pop(0)
+            air["reply"] += s.airtime(len(d.wire))
+            air["repeat"] += s.airtime(len(d.wire)) * d.repeat
+            sent["reply"] += 1
+            s.on_air(len(d.wire), t, WALL, d.repeat, reply=True)
+        elif isinstance(d, SendData):
+            for c, _ in d.batch:
+                c.queue.popleft()  # acknowledged at once: the window stays open
+            sent["data"] += 1
+            s.on_air(len(d.wire), t, WALL)
+        t = max(t + 0.05, s.link_free_at)
+    return air["reply"] / 90.0, air["repeat"] / 90.0, sent["reply"], sent["data"]
+
+
+@pytest.mark.parametrize("budget", [0, 100_000])
+def test_replayed_commands_leave_data_flowing_budget_or_not(budget: int) -> None:
+    """Regression for issue 36 item 2: with no hourly budget (the default), four recorded
+    command frames replayed once a second for 90 s got 25 replies, 2,714 bytes, 101 % of a
+    300 bit/s link's air time, and no data frame got out. Now replies take at most their
+    share of the air time while data waits (a burst of two frames aside), repeats less."""
+    reply_share, repeat_share, replies, data = _replays_through_the_link(budget)
+    print(f"budget {budget}: replies {replies}, {reply_share:.0%} of the air time "
+          f"({repeat_share:.0%} repeats), data frames {data}")
+    burst = 2 * 0.05  # the shares' bursts, as a share of 90 s (about 4.5 s of 300 bit/s)
+    assert reply_share <= REPLY_AIRTIME_SHARE + burst
+    assert repeat_share <= REPEAT_AIRTIME_SHARE + burst
+    assert data >= 20 and replies >= 4  # every frame's first answer went out

@@ -39,7 +39,8 @@ class ModemConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     bit_rate: Annotated[float, msgspec.Meta(gt=0, le=1_000_000)] = 300.0
     """Bit rate of the acoustic link; the sender never sends faster (10 bits per byte)."""
     bytes_per_hour: Annotated[int, msgspec.Meta(ge=0)] = 0
-    """Budget of bytes sent in any hour (frames and retransmissions); 0 means no budget."""
+    """Budget of bytes sent in any hour (frames and retransmissions); 0 means no budget. Data
+    and repeated replies stop at 90 % of it: the rest is kept for replies to new commands."""
     max_frame_payload: Annotated[int, msgspec.Meta(ge=32, le=MAX_PAYLOAD)] = 96
     """Largest DATA payload; smaller frames lose less to a damaged bit."""
     window: Annotated[int, msgspec.Meta(ge=1, le=64)] = 4

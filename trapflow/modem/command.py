@@ -68,6 +68,11 @@ REPEAT_REPLY_INTERVAL_S = 5.0
 """At most one cached (or "reply lost") answer per this interval for the last command: a
 recorded frame replayed 3 times a second once drained the hourly budget in 30 s (issue 26).
 The surface retries after 8 s at the soonest, so each of its retransmissions is answered."""
+MAX_REPEAT_INTERVAL_S, REPEAT_BACKOFF = 60.0, 1.5
+"""The wait between two answers to one frame heard again grows 1.5 times an answer, to a
+minute: a replay once a second is answered at 0, 5, 12.5, 23.8 s... (issue 36 item 2). It
+is the surface's own back-off (8 s times 1.5 to 60 s) from a shorter start, so each of the
+surface's retransmissions is still answered."""
 MAX_REPLY_BODY = MAX_PAYLOAD - SESSION_BYTES - 5 - TAG_BYTES  # a counter takes at most 5
 
 
@@ -206,9 +211,11 @@ class CommandGuard:
     running: int | None = None  # counter of the command being executed
     disabled: str = ""  # why every command is refused (the counter file cannot be trusted)
     counts: dict[str, int] = field(default_factory=dict)
-    # tag of a frame whose refusal was answered -> when it may be answered again
-    _answered: OrderedDict[bytes, float] = field(default_factory=OrderedDict)
-    _next_repeat_reply: tuple[int, float] = (0, 0.0)  # (counter, when it may be answered again)
+    # tag of a frame whose refusal was answered -> (when it may be answered again, the wait
+    # after that answer)
+    _answered: OrderedDict[bytes, tuple[float, float]] = field(default_factory=OrderedDict)
+    # (counter, when it may be answered again, the wait after that answer)
+    _next_repeat_reply: tuple[int, float, float] = (0, 0.0, REPEAT_REPLY_INTERVAL_S)
 
     def _count(self, kind: str) -> None:
         self.counts[kind] = self.counts.get(kind, 0) + 1
@@ -222,34 +229,39 @@ class CommandGuard:
     ) -> Decision:
         """A stale or wrong-session frame's answer: a frame heard for the first time is
         answered at once (the surface's own, to be corrected); the same frame again at most
-        once per REFUSAL_REPLY_INTERVAL_S, as a repeat (a replay, or a retransmission)."""
+        once per REFUSAL_REPLY_INTERVAL_S, the interval doubling at each answer up to
+        MAX_REPEAT_INTERVAL_S, as a repeat (a replay, or a retransmission)."""
         self._count(kind)
-        next_at = self._answered.get(frame.tag)
-        if next_at is not None and now < next_at:
+        held = self._answered.get(frame.tag)
+        if held is not None and now < held[0]:
             self._count("replies_held")
-            return Refuse(
-                kind, f"{kind} (reply held back: at most one per {REFUSAL_REPLY_INTERVAL_S:g} s "
-                "for the same frame)"
-            )
-        self._answered[frame.tag] = now + REFUSAL_REPLY_INTERVAL_S
+            return Refuse(kind, f"{kind} (reply held back: the same frame is answered "
+                                f"again in {held[0] - now:.1f} s, backing off)")
+        wait = REFUSAL_REPLY_INTERVAL_S if held is None else held[1]
+        self._answered[frame.tag] = (now + wait, min(wait * REPEAT_BACKOFF,
+                                                     MAX_REPEAT_INTERVAL_S))
         self._answered.move_to_end(frame.tag)
         while len(self._answered) > MAX_ANSWERED_FRAMES:
             self._answered.popitem(last=False)
-        return Reply(self.reply(frame.counter, status, data), repeat=next_at is not None)
+        return Reply(self.reply(frame.counter, status, data), repeat=held is not None)
 
     def _repeat_reply(self, counter: int, now: float) -> Decision:
         """The last command's answer again (its cached reply, or that it was lost), at most
-        once per REPEAT_REPLY_INTERVAL_S for that counter."""
+        once per REPEAT_REPLY_INTERVAL_S for that counter, the interval doubling at each
+        answer up to MAX_REPEAT_INTERVAL_S."""
         self._count("duplicates")
-        held_counter, next_at = self._next_repeat_reply
+        held_counter, next_at, wait = self._next_repeat_reply
         if held_counter == counter and now < next_at:
             self._count("replies_held")
             return Refuse(
                 "duplicates",
-                f"command {counter} again (answered at most once per "
-                f"{REPEAT_REPLY_INTERVAL_S:g} s)",
+                f"command {counter} again (answered at most once per {wait:g} s, backing "
+                f"off to {MAX_REPEAT_INTERVAL_S:g} s)",
             )
-        self._next_repeat_reply = (counter, now + REPEAT_REPLY_INTERVAL_S)
+        if held_counter != counter:
+            wait = REPEAT_REPLY_INTERVAL_S
+        longer = min(wait * REPEAT_BACKOFF, MAX_REPEAT_INTERVAL_S)
+        self._next_repeat_reply = (counter, now + wait, longer)
         if self.state.reply and self.state.run == self.run:
             return Reply(bytes.fromhex(self.state.reply), repeat=True)
         if self.state.run != self.run:

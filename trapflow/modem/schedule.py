@@ -5,14 +5,17 @@ clock the hourly byte budget is counted in, as the outbox records what was sent)
 The rules, one per branch of `Schedule.next`, in order: nothing while the previous frame is
 still on the air (the bit rate); a queued REPLY above every class and outside the window (it
 gets no acknowledgement), but a repeated one (an answer a replayed frame can ask for again)
-only within REPEAT_SHARE of the hourly budget, dropped beyond it so data keeps the rest; at
-most `window` DATA frames waiting for their ACK; none while a record of a news class
-(`modem.news`) waits for its ACK, so a lost frame of news is resent before anything newer
-reaches the surface; the classes with records queued and none in
-flight, by priority rank and then by the oldest head, each class's records in seq order
-while they fit the frame; and every frame within the hourly byte budget. A record's
-acknowledgement is awaited for the frame's air time, an ACK's, and the timeout backed off by
-the record's attempts (`ack_deadline`).
+only within REPEAT_SHARE of the hourly budget and REPEAT_AIRTIME_SHARE of the air time,
+dropped beyond either so data keeps the rest; any reply within REPLY_AIRTIME_SHARE of the
+air time while a DATA frame is ready, which goes first beyond it (budget or not, replies
+cannot fill the link); data and repeats short of REPLY_RESERVE of the hourly budget, which
+only the replies to new commands may use; at most `window` DATA frames waiting for their
+ACK; none while a record of a news class (`modem.news`) waits for its ACK, so a lost
+frame of news is resent before anything newer reaches the surface; the classes with
+records queued and none in flight, by priority rank and then by the oldest head, each
+class's records in seq order while they fit the frame; and every frame within the hourly
+byte budget. A record's acknowledgement is awaited for the frame's air time, an ACK's, and
+the timeout backed off by the record's attempts (`ack_deadline`).
 
 The sender (trapflow.modem.sender) owns the port and the outbox: it writes what this
 decides, moves the records in flight, and reports each frame put on the air (`on_air`).
@@ -44,12 +47,25 @@ REPEAT_SHARE = 0.1
 """The share of `bytes_per_hour` that repeated replies (cached, lost, stale, wrong session)
 may take in any hour: a recorded command frame replayed over and over gets at most this,
 and data and the replies to new commands keep the rest (issue 26)."""
+REPLY_RESERVE = 0.1
+"""The share of `bytes_per_hour` kept for the replies to new commands: data and repeated
+replies stop short of it, so a command is answered at once when data has spent the rest
+(it waited for the next hour, issue 36 item 5)."""
+REPLY_AIRTIME_SHARE = 0.5
+"""Budget or not, replies take at most this share of the link's air time while data waits
+to go: four recorded command frames replayed once a second took 101 % of a 300 bit/s link
+and no data frame got out (issue 36 item 2). Over it, the next DATA frame goes first."""
+REPEAT_AIRTIME_SHARE = 0.1
+"""Budget or not, repeated replies take at most this share of the air time; beyond it one is
+dropped (the surface asks again if it still waits)."""
+BURST_FRAMES = 2
+"""The air-time shares allow a burst of this many largest frames at once (then the share)."""
 
 # Why nothing goes out (the sender's `blocked`, in its stats).
 BIT_RATE = "bit rate"
 WINDOW_FULL = "window full"
 BUDGET_SPENT = "hourly byte budget spent"
-REPEAT_SHARE_SPENT = "repeated replies' share of the hourly budget spent"
+REPEAT_SHARE_SPENT = "repeated replies' share of the hourly budget or the air time spent"
 NEWS_IN_FLIGHT = "news waiting for their acknowledgement"
 
 
@@ -156,6 +172,32 @@ def pack(classes: Iterable[ClassQueue], head_bytes: int, low: int, max_payload: 
     return batch, size
 
 
+class AirShare:
+    """A share of the link's air time, as a bucket of air seconds: it fills at `share`
+    seconds per second up to `burst_s`; a frame takes its air time out (down to -burst_s,
+    so one let through while nothing else waited is paid back). Monotonic time only."""
+
+    def __init__(self, share: float, burst_s: float) -> None:
+        self.share = share
+        self.burst_s = burst_s
+        self.credit = burst_s
+        self._at: float | None = None
+
+    def _fill(self, now: float) -> None:
+        if self._at is not None and now > self._at:
+            self.credit = min(self.burst_s, self.credit + (now - self._at) * self.share)
+        self._at = now if self._at is None else max(self._at, now)
+
+    def allows(self, airtime: float, now: float) -> bool:
+        """Whether a frame of this air time is within the share now."""
+        self._fill(now)
+        return self.credit >= airtime
+
+    def spend(self, airtime: float, now: float) -> None:
+        self._fill(now)
+        self.credit = max(-self.burst_s, self.credit - airtime)
+
+
 class Schedule:
     """What the link may carry now: the bit rate (when the last frame has left the modem),
     the window, the classes' priorities and the hourly byte budget."""
@@ -171,20 +213,35 @@ class Schedule:
         # Of those, the repeated replies (since this start: the outbox records no kind).
         self._repeats: collections.deque[tuple[int, int]] = collections.deque()
         self.repeat_bytes_last_hour = 0
+        # Air-time shares of replies and of repeated replies, whatever the budget.
+        burst = BURST_FRAMES * self.airtime(cfg.max_frame_payload + OVERHEAD + 16)
+        self.reply_air = AirShare(REPLY_AIRTIME_SHARE, burst)
+        self.repeat_air = AirShare(REPEAT_AIRTIME_SHARE, burst)
 
     def next(self, now: float, wall_ns: int, replies: Sequence[OutReply], frames_in_flight: int,
              classes: Collection[ClassQueue], last_known: int) -> Decision:
         """What to send now, or why nothing (`last_known`: the outbox's last seq seen)."""
         if now < self.link_free_at:
             return Wait(BIT_RATE)
+        data = self._data(wall_ns, frames_in_flight, classes, last_known)
         if replies:  # above every class; no acknowledgement, so outside the window
             reply = replies[0]
             wire = frame(REPLY, reply.payload)
-            if reply.repeat and not self._repeat_fits(len(wire), wall_ns):
+            airtime = self.airtime(len(wire))
+            if reply.repeat and not (self._repeat_fits(len(wire), wall_ns)
+                                     and self.repeat_air.allows(airtime, now)):
                 return DropReply(REPEAT_SHARE_SPENT)
-            if not self._fits(len(wire), wall_ns):
-                return Wait(BUDGET_SPENT)
+            if isinstance(data, SendData) and not self.reply_air.allows(airtime, now):
+                return data  # replies had their share of the air time: data goes first
+            # A new command's reply may use the reserve; a repeat stops short of it, as data.
+            if not self._fits(len(wire), wall_ns, reserve=not reply.repeat):
+                return DropReply(BUDGET_SPENT) if reply.repeat else Wait(BUDGET_SPENT)
             return SendReply(wire, reply.repeat)
+        return data
+
+    def _data(self, wall_ns: int, frames_in_flight: int, classes: Collection[ClassQueue],
+              last_known: int) -> Wait | SendData:
+        """The next DATA frame, or why none goes."""
         if frames_in_flight >= self.cfg.window:
             return Wait(WINDOW_FULL)
         if any(c.news and c.inflight for c in classes):
@@ -203,13 +260,19 @@ class Schedule:
         payload = data_payload(self.session, low, ((m.stored.seq, m.body) for _, m in batch))
         return SendData(frame(DATA, payload), tuple(batch))
 
-    def _fits(self, nbytes: int, wall_ns: int) -> bool:
+    def airtime(self, nbytes: int) -> float:
+        """Seconds a frame of nbytes takes on the link."""
+        return nbytes * BITS_PER_BYTE / self.cfg.bit_rate
+
+    def _fits(self, nbytes: int, wall_ns: int, reserve: bool = False) -> bool:
         """Whether `nbytes` more stay within the hourly budget (frames older than an hour
-        leave the count)."""
+        leave the count): all of it for a new command's reply (`reserve`), else short of
+        REPLY_RESERVE."""
         while self._ledger and self._ledger[0][0] < wall_ns - HOUR_NS:
             self.bytes_last_hour -= self._ledger.popleft()[1]
         budget = self.cfg.bytes_per_hour
-        return not budget or self.bytes_last_hour + nbytes <= budget
+        limit = budget if reserve else budget * (1.0 - REPLY_RESERVE)
+        return not budget or self.bytes_last_hour + nbytes <= limit
 
     def _repeat_fits(self, nbytes: int, wall_ns: int) -> bool:
         """Whether a repeated reply of `nbytes` stays within REPEAT_SHARE of the budget."""
@@ -218,16 +281,21 @@ class Schedule:
         budget = self.cfg.bytes_per_hour
         return not budget or self.repeat_bytes_last_hour + nbytes <= budget * REPEAT_SHARE
 
-    def on_air(self, nbytes: int, now: float, wall_ns: int, repeat: bool = False) -> None:
+    def on_air(self, nbytes: int, now: float, wall_ns: int, repeat: bool = False,
+               reply: bool = False) -> None:
         """A frame of `nbytes` was written: the link is busy for its air time, and it counts
-        in the hourly budget (and in the repeats' share when `repeat`)."""
-        airtime = nbytes * BITS_PER_BYTE / self.cfg.bit_rate
+        in the hourly budget (and in the repeats' share when `repeat`), and a `reply` in
+        the replies' share of the air time."""
+        airtime = self.airtime(nbytes)
         self.link_free_at = max(now, self.link_free_at) + airtime
         self._ledger.append((wall_ns, nbytes))
         self.bytes_last_hour += nbytes
+        if reply or repeat:
+            self.reply_air.spend(airtime, now)
         if repeat:
             self._repeats.append((wall_ns, nbytes))
             self.repeat_bytes_last_hour += nbytes
+            self.repeat_air.spend(airtime, now)
 
     def ack_deadline(self, attempts: int) -> float:
         """When a record sent in the frame just put on the air, after `attempts` earlier

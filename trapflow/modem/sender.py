@@ -357,7 +357,7 @@ class ModemSender:
             self._requeue_all()
             return False
         if isinstance(d, SendReply):
-            self.schedule.on_air(len(d.wire), now, wall, d.repeat)
+            self.schedule.on_air(len(d.wire), now, wall, d.repeat, reply=True)
             self.replies.popleft()
             self.queue.record_sent(len(d.wire), [], wall)
             self.counters["replies"] += 1

@@ -15,7 +15,10 @@ from tests.conftest import REPO, only_pools, write_config
 
 
 @pytest.mark.timeout(120)
-def test_a_run_that_starts_takes_runs_latest(tmp_path: Path) -> None:
+def test_a_run_that_starts_takes_runs_latest(run_dir: Path) -> None:
+    # A short folder: runs/<timestamp>/capture.sock must fit the 107 bytes of a socket path
+    # (pytest's tmp_path under a parallel worker is too long).
+    tmp_path = run_dir.parent
     write_folder(tmp_path / "pairs", 3)
     runs = tmp_path / "runs"
     (runs / "20260101-000000-000").mkdir(parents=True)

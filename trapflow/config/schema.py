@@ -32,6 +32,7 @@ from trapflow.config.outputs import (
 from trapflow.config.policy import DEFAULT_ORDERED_BOUND, Policy, parse_policy
 from trapflow.config.pools import PoolConfig, _default_pools
 from trapflow.config.power import EnergyConfig, MotionGateConfig
+from trapflow.config.review import LabelReview, ReviewConfig
 from trapflow.config.runtime import (
     LogFileConfig,
     NetworkConfig,
@@ -52,6 +53,7 @@ class Config(Section):
     keys it gives (the defaults: mono, stereo, vo, tags)."""
     normalizer: NormalizerConfig = msgspec.field(default_factory=NormalizerConfig)
     observe: ObserveConfig = msgspec.field(default_factory=ObserveConfig)
+    review: ReviewConfig = msgspec.field(default_factory=ReviewConfig)
     export: ExportConfig = msgspec.field(default_factory=ExportConfig)
     recording: RecordingConfig = msgspec.field(default_factory=RecordingConfig)
     energy: EnergyConfig = msgspec.field(default_factory=EnergyConfig)
@@ -250,6 +252,8 @@ __all__ = [
     "NetworkConfig",
     "NormalizerConfig",
     "ObserveConfig",
+    "ReviewConfig",
+    "LabelReview",
     "OutboxConfig",
     "Policy",
     "PoolConfig",

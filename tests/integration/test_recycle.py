@@ -56,9 +56,7 @@ def _broker_with_link(run_dir: Path, prefix: str
     try:
         link = client.get()
         assert link is not None
-        listener = next(lst for lst, role in broker.listeners.items() if role == "worker")
-        broker._accept(listener)
-        (served,) = broker.link_role
+        (served,) = broker.accept("worker")  # the step the loop takes on a readable listener
         yield broker, client, link, served
     finally:
         client.drop()

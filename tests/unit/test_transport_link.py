@@ -53,8 +53,10 @@ def test_peer_exit_is_link_closed_and_a_new_listener_replaces_a_stale_file(
     with pytest.raises(LinkClosed, match="cannot connect"):
         connect_link(link_path)
     listener = listen_link(link_path)  # its successor replaces it
-    assert connect_link(link_path) is not None
-    listener.close()
+    again = connect_link(link_path)
+    assert again is not None
+    for end in (again, server, listener):
+        end.close()
 
 
 def test_a_garbled_datagram_is_a_protocol_error_not_a_crash(link_path: str) -> None:
@@ -68,7 +70,8 @@ def test_a_garbled_datagram_is_a_protocol_error_not_a_crash(link_path: str) -> N
         server.recv()
     assert client.send([b"fine"]) and server.wait(1000)
     assert [bytes(f) for f in server.recv() or []] == [b"fine"]
-    listener.close()
+    for end in (client, server, listener):
+        end.close()
 
 
 def test_messages_sent_before_a_reset_are_still_read(link_path: str) -> None:

@@ -14,15 +14,14 @@ local links instead (descriptors only).
 from __future__ import annotations
 
 import collections
-import contextlib
 import logging
-import os
 import time
 from typing import Any
 
 import zmq
 
 from trapflow.broker import trust
+from trapflow.broker.links import LinkRegistry
 from trapflow.broker.orders import OrdersChannel
 from trapflow.broker.preview import PreviewClock, drawn_pools
 from trapflow.broker.remote import BrokerHooks, RemoteWorkersSide, frame_bytes
@@ -45,7 +44,7 @@ from trapflow.runtime.node import ACTIVE, Node, NodeSpec
 from trapflow.runtime.ratelog import RateLimitedLog, wire
 from trapflow.wire import control_msgs, frame_msgs, gate_msgs, messages, tap_msgs
 from trapflow.wire.frame_ring import FrameRing
-from trapflow.wire.links import Link, LinkClosed, Poller, accept_link, listen_link
+from trapflow.wire.links import Link, LinkClosed, Poller
 from trapflow.wire.transport import PAIR_MAX_MSG_BYTES, SocketSpec, open_socket, zmq_readable
 
 log = logging.getLogger(__name__)
@@ -89,12 +88,12 @@ class BrokerNode(Node):
         self.remote_pools = {n for n, p in self.cfg.pools.items() if p.remote}
         if self.ring is not None and spec.restarted and (n := self.ring.free_held()):
             log.warning("freed %d ring slots held by a previous broker", n)
-        # Local links (ring only): listeners, then one Link per connected capture or worker.
-        self.listeners: dict[Any, str] = {listen_link(ep.results_link): "results"}
+        # Local links: the normalizer's always; capture's and local workers' with the ring.
+        self.links = LinkRegistry(self.poller)
+        self.links.listen(ep.results_link, "results")
         if self.ring is not None:
-            self.listeners[listen_link(ep.capture_link)] = "capture"
-            self.listeners[listen_link(ep.workers_link)] = "worker"
-        self.fds: dict[int, Any] = {}  # file descriptor -> local link or listener
+            self.links.listen(ep.capture_link, "capture")
+            self.links.listen(ep.workers_link, "worker")
         self.ratelog = RateLimitedLog(log)
         self.remote = RemoteWorkersSide(
             self.cfg, spec.the_rig, self.ctx, self.poller, self.state, self.ratelog,
@@ -103,13 +102,6 @@ class BrokerNode(Node):
         self.tap = BrokerTap(self.ctx, ep.tap, self.poller, self.state, self.remote.roster,
                              started=time.monotonic(), preview=PreviewClock(
                                  1.0 / self.cfg.viewer.frame_hz, drawn_pools(self.cfg.pools)))
-        for listener in self.listeners:
-            self.poller.register(listener)
-            self.fds[listener.fileno()] = listener
-        self.link_role: dict[Link, str] = {}
-        self.link_ident: dict[Link, bytes] = {}
-        self.worker_links: dict[bytes, Link] = {}
-        self.results_link: Link | None = None  # the normalizer, once it connected
         self.results = ResultsOut(self.ratelog)  # to the normalizer, until acknowledged
         # Refused from the wire, by reason (forged answers are counted in self.state.rejected).
         self.refused: dict[str, int] = {}
@@ -124,7 +116,6 @@ class BrokerNode(Node):
         ladder = self.cfg.ladder
         self.level = ladder.levels[0].name if ladder.enabled and not spec.restarted else ""
         self.level_reason = ""
-        self._capture_held: set[Link] = set()  # not polled: held back (_pace_capture)
 
     def counters(self) -> dict[str, int]:
         active, idle = self.state.gate_time()
@@ -149,11 +140,11 @@ class BrokerNode(Node):
             if self.router in socks:
                 self._drain_workers()
             self.remote.serve(socks)
-            for ready in [self.fds[fd] for fd in fds if fd in self.fds]:
-                if ready in self.listeners:
-                    self._accept(ready)
-                else:
+            for ready in self.links.ready(fds):
+                if isinstance(ready, Link):
                     self._drain_link(ready)
+                else:
+                    self._accept(ready)
             if self.pull in socks:
                 self._drain_capture()
             if self.state.paced:
@@ -172,13 +163,7 @@ class BrokerNode(Node):
         self.state.finish()  # what is still pending or in flight will never be processed
         self._flush_results()
         self._publish_stats(time.monotonic())  # the run's totals, for the supervisor
-        for link in list(self.link_role):
-            link.close()
-        for listener in self.listeners:
-            path = listener.getsockname()
-            listener.close()
-            with contextlib.suppress(OSError):
-                os.unlink(path)  # a successor binds afresh; a finished run leaves no socket
+        self.links.close()
         return 0
 
     # --- capture side ---------------------------------------------------------------
@@ -187,15 +172,10 @@ class BrokerNode(Node):
         """Capture's links are not polled while a pool is full, and read again once all have
         room (nor is a zmq capture socket read: it fills to its high-water mark)."""
         full = self.state.holds_source()
-        for link, role in list(self.link_role.items()):
-            if role != "capture":
-                continue
-            if full and link not in self._capture_held:
-                self.poller.unregister(link)
-                self._capture_held.add(link)
-            elif not full and link in self._capture_held:
-                self._capture_held.discard(link)
-                self.poller.register(link)
+        for link in self.links.links("capture"):
+            if full:
+                self.links.hold(link)
+            elif self.links.release(link):
                 self._drain_link(link)  # what waited while it was not polled
         if not full:
             self._drain_capture()
@@ -247,25 +227,30 @@ class BrokerNode(Node):
 
     # --- local links ----------------------------------------------------------------
 
-    def _accept(self, listener: Any) -> None:
-        while (link := accept_link(listener)) is not None:
-            role = self.listeners[listener]
+    def accept(self, role: str) -> list[Link]:
+        """Accept every peer waiting on a role's listener (the step the loop takes when the
+        listener is readable, public for in-process tests): the links now registered."""
+        return self._accept(self.links.listener_of(role))
+
+    def _accept(self, listener: Any) -> list[Link]:
+        role = self.links.listeners[listener]
+        accepted = []
+        for link in self.links.pending(listener):
             if role == "results":  # a (restarted) normalizer: it gets what waited for it
-                if self.results_link is not None:
-                    self._drain_link(self.results_link)  # a dead predecessor's EOF, if any
-                if self.results_link is not None:  # one normalizer at a time
+                if self.links.results_link is not None:
+                    self._drain_link(self.links.results_link)  # a dead predecessor's EOF
+                if self.links.results_link is not None:  # one normalizer at a time
                     self._refuse("second_normalizer",
                                  "refused a second connection to the results link while the "
                                  "normalizer's is live; only one normalizer may run")
                     link.close()
                     continue
-                self.results_link = link
-            self.link_role[link] = role
-            self.fds[link.fileno()] = link
-            self.poller.register(link)
+            self.links.add(link, role)
+            accepted.append(link)
+        return accepted
 
     def _drain_link(self, link: Link) -> None:
-        role = self.link_role.get(link)
+        role = self.links.role(link)
         if role is None:  # dropped earlier in this pass (a failed send to it)
             return
         for _ in range(256):
@@ -282,21 +267,19 @@ class BrokerNode(Node):
                     self._on_ack(gate_msgs.decode_normalizer_msg(frames[0]))
                     continue
                 msg = trust.local_msg(messages.decode_worker_msg(frames[0]))
-                ident = self.link_ident.get(link)
+                ident = self.links.ident(link)
                 if ident is None:  # a worker names itself in its first message
                     name = trust.names_link(msg)
                     if isinstance(name, trust.Refuse):
                         raise ProtocolError(name.text())
                     ident = name.encode()
-                    if ident in self.worker_links:  # that name is another live link's
+                    if not self.links.name(link, ident):  # that name is another live link's
                         self._refuse("duplicate_worker",
                                      "refused a worker link naming itself '%s': a live link "
                                      "has that name; every worker process has its own",
                                      wire(name))
                         self._drop_link(link, "duplicate name")
                         return
-                    self.link_ident[link] = ident
-                    self.worker_links[ident] = link
                 self._on_worker_msg(ident, msg, [ident, *frames])  # as a ROUTER gives them
             except LinkClosed:
                 self._drop_link(link, "disconnected")
@@ -307,21 +290,13 @@ class BrokerNode(Node):
 
     def _drop_link(self, link: Link, reason: str) -> None:
         """A local peer went away: a worker's jobs are settled now, not at a timeout."""
-        if link not in self.link_role:
+        removed = self.links.remove(link)
+        if removed is None:  # removed earlier in this pass
             return
-        if link not in self._capture_held:  # a held-back capture link is not polled
-            self.poller.unregister(link)
-        self._capture_held.discard(link)
-        self.fds.pop(link.fileno(), None)
-        self.link_role.pop(link, None)
-        ident = self.link_ident.pop(link, None)
-        if link is self.results_link:
-            self.results_link = None
+        if removed.was_results:
             self.results.link_lost()
-        link.close()
-        if ident is not None and self.worker_links.get(ident) is link:
-            del self.worker_links[ident]
-            self._apply(self.state.worker_gone(ident, reason, time.monotonic()))
+        if removed.ident is not None:
+            self._apply(self.state.worker_gone(removed.ident, reason, time.monotonic()))
 
     # --- worker side ----------------------------------------------------------------
 
@@ -400,7 +375,7 @@ class BrokerNode(Node):
     def _on_gone(self, msg: messages.Gone, now: float, notice: bool) -> None:
         """A worker left: its own goodbye, or the supervisor's notice of its exit."""
         gone = msg.worker.encode()
-        link = self.worker_links.get(gone)
+        link = self.links.worker(gone)
         if notice and link is not None:
             # Read what the worker sent before it exited first (its last answer and
             # goodbye): the supervisor's notice must not overtake them.
@@ -410,6 +385,7 @@ class BrokerNode(Node):
             messages.GONE_RECYCLED)))
 
     def close(self) -> None:
+        self.links.close()
         self.remote.close()
         super().close()
 
@@ -431,7 +407,7 @@ class BrokerNode(Node):
         """New parameters, applied in place by every worker of the pool between pairs."""
         frame = messages.encode(messages.Configure(pool=pool, params=params))
         for ident in self.state.pool_workers(pool):
-            link = self.worker_links.get(ident)
+            link = self.links.worker(ident)
             try:
                 if link is not None:
                     link.send([frame])
@@ -455,7 +431,7 @@ class BrokerNode(Node):
                     job = messages.encode(messages.Job(pool=action.pool, gap=action.gap))
                     if action.gap == 0:
                         self._jobs[key] = job
-                link = self.worker_links.get(action.worker)
+                link = self.links.worker(action.worker)
                 try:
                     if self.remote.is_remote(action.worker):
                         self.remote.send_job(action.worker, job, action.seq)
@@ -545,10 +521,10 @@ class BrokerNode(Node):
 
     def _flush_results(self) -> None:
         try:
-            self.results.flush(self.results_link)
+            self.results.flush(self.links.results_link)
         except LinkClosed:
-            assert self.results_link is not None
-            self._drop_link(self.results_link, "disconnected")
+            assert self.links.results_link is not None
+            self._drop_link(self.links.results_link, "disconnected")
 
     def _on_ack(self, ack: gate_msgs.NormalizerMsg) -> None:
         """Only the live normalizer's link is read for acks; never more than it was sent. Its

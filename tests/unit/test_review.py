@@ -85,3 +85,21 @@ def test_sharp_large_confident_views_score_higher() -> None:
 def test_config_refuses_a_band_upside_down() -> None:
     with pytest.raises(ConfigError, match="low <= high"):
         from_data({"review": {"labels": {"crab": {"low": 0.8}}}})
+
+
+def test_the_observer_queues_finished_tracks_for_review() -> None:
+    from trapflow.config.schema import ObserveConfig
+    from trapflow.tracking.stage import Observer
+
+    obs = Observer(ObserveConfig(), review=ReviewConfig(audit=0.0), pool="mono")
+    got = []
+    for i in range(6):  # a crab in the band (0.55), then a confident one: a known label
+        box = [100.0 + i, 100.0, 150.0 + i, 140.0]
+        got.append(obs.feed(int(i * 0.2e9), [{"label": "crab", "confidence": 0.55,
+                                               "box": box}]))
+    got.append(obs.finish())
+    reviews = [r["review"] for g in got for r in g.reviews]
+    assert [(r["track"], r["reasons"]) for r in reviews] == [(1, ["band", "new_label"])]
+    assert "jpeg" not in reviews[0]  # no view was offered
+    again = Observer(ObserveConfig(), review=ReviewConfig(enabled=False), pool="mono")
+    assert not again.finish().reviews

@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from typing import IO
+from typing import IO, Any
 
 import zmq
 
@@ -24,7 +24,7 @@ from trapflow.gate.policy import gated_pools, rig_config
 from trapflow.modem.outbox import Outbox, OutboxFull
 from trapflow.normalizer import checkpoint
 from trapflow.normalizer.result_json import dumps, normalize
-from trapflow.runtime.files import append_whole, is_disk_full
+from trapflow.runtime.files import append_whole, is_disk_full, write_atomically
 from trapflow.runtime.node import ACTIVE, FINALIZED, Node, NodeSpec, release_memory
 from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.tracking.rigpose import RigPoses
@@ -77,11 +77,15 @@ class NormalizerNode(Node):
         self.vo_pool: str | None = None
         self.obs_files: dict[str, IO[bytes]] = {}
         if self.cfg.observe.enabled:
-            for name in (self.cfg.observe.tracks_file, self.cfg.observe.counts_file):
+            names = [self.cfg.observe.tracks_file, self.cfg.observe.counts_file]
+            if self.cfg.review.enabled:
+                names.append(self.cfg.review.file)
+            for name in names:
                 path = spec.run_dir / name
                 self.obs_files[name] = open(path, "ab", buffering=0)  # noqa: SIM115
                 set_file_mode(path)
         self.tracks = 0
+        self.reviews = 0  # tracks queued for review
         if self.obs_files:
             self.observers = checkpoint.load(spec.run_dir)
             for obs in self.observers.values():
@@ -104,8 +108,8 @@ class NormalizerNode(Node):
 
     def counters(self) -> dict[str, int]:
         out = {"lines": self.lines, "malformed": self.malformed, "outbox_refused": self.refused,
-               "tracks": self.tracks, "late_for_tracking": sum(o.late for o in
-                                                              self.observers.values()),
+               "tracks": self.tracks, "reviews": self.reviews,
+               "late_for_tracking": sum(o.late for o in self.observers.values()),
                "capped_for_tracking": sum(o.capped for o in self.observers.values()),
                "refused_subscriptions": self.gate.refused}
         out.update(dict.fromkeys(self.routes, 1))
@@ -255,7 +259,8 @@ class NormalizerNode(Node):
         if self.obs_files and isinstance(res.body, messages.MonoIR):
             observer = self.observers.get(res.pool)
             if observer is None:
-                observer = self.observers[res.pool] = Observer(self.cfg.observe, self.rig_poses)
+                observer = self.observers[res.pool] = Observer(
+                    self.cfg.observe, self.rig_poses, self.cfg.review, res.pool)
             items = [obj["mono_ir"] for obj in objs]
             capped = observer.capped
             got = observer.feed(res.capture_ns(), items, res.t_wall_ns)
@@ -295,6 +300,27 @@ class NormalizerNode(Node):
                 pass
         return True
 
+    def _write_reviews(self, reviews: list[dict[str, Any]]) -> None:
+        """Tracks queued for review: each best view's crop as review/POOL-TRACK.jpg, and a
+        line in review.jsonl naming it (written whatever the modem does)."""
+        rcfg = self.cfg.review
+        lines = []
+        for rec in reviews:
+            line = dict(rec["review"])
+            jpeg = line.pop("jpeg", None)
+            if jpeg:
+                name = f"{line['pool']}-{line['track']}.jpg"
+                folder = self.spec.run_dir / rcfg.folder
+                try:
+                    folder.mkdir(exist_ok=True)
+                    write_atomically(folder / name, jpeg)
+                    line["crop"] = f"{rcfg.folder}/{name}"
+                except OSError as exc:
+                    self.ratelog.warning("review", "review crop %s not written: %s", name, exc)
+            lines.append(dumps({"review": line}) + b"\n")
+        self._append(rcfg.file, self.obs_files[rcfg.file], b"".join(lines), len(lines))
+        self.reviews += len(lines)
+
     def _write_observations(self, obs: Observations) -> None:
         """Finished tracks and closed intervals to their files (unbuffered, as results)."""
         ocfg = self.cfg.observe
@@ -303,6 +329,8 @@ class NormalizerNode(Node):
                 self._append(name, self.obs_files[name],
                              b"".join(dumps(o) + b"\n" for o in objs), len(objs))
         self.tracks += len(obs.tracks)
+        if obs.reviews:
+            self._write_reviews(obs.reviews)
         if self.outbox is not None and (records := obs.for_modem()):
             try:
                 self.outbox.append_many(records)

@@ -27,8 +27,9 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from trapflow.config.schema import ObserveConfig
+from trapflow.config.schema import ObserveConfig, ReviewConfig
 from trapflow.tracking.counts import Counter, IntervalCounts, News, RunNews
+from trapflow.tracking.review import Reviewer
 from trapflow.tracking.rigpose import RigPoses, ground_positions
 from trapflow.tracking.tracker import Det, TrackEnd, Tracker, TrackerConfig
 
@@ -180,6 +181,9 @@ class Observations:
     tracks: list[dict[str, Any]] = field(default_factory=list)
     counts: list[dict[str, Any]] = field(default_factory=list)
     news: list[dict[str, Any]] = field(default_factory=list)
+    # Tracks queued for review (tracking/review.py): {"review": {...}}, the best view's
+    # crop under "jpeg" (bytes) when one was kept.
+    reviews: list[dict[str, Any]] = field(default_factory=list)
 
     def for_modem(self) -> list[dict[str, Any]]:
         """The same, compact, for the outbox; news first."""
@@ -203,7 +207,10 @@ def track_pairs(pairs: Iterable[tuple[int, list[dict[str, Any]]]],
 class Observer:
     """Tracks one detector's boxes across pairs by capture time, and counts them."""
 
-    def __init__(self, cfg: ObserveConfig, poses: RigPoses | None = None) -> None:
+    def __init__(self, cfg: ObserveConfig, poses: RigPoses | None = None,
+                 review: ReviewConfig | None = None, pool: str = "") -> None:
+        # Which finished tracks to queue for review, and each live track's best view.
+        self.reviewer = Reviewer(review, pool) if review is not None and review.enabled else None
         self.tracker = Tracker(tracker_config(cfg))
         self.poses = poses  # the rig's motion from VO, shared by every detector's observer
         self.counter = Counter(cfg.interval_s)
@@ -268,12 +275,21 @@ class Observer:
         closed = self.counter.ended(upd.ended) + self.counter.observe(t_s, upd.seen, label_s)
         news = self.news.ended(upd.ended)
         self.news.observe(label_s, upd.seen)
-        return Observations(self._records(upd.ended), [count_record(c) for c in closed],
-                            [rec for n in news for rec in modem_news(n)])
+        tracks = self._records(upd.ended)
+        return Observations(tracks, [count_record(c) for c in closed],
+                            [rec for n in news for rec in modem_news(n)], self._review(tracks))
 
     def _records(self, ended: tuple[TrackEnd, ...]) -> list[dict[str, Any]]:
         return [track_record(e, self.views.pop(e.id, None), self.poses, self.label_offset_s)
                 for e in ended]
+
+    def _review(self, tracks: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        """The finished tracks queued for review (a checkpoint from before the review
+        queue has no reviewer: none)."""
+        reviewer: Reviewer | None = getattr(self, "reviewer", None)
+        if reviewer is None:
+            return []
+        return [line for t in tracks if (line := reviewer.ended(t)) is not None]
 
     def finish(self) -> Observations:
         """At the end of a run: every track still alive ends, the open interval closes."""
@@ -281,5 +297,7 @@ class Observer:
             return Observations()
         ended = self.tracker.flush(self.t_s)
         closed = self.counter.ended(ended) + self.counter.flush(self.t_s)
-        return Observations(self._records(ended), [count_record(c) for c in closed],
-                            [rec for n in self.news.ended(ended) for rec in modem_news(n)])
+        tracks = self._records(ended)
+        return Observations(tracks, [count_record(c) for c in closed],
+                            [rec for n in self.news.ended(ended) for rec in modem_news(n)],
+                            self._review(tracks))

@@ -43,6 +43,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 import yaml
+from tracking_realdata import CROCEA_FPS, RealSequence, crocea_sequences, scorer_check
 
 from trapflow.calibration.camera import StereoRig
 from trapflow.synth.dataset import labelled
@@ -142,8 +143,9 @@ def make_sequence(seed: int, frames: int) -> SynthSequence:
 # --- trackers under test: detection rows -> track rows --------------------------------
 
 
-def run_trapflow(config: TrackerConfig) -> Callable[[list[MotRow]], list[MotRow]]:
-    return lambda dets: track_rows(dets, FPS, config)
+def run_trapflow(config: TrackerConfig, fps: float = FPS
+                 ) -> Callable[[list[MotRow]], list[MotRow]]:
+    return lambda dets: track_rows(dets, fps, config)
 
 
 def run_greedy(dets: list[MotRow], iou_min: float = 0.3, conf_min: float = 0.3,
@@ -187,14 +189,14 @@ def _fields(r: MotRow) -> dict[str, object]:
     return {f: getattr(r, f) for f in r.__struct_fields__}
 
 
-def run_bytetrack(dets: list[MotRow], tuned: bool) -> list[MotRow]:
+def run_bytetrack(dets: list[MotRow], tuned: bool, fps: float = FPS) -> list[MotRow]:
     """Roboflow's ByteTrack on the same rows, the frame rate set and capture times given."""
     import supervision as sv
     from trackers import ByteTrackTracker
 
     kw = dict(track_activation_threshold=0.5, high_conf_det_threshold=0.5,
               minimum_iou_threshold=0.2, lost_track_buffer=45) if tuned else {}
-    tracker = ByteTrackTracker(frame_rate=FPS, **kw)  # type: ignore[arg-type]
+    tracker = ByteTrackTracker(frame_rate=fps, **kw)  # type: ignore[arg-type]
     frames: dict[int, list[MotRow]] = {}
     for r in dets:
         frames.setdefault(r.frame, []).append(r)
@@ -206,7 +208,7 @@ def run_bytetrack(dets: list[MotRow], tuned: bool) -> list[MotRow]:
                           class_id=np.array([max(r.cls, 0) for r in rows]))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            res = tracker.update(d, timestamp=(frame - 1) / FPS)
+            res = tracker.update(d, timestamp=(frame - 1) / fps)
         for box, tid, conf in zip(res.xyxy, res.tracker_id, res.confidence, strict=True):
             if tid >= 0:
                 x1, y1, x2, y2 = (float(v) for v in box)
@@ -249,12 +251,17 @@ def score(gt: list[MotRow], hyp: list[MotRow], frames: list[int]) -> dict[str, f
     data.update(num_gt_ids=len(gid), num_tracker_ids=len(hid), num_timesteps=len(frames),
                 num_gt_dets=sum(len(x) for x in data["gt_ids"]),  # type: ignore[union-attr]
                 num_tracker_dets=sum(len(x) for x in data["tracker_ids"]))  # type: ignore[union-attr]
-    summary = mm.metrics.create().compute(acc, metrics=["idf1", "mota", "num_switches"],
+    summary = mm.metrics.create().compute(acc, metrics=["idf1", "mota", "num_switches",
+                                                   "num_false_positives", "num_misses",
+                                                   "num_fragmentations"],
                                           name="s")
     hota = HOTA().eval_sequence(data)
     return {"HOTA": float(np.mean(hota["HOTA"])), "DetA": float(np.mean(hota["DetA"])),
             "AssA": float(np.mean(hota["AssA"])), "IDF1": float(summary["idf1"].iloc[0]),
             "MOTA": float(summary["mota"].iloc[0]), "IDSW": int(summary["num_switches"].iloc[0]),
+            "FP": int(summary["num_false_positives"].iloc[0]),
+            "FN": int(summary["num_misses"].iloc[0]),
+            "FRAG": int(summary["num_fragmentations"].iloc[0]),
             "gt_dets": int(data["num_gt_dets"]), "gt_ids": len(gid)}  # type: ignore[arg-type]
 
 
@@ -296,6 +303,105 @@ def table(title: str, res: dict[str, dict[str, dict[str, float]]]) -> str:
                          f"{m['MOTA'] * 100:6.1f} {m['AssA'] * 100:6.1f} {m['DetA'] * 100:6.1f} "
                          f"{int(m['IDSW']):5d}")
     return "\n".join(lines)
+
+
+# --- MaxN against the truth's, and the real sets ------------------------------------------
+
+
+def max_n_rows(rows: Sequence[MotRow], frames: Sequence[int]) -> dict[int, int]:
+    """Per class, the most rows of one of the given frames."""
+    count: dict[tuple[int, int], int] = {}
+    keep = set(frames)
+    for r in rows:
+        if r.frame in keep:
+            count[(r.cls, r.frame)] = count.get((r.cls, r.frame), 0) + 1
+    out: dict[int, int] = {}
+    for (cls, _f), n in count.items():
+        out[cls] = max(out.get(cls, 0), n)
+    return out
+
+
+def max_n_tracks(tracked: Sequence[MotRow], frames: Sequence[int]) -> dict[int, int]:
+    """MaxN as a live run counts it: per class (each track's majority class, as a track's
+    label is), the most confirmed tracks seen at one capture time."""
+    votes: dict[int, dict[int, int]] = {}
+    for r in tracked:
+        v = votes.setdefault(r.id, {})
+        v[r.cls] = v.get(r.cls, 0) + 1
+    cls_of = {tid: max(v, key=lambda c: v[c]) for tid, v in votes.items()}
+    return max_n_rows([msgspec.structs.replace(r, cls=cls_of[r.id]) for r in tracked], frames)
+
+
+def max_n_compare(gt: Sequence[MotRow], dets: Sequence[MotRow], tracked: Sequence[MotRow],
+                  frames: Sequence[int], high: float) -> dict[str, dict[int, int]]:
+    """MaxN per class three ways over the frames the detector saw: the truth's (animals in
+    one frame), simultaneous confirmed tracks at one capture time (what trapflow counts),
+    and confident detections (at or above `high`) in one frame."""
+    return {"truth": max_n_rows(gt, frames), "tracks": max_n_tracks(tracked, frames),
+            "detections": max_n_rows([r for r in dets if r.conf >= high], frames)}
+
+
+def evaluate_real(seqs: Sequence[RealSequence], fps: float, with_bytetrack: bool
+                  ) -> dict[str, object]:
+    """Each real sequence at each detector rate: trapflow's and ByteTrack's scores, and
+    MaxN three ways; then per rate the pooled scores."""
+    cfg = TrackerConfig()
+    trackers: dict[str, Callable[[list[MotRow]], list[MotRow]]] = {
+        "trapflow": run_trapflow(cfg, fps)}
+    if with_bytetrack:
+        trackers["bytetrack"] = lambda d: run_bytetrack(d, tuned=False, fps=fps)
+    per: dict[str, dict[str, dict[str, object]]] = {}
+    pooled_res: dict[str, dict[str, dict[str, float]]] = {}
+    for rate, step in RATES.items():
+        per[rate] = {}
+        scores: dict[str, list[dict[str, float]]] = {name: [] for name in trackers}
+        for s in seqs:
+            last = max(r.frame for r in s.gt)
+            frames = [f for f in range(1, last + 1) if (f - 1) % step == 0]
+            dets = [r for r in s.dets if (r.frame - 1) % step == 0]
+            row: dict[str, object] = {}
+            for name, fn in trackers.items():
+                tracked = fn(dets)
+                row[name] = score(s.gt, tracked, frames)
+                scores[name].append(row[name])  # type: ignore[arg-type]
+                if name == "trapflow":
+                    row["max_n"] = max_n_compare(s.gt, dets, tracked, frames, cfg.high)
+            per[rate][s.name] = row
+        pooled_res[rate] = {name: pooled(v) for name, v in scores.items()}
+    return {"fps": fps, "per_sequence": per, "results": pooled_res}
+
+
+def real_table(title: str, real: dict[str, object]) -> str:
+    """Per rate and sequence: HOTA / IDF1 / ID switches of each tracker, and MaxN."""
+    lines = [title]
+    per: dict[str, dict[str, dict[str, object]]] = real["per_sequence"]  # type: ignore[assignment]
+    for rate, seqs in per.items():
+        for name, row in seqs.items():
+            cells = []
+            for tr, m in row.items():
+                if tr != "max_n":
+                    m = dict(m)  # type: ignore[call-overload]
+                    cells.append(f"{tr} {m['HOTA'] * 100:5.1f}/{m['IDF1'] * 100:5.1f}/"
+                                 f"{int(m['IDSW']):3d}")
+            mx: dict[str, dict[int, int]] = row["max_n"]  # type: ignore[assignment]
+            maxn = " ".join(f"{k}={sorted(v.items())}" for k, v in mx.items())
+            lines.append(f"{rate:6} {name:10} " + "  ".join(cells) + f"  MaxN {maxn}")
+    lines.append(table("pooled", real["results"]))  # type: ignore[arg-type]
+    return "\n".join(lines)
+
+
+def synth_max_n(seqs: Sequence[SynthSequence]) -> dict[str, dict[str, dict[str, dict[int, int]]]]:
+    """MaxN three ways on synthetic sequences, per rate and sequence (trapflow's tracks)."""
+    cfg = TrackerConfig()
+    out: dict[str, dict[str, dict[str, dict[int, int]]]] = {}
+    for rate, step in RATES.items():
+        out[rate] = {}
+        for s in seqs:
+            last = max([r.frame for r in s.gt] + [1])
+            frames = [f for f in range(1, last + 1) if (f - 1) % step == 0]
+            tracked = track_rows(s.dets[rate], FPS, cfg)
+            out[rate][s.name] = max_n_compare(s.gt, s.dets[rate], tracked, frames, cfg.high)
+    return out
 
 
 # --- the tracker inside a live run --------------------------------------------------------
@@ -413,6 +519,16 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=900, help="pairs per sequence (15 per s)")
     ap.add_argument("--out", type=Path, default=Path("bench-results/tracking.json"))
     ap.add_argument("--no-bytetrack", action="store_true")
+    ap.add_argument("--crocea", action="store_true",
+                    help="also score the real fish tracks (realdata 08) with made detections")
+    ap.add_argument("--crocea-seqs", type=lambda t: tuple(int(x) for x in t.split(",")),
+                    default=None, help="comma-separated crocea numbers (default: all 8)")
+    ap.add_argument("--crocea-fps", type=float, default=CROCEA_FPS,
+                    help="frame rate taken for crocea (not published with the data)")
+    ap.add_argument("--scorer-check", action="store_true",
+                    help="score a published tracker's output on TUD (realdata 08b)")
+    ap.add_argument("--max-n", action="store_true",
+                    help="also MaxN three ways on the synthetic sequences")
     ap.add_argument("--live", action="store_true",
                     help="also score the tracker inside live runs of the pipeline")
     ap.add_argument("--live-frames", type=int, default=300, help="pairs per live sequence")
@@ -445,6 +561,29 @@ def main() -> None:
         res = evaluate(seqs, trackers)
         report["splits"][split] = {"seeds": list(seeds), "results": res}  # type: ignore[index]
         print(table(f"{split} seeds {list(seeds)}, {args.frames} pairs each", res))
+        if args.max_n:
+            mx = synth_max_n(seqs)
+            report["splits"][split]["max_n"] = mx  # type: ignore[index]
+            for rate, per_seq in mx.items():
+                for name, m in per_seq.items():
+                    print(f"MaxN {rate:6} {name:16} " + " ".join(
+                        f"{k}={sorted(v.items())}" for k, v in m.items()))
+    if args.scorer_check:
+        check = scorer_check(score)
+        report["scorer_check"] = check
+        print("scorer check (TUD, a published tracker's output):" if check
+              else "scorer check: realdata 08b not found")
+        for seq, m in check.items():
+            print(f"  {seq}: {m}")
+    if args.crocea:
+        seqs_real = crocea_sequences(**({"seqs": args.crocea_seqs} if args.crocea_seqs
+                                        else {}))
+        if not seqs_real:
+            print("crocea: realdata 08 not found")
+        else:
+            real = evaluate_real(seqs_real, args.crocea_fps, not args.no_bytetrack)
+            report["crocea"] = real
+            print(real_table(f"crocea at {args.crocea_fps:g} fps (HOTA/IDF1/IDSW)", real))
     if args.live:
         live = live_results(args.live_seeds, args.live_frames, trackers)
         report["live"] = live

@@ -1,4 +1,5 @@
-"""`trapflow track`: link detections from any detector into tracks, in MOTChallenge files."""
+"""`trapflow track`: link detections from any detector into tracks, in MOTChallenge files,
+and count them per interval as a live run does (counts.jsonl lines)."""
 
 from __future__ import annotations
 
@@ -24,17 +25,29 @@ from trapflow.tracking.stage import tracker_config
               default=ObserveConfig().max_boxes, show_default=True,
               help="Most detections of one frame tracked, the most confident "
                    "(observe.max_boxes).")
-def track(detections: Path, out: Path, fps: float | None, max_boxes: int) -> None:
+@click.option("--counts", "counts", default=None,
+              type=click.Path(dir_okay=False, writable=True, path_type=Path),
+              help="Interval counts, a live run's counts.jsonl lines: visits, MaxN and "
+                   "dwell per class (the MOT class column) [default: OUT with the suffix "
+                   ".counts.jsonl].")
+@click.option("--interval", "interval_s", type=click.FloatRange(min=0, min_open=True),
+              default=ObserveConfig().interval_s, show_default=True,
+              help="Seconds per counting interval, from the first frame (observe.interval_s).")
+def track(detections: Path, out: Path, fps: float | None, max_boxes: int,
+          counts: Path | None, interval_s: float) -> None:
     """Track DETECTIONS (MOTChallenge `frame,-1,x,y,w,h,conf[,class]`) into tracks with
-    ids, with the tracker of a live run (observe defaults)."""
+    ids, with the tracker of a live run (observe defaults), and write the counts a live
+    run writes. MaxN is the most confirmed tracks of one class at one frame."""
+    counts = counts or out.with_name(out.stem + ".counts.jsonl")
     try:
         summary = track_file(detections, out, fps,
-                             tracker_config(ObserveConfig(max_boxes=max_boxes)))
+                             tracker_config(ObserveConfig(max_boxes=max_boxes)),
+                             counts_path=counts, interval_s=interval_s)
     except TrapflowError as exc:
         raise bad_input(exc) from None
     click.echo(f"{summary.detections} detections in {summary.frames} frames at "
                f"{summary.fps:g} fps: {summary.tracks} tracks, {summary.tracked} detections "
-               f"tracked -> {out}")
+               f"tracked -> {out}; {summary.intervals} counting intervals -> {counts}")
     if summary.capped:  # once for the whole file, not per frame
         click.echo(f"{summary.capped} detections not tracked: past the {max_boxes} most "
                    "confident of their frame (--max-boxes)")

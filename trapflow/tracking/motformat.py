@@ -1,5 +1,7 @@
 """MOTChallenge text files: read detections or tracks (`frame,id,x,y,w,h,conf,...`), the
-frame rate from seqinfo.ini, write tracks; and `track_file`, the tracker over one file."""
+frame rate from seqinfo.ini, write tracks; and `track_file`, the tracker over one file, with
+the interval counts a live run writes (visits, MaxN and dwell per label, the label being the
+MOT class column, trapflow.tracking.counts)."""
 
 from __future__ import annotations
 
@@ -11,6 +13,7 @@ from pathlib import Path
 import msgspec
 
 from trapflow.errors import TrapflowError
+from trapflow.tracking.counts import DEFAULT_INTERVAL_S, Counter, IntervalCounts
 from trapflow.tracking.tracker import Det, Tracker, TrackerConfig
 
 # A MOT row's class column (8th) when it names none: detection files put -1 there.
@@ -43,6 +46,7 @@ class TrackSummary(msgspec.Struct, frozen=True, kw_only=True):
     tracks: int
     fps: float
     capped: int = 0  # detections past the tracker's max_boxes in their frame: not tracked
+    intervals: int = 0  # counting intervals written
 
 
 # Bounds of a row's fields: far past any real sequence, near enough that the tracker's
@@ -146,29 +150,47 @@ def write_mot(path: Path, rows: Iterable[MotRow]) -> None:
 
 
 def track_rows(rows: Sequence[MotRow], fps: float, config: TrackerConfig | None = None,
-               capped: list[int] | None = None) -> list[MotRow]:
+               capped: list[int] | None = None, counts: list[IntervalCounts] | None = None,
+               interval_s: float = DEFAULT_INTERVAL_S) -> list[MotRow]:
     """The tracker over detection rows (time = (frame - 1) / fps): the rows it gave an id.
-    `capped`, when given, gets the detections each frame left out (past max_boxes)."""
+    `capped`, when given, gets the detections each frame left out (past max_boxes);
+    `counts` the closed intervals of `interval_s` seconds, counted as a live run counts
+    them (the frames with a detection are the effort; a track's label is the majority of
+    its rows' class column, `NO_CLASS_LABEL` where there is none)."""
     by_frame: dict[int, list[MotRow]] = {}
     for r in rows:
         by_frame.setdefault(r.frame, []).append(r)
     tracker = Tracker(config)
+    counter = Counter(interval_s) if counts is not None else None
     out = []
+    t_s = 0.0
     for frame in sorted(by_frame):
         dets = by_frame[frame]
-        upd = tracker.update((frame - 1) / fps, [
+        t_s = (frame - 1) / fps
+        upd = tracker.update(t_s, [
             Det(label=str(r.cls) if r.cls >= 0 else NO_CLASS_LABEL, confidence=r.conf,
                 box=(r.x, r.y, r.x + r.w, r.y + r.h)) for r in dets])
         if capped is not None and upd.capped:
             capped.append(upd.capped)
+        if counter is not None and counts is not None:
+            counts += counter.ended(upd.ended) + counter.observe(t_s, upd.seen)
         out += [msgspec.structs.replace(r, id=tid)
                 for r, tid in zip(dets, upd.track_ids, strict=True) if tid is not None]
+    if counter is not None and counts is not None and by_frame:
+        counts += counter.ended(tracker.flush(t_s)) + counter.flush(t_s)
     return out
 
 
+def write_counts(path: Path, counts: Iterable[IntervalCounts]) -> None:
+    """Interval counts as a live run's counts.jsonl: one `{"counts": {...}}` a line."""
+    path.write_bytes(b"".join(msgspec.json.encode({"counts": c}) + b"\n" for c in counts))
+
+
 def track_file(det_path: Path, out_path: Path, fps: float | None = None,
-               config: TrackerConfig | None = None) -> TrackSummary:
-    """Track a MOT detection file into a MOT track file; fps None: from seqinfo.ini."""
+               config: TrackerConfig | None = None, counts_path: Path | None = None,
+               interval_s: float = DEFAULT_INTERVAL_S) -> TrackSummary:
+    """Track a MOT detection file into a MOT track file; fps None: from seqinfo.ini. With
+    `counts_path`, the interval counts too (times in seconds from the first frame)."""
     if fps is None:
         fps = read_fps(det_path)
     if not fps > 0:
@@ -177,8 +199,11 @@ def track_file(det_path: Path, out_path: Path, fps: float | None = None,
         raise MotFormatError(f"fps: expected {MIN_FPS:g} to {MAX_FPS:g}, got {fps:g}")
     rows = read_mot(det_path)
     capped: list[int] = []
-    tracked = track_rows(rows, fps, config, capped)
+    counts: list[IntervalCounts] = []
+    tracked = track_rows(rows, fps, config, capped, counts, interval_s)
     write_mot(out_path, tracked)
+    if counts_path is not None:
+        write_counts(counts_path, counts)
     return TrackSummary(frames=len({r.frame for r in rows}), detections=len(rows),
                         tracked=len(tracked), tracks=len({r.id for r in tracked}), fps=fps,
-                        capped=sum(capped))
+                        capped=sum(capped), intervals=len(counts))

@@ -145,6 +145,10 @@ def test_package_of_a_run_with_tracks_and_events(spawn, run_dir: Path, tmp_path:
     tracks = jsonl(run_dir / "tracks.jsonl", "track")
     lines = jsonl(run_dir / "results.jsonl", "mono_ir")
     assert tracks and any("length_m" in t and "speed_m_s" in t for t in tracks), tracks
+    # The run's files tell one story: ledger, results, tracks and counts agree.
+    res = subprocess.run([sys.executable, "-m", "trapflow", "check", str(run_dir)], cwd=REPO,
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stdout + res.stderr
 
     out = tmp_path / "pkg"
     res = export(run_dir, out, "--latitude", "50.35", "--longitude", "-4.14", "--depth", "12.5",

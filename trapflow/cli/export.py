@@ -1,4 +1,4 @@
-"""Click commands for exports of a finished run: report, export camtrapdp."""
+"""Click commands for a finished run: report, export camtrapdp, check."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from typing import Any
 import click
 import yaml
 
-from trapflow.cli.exit import bad_input
+from trapflow.cli.exit import bad_input, failed
 from trapflow.errors import yaml_problem
 
 # Metadata file keys (YAML) -> Deployment fields; flags of the same name override them.
@@ -34,14 +34,30 @@ def report(run_dir: Path, output: Path | None, config_path: str | None) -> None:
     from trapflow.config.schema import load
     from trapflow.errors import ConfigError
     from trapflow.export.report import ReportError, write_report
+    from trapflow.export.run_files import RunInUse, finished_run
 
     try:
         cfg = load(config_path)
+        finished_run(run_dir, "report")
         path = write_report(run_dir, output, cfg.events.folder, cfg.observe.counts_file,
                             cfg.observe.tracks_file)
-    except (ConfigError, ReportError) as exc:
+    except (ConfigError, ReportError, RunInUse) as exc:
         raise bad_input(exc) from None
     click.echo(f"written: {path}")
+    _say_damage(run_dir, cfg.normalizer.results_file, cfg.observe.tracks_file, "report")
+
+
+def _say_damage(run_dir: Path, results_file: str, tracks_file: str, what: str) -> None:
+    """After writing what is whole: one line per cut the run's files suffered, and exit 1
+    when there was one (docs/exports.md, "A damaged run")."""
+    from trapflow.export.run_files import damage
+
+    cuts = damage(run_dir, results_file, tracks_file)
+    for line in cuts:
+        click.echo(f"trapflow: warning: {line}", err=True)
+    if cuts:
+        raise failed(f"{what}: {run_dir} is damaged ({len(cuts)} cut"
+                     f"{'s' if len(cuts) > 1 else ''}); what is whole was written")
 
 
 @click.group("export")
@@ -99,10 +115,12 @@ def camtrapdp(run_dir: Path, out: Path, meta: Path | None, latitude: float | Non
     from trapflow.config.schema import load
     from trapflow.errors import ConfigError
     from trapflow.export.camtrapdp import Deployment, ExportError, write_package
+    from trapflow.export.run_files import RunInUse, finished_run
 
     try:
         cfg = load(config_path)
-    except ConfigError as exc:
+        finished_run(run_dir, "export")
+    except (ConfigError, RunInUse) as exc:
         raise bad_input(exc) from None
 
     fields = _metadata(meta)
@@ -132,6 +150,38 @@ def camtrapdp(run_dir: Path, out: Path, meta: Path | None, latitude: float | Non
         raise bad_input(f"--meta {meta}: {exc}") from None
     click.echo(f"written: {out} ({len(rows.media)} media, {len(rows.observations)} "
                "observations)")
+    _say_damage(run_dir, cfg.normalizer.results_file, cfg.observe.tracks_file, "export")
 
 
-COMMANDS = (report, export)
+@click.command()
+@click.argument("run_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--surface", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="A file `trapflow surface` wrote: each record must match a line of the run.")
+@click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
+              help="The run's YAML config (results, observe file names; default: built-in "
+                   "defaults).")
+def check(run_dir: Path, surface: Path | None, config_path: str | None) -> None:
+    """Say whether a finished run's files agree: ledger.json against results.jsonl, the
+    track ids of results.jsonl against tracks.jsonl, counts.jsonl against the tracks, and a
+    surface file against them all. One line per disagreement; exit 1 when there is one."""
+    from trapflow.config.schema import load
+    from trapflow.errors import ConfigError
+    from trapflow.export.check import check_run
+    from trapflow.export.run_files import RunInUse, finished_run
+
+    try:
+        cfg = load(config_path)
+        finished_run(run_dir, "check")
+    except (ConfigError, RunInUse) as exc:
+        raise bad_input(exc) from None
+    problems = check_run(run_dir, results_file=cfg.normalizer.results_file,
+                         tracks_file=cfg.observe.tracks_file,
+                         counts_file=cfg.observe.counts_file, surface=surface)
+    for line in problems:
+        click.echo(line)
+    if problems:
+        raise failed(f"check: {len(problems)} disagreements in {run_dir}")
+    click.echo(f"{run_dir}: its files agree")
+
+
+COMMANDS = (report, export, check)

@@ -296,6 +296,8 @@ class RunLedger:
                 "unwritten": unwritten,
                 # Replaced on purpose (max_rss_mb, max_jobs), by why; not restarts.
                 "recycled": dict((supervision or {}).get("recycled", {}).get(name, {})),
+                # The results.jsonl kinds its results became (`trapflow check` pairs them).
+                "kinds": sorted(k for k, pool in self.routes.items() if pool == name),
             }
             if not final:
                 out["pools"][name][IN_PROGRESS] = in_progress

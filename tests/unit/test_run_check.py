@@ -1,0 +1,116 @@
+"""`trapflow check RUN_DIR` on small run directories made by hand: one whose files agree,
+and one each with a result line deleted, a track renamed and a count changed, each found
+as one line naming the file, the line or id, and both numbers."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import REPO
+from tests.unit.made_run import counts, make_run, results, stamp, t_of, tracks, write_lines
+from trapflow.export.check import check_run
+
+
+def test_a_run_whose_files_agree(tmp_path: Path) -> None:
+    assert check_run(make_run(tmp_path / "run")) == []
+
+
+def test_a_result_line_deleted(tmp_path: Path) -> None:
+    run = make_run(tmp_path / "run")
+    lines = [r for r in results() if r.get("mono_ir", {}).get("seq") != 5]
+    write_lines(run / "results.jsonl", lines)
+    assert check_run(run) == [
+        "ledger.json pool mono: processed 8, results.jsonl has 7 distinct seqs of mono_ir"]
+
+
+def test_a_track_renamed(tmp_path: Path) -> None:
+    run = make_run(tmp_path / "run")
+    renamed = tracks()
+    renamed[1]["track"]["id"] = 9
+    write_lines(run / "tracks.jsonl", renamed)
+    # Track 2's first line: seq 7's detection, the 13th line (mono and VO lines alternate).
+    assert check_run(run) == ["results.jsonl line 13: track 2 (2 lines) is not in tracks.jsonl"]
+
+
+def test_a_count_changed(tmp_path: Path) -> None:
+    run = make_run(tmp_path / "run")
+    changed = counts()
+    changed[0]["counts"]["labels"][0]["max_n"] = 2
+    write_lines(run / "counts.jsonl", changed)
+    assert check_run(run) == [
+        "counts.jsonl line 1 (2026-11-28 10:00:00): crab max_n 2, the tracks imply 1"]
+
+
+def test_a_track_relabelled_and_lines_outside_its_span(tmp_path: Path) -> None:
+    run = make_run(tmp_path / "run")
+    moved = tracks()
+    moved[0]["track"]["label"] = "scallop"  # and so the interval's visits per label differ
+    moved[1]["track"]["first_s"] += 1.0  # seq 6 and 7 now lie before it
+    write_lines(run / "tracks.jsonl", moved)
+    got = check_run(run)
+    assert "tracks.jsonl line 1: track 1 is scallop, but 0 of its 2 lines in results.jsonl " \
+           "say scallop and 2 say crab" in got
+    assert any(g.startswith("results.jsonl line 13: track 2 at ") and "outside its span" in g
+               for g in got), got
+    assert "counts.jsonl line 1 (2026-11-28 10:00:00): crab visits 2, the tracks imply 1" in got
+
+
+def test_a_cut_last_line_and_an_unpaired_kind(tmp_path: Path) -> None:
+    run = make_run(tmp_path / "run")
+    with (run / "results.jsonl").open("a") as f:
+        f.write(json.dumps({"tags": {"timestamp": stamp(9), "seq": 9, "corners": []}}) + "\n")
+        f.write('{"mono_ir": {"timestamp": "2026-')
+    assert check_run(run) == [
+        "results.jsonl line 18 is cut mid-way: it holds no whole line there",
+        "results.jsonl: 1 seqs of tags, which no pool of ledger.json made"]
+
+
+def test_a_surface_file_against_the_run(tmp_path: Path) -> None:
+    run = make_run(tmp_path / "run")
+    heard = [{"new_label": {"label": "crab", "time": stamp(3)[:19], "track": 1}},
+             {"mono_ir": {"timestamp": stamp(3), "seq": 3, "label": "crab", "track": 1}},
+             {"track": {"id": 1, "label": "crab", "start": stamp(2)[:19], "duration_s": 1}},
+             {"counts": {"start": "2026-11-28 10:00:00", "minutes": 0, "pairs": 8, "labels": [
+                 {"label": "crab", "visits": 2, "max_n": 1, "dwell_s": 2}]}},
+             {"health": {"uptime_s": 5}}]
+    write_lines(tmp_path / "surface.jsonl", heard)
+    assert check_run(run, surface=tmp_path / "surface.jsonl") == []
+    heard[1]["mono_ir"]["track"] = 2
+    heard[2]["track"]["label"] = "scallop"
+    write_lines(tmp_path / "surface.jsonl", heard)
+    assert check_run(run, surface=tmp_path / "surface.jsonl") == [
+        f"surface surface.jsonl line 2: mono_ir seq 3 (timestamp {stamp(3)}, label crab, "
+        "track 2) is no line of results.jsonl",
+        f"surface surface.jsonl line 3: track 1 scallop from {stamp(2)[:19]}, tracks.jsonl "
+        f"has crab from {stamp(2)[:19]}"]
+
+
+def _check(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "trapflow", "check", *args], cwd=REPO,
+                          capture_output=True, text=True, timeout=60)
+
+
+@pytest.mark.timeout(120)
+def test_the_command_exits_0_1_or_2(tmp_path: Path) -> None:
+    run = make_run(tmp_path / "run")
+    res = _check(str(run))
+    assert res.returncode == 0 and "its files agree" in res.stdout, res.stderr
+    write_lines(run / "counts.jsonl", [])
+    res = _check(str(run))
+    assert res.returncode == 1
+    assert res.stdout.splitlines() == [
+        f"tracks.jsonl line {n}: track {n} first seen at {t:.3f}, in no interval of "
+        "counts.jsonl" for n, t in ((1, t_of(3)), (2, t_of(7)))]
+    assert "trapflow: error: check: " in res.stderr
+    # A run still going: its supervisor's lock names a live process (this test's own).
+    (run / "supervisor.lock").write_text(str(os.getpid()))
+    res = _check(str(run))
+    assert res.returncode == 2 and "a run still going" in res.stderr, res.stderr
+    res = _check(str(tmp_path / "nowhere"))
+    assert res.returncode == 2 and "no directory" in res.stderr, res.stderr

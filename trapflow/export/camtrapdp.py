@@ -205,7 +205,11 @@ def build_rows(run_dir: Path, dep: Deployment, events_folder: str = "events", *,
                 observations.append(obs.media_row(
                     d, f, dep_id, dep.taxa, f"{f.media_id}-{k}",
                     (f.event, obs.iso(spans[f.event][0]), obs.iso(spans[f.event][1]))))
-    start, end = min(times.values()), max(times.values())
+    # The deployment spans the results and the tracks: a results.jsonl cut short (said by
+    # run_files.damage) must not end it before tracks that went on.
+    spanned = [*times.values(), *(obs.utc(t[k]) for t in tracks or [] for k in ("first_s",
+                                                                               "last_s"))]
+    start, end = min(spanned), max(spanned)
     return Rows([_deployment_row(dep, dep_id, start, end)], media, observations, files, start,
                 end, labels)
 

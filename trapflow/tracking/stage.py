@@ -31,6 +31,7 @@ from trapflow.config.schema import ObserveConfig, ReviewConfig
 from trapflow.tracking.counts import Counter, IntervalCounts, News, RunNews
 from trapflow.tracking.review import Reviewer
 from trapflow.tracking.rigpose import RigPoses, ground_positions
+from trapflow.tracking.speed import speeds
 from trapflow.tracking.tracker import Det, TrackEnd, Tracker, TrackerConfig
 
 # Labels a detector writes for "nothing here" (a line that keeps the pair in the ledger).
@@ -61,8 +62,8 @@ class View:
 
 def aggregate(views: list[View], poses: RigPoses | None = None) -> dict[str, Any]:
     """A track's measurements: its length (median of the sharpest half of its views, their
-    spread, how many), range and Camtrap DP position at first sighting, and its speed (a
-    straight line fitted to its 3-D positions over time).
+    spread, how many), range and Camtrap DP position at first sighting, and its speed along
+    its 3-D path (and over its net displacement, tracking/speed.py).
 
     With VO's poses (`poses` not empty) the positions are taken in VO's world frame, so the
     rig's own motion is removed (`speed_frame` "ground"); a track none of whose views has a
@@ -90,7 +91,8 @@ def aggregate(views: list[View], poses: RigPoses | None = None) -> dict[str, Any
 
 
 def _speed(views: list[View], poses: RigPoses | None) -> dict[str, Any]:
-    """speed_m_s and speed_frame of a track's views, or nothing (too few views or poses)."""
+    """A track's speeds (tracking/speed.py: along its path, its sd, over its net
+    displacement) and speed_frame, or nothing (too few views or poses)."""
     times = [v.t_s for v in views]
     if poses:
         got = ground_positions(times, [v.xyz for v in views], poses)
@@ -101,8 +103,7 @@ def _speed(views: list[View], poses: RigPoses | None) -> dict[str, Any]:
         t, pos, frame = np.array(times), np.array([v.xyz for v in views]), "camera"
     if len(t) < MIN_SPEED_VIEWS or t[-1] <= t[0]:
         return {}
-    slope = np.polyfit(t - t[0], pos, 1)[0]  # m/s along x, y, z
-    return {"speed_m_s": round(float(np.linalg.norm(slope)), 3), "speed_frame": frame}
+    return {**speeds(np.asarray(t), np.asarray(pos)), "speed_frame": frame}
 
 
 def track_record(end: TrackEnd, views: list[View] | None = None,

@@ -91,10 +91,16 @@ def _struct_value(tp: Any) -> tuple[str, type] | None:
     return None
 
 
+def _number(value: float) -> str:
+    """A bound as one text whether it was written 0 or 0.0: typing caches equal Annotated
+    types, so which of two equal bounds a field gets depends on import order."""
+    return str(int(value)) if float(value).is_integer() else repr(float(value))
+
+
 def _constraints(metas: list[msgspec.Meta]) -> str:
     parts: list[str] = []
     for meta in metas:
-        parts += [f"{sign} {getattr(meta, key)}" for key, sign in _BOUNDS
+        parts += [f"{sign} {_number(getattr(meta, key))}" for key, sign in _BOUNDS
                   if getattr(meta, key) is not None]
         if meta.min_length is not None or meta.max_length is not None:
             low = meta.min_length or 0

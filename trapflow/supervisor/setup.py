@@ -48,16 +48,21 @@ def link_latest(run_dir: Path) -> None:
         pass  # a convenience only
 
 
+RESERVE_SUFFIX = ".reserve"  # files that only hold disk space for a full disk (runtime.files)
+
+
 def discard_run_dir(run_dir: Path) -> bool:
     """Remove a run directory that holds nothing of value (its lock file, sockets, empty
-    files: what a start that failed before capture leaves); True if it was removed. One
+    files, the disk space set aside in `*.reserve` files: what a start that failed before
+    capture leaves); True if it was removed. One
     with anything else in it (a log that says why a node could not start) is kept."""
     try:
         entries = list(run_dir.iterdir())
         for path in entries:
             st = path.lstat()
             if not (path.name == LOCK_FILE or stat.S_ISSOCK(st.st_mode)
-                    or (stat.S_ISREG(st.st_mode) and st.st_size == 0)):
+                    or (stat.S_ISREG(st.st_mode)
+                        and (st.st_size == 0 or path.name.endswith(RESERVE_SUFFIX)))):
                 return False
         for path in entries:
             path.unlink()

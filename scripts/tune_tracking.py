@@ -48,6 +48,7 @@ GRID: dict[str, Sequence[float]] = {
     "noise.measure": (0.02, 0.03, 0.05, 0.08, 0.1, 0.12, 0.16),
     "noise.accel": (0.25, 0.5, 1.0, 2.0, 4.0),
     "noise.speed0": (0.25, 0.5, 1.0, 2.0),
+    "noise.turn": (0.0, 0.25, 0.5, 1.0, 2.0),
 }
 
 

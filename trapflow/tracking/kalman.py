@@ -24,8 +24,9 @@ class Noise:
     line through every turn of the second, and a turning fish's predicted box slid onto its
     neighbour (about three times the id switches of a filter that follows turns). A turn
     at rate w of an animal at speed v accelerates it by w v, so the acceleration noise is
-    `accel` box heights plus `turn` times the track's own speed: a still animal keeps a
-    narrow gate, a fast one a wide one, whatever the frame rate or the species."""
+    `accel` box heights plus `turn` times the track's own speed (the part of it the filter
+    is sure of, SURE_SD): a still animal keeps a narrow gate, a fast one a wide one,
+    whatever the frame rate or the species."""
 
     measure: float = 0.08
     """Standard deviation of a detected box's centre and sides, in box heights."""
@@ -56,7 +57,7 @@ class BoxFilter:
             return
         f = np.eye(2 * _DIM)
         f[:_DIM, _DIM:] = np.eye(_DIM) * dt
-        q = _accel2(self.noise, self.x)
+        q = _accel2(self.noise, self.x, self.p)
         # Integrated white-noise acceleration: the discretisation exact for any dt.
         blk = q * np.array([[dt ** 3 / 3.0, dt ** 2 / 2.0], [dt ** 2 / 2.0, dt]])
         qm = np.kron(blk, np.eye(_DIM))
@@ -101,7 +102,7 @@ def predict_many(filters: list[BoxFilter], dts: np.ndarray) -> None:
     p = np.stack([f.p for f in group])
     f = np.broadcast_to(np.eye(2 * _DIM), (len(group), 2 * _DIM, 2 * _DIM)).copy()
     f[:, :_DIM, _DIM:] = np.eye(_DIM) * dt[:, None, None]
-    q = np.array([_accel2(g.noise, g.x) for g in group])
+    q = np.array([_accel2(g.noise, g.x, g.p) for g in group])
     # Integrated white-noise acceleration per filter, as predict() makes it.
     blk = q[:, None, None] * np.array([[dt ** 3 / 3.0, dt ** 2 / 2.0],
                                        [dt ** 2 / 2.0, dt]]).transpose(2, 0, 1)
@@ -154,11 +155,21 @@ def distance2_many(filters: list[BoxFilter], boxes: np.ndarray) -> np.ndarray:
     return out
 
 
-def _accel2(noise: Noise, x: np.ndarray) -> float:
-    """The squared acceleration density of a state: box heights, plus the turn term on
-    its speed (pixels per second)."""
+# The turn term takes the part of a track's speed its filter is sure of: the estimate less
+# this many standard deviations. The whole estimate fed back on itself: a jittery slow
+# animal's noisy speed widened its noise, which let its speed follow the jitter more (on
+# the synthetic world's held-out seeds IDF1 fell from 86.8 to 81.7 at every pair).
+SURE_SD = 2.0
+
+
+def _accel2(noise: Noise, x: np.ndarray, p: np.ndarray) -> float:
+    """The squared acceleration density of a state (x, covariance p): `accel` box heights,
+    plus `turn` times the speed it is sure of (pixels per second, SURE_SD below the
+    estimate)."""
     s = max(float(x[3]), 1.0)
-    return float((noise.accel * s + noise.turn * float(np.hypot(x[4], x[5]))) ** 2)
+    sd = float(np.sqrt(max(p[4, 4] + p[5, 5], 0.0) / 2.0))
+    v = max(0.0, float(np.hypot(x[4], x[5])) - SURE_SD * sd)
+    return float((noise.accel * s + noise.turn * v) ** 2)
 
 
 def _centre_size(box: np.ndarray) -> np.ndarray:

@@ -109,7 +109,8 @@ def start(config_path: str | None, workers: dict[str, int] | None, duration: flo
             src["kind"], src["uri"] = source_spec
         cfg = configmod.with_source(cfg, **src)
         if workers is not None:
-            cfg = configmod.with_workers(cfg, workers, registry.known_names())
+            cfg = configmod.with_workers(cfg, workers, registry.known_names(),
+                                        registry.TEST_KIT)
         if metrics_file is not None and view is None and not cfg.viewer.enabled:
             raise click.UsageError("--metrics-file is written by the viewer: add --view PORT")
         cfg = _with_viewer(cfg, view, metrics_file, enabled=view is not None or None)

@@ -259,7 +259,8 @@ def _replay_config(path: Path, config_path: str | None, loop: bool, opts: dict[s
         src["width"], src["height"] = size
     cfg = config_mod.with_source(cfg, **src)
     if workers is not None:
-        cfg = config_mod.with_workers(cfg, workers, registry.known_names())
+        cfg = config_mod.with_workers(cfg, workers, registry.known_names(),
+                                      registry.TEST_KIT)
     return cfg
 
 

@@ -11,6 +11,7 @@ runtime; the runtime imports every section through this one name.
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from pathlib import Path
 from typing import Any, Literal
 
@@ -175,11 +176,13 @@ def parse_workers(text: str) -> dict[str, int]:
     return counts
 
 
-def with_workers(cfg: Config, counts: dict[str, int], known: list[str]) -> Config:
+def with_workers(cfg: Config, counts: dict[str, int], known: list[str],
+                 unlisted: Collection[str] = ()) -> Config:
     """Run exactly the named pools with these counts; others are switched off.
 
-    A name that is not a configured pool but is a known plugin gets a default pool. A count
-    of 0 names a remote pool that runs no local worker (its workers join from other hosts).
+    A name that is not a configured pool but is a known plugin (or an unlisted one: the test
+    kit's, accepted but never offered in the error) gets a default pool. A count of 0 names
+    a remote pool that runs no local worker (its workers join from other hosts).
     """
     for name, count in counts.items():
         if count == 0 and not (name in cfg.pools and cfg.pools[name].remote):
@@ -192,7 +195,7 @@ def with_workers(cfg: Config, counts: dict[str, int], known: list[str]) -> Confi
         pools[name] = msgspec.structs.replace(pool, count=counts.get(name, 0))
     for name, count in counts.items():
         if name not in pools:
-            if name not in known:
+            if name not in known and name not in unlisted:
                 choices = ", ".join(sorted(set(known) | set(cfg.pools)))
                 raise ConfigError(
                     f"unknown algorithm {name!r} in --workers: expected one of {choices}")

@@ -16,8 +16,16 @@ every pair, then `latest` with the detector slowed so that it sees about one pai
 the run's tracked lines (frame = seq + 1) are scored against the dataset's gt/gt.txt over
 the pairs the detector saw, beside the other trackers on the run's own detections.
 
+--crocea adds the real fish tracks of realdata 08 (detections made from them, see
+scripts/tracking_realdata.py), per video beside ByteTrack, with MaxN per class three ways
+(the truth's, confirmed tracks at one capture time, confident detections in one frame; --max-n
+adds the same on the synthetic sequences); --scorer-check scores a published tracker's
+output on TUD (realdata 08b) beside its published scores.
+
     python scripts/bench_tracking.py [--split dev|held-out|both|none] [--frames N]
                                      [--live [--live-seeds S,S] [--live-frames N]]
+                                     [--crocea [--crocea-seqs N,N] [--crocea-fps F]]
+                                     [--scorer-check] [--max-n]
 
 Needs the test extra (motmetrics) and, bench only, TrackEval and Roboflow's trackers:
 `pip install supervision && pip install --no-deps trackeval trackers` (--no-deps: both

@@ -231,14 +231,32 @@ class Pipeline(TrapflowProcess):
         return result
 
 
+def grown(count: Callable[[], int], by: int) -> Callable[[], bool]:
+    """A condition for record_until: count() grew by more than `by` since it was first asked
+    (when the recorder writes)."""
+    start: list[int] = []
+
+    def done() -> bool:
+        if not start:
+            start.append(count())
+        return count() > start[0] + by
+
+    return done
+
+
 def record_until(run_dir: Path, out: Path, done: Callable[[], Any],
                  timeout: float) -> tuple[int, str]:
     """`trapflow record` of the pipeline running in run_dir into out, stopped (SIGINT) once
-    done() holds: its exit status and stderr."""
+    done() holds: its exit status and stderr. done() is first asked once the recorder writes
+    (its .part file has bytes): a recorder still starting on a loaded machine would miss what
+    done() counts, and a SIGINT before it is up ends it with "Aborted!"."""
     recorder = subprocess.Popen(
         [sys.executable, "-m", "trapflow", "record", "--run-dir", str(run_dir), "-o", str(out)],
         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    part = out.with_name(out.name + ".part")
     try:
+        poll_for(lambda: part.exists() and part.stat().st_size > 0, timeout,
+                 what="the recorder writing")
         poll_for(done, timeout, what="pairs flowing while recording")
     finally:
         recorder.send_signal(signal.SIGINT)

@@ -23,7 +23,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from tests.builders import floor_scene, kitti_calib, rectified_calibration
-from tests.conftest import REPO, Pipeline, record_until, write_config
+from tests.conftest import REPO, Pipeline, grown, record_until, write_config
 from trapflow.calibration.camera import StereoRig
 from trapflow.calibration.model import save_calibration
 from trapflow.config.schema import from_data
@@ -251,7 +251,7 @@ def test_a_recording_keeps_the_rig_for_its_replay(
                "--rate", "10"], run_dir)
     p.wait_active(90)
     out = tmp_path / "field.mcap"
-    rcode, rerr = record_until(run_dir, out, lambda: len(p.results()) > 20, 40)
+    rcode, rerr = record_until(run_dir, out, grown(lambda: len(p.results()), 20), 40)
     assert rcode == 0, rerr
     code, _out, err = p.stop()
     assert code == 0, err

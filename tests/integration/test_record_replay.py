@@ -16,7 +16,15 @@ import pytest
 from rosbags.highlevel import AnyReader
 
 from tests.builders import small_source
-from tests.conftest import REPO, Pipeline, only_pools, poll_for, record_until, write_config
+from tests.conftest import (
+    REPO,
+    Pipeline,
+    grown,
+    only_pools,
+    poll_for,
+    record_until,
+    write_config,
+)
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
 
@@ -35,8 +43,7 @@ def default_recording(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path
         def poses() -> int:  # one VO line per pair (a detector writes one per box)
             return sum("stereo_vo" in x for x in p.results())
 
-        start = poses()
-        code, err = record_until(work / "run", rec, lambda: poses() > start + 40, 30)
+        code, err = record_until(work / "run", rec, grown(poses, 40), 30)
         assert code == 0, err
         p.stop(signal.SIGINT)
         leaked = p.leftovers()

@@ -197,8 +197,11 @@ def test_racing_writer_never_yields_a_torn_read(prefix: str, procs: Any) -> None
         left, right = np.empty(n, np.uint8), np.empty(n, np.uint8)
         k = reads = quiet = 0
         last: frame_msgs.FrameRef | None = None
-        t_end = time.monotonic() + 2.0
-        while time.monotonic() < t_end or last is None:
+        # Two seconds of racing, and at least 8 reads (2 quiet rounds): the reader process may
+        # take seconds to start on a loaded machine.
+        t_end, t_limit = time.monotonic() + 2.0, time.monotonic() + 40.0
+        while (time.monotonic() < t_end or last is None or reads < 8) \
+                and time.monotonic() < t_limit:
             slot = writer.acquire()
             assert slot is not None  # freed right after each write: never full
             left[8:] = k % 251

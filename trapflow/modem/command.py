@@ -25,7 +25,6 @@ import msgspec
 
 from trapflow.config.modem import MAX_PAYLOAD
 from trapflow.errors import ConfigError, ProtocolError
-from trapflow.modem import surface_state
 from trapflow.modem.codec import LinkCodec
 from trapflow.modem.frame import (
     CMD_HEALTH,
@@ -52,6 +51,7 @@ from trapflow.modem.frame import (
     signed_payload,
     split_signed,
 )
+from trapflow.runtime.files import write_atomically
 from trapflow.wire import control_msgs, messages
 
 MIN_KEY_BYTES = 16
@@ -123,7 +123,7 @@ def verify(key: bytes, frame: SignedFrame) -> bool:
 
 def write_durably(path: Path, data: bytes) -> None:
     """Replace path with data atomically and durably, readable by its owner only."""
-    surface_state.write_durably(path, data, mode=0o600)
+    write_atomically(path, data, mode=0o600)
 
 
 # --- the box's memory of commands ----------------------------------------------------------

@@ -10,13 +10,13 @@ file (one memory, no sessions) loads with its output mark and without its ids.
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
 from pathlib import Path
 from typing import Annotated
 
 import msgspec
+
+from trapflow.runtime.files import write_atomically
 
 log = logging.getLogger(__name__)
 
@@ -125,27 +125,6 @@ def load_state(path: Path) -> SurfaceState:
     return state
 
 
-def write_durably(path: Path, data: bytes, mode: int = 0o644) -> None:
-    """Replace path with data atomically and durably (tmp file, fsync, replace, fsync dir)."""
-    tmp = path.with_name(path.name + ".tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
-    try:
-        view = memoryview(data)
-        while view:
-            view = view[os.write(fd, view) :]
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    os.replace(tmp, path)
-    # The rename itself is durable only once the directory is synced; some filesystems refuse.
-    with contextlib.suppress(OSError):
-        dfd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
-
-
 def save_state(path: Path, state: SurfaceState) -> None:
     """Write state to path atomically and durably."""
-    write_durably(path, msgspec.json.encode(state) + b"\n")
+    write_atomically(path, msgspec.json.encode(state) + b"\n", mode=0o644)

@@ -429,7 +429,7 @@ def test_a_remote_hosts_recycled_workers_are_replaced_at_once_without_loss(
     def recycled_twice() -> list[dict[str, Any]] | None:
         rows = remote_rows(p, "far")
         gone = [r for r in rows if r["state"] == "evicted"]
-        ok = len(gone) >= 2 and all(r["reason"].startswith("recycled:jobs") for r in gone)
+        ok = len(gone) >= 2 and all(r.get("reason", "").startswith("recycled:jobs") for r in gone)
         return rows if ok else None
 
     poll_for(recycled_twice, 60, interval=0.5, what="two remote workers recycled")

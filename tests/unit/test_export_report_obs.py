@@ -4,10 +4,10 @@ counts.jsonl, length-frequency histograms from tracks.jsonl (trapflow.export.rep
 from __future__ import annotations
 
 import re
-from html.parser import HTMLParser
 
 import pytest
 
+from tests.integration.test_export_report import Page
 from trapflow.export.report import (
     PAD,
     PLOT_BOTTOM,
@@ -155,32 +155,6 @@ def test_energy_section_with_active_and_idle_time() -> None:
     assert bare.startswith("\n<p>no energy estimate")
 
 
-class _Tables(HTMLParser):
-    """The page's tables as lists of rows of cell texts."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.tables: list[list[list[str]]] = []
-        self._cell: list[str] | None = None
-
-    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
-        if tag == "table":
-            self.tables.append([])
-        elif tag == "tr":
-            self.tables[-1].append([])
-        elif tag in ("td", "th"):
-            self._cell = []
-
-    def handle_endtag(self, tag: str) -> None:
-        if tag in ("td", "th") and self._cell is not None:
-            self.tables[-1][-1].append("".join(self._cell))
-            self._cell = None
-
-    def handle_data(self, data: str) -> None:
-        if self._cell is not None:
-            self._cell.append(data)
-
-
 def test_every_ledger_state_of_every_pool_is_on_the_page() -> None:
     """Regression: the report's table of drops and losses named its columns by hand and
     left out gated, dropped_stale, dropped_inactive and dropped_by_level; a motion-gated
@@ -191,7 +165,7 @@ def test_every_ledger_state_of_every_pool_is_on_the_page() -> None:
     # Pool `all` holds a distinct number in every state; `some` only in a few.
     pools = {"all": {key: 10 + i for i, key in enumerate(states)},
              "some": {"processed": 5, "gated": 7, "lost": 0, "policy": "latest"}}
-    page = _Tables()
+    page = Page()  # the report test's own reading of the page
     page.feed(render_html(RunSummary(run="r", ledger={"pools": pools})))
     head, *rows = next(t for t in page.tables if t[0][:2] == ["pool", "processed"])
     label = dict(LEDGER_STATES)
@@ -201,7 +175,7 @@ def test_every_ledger_state_of_every_pool_is_on_the_page() -> None:
     assert got["some"]["gated"] == "7" and got["some"]["processed"] == "5"
     assert got["some"]["dropped stale"] == "0"
     # A state no pool reached is no column; processed and lost always are.
-    page = _Tables()
+    page = Page()  # the report test's own reading of the page
     page.feed(render_html(RunSummary(run="r", ledger={"pools": {"some": pools["some"]}})))
     head, *rows = next(t for t in page.tables if t[0][:2] == ["pool", "processed"])
     assert head == ["pool", "processed", "gated", "lost"]

@@ -41,10 +41,21 @@ import cv2
 import msgspec
 import numpy as np
 
-from trapflow.plugin import ConfigError, Context, Pair, Tag, Tags, Worker, WorkerError
+from trapflow.plugin import (
+    ConfigError,
+    Context,
+    Pair,
+    Params,
+    Tag,
+    Tags,
+    Worker,
+    WorkerError,
+    check_frame,
+    parse_params,
+)
 
 from .calibration import resolve_rig
-from .common import Params, check_frame, floats, parse_params, to_grey
+from .common import floats, to_grey
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,6 @@
 """Helpers shared by the shipped algorithm plugins: model paths, labels, float tuples. The typed
-params (Params, parse_params) and the frame check (check_frame) are part of the plugins'
-public API in trapflow.plugin; they are named here too for the plugins that import them from
-this module."""
+params (Params, parse_params) and the frame check (check_frame) are the plugins' public API,
+in trapflow.plugin."""
 
 from __future__ import annotations
 
@@ -14,7 +13,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from trapflow.plugin import Params, Worker, WorkerError, check_frame, parse_params
+from trapflow.plugin import WorkerError
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 MODELS_DIR = PACKAGE_DIR / "models"
@@ -97,7 +96,3 @@ def floats(values: Sequence[float] | np.ndarray) -> tuple[float, ...]:
     """Plain Python floats (for msgspec result Structs) from any numeric sequence."""
     return tuple(float(v) for v in np.asarray(values, dtype=np.float64).ravel())
 
-
-__all__ = ["MODELS_DIR", "PACKAGE_DIR", "Params", "Worker", "WorkerError", "check_frame",
-           "floats", "labels_from_names", "load_labels", "model_path", "parse_params",
-           "to_grey"]

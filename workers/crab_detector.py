@@ -28,11 +28,13 @@ from trapflow.plugin import (
     StereoRig,
     Worker,
     WorkerError,
+    check_frame,
     measure,
     pair_floor,
+    parse_params,
 )
 
-from .common import check_frame, load_labels, model_path, parse_params
+from .common import load_labels, model_path
 from .onnx_session import ModelParams, Session, open_session
 from .yolo_decode import (
     DEFAULT_STRIDES,

@@ -20,9 +20,7 @@ import msgspec
 import numpy as np
 import onnxruntime as ort
 
-from trapflow.plugin import CONSOLE_ONCE, WorkerError
-
-from .common import Params
+from trapflow.plugin import CONSOLE_ONCE, Params, WorkerError
 
 log = logging.getLogger(__name__)
 

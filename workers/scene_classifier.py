@@ -17,9 +17,9 @@ import cv2
 import msgspec
 import numpy as np
 
-from trapflow.plugin import Context, Pair, StereoIR, Worker, WorkerError
+from trapflow.plugin import Context, Pair, StereoIR, Worker, WorkerError, check_frame, parse_params
 
-from .common import check_frame, load_labels, model_path, parse_params
+from .common import load_labels, model_path
 from .onnx_session import ModelParams, Session, open_session
 
 log = logging.getLogger(__name__)

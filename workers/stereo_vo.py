@@ -24,10 +24,19 @@ import cv2
 import msgspec
 import numpy as np
 
-from trapflow.plugin import Context, Pair, StereoRig, StereoVO, Worker
+from trapflow.plugin import (
+    Context,
+    Pair,
+    Params,
+    StereoRig,
+    StereoVO,
+    Worker,
+    check_frame,
+    parse_params,
+)
 
 from .calibration import resolve_rig
-from .common import Params, check_frame, floats, parse_params, to_grey
+from .common import floats, to_grey
 
 log = logging.getLogger(__name__)
 

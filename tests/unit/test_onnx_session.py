@@ -8,7 +8,6 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 import pytest
-from trapflow_workers.common import parse_params
 from trapflow_workers.onnx_session import (
     ModelParams,
     open_session,
@@ -17,6 +16,7 @@ from trapflow_workers.onnx_session import (
 )
 
 from trapflow.errors import WorkerError
+from trapflow.plugin import parse_params
 
 MODEL = Path(__file__).resolve().parents[2] / "workers" / "models" / "crab_detector.onnx"
 

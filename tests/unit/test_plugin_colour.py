@@ -8,13 +8,13 @@ import cv2
 import numpy as np
 import pytest
 from trapflow_workers.apriltags import AprilTags
-from trapflow_workers.common import check_frame
 from trapflow_workers.crab_detector import CrabDetector
 from trapflow_workers.stereo_vo import StereoOdometry
 
 from tests import builders
 from tests.builders import vo_circle, vo_plugin
 from trapflow.errors import WorkerError
+from trapflow.plugin import check_frame
 from trapflow.pools.pair_path import decode_image
 from trapflow.testing.kit import make_pair
 from trapflow.testing.vo_metrics import as_4x4, drift_percent

@@ -127,11 +127,14 @@ def test_no_shm_growth_across_supervisor_kill_cycles(spawn, run_dir: Path) -> No
         p.proc.kill()  # kill -9 of the supervisor: its segment stays behind for now
         p.proc.wait(10)
         p.leftovers()  # children die with their parent
-    assert len(_own_segments(pids)) == 1  # each start removed its killed predecessor's
+    # Each start removed its killed predecessor's (another pipeline's start on this host,
+    # a test running in parallel, may have removed the last one already).
+    assert len(_own_segments(pids)) <= 1
     final: Pipeline = spawn(["--workers", "vo=1", "--size", "320x240", "--duration", "3"],
                             run_dir / "final")
     pids.add(final.proc.pid)
     code, _, err = final.wait(60)
     assert code == 0, err
-    assert "removed stale shared-memory segment" in err
+    # Which start removed the last stale segment (and so logged "removed stale shared-memory
+    # segment") depends on the parallel tests' timing; that none is left does not.
     assert _own_segments(pids) == []  # the next start cleaned up all four, and its own

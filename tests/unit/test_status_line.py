@@ -100,14 +100,14 @@ class _Clock:
         return self.t
 
 
-def _report(led: RunLedger, out: io.StringIO) -> Report:
+def _report(led: RunLedger, out: io.StringIO, run_dir: Path) -> Report:
     cfg = Config()
     snap = Snapshot(nodes=[], stats=led.stats, planned_stop=False, rig=None, rig_origin="",
                     source_where="", ring=None, cpu_s={})
-    return Report(cfg, Path("."), out, 0.0, SupervisorState((), Budget()), led, lambda: snap)
+    return Report(cfg, run_dir, out, 0.0, SupervisorState((), Budget()), led, lambda: snap)
 
 
-def test_the_report_does_not_repeat_a_line_without_new_stats(
+def test_the_report_does_not_repeat_a_line_without_new_stats(tmp_path: Path,
         monkeypatch: pytest.MonkeyPatch) -> None:
     """Regression (issue 22 item 10): an unchanged line was printed every second with a
     non-zero rate; and nothing at all was printed for the first seconds of a start."""
@@ -115,7 +115,7 @@ def test_the_report_does_not_repeat_a_line_without_new_stats(
     monkeypatch.setattr("trapflow.supervisor.report.time.monotonic", clock)
     led = RunLedger()
     out = io.StringIO()
-    rep = _report(led, out)
+    rep = _report(led, out, tmp_path)
     rep.starting(7)
     assert out.getvalue().endswith("| starting 7 processes\n")
     stats = Stats(t_wall_ns=0, uptime_s=1.0, pairs_in=10, rate_in=5.0, malformed=0,

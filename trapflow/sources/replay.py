@@ -372,12 +372,14 @@ class ReplaySource(Source):
             delay = due - time.monotonic_ns()
             if delay > 0:
                 time.sleep(delay / 1e9)
+        # Stamped when due, before decoding: a slow (cold) first decode must not shift the
+        # first stamp against the later ones.
+        now = time.monotonic_ns()
         self.pairs_read += 1  # counted read whether or not it decodes: it is one pair
         (il, lm), (ir, rm) = lmsg, rmsg
         left = image_to_bgr(lm, f"replay: {self.path.name} message {il}")
         right = image_to_bgr(rm, f"replay: {self.path.name} message {ir}")
         same_size(left, right, f"replay: {self.path.name} messages {il} and {ir}")
-        now = time.monotonic_ns()
         # The recorded left stamp is the pair's capture time (a later lap of a loop goes on
         # past the last one), whatever the replay's pace.
         return Frames(left=left, right=right, t_left_ns=now, t_right_ns=now + (tr - tl),

@@ -22,6 +22,9 @@ import yaml
 import zmq
 
 REPO = Path(__file__).resolve().parents[1]
+# Every viewer a test starts (in this process or in a child, which inherits it) takes this
+# token, as an operator's own (trapflow.viewer.access.TOKEN_ENV); the viewer tests send it.
+os.environ.setdefault("TRAPFLOW_VIEWER_TOKEN", secrets.token_urlsafe(24))
 
 
 def poll_for(predicate: Callable[[], Any], timeout: float, interval: float = 0.05,

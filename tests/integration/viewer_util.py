@@ -1,14 +1,16 @@
 """Helpers of the viewer tests: a free port, HTTP without a client library, the browser.
 
-Every viewer asks for its token, loopback included (issue 36 item 3): `use_token` says
-which run's viewer serves a port, and get, get_json and post to that port send its token
-(read from the run directory's 0600 token file); `page_url` is the address a browser opens
-(with ?token=, as the console prints it)."""
+Every viewer asks for its token, loopback included (issue 36 item 3). The viewers the tests
+start take the harness's own token from the environment (tests/conftest.py sets
+TRAPFLOW_VIEWER_TOKEN, as an operator may): `use_token` says a port is one of them, and
+get, get_json and post to that port send the token; `page_url` is the address a browser
+opens (with ?token=, as the console prints it)."""
 
 from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import shutil
 import socket
 import subprocess
@@ -19,7 +21,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-from trapflow.viewer.access import TOKEN_FILE, load_token
+from trapflow.viewer.access import TOKEN_ENV
 
 # Launch flags that work in a container without a display, GPU or network.
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -27,18 +29,17 @@ CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-
                  "--disable-sync"]
 
 
-_TOKEN_FILES: dict[int, Path] = {}  # port -> the token file of the viewer serving it
+_PORTS: set[int] = set()  # the ports of viewers the tests started
 
 
-def use_token(port: int, run_dir: Path) -> None:
-    """get, get_json and post to this port send the token of run_dir's viewer."""
-    _TOKEN_FILES[port] = run_dir / TOKEN_FILE
+def use_token(port: int, run_dir: Path | None = None) -> None:
+    """get, get_json and post to this port send the harness's viewer token."""
+    _PORTS.add(port)
 
 
 def token_of(port: int) -> str | None:
-    """The token of the viewer at this port, once its file is there."""
-    path = _TOKEN_FILES.get(port)
-    return load_token(path) if path is not None and path.exists() else None
+    """The token of a viewer the tests started at this port."""
+    return os.environ[TOKEN_ENV] if port in _PORTS else None
 
 
 def page_url(port: int, run_dir: Path) -> str:

@@ -18,7 +18,7 @@ import pytest
 from aiohttp.test_utils import TestClient, TestServer
 
 from trapflow.config.schema import Config, ViewerConfig
-from trapflow.viewer.access import COOKIE, TOKEN_FILE, console_address
+from trapflow.viewer.access import COOKIE, console_address, new_token
 from trapflow.viewer.server import CONTROL_HEADER, Viewer
 from trapflow.viewer.state import Frame
 
@@ -34,7 +34,7 @@ def with_viewer(tmp_path: Path, body: Body, **viewer: object) -> None:
 
     async def main() -> None:
         (tmp_path / "run").mkdir(exist_ok=True)
-        v = Viewer(cfg, tmp_path / "run")
+        v = Viewer(cfg, tmp_path / "run", new_token())
         v.state.shown = Frame(seq=1, width=2, height=2, left=b"\xff\xd8L",
                               right=b"\xff\xd8R", t_wall_ns=0)
         client = TestClient(TestServer(v.app, host="127.0.0.1"))
@@ -79,10 +79,12 @@ def test_loopback_refuses_foreign_hosts_for_reads_and_writes(tmp_path: Path) -> 
             for path, header in (("/api/stop", "stop"), ("/api/pool", "pool")):
                 assert await status(client, "POST", path, Host=host,
                                     **{CONTROL_HEADER: header}) == 401, (host, path)
-        # the address the node's state carries names the token's file, never the token
-        assert v.url("127.0.0.1", port) == (f"http://127.0.0.1:{port}/ (token: "
-                                            f"{tmp_path / 'run' / TOKEN_FILE})")
+        # the address the node's state carries says where the token is, never the token
+        assert v.url("127.0.0.1", port) == (f"http://127.0.0.1:{port}/ (token: printed on "
+                                            "the console that started the viewer)")
         assert v.access.token not in v.url("127.0.0.1", port)
+        assert not any(v.access.token.encode() in f.read_bytes()
+                       for f in (tmp_path / "run").rglob("*") if f.is_file())
 
     with_viewer(tmp_path, body)
 
@@ -131,7 +133,7 @@ def test_off_loopback_a_token_is_needed(tmp_path: Path) -> None:
         for path in READS:
             assert await status(client, "GET", path, Host=host,
                                 Cookie=f"{COOKIE}={TOKEN}") == 200, path
-        assert console_address(v.url("0.0.0.0", 8090)).endswith(
+        assert console_address(v.url("0.0.0.0", 8090), v.access.token).endswith(
             f"(token: the contents of {token_file})")
 
     with_viewer(tmp_path, body, host="0.0.0.0", token_file=str(token_file))
@@ -141,7 +143,7 @@ def test_off_loopback_a_token_is_needed(tmp_path: Path) -> None:
 def test_off_loopback_without_a_file_a_token_is_made_and_printed(tmp_path: Path) -> None:
     async def body(client: TestClient, v: Viewer) -> None:
         assert v.access.token not in v.url("0.0.0.0", 8090)
-        url = console_address(v.url("0.0.0.0", 8090))
+        url = console_address(v.url("0.0.0.0", 8090), v.access.token)
         assert url.startswith("http://0.0.0.0:8090/?token=")
         token = url.split("=", 1)[1]
         assert len(token) >= 32 and token == v.access.token

@@ -41,7 +41,7 @@ async def _get_state(port: int, token: str) -> bytes:
 def test_half_requests_are_closed_and_the_page_still_answers(tmp_path: Path) -> None:
     async def main() -> tuple[int, float, bytes]:
         (tmp_path / "run").mkdir()
-        v = Viewer(Config(), tmp_path / "run")
+        v = Viewer(Config(), tmp_path / "run", "a-token-of-this-test-0123")
         port = _free_port()
         runner = await v.start("127.0.0.1", port)
         slow: list[asyncio.StreamReader] = []

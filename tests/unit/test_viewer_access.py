@@ -8,7 +8,6 @@ pool off and stopped the pipeline), and the token rode on the node's state into 
 from __future__ import annotations
 
 import socket
-import stat
 from pathlib import Path
 
 import pytest
@@ -17,7 +16,7 @@ from trapflow.config import schema as configmod
 from trapflow.config.schema import ViewerConfig
 from trapflow.errors import ConfigError
 from trapflow.viewer.access import (
-    TOKEN_FILE,
+    TOKEN_ENV,
     Access,
     Allow,
     Deny,
@@ -28,6 +27,7 @@ from trapflow.viewer.access import (
     host_name,
     load_token,
     make_access,
+    new_token,
     public_address,
 )
 
@@ -98,38 +98,43 @@ def test_hosts_per_bind() -> None:
 
 
 def test_make_access_per_bind(tmp_path: Path) -> None:
-    """Every bind asks for a token; one made for the run is in the run directory's 0600
-    file, kept for a restart of the viewer in the same run."""
-    loop, path = make_access("127.0.0.1", [], "", tmp_path)
-    assert len(loop.token) >= 32 and not loop.any_ip
-    assert path == tmp_path / TOKEN_FILE and load_token(path) == loop.token
-    assert stat.S_IMODE(path.stat().st_mode) == 0o600
-    again, _ = make_access("127.0.0.1", [], "", tmp_path)
-    assert again.token == loop.token  # the viewer restarted: its printed address still works
-    other = tmp_path / "other"
-    other.mkdir()
-    a, _ = make_access("0.0.0.0", [], "", other)
-    assert a.any_ip and a.token != loop.token  # one per run
+    """Every bind asks for a token: the one made by the process that prints it, or the
+    operator's token file's."""
+    token = "a-token-of-this-test-0123"
+    loop = make_access("127.0.0.1", [], "", token)
+    assert loop.token == token and not loop.any_ip
+    assert make_access("0.0.0.0", [], "", token).any_ip
     f = tmp_path / "token"
     f.write_text(TOKEN + "\n")
     f.chmod(0o600)
-    c, path = make_access("::", [], str(f), tmp_path)
-    assert c.token == TOKEN and path == f
+    assert make_access("::", [], str(f), token).token == TOKEN
+    with pytest.raises(ConfigError, match="at least 16"):
+        make_access("127.0.0.1", [], "", "")
+
+
+def test_a_new_token_is_random_unless_the_environment_gives_one(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    one, two = new_token(), new_token()
+    assert one != two and len(one) >= 32
+    monkeypatch.setenv(TOKEN_ENV, TOKEN)
+    assert new_token() == TOKEN
+    monkeypatch.setenv(TOKEN_ENV, "short")
+    with pytest.raises(ConfigError, match=f"{TOKEN_ENV}: expected at least 16"):
+        new_token()
 
 
 def test_the_token_is_on_the_console_only(tmp_path: Path) -> None:
-    """The address the node's state (and so the log, status and /api/state) carries names
-    the token's file; the console's has the token, or names the operator's own file."""
-    access, path = make_access("127.0.0.1", [], "", tmp_path)
-    public = public_address("http://127.0.0.1:8090/", path)
-    assert access.token not in public and str(path) in public
-    assert console_address(public) == f"http://127.0.0.1:8090/?token={access.token}"
+    """The address the node's state (and so the log, status and /api/state) carries says
+    where the token is; the console's has the token, or names the operator's own file."""
+    token = new_token()
+    public = public_address("http://127.0.0.1:8090/", "")
+    assert token not in public and "console" in public
+    assert console_address(public, token) == f"http://127.0.0.1:8090/?token={token}"
     own = tmp_path / "mine"
-    own.write_text(TOKEN)
-    own.chmod(0o600)
-    line = console_address(public_address("http://h:1/", own))
-    assert TOKEN not in line and str(own) in line
-    assert console_address("http://h:1/") == "http://h:1/"
+    line = console_address(public_address("http://h:1/", str(own)), token)
+    assert token not in line and str(own) in line
+    assert console_address("http://h:1/", token) == "http://h:1/"
 
 
 @pytest.mark.parametrize(("mode", "content", "error"), [

@@ -13,7 +13,7 @@ from trapflow.cli.sources import SizeType, SourceSpecType, WorkersType
 from trapflow.cli.view_params import ViewAddressType
 from trapflow.config import schema as configmod
 from trapflow.errors import EXIT_USAGE, TrapflowError
-from trapflow.viewer.access import console_address
+from trapflow.viewer.access import console_address, new_token
 
 
 def _fail(exc: TrapflowError) -> NoReturn:
@@ -165,9 +165,10 @@ def view(run_dir: Path, config_path: str | None, listen: tuple[str, int] | None,
                             "pipeline (trapflow start prints it)", EXIT_USAGE)
     v = cfg.viewer
     try:
-        asyncio.run(serve(cfg, run_dir, v.host, v.port,
-                          ready=lambda url: click.echo(f"viewer: {console_address(url)}",
-                                                         err=True)))
+        token = new_token()
+        asyncio.run(serve(cfg, run_dir, v.host, v.port, token,
+                          ready=lambda url: click.echo(
+                              f"viewer: {console_address(url, token)}", err=True)))
     except KeyboardInterrupt:
         pass
     except OSError as exc:

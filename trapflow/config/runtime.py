@@ -135,5 +135,6 @@ class ViewerConfig(_Section):
     the bind address, this machine's name and IP addresses): any other Host is refused, so a
     DNS-rebinding page cannot read or drive the viewer."""
     token_file: str = ""
-    """File holding the token a non-loopback bind asks for (mode 600, at least 16
-    characters); "" = a new token each run, printed with the URL. Loopback needs none."""
+    """File holding the token every bind asks for, loopback included (mode 600, at least 16
+    characters); "" = the environment's TRAPFLOW_VIEWER_TOKEN, else a new token each start,
+    held in memory and printed once with the URL on the starting console."""

@@ -19,7 +19,7 @@ from trapflow.measure.stereo import MeasureParams, Unmeasured, match_ncc, triang
 from trapflow.sources.rectify import Rectifier
 
 _SUBPIX = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 1e-3)
-SUBPIX_WINDOW = 11  # half-size 11 px: the kit's 640x480 boards have 20-40 px squares
+SUBPIX_WINDOW = 5
 POINT_SD_PX = 0.5  # a point a person gives: half a pixel each way
 MATCH_HALF_PX = 12  # a point's matching patch: 25 x 25 pixels around it
 # The field check's pass marks: issue 24's targets on OpenCV's sample set (30 mm squares:

@@ -94,6 +94,9 @@ class NodeSpec:
     # The broker's: the key that seals the supervisor's orders (control_msgs.seal_order).
     # Crosses the spawn in the pickled spec, never on a command line or in the environment.
     order_key: bytes = field(default=b"", repr=False)
+    # The viewer's: its token (trapflow.viewer.access.new_token), made by the supervisor that
+    # prints it; crosses the spawn the same way, and a restarted viewer keeps it.
+    viewer_token: str = field(default="", repr=False)
 
     def the_rig(self) -> StereoRig:
         """The run's rig; a node spawned without one (a test, a benchmark) gets the config's."""

@@ -65,7 +65,7 @@ from trapflow.supervisor.setup import (
     preflight,
 )
 from trapflow.supervisor.state import DurationClock, SupervisorState, died_at_start
-from trapflow.viewer.access import console_address
+from trapflow.viewer.access import console_address, new_token
 from trapflow.wire import control_msgs, identity, messages, tap_msgs
 from trapflow.wire.endpoints import Endpoints, check_ports_free, make_private
 from trapflow.wire.frame_ring import FrameRing
@@ -137,6 +137,8 @@ class Supervisor:
         self.run_id = secrets.token_hex(8)  # this start; the modem's cached replies name it
         # Seals the orders to the broker: only a process handed it in the spawn can send one.
         self.order_key = secrets.token_bytes(control_msgs.ORDER_KEY_BYTES)
+        # The viewer's token: in memory here and in the viewer's spawn spec, printed once.
+        self.viewer_token = new_token() if cfg.viewer.enabled else ""
         self.notifier = sdnotify.Notifier()  # READY/WATCHDOG/STATUS under systemd, else no-op
         self.ratelog = RateLimitedLog(log)  # warnings about messages from sockets
         self.cpu = CpuMeter()  # CPU per role: the energy estimate in ledger.json
@@ -178,7 +180,8 @@ class Supervisor:
                   sup.liveness_s)
         now = time.monotonic()
         if cfg.viewer.enabled:  # reads the taps and the control socket like `trapflow view`
-            self._add(NodeSpec("viewer", "viewer", cfg, run), sup.liveness_s)
+            self._add(NodeSpec("viewer", "viewer", cfg, run, viewer_token=self.viewer_token),
+                      sup.liveness_s)
         for child in self.children:
             if child.spec.role != "capture":
                 self._spawn(child, now)
@@ -233,8 +236,8 @@ class Supervisor:
             self._wait_started()  # every consumer is ready before the first pair exists
             if self.cfg.viewer.enabled and (url := self.core.node("viewer").reason):
                 # Its address with its token, on this console only (the node's state, and so
-                # the log and status, name the token's file, never the token).
-                self.report.notice(f"viewer: {console_address(url)}")
+                # the log and status, say where the token is, never the token).
+                self.report.notice(f"viewer: {console_address(url, self.viewer_token)}")
             self._spawn(self._child("capture"), time.monotonic())
             self.started = True
             if self.latest:

@@ -11,16 +11,16 @@ SameSite=Strict cookie, or sent as `Authorization: Bearer TOKEN` by scripts and 
 on loopback another local user read live frames, switched a pool off and stopped the
 pipeline (issue 36 item 3).
 
-Where the token is: the operator's `viewer.token_file`, or one made for the run and kept in
-the run directory's TOKEN_FILE (mode 600, so only the user who started the run reads it);
-the page's address with it is printed to that user's console only. The node's state, the
-log, `trapflow status` and /api/state carry the address and the token file's path, never
-the token (issue 36 item 4).
+Where the token is: the operator's `viewer.token_file`, or the environment's TOKEN_ENV, or
+one made by the process that prints it (the supervisor of `trapflow start --view`, or
+`trapflow view`), held in memory only and handed to a viewer node in its spawn spec. The
+page's address with `?token=` is printed once, on the console of the user who started the
+viewer; no file of the run directory, no log line, no `trapflow status` and no /api/state
+carries the token (issue 36 items 3 and 4).
 """
 
 from __future__ import annotations
 
-import contextlib
 import hmac
 import ipaddress
 import os
@@ -37,8 +37,11 @@ LOOPBACK_NAMES = ("127.0.0.1", "localhost", "::1")
 WILDCARDS = ("0.0.0.0", "::", "")
 COOKIE = "trapflow_token"
 MIN_TOKEN_CHARS = 16
-TOKEN_FILE = "viewer.token"  # in the run directory: the token made for the run (mode 600)
-_TOKEN_NOTE = " (token: "
+# An operator's (or a test harness's) own token: readable by the same user only, through
+# /proc/PID/environ, as a token file of mode 600 is.
+TOKEN_ENV = "TRAPFLOW_VIEWER_TOKEN"
+_ON_CONSOLE = " (token: printed on the console that started the viewer)"
+_IN_FILE = " (token: the contents of "
 
 
 def is_loopback(host: str) -> bool:
@@ -151,56 +154,44 @@ class Access:
                          "Authorization: Bearer TOKEN")
 
 
-def make_access(bind: str, configured: Iterable[str], token_file: str, run_dir: Path
-                ) -> tuple[Access, Path]:
-    """The rules for a bind address, loopback or not, and the file the token is in: the
-    configured one, or the run directory's TOKEN_FILE (the token made by an earlier start
-    of the viewer in this run when it is there and sound, else a new one, written 0600)."""
+def new_token() -> str:
+    """The token of a viewer started now: the environment's TOKEN_ENV when set (checked like
+    a token file's contents), else a fresh random one."""
+    given = os.environ.get(TOKEN_ENV, "").strip()
+    if not given:
+        return secrets.token_urlsafe(24)
+    if len(given) < MIN_TOKEN_CHARS or not given.isprintable() or " " in given:
+        raise ConfigError(f"{TOKEN_ENV}: expected at least {MIN_TOKEN_CHARS} printable "
+                          f"characters without spaces, got {len(given)}")
+    return given
+
+
+def make_access(bind: str, configured: Iterable[str], token_file: str, token: str) -> Access:
+    """The rules for a bind address, loopback or not: the token of the configured token
+    file when there is one, else `token` (new_token's, made by the process that prints it)."""
     hosts = allowed_hosts(bind, configured)
     any_ip = not is_loopback(bind)
     if token_file:
-        return Access(hosts, any_ip, load_token(token_file)), Path(token_file)
-    path = run_dir / TOKEN_FILE
-    try:
-        token = load_token(path)
-    except ConfigError:  # none yet (or unusable): a new one replaces it
-        token = secrets.token_urlsafe(24)
-        write_token(path, token)
-    return Access(hosts, any_ip, token), path
+        return Access(hosts, any_ip, load_token(token_file))
+    if len(token) < MIN_TOKEN_CHARS:
+        raise ConfigError("viewer: expected a token of at least "
+                          f"{MIN_TOKEN_CHARS} characters (new_token) or viewer.token_file")
+    return Access(hosts, any_ip, token)
 
 
-def write_token(path: Path, token: str) -> None:
-    """The token to its file, created 0600 whatever the umask (never readable by others,
-    not even for a moment), replacing what was there."""
-    tmp = path.with_name(path.name + ".tmp")
-    with contextlib.suppress(FileNotFoundError):
-        tmp.unlink()
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(token + "\n")
-    os.replace(tmp, path)
+def public_address(base: str, token_file: str) -> str:
+    """The page's address as the node's state, the log and `trapflow status` carry it: where
+    the token is, never the token."""
+    return f"{base}{_IN_FILE}{token_file})" if token_file else f"{base}{_ON_CONSOLE}"
 
 
-def public_address(base: str, token_path: Path) -> str:
-    """The page's address as the node's state, the log and `trapflow status` carry it:
-    where the token is, never the token."""
-    return f"{base}{_TOKEN_NOTE}{token_path})"
-
-
-def console_address(public: str) -> str:
+def console_address(public: str, token: str) -> str:
     """The page's address for the console of the user who started the viewer: with
-    `?token=` read from the run's token file (that user's, mode 600); an operator's own
-    token file is named, not printed. Unchanged when it names no token file."""
-    base, sep, rest = public.partition(_TOKEN_NOTE)
-    if not sep or not rest.endswith(")"):
-        return public
-    path = Path(rest[:-1])
-    if path.name != TOKEN_FILE:
-        return f"{base} (token: the contents of {path})"
-    try:
-        return f"{base}?token={load_token(path)}"
-    except ConfigError:
-        return public
+    `?token=` when the token is the one made for it; an operator's token file is named, not
+    printed. Unchanged when it is not a public_address."""
+    if public.endswith(_ON_CONSOLE) and token:
+        return f"{public[: -len(_ON_CONSOLE)]}?token={token}"
+    return public
 
 
 def bearer_of(authorization: str | None) -> str | None:

@@ -34,7 +34,8 @@ class ViewerNode(Node):
     def run(self) -> int:
         v = self.cfg.viewer
         try:
-            asyncio.run(serve(self.cfg, self.spec.run_dir, v.host, v.port, ready=self._ready,
+            asyncio.run(serve(self.cfg, self.spec.run_dir, v.host, v.port, self.spec.viewer_token,
+                              ready=self._ready,
                               beat=self.beat, stopping=lambda: self.stopping))
         except (OSError, ConfigError) as exc:
             why = (str(exc) if isinstance(exc, ConfigError) else

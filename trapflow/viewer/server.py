@@ -68,7 +68,7 @@ Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 class Viewer:
     """The web application over one pipeline's taps."""
 
-    def __init__(self, cfg: Config, run_dir: Path) -> None:
+    def __init__(self, cfg: Config, run_dir: Path, token: str) -> None:
         self.cfg = cfg
         self.run_dir = run_dir
         self.state = ViewState(cfg.viewer.frame_hz, cfg.observe.interval_s)
@@ -78,8 +78,7 @@ class Viewer:
         self.metrics_file = Path(mf) if mf else None
         self._page_seen = -PAGE_OPEN_S  # monotonic time of the page's last request
         v = cfg.viewer
-        self.access, self.token_path = make_access(v.host, v.allowed_hosts, v.token_file,
-                                                   run_dir)
+        self.access = make_access(v.host, v.allowed_hosts, v.token_file, token)
         self.app = web.Application(middlewares=[self._guard])
         self.app.add_routes([
             web.get("/", self._static), web.get("/static/{name}", self._static),
@@ -132,7 +131,7 @@ class Viewer:
         """The page's address and where its token is, never the token: it rides on the
         node's state into the log and `trapflow status` (access.console_address adds the
         token for the console)."""
-        return public_address(f"http://{host}:{port}/", self.token_path)
+        return public_address(f"http://{host}:{port}/", self.cfg.viewer.token_file)
 
     def close(self) -> None:
         self.taps.close()
@@ -227,12 +226,12 @@ class Viewer:
         return web.json_response(reply, status=409 if "error" in reply else 200)
 
 
-async def serve(cfg: Config, run_dir: Path, host: str, port: int,
+async def serve(cfg: Config, run_dir: Path, host: str, port: int, token: str,
                 ready: Callable[[str], None] | None = None,
                 beat: Callable[[], None] | None = None,
                 stopping: Callable[[], bool] = lambda: False) -> None:
     """Run the viewer until stopping() is true (or the task is cancelled)."""
-    viewer = Viewer(cfg, run_dir)
+    viewer = Viewer(cfg, run_dir, token)
     runner = None
     try:
         runner = await viewer.start(host, port)

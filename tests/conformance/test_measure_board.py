@@ -20,7 +20,13 @@ from click.testing import CliRunner
 from trapflow.calibration.calibrate import calibrate_stereo
 from trapflow.calibration.model import StereoCalibration, save_calibration
 from trapflow.cli.main import main
-from trapflow.measure.board import MeasureError, board_edges, check_board, measure_points
+from trapflow.measure.board import (
+    MeasureError,
+    board_edges,
+    board_reasons,
+    check_board,
+    measure_points,
+)
 from trapflow.measure.stereo import MeasureParams
 
 from .conftest import kit_path
@@ -56,14 +62,15 @@ def calibrated() -> tuple[StereoCalibration, list[tuple[Path, Path]]]:
 
 def reference_points(calib: StereoCalibration, left: np.ndarray, right: np.ndarray
                      ) -> np.ndarray:
-    """OpenCV alone: corners, undistortPoints with R1/P1 and R2/P2, triangulatePoints."""
+    """OpenCV alone: corners (refined in trapflow calibrate's 11 x 11 window), undistortPoints
+    with R1/P1 and R2/P2, triangulatePoints."""
     crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 1e-3)
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
     corners = []
     for img in (left, right):
         ok, c = cv2.findChessboardCorners(img, PATTERN, flags=flags)
         assert ok
-        corners.append(cv2.cornerSubPix(img, c, (11, 11), (-1, -1), crit).reshape(-1, 2))
+        corners.append(cv2.cornerSubPix(img, c, (5, 5), (-1, -1), crit).reshape(-1, 2))
     cl, cr = corners
     if float(np.dot(cl[-1] - cl[0], cr[-1] - cr[0])) < 0:  # the board's other corner order
         cr = cr[::-1]
@@ -95,6 +102,27 @@ def test_held_out_boards_measure_within_targets_and_agree_with_opencv(
         assert check.edge_rms_mm <= 1.5, lp.name
         assert max(abs(e) for e in check.diagonal_err_pct) <= 1.0, lp.name
         assert diff_mm.max() <= 0.1, lp.name
+
+
+@pytest.mark.timeout(120)
+def test_every_pair_of_the_set_passes_the_field_check(
+        calibrated: tuple[StereoCalibration, list[tuple[Path, Path]]]) -> None:
+    """Pairs 01 and 02, views the rig was calibrated on, failed the check (diagonals -2.5 %
+    and +1.9 %, limit 1 %): the check refined corners in a 23 x 23 px window, which reached
+    past the set's smallest squares (22 px) and moved end corners of a row by 2.5-6.4 px off
+    the points the calibration was fitted to. With the calibration's own 11 x 11 window every
+    pair of the 13, the 9 calibrated on and the 4 held out, passes."""
+    from .conftest import realdata_root
+
+    calib, _ = calibrated
+    train, held = pairs(realdata_root())
+    for lp, rp in train + held:
+        left = cv2.imread(str(lp), cv2.IMREAD_GRAYSCALE)
+        right = cv2.imread(str(rp), cv2.IMREAD_GRAYSCALE)
+        assert left is not None and right is not None
+        check = check_board(calib, left, right, PATTERN, SQUARE)
+        assert board_reasons(check) == [], (lp.name, check.diagonal_err_pct)
+        assert max(abs(e) for e in check.diagonal_err_pct) <= 0.8, lp.name  # measured 0.70
 
 
 @pytest.mark.timeout(120)

@@ -1,5 +1,6 @@
 """`trapflow measure`: the field check of a calibration on one raw pair, a scale bar's two
-points or a checkerboard's edges and diagonals (trapflow.measure.board does the measuring)."""
+points or a checkerboard's edges and diagonals (trapflow.measure.board does the measuring,
+trapflow.measure.verdict says when a number cannot be right)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ import click
 import numpy as np
 
 from trapflow.cli.sources import PatternType
-from trapflow.errors import TrapflowError
+from trapflow.errors import TrapflowError, unreachable
+from trapflow.measure.verdict import Reason, exit_status
 
 if TYPE_CHECKING:  # the measuring code (OpenCV) loads when the command runs
     from trapflow.measure.board import BoardCheck, PointDistance
@@ -68,7 +70,8 @@ class ImageType(click.ParamType[np.ndarray]):
                    "edge and diagonal against --square.")
 @click.option("--square", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Side of one square of the --board in metres, e.g. 0.030.")
-@click.option("--json", "as_json", is_flag=True, help="Print the measurement as JSON.")
+@click.option("--json", "as_json", is_flag=True,
+              help="Print the measurement as JSON, with its verdict: \"ok\" or the reasons.")
 @click.pass_context
 def measure(ctx: click.Context, calib_path: str, left: np.ndarray, right: np.ndarray,
             points: tuple[tuple[float, float], ...] | None,
@@ -76,9 +79,17 @@ def measure(ctx: click.Context, calib_path: str, left: np.ndarray, right: np.nda
             pattern: tuple[int, int] | None, square: float | None, as_json: bool) -> None:
     """Check a calibration in the field: the 3-D distance between two points of the raw
     LEFT image (with its sd), or a checkerboard's error against its known squares and a
-    verdict (exit status 1 when the rig no longer measures right)."""
-    import msgspec
+    verdict.
 
+    \b
+    Exit status 0: the measurement may be right.
+    1: it cannot be right: a match behind the rig (the points or
+       LEFT and RIGHT swapped) or off its row after rectification,
+       or a board off its pass marks.
+    2: nothing measured: an image of another size than the
+       calibration, a point outside the image, two points in one,
+       no match or no board found.
+    Each reason is one line on stderr naming the point and the fix."""
     from trapflow.calibration.formats import load_calibration
     from trapflow.measure import board
 
@@ -94,40 +105,53 @@ def measure(ctx: click.Context, calib_path: str, left: np.ndarray, right: np.nda
         calib = load_calibration(calib_path)
     except TrapflowError as exc:
         raise click.BadParameter(str(exc), param_hint="--calib") from None
-    for name, img in (("LEFT", left), ("RIGHT", right)):
-        size = (img.shape[1], img.shape[0])
-        if size != calib.size:
-            raise click.BadParameter(
-                f"the image is {size[0]}x{size[1]}, the calibration {calib.size[0]}x"
-                f"{calib.size[1]}: give the raw frames of the calibrated cameras, or "
-                "calibrate at this size (trapflow calibrate)", param_hint=name)
-    result: BoardCheck | PointDistance
-    try:
-        if pattern is not None:
-            assert square is not None
-            result = board.check_board(calib, left, right, pattern, square)
-        else:
-            assert points is not None
-            result = board.measure_points(
-                calib, left, right, np.array(points),
-                None if right_points is None else np.array(right_points))
-    except board.MeasureError as exc:
-        fix = ("; give the board's inner corners (--board 9x6 for 10 x 7 squares) with the "
-               "whole board in both images" if pattern is not None else
-               "; give the points' right-image matches with --right-points")
-        raise click.UsageError(f"{exc}{fix}") from None
+    result: BoardCheck | PointDistance | None
+    if pattern is not None:
+        assert square is not None
+        reasons, result = board.field_board(calib, left, right, pattern, square)
+    else:
+        assert points is not None
+        reasons, result = board.field_points(
+            calib, left, right, np.array(points),
+            None if right_points is None else np.array(right_points))
+    report(ctx, result, reasons, as_json)
+
+
+def report(ctx: click.Context, result: BoardCheck | PointDistance | None,
+           reasons: list[Reason], as_json: bool) -> None:
+    """Print the measurement (text or JSON with its verdict) and, where it cannot be
+    right, one line per reason on stderr; end with the verdict's exit status."""
+    from trapflow.measure.board import PASS_TEXT, BoardCheck, PointDistance
+
     if as_json:
-        click.echo(msgspec.json.encode(result).decode())
-    if isinstance(result, board.PointDistance):
-        if not as_json:
-            click.echo(points_text(result))
-        return
-    ok, why = board.verdict(result)
-    if not as_json:
+        click.echo(json_text(result, reasons))
+    elif isinstance(result, BoardCheck):
         click.echo(board_text(result))
-        click.echo(f"verdict: {'PASS' if ok else 'FAIL'}: {why}")
-    if not ok:
-        ctx.exit(1)
+        click.echo(f"verdict: {'FAIL' if reasons else 'PASS'}: "
+                   f"{'; '.join(r.message for r in reasons) or PASS_TEXT}")
+    elif isinstance(result, PointDistance):
+        click.echo(points_text(result))
+    elif result is not None:
+        unreachable(result)
+    if not isinstance(result, BoardCheck):  # a board's failures are its verdict line
+        for r in reasons:
+            click.echo(f"trapflow: error: {ctx.command_path}: {reason_text(r)}", err=True)
+    ctx.exit(exit_status(reasons))
+
+
+def reason_text(r: Reason) -> str:
+    """One line: an unusable input as click says it of an option, else the point first."""
+    return f"Invalid value for {r.subject}: {r.message}" if r.usage else f"{r.subject}: {r.message}"
+
+
+def json_text(result: BoardCheck | PointDistance | None, reasons: list[Reason]) -> str:
+    """The measurement's fields (none where nothing could be measured) and `verdict`: "ok",
+    or the reasons as {kind, subject, message}."""
+    import msgspec
+
+    out: dict[str, Any] = {} if result is None else msgspec.to_builtins(result)
+    out["verdict"] = msgspec.to_builtins(reasons) if reasons else "ok"
+    return msgspec.json.encode(out).decode()
 
 
 def points_text(d: PointDistance) -> str:

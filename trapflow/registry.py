@@ -34,6 +34,7 @@ TEST_KIT: dict[str, str] = {
     "slow": "trapflow.testing.plugins:Slow",
     "crash": "trapflow.testing.plugins:Crash",
     "flaky": "trapflow.testing.plugins:Flaky",
+    "flood": "trapflow.testing.plugins:Flood",
     "digest": "trapflow.testing.plugins:Digest",
 }
 

@@ -33,7 +33,8 @@ def test_the_broker_keeps_every_count_it_sums() -> None:
 def test_ledger_keys_are_distinct_and_cover_every_final_state() -> None:
     keys = [c.ledger for c in POOL_COUNTERS if c.ledger]
     assert len(keys) == len(set(keys))
-    assert {c.name for c in POOL_COUNTERS if c.ledger} == {*SETTLED, "lost"}
+    # every state a pair ends in, and the boxes cut from results (a count of boxes)
+    assert {c.name for c in POOL_COUNTERS if c.ledger} == {*SETTLED, "lost", "cut"}
 
 
 @pytest.mark.parametrize(("name", "unit", "metric"), [
@@ -42,6 +43,7 @@ def test_ledger_keys_are_distinct_and_cover_every_final_state() -> None:
     ("errors", "pairs", "trapflow_pool_failed_pairs"),  # renamed for the metric
     ("pending", "pairs", "trapflow_pool_pending_pairs"),  # a gauge of pairs held now
     ("rate", "pairs/s", "trapflow_pool_rate_pairs_per_second"),  # its unit in the name
+    ("cut", "boxes", "trapflow_pool_cut_boxes"),  # boxes, not pairs
 ])
 def test_units_and_metric_names(name: str, unit: str, metric: str) -> None:
     c = next(c for c in POOL_COUNTERS if c.name == name)

@@ -25,7 +25,7 @@ from trapflow.broker.links import LinkRegistry
 from trapflow.broker.orders import OrdersChannel
 from trapflow.broker.preview import PreviewClock, drawn_pools
 from trapflow.broker.remote import BrokerHooks, RemoteWorkersSide, frame_bytes
-from trapflow.broker.results import ResultsOut
+from trapflow.broker.results import ResultsOut, bounded
 from trapflow.broker.state import (
     Action,
     BrokerState,
@@ -72,7 +72,7 @@ class BrokerNode(Node):
         self.orders = OrdersChannel(self.ctx, ep.orders, spec.order_key, self.poller)
         self._jobs: dict[tuple[str, int], bytes] = {}
         pools = {  # a remote pool exists with no local worker: remote workers add to count
-            name: PoolSpec(p.parsed_policy, p.timeout_s, p.max_pending_age_s)
+            name: PoolSpec(p.parsed_policy, p.timeout_s, p.max_pending_age_s, p.max_detections)
             for name, p in self.cfg.pools.items()
             if p.count > 0 or p.remote
         }
@@ -336,7 +336,16 @@ class BrokerNode(Node):
             actions = self.state.job_done(ident, msg.pool, msg.seq, True, now,
                                           named=(result.seq, result.pool))
             if not any(isinstance(a, Rejected) for a in actions):
-                self.results.add(frames[2])  # only an answer to a job this worker was given
+                # only an answer to a job this worker was given, bounded before it goes on
+                limit = self.cfg.pools[msg.pool].max_detections
+                kept, cut = bounded(result, limit)
+                if cut:
+                    self.state.detections_cut(msg.pool, cut)
+                    self.ratelog.warning("cut:" + msg.pool, "pool %s: a result brought %d "
+                                         "detections, over its max_detections: the %d least "
+                                         "confident were cut (counted as boxes_cut)", msg.pool,
+                                         limit + cut, cut)
+                self.results.add(messages.encode(kept) if cut else frames[2])
                 self.remote.roster.processed(ident)
             self._apply(actions)
         elif isinstance(msg, messages.Gone):

@@ -7,13 +7,29 @@ from __future__ import annotations
 import collections
 from typing import Any
 
+import msgspec
+
 from trapflow.errors import ProtocolError
 from trapflow.runtime.ratelog import RateLimitedLog
-from trapflow.wire import frame_msgs
+from trapflow.wire import frame_msgs, messages
 from trapflow.wire.links import Link
 
 RESULTS_BATCH_BYTES = 64 << 10  # results leave in datagrams of about this size, or less
 MAX_WAITING_RESULTS = 100_000  # kept while no normalizer listens; beyond, the oldest go
+
+
+def bounded(result: messages.Result, limit: int) -> tuple[messages.Result, int]:
+    """The result with at most `limit` detections, the most confident (ties: the first),
+    in the order the plugin gave them, and how many were cut; unchanged (0 cut) when
+    within the limit or not a detector's result."""
+    body = result.body
+    if not isinstance(body, messages.MonoIR) or len(body.detections) <= limit:
+        return result, 0
+    dets = body.detections
+    best = sorted(range(len(dets)), key=lambda i: (-dets[i].confidence, i))[:limit]
+    kept = [dets[i] for i in sorted(best)]
+    return (msgspec.structs.replace(result, body=msgspec.structs.replace(body, detections=kept)),
+            len(dets) - limit)
 
 
 class ResultsOut:

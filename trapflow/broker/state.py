@@ -107,6 +107,7 @@ class PoolSpec:
     policy: Policy
     timeout_s: float
     max_pending_age_s: float = 0.0  # 0: pending pairs never go stale
+    max_detections: int = 256  # a result's most detections; the rest are cut and counted
 
 
 @dataclass
@@ -137,6 +138,7 @@ class _Pool:
     throttled: int = 0
     stale: int = 0
     gated: int = 0  # withheld by the motion gate
+    cut: int = 0  # detections cut from its results (boxes, not pairs)
     active: bool = True
     min_interval_s: float = 0.0  # at most one dispatch per interval (0: no limit)
     next_at: float = 0.0  # earliest next dispatch under min_interval_s
@@ -278,6 +280,10 @@ class BrokerState:
         w.last_seen = now
         actions.extend(self._dispatch(pool, now))
         return actions
+
+    def detections_cut(self, pool_name: str, n: int) -> None:
+        """An accepted result of this pool brought n detections over its max_detections."""
+        self._known(pool_name).cut += n
 
     def tick(self, now: float) -> list[Action]:
         """Evict workers whose job timed out or who went silent while idle; drop pending

@@ -37,6 +37,10 @@ class PoolConfig(_Section):
     """A worker is recycled after this many pairs (processed or failed; 0: no limit)."""
     max_pending_age_s: Annotated[float, msgspec.Meta(ge=0, le=86400)] = 0.0
     """Pairs waiting in the pool's queue longer than this are dropped as stale (0: kept)."""
+    max_detections: Annotated[int, msgspec.Meta(ge=1, le=100000)] = 256
+    """Most detections one result of the pool may bring: the broker keeps the most confident
+    and cuts the rest where results enter the trusted side (a school of fish, a snow storm or
+    a broken model cannot stall the normalizer), counted per pool (ledger `boxes_cut`)."""
     params: dict[str, Any] = {}
     """Passed to the plugin's `configure()` (docs/plugins.md lists the built-in plugins' params)."""
     remote: bool = False

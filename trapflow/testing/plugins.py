@@ -1,7 +1,7 @@
 """Plugins for tests and benchmarks: no-op, deliberately slow, deliberately crashing, flaky,
-and a digest of the bytes each pair carries. Named in a pool by their import path
-(`trapflow.testing.plugins:Noop`) or by the short names trapflow.registry keeps for them
-(noop, slow, crash, flaky, digest), which it resolves but does not list to users."""
+a flood of boxes, and a digest of the bytes each pair carries. Named in a pool by their
+import path (`trapflow.testing.plugins:Noop`) or by the short names trapflow.registry keeps
+for them (noop, slow, crash, flaky, flood, digest), which it resolves but does not list."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
-from trapflow.plugin import Context, Extra, Pair, Worker, WorkerError
+from trapflow.plugin import Context, Detection, Extra, MonoIR, Pair, Worker, WorkerError
 
 # One read per memory page, as a real consumer would touch its input.
 PAGE = 4096
@@ -75,6 +75,24 @@ class Digest(Worker):
                                             "shape": list(pair.left.shape),
                                             "encoding": pair.header.encoding,
                                             "mean": round(float(pair.left.mean()), 3)})
+
+
+class Flood(Worker):
+    """A detector gone wild (a school of fish, a snow storm, a broken model): `boxes`
+    detections on every pair (default 1,000), small boxes on a grid, confidences spread."""
+
+    needs_images = False
+
+    def configure(self, params: Mapping[str, Any], ctx: Context) -> None:
+        n = int(params.get("boxes", 1000))
+        side = max(1, int(n**0.5) + 1)
+        self.dets = [Detection(label="crab", confidence=round(0.3 + 0.7 * (i % 97) / 96, 3),
+                               box=(float(4 * (i % side)), float(4 * (i // side)),
+                                    float(4 * (i % side) + 3), float(4 * (i // side) + 3)))
+                     for i in range(n)]
+
+    def process(self, pair: Pair) -> MonoIR:
+        return MonoIR(detections=self.dets)
 
 
 class Flaky(Worker):

@@ -416,6 +416,7 @@ class PoolStats(Msg, frozen=True):
     throttled: int = 0  # dropped by the ladder's level: inside the pool's minimum interval
     stale: int = 0  # dropped after waiting longer than the pool's max_pending_age_s
     gated: int = 0  # withheld by the motion gate (gate: motion): never given, by design
+    cut: int = 0  # detections cut from results beyond the pool's max_detections (boxes)
     kept: int = 0  # withheld for now as the gate's pre-roll: fed on motion, else gated
     failures: dict[str, int] = {}
     rate: float = 0.0  # processed per second over the last interval

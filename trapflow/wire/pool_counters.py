@@ -14,8 +14,9 @@ from trapflow.wire.messages import PoolStats
 # procs: worker processes now; flow: pairs that passed a point (received, dispatched);
 # drop: pairs the broker ended by dropping them; end: pairs ended otherwise (answered,
 # withheld by the gate); lost: pairs that can no longer end; held: pairs held now
-# (pending, at a worker, the gate's pre-roll); rate: pairs per second lately.
-Kind = Literal["procs", "flow", "drop", "end", "lost", "held", "rate"]
+# (pending, at a worker, the gate's pre-roll); rate: pairs per second lately; cut: boxes (not
+# pairs) cut from results.
+Kind = Literal["procs", "flow", "drop", "end", "lost", "held", "rate", "cut"]
 
 
 @dataclass(frozen=True)
@@ -32,7 +33,7 @@ class PoolCounter:
     @property
     def unit(self) -> str:
         """What it counts: processes, pairs, or pairs per second."""
-        return {"procs": "procs", "rate": "pairs/s"}.get(self.kind, "pairs")
+        return {"procs": "procs", "rate": "pairs/s", "cut": "boxes"}.get(self.kind, "pairs")
 
     @property
     def label(self) -> str:
@@ -43,14 +44,14 @@ class PoolCounter:
     def summed(self) -> bool:
         """A count since the run started: the retired brokers' counts add to the live one's
         (a held count or a rate belongs to the live broker alone)."""
-        return self.kind in ("flow", "drop", "end", "lost")
+        return self.kind in ("flow", "drop", "end", "lost", "cut")
 
     @property
     def metric_name(self) -> str:
         """The metric's full name: a count of pairs, or a gauge."""
         part = self.metric or self.name
         if self.summed:
-            return f"trapflow_pool_{part}_pairs"
+            return f"trapflow_pool_{part}_{self.unit}"
         return f"trapflow_pool_{part}"
 
 
@@ -80,6 +81,8 @@ POOL_COUNTERS: tuple[PoolCounter, ...] = (
                 ledger="timed_out"),
     PoolCounter("lost", "lost", "pairs whose worker died, or whose broker died holding them",
                 ledger="lost"),
+    PoolCounter("cut", "cut", "detections cut from results beyond the pool's max_detections "
+                "(the least confident)", ledger="boxes_cut"),
     PoolCounter("rate", "rate", "pairs processed per second over the last interval",
                 metric="rate_pairs_per_second"),
 )

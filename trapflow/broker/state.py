@@ -441,12 +441,14 @@ class BrokerState:
 
     def has_room(self) -> bool:
         """Whether a new pair would be queued without a drop in every pool that has workers
-        and takes pairs as they come (active, ungated, unthrottled): what capture of a
-        finite source read at full speed waits for (back-pressure to the source). A pool
-        with no worker does not hold the source back: nobody may ever come to empty it."""
+        and takes pairs as they come (active, unthrottled): what capture of a finite source
+        read at full speed waits for (back-pressure to the source). A pool with no worker
+        does not hold the source back: nobody may ever come to empty it. A gated pool holds
+        it like any other (a replay with --gate under load dropped 2 of the pairs the gate
+        let through to a `latest` pool: the source had outrun it); while the gate withholds
+        its pairs nothing waits in it, so it holds nothing back."""
         for pool in self._pools.values():
-            if (not pool.active or pool.min_interval_s or not pool.workers
-                    or (self._gate is not None and self._gate.gates(pool.name))):
+            if not pool.active or pool.min_interval_s or not pool.workers:
                 continue
             if len(pool.pending) >= pool.spec.policy.bound:
                 return False

@@ -7,9 +7,12 @@ import json
 from pathlib import Path
 from typing import Any
 
+import cv2
+import numpy as np
 import pytest
 
 from trapflow.export import camtrap_obs as obs
+from trapflow.export.camtrapdp import Deployment, build_rows
 
 T0 = 1795619145.0
 TAXA = {"crab": "Cancer pagurus"}
@@ -104,3 +107,24 @@ def test_read_tracks_skips_malformed_lines(tmp_path: Path) -> None:
 def test_utc_and_iso_agree_with_results_labels() -> None:
     t = dt.datetime(2026, 11, 25, 15, 5, 45, 421000, tzinfo=dt.timezone.utc)
     assert obs.iso(obs.utc(t.timestamp())) == "2026-11-25T15:05:45Z"
+
+
+def test_a_tracks_best_frame_has_one_row_when_two_events_hold_its_image(tmp_path: Path) -> None:
+    """A pair whose left image two event folders hold (events that overlap, a restarted
+    events node): media.csv lists it in both, the track's best frame is one row (the first
+    event's), as Camtrap DP has one media-level row per track's best view."""
+    line = {"mono_ir": {"timestamp": "2026-11-29 01:00:00.500", "seq": 5, "label": "crab",
+                        "confidence": 0.9, "box": [1.0, 2.0, 11.0, 12.0], "track": 1, "v": 2}}
+    (tmp_path / "results.jsonl").write_text(json.dumps(line) + "\n")
+    t = dt.datetime(2026, 11, 29, 1, 0, 0, 500000, tzinfo=dt.timezone.utc).timestamp()
+    track = {"id": 1, "first_s": t - 1, "last_s": t + 1, "best_confidence": 0.9,
+             "best_box": [1.0, 2.0, 11.0, 12.0], "label": "crab", "pairs": 3}
+    (tmp_path / "tracks.jsonl").write_text(json.dumps({"track": track}) + "\n")
+    for ev in ("ev-a", "ev-b"):
+        (tmp_path / "events" / ev / "left").mkdir(parents=True)
+        cv2.imwrite(str(tmp_path / "events" / ev / "left" / "5.jpg"),
+                    np.zeros((24, 32, 3), np.uint8))
+    rows = build_rows(tmp_path, Deployment(latitude=0.0, longitude=0.0))
+    assert len(rows.media) == 2
+    frames = [o for o in rows.observations if o["observationLevel"] == "media"]
+    assert [(o["eventID"], o["mediaID"]) for o in frames] == [("track-1", "ev-a-5")]

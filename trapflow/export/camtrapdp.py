@@ -190,12 +190,18 @@ def build_rows(run_dir: Path, dep: Deployment, events_folder: str = "events", *,
     for f in frames:
         span = spans.setdefault(f.event, [f.time, f.time])
         span[:] = [min(span[0], f.time), max(span[1], f.time)]
+    framed: set[int] = set()  # tracks whose best frame has its row
     for f in frames:
         kept = [d for d in by_seq.get(f.seq, []) if d.confidence >= min_confidence]
         if not kept:
             observations.append(obs.blank_row(f, dep_id, min_confidence))
         elif tracks is not None:  # the best frame of each track, linked to its event
             for k, (d, track) in enumerate(best.get(f.seq, [])):
+                # Once per track: a pair whose image two event folders hold (events that
+                # overlap, a restarted events node) is the track's best frame in the first.
+                if track["id"] in framed:
+                    continue
+                framed.add(track["id"])
                 observations.append(obs.media_row(
                     d, f, dep_id, dep.taxa, f"{f.media_id}-{k}",
                     (obs.event_id(track), obs.iso(f.time), obs.iso(f.time)), track))

@@ -18,7 +18,15 @@ import psutil
 import pytest
 
 from tests.builders import floor_scene
-from tests.conftest import REPO, Pipeline, only_pools, read_lines, run_process, write_config
+from tests.conftest import (
+    REPO,
+    Pipeline,
+    only_pools,
+    poll_for,
+    read_lines,
+    run_process,
+    write_config,
+)
 from trapflow.calibration.camera import StereoRig
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
@@ -214,7 +222,6 @@ def run_process_remote(args: list[str], timeout: float = 90) -> tuple[int, str, 
     return out.returncode, out.stdout, out.stderr
 
 
-@pytest.mark.timeout(150)
 def _named_semaphores(pids: list[int]) -> set[Path]:
     """The POSIX named semaphores (/dev/shm/sem.*) these processes have mapped: what a kill -9
     of them leaves behind, and only theirs."""
@@ -229,6 +236,46 @@ def _named_semaphores(pids: list[int]) -> set[Path]:
     return out
 
 
+def _all_gone(sems: set[Path], within_s: float = 15.0) -> None:
+    """Every one of these semaphores leaves /dev/shm within within_s (removed if not, so a
+    failure here leaves nothing behind)."""
+    try:
+        poll_for(lambda: not any(s.exists() for s in sems), within_s,
+                 what=f"the killed run's semaphores to go: {sorted(map(str, sems))}")
+    finally:
+        for sem in sems:
+            sem.unlink(missing_ok=True)
+
+
+@pytest.mark.timeout(120)
+def test_killed_as_its_cluster_starts_leaves_no_semaphore(tmp_path: Path) -> None:
+    """Regression (issue 36 item 7): `trapflow process` killed (the whole process group, kill
+    -9) in its first seconds, before Dask's cleaner was up, left 12 `sem.mp-*` in /dev/shm
+    for good. Killed the moment its first named semaphore exists, none is left."""
+    scene = write_scene(tmp_path / "scene")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "trapflow", "process", str(scene), "--workers", "vo",
+         "--out", str(tmp_path / "out"), "--local", "2"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True, cwd=REPO)
+    sems: set[Path] = set()
+    try:
+        deadline = time.monotonic() + 60
+        while not sems:
+            assert proc.poll() is None, "process ended before a semaphore was seen"
+            assert time.monotonic() < deadline, "no named semaphore within 60 s"
+            try:
+                tree = [proc.pid, *(k.pid for k in psutil.Process(proc.pid).children(True))]
+            except psutil.NoSuchProcess:
+                continue
+            sems = _named_semaphores(tree)
+            time.sleep(0.01)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+    _all_gone(sems)
+
+
+@pytest.mark.timeout(150)
 def test_killed_mid_run_then_resumed_skips_the_finished_chunks(tmp_path: Path) -> None:
     """kill -9 of the whole `process` (client, nannies, workers) mid-run, then the same
     command: the chunks finished before the kill are not run again, the rest are, and the
@@ -261,8 +308,9 @@ def test_killed_mid_run_then_resumed_skips_the_finished_chunks(tmp_path: Path) -
         proc.wait(10)
     _gone, alive = psutil.wait_procs(list(seen.values()), timeout=10)
     assert not [p.pid for p in alive if p.status() != psutil.STATUS_ZOMBIE]
-    for sem in sems:  # Dask's multiprocessing semaphores: kill -9 leaves them to us
-        sem.unlink(missing_ok=True)
+    # Dask's multiprocessing semaphores: the cleaner outlived the kill and removed them
+    # (trapflow/batch/cleaner.py; issue 36 item 7).
+    _all_gone(sems)
     before = {p.name: p.stat().st_mtime_ns for p in chunks.iterdir()
               if not p.name.startswith(".")}
     done = [p for p in before if p.endswith(".json")]

@@ -24,6 +24,7 @@ from typing import IO, Any
 import msgspec
 
 from trapflow.batch.chunk import ChunkTask, atomic_write, chunk_paths, count_positions, run_chunk
+from trapflow.batch.cleaner import start_cleaner
 from trapflow.batch.plan import (
     WHOLE,
     Chunk,
@@ -160,6 +161,7 @@ def dask_client(opts: Options) -> Iterator[Any]:
     # Scheduler and dashboard on loopback: ":0" served the dashboard (the run's tasks, logs
     # and a profiler) to the whole network (issue 26 item 10).
     config = importlib.import_module("dask").config
+    start_cleaner()  # before any semaphore of the cluster exists (batch/cleaner.py)
     with config.set({"distributed.nanny.pre-spawn-environ": worker_environ(), **LOCAL_QUIET}), \
             dd.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host=LOOPBACK,
                             dashboard_address=f"{LOOPBACK}:0",

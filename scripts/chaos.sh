@@ -3,8 +3,10 @@
 # leg (fresh outboxes against a surface that stays up), socket fuzzer, log flood and power
 # cuts of whole pipelines with the /dev/shm check, for DURATION seconds of attack in all
 # (start-up and the checks after each attack come on top); then, at their own length,
-# forged results, the supervisor's channel, modem replays, viewer abuse (forged Hosts,
-# slow clients) and memory under hostile subscriptions and hellos. The summary adds up
+# forged results, the supervisor's channel, modem replays (one frame over the simulated
+# link; four frames for 90 s through the schedule), viewer abuse (forged Hosts, slow
+# clients), memory under hostile subscriptions and hellos, and a detector flooding 1,000
+# boxes a pair beside VO for 60 s. The summary adds up
 # what was lost, written twice or forged, and the largest memory growth per node. They are the tests of
 # tests/reliability, made longer through TRAPFLOW_CHAOS_* variables; each reports its
 # figures, and the report goes to OUT_DIR/chaos.md (with chaos.jsonl, the raw figures).
@@ -33,6 +35,7 @@ export TRAPFLOW_CHAOS_FUZZ_S=$(( DURATION * 25 / 100 ))
 export TRAPFLOW_CHAOS_POWERCUTS=$(( DURATION * 15 / 150 > 8 ? DURATION * 15 / 150 : 8 ))
 export TRAPFLOW_CHAOS_CUTS=$(( DURATION * 15 / 800 > 3 ? DURATION * 15 / 800 : 3 ))
 export TRAPFLOW_CHAOS_FLOOD=$(( DURATION * 200 > 10000 ? DURATION * 200 : 10000 ))
+export TRAPFLOW_CHAOS_BOX_FLOOD_S=60
 
 echo "[chaos] ${DURATION} s: storm ${TRAPFLOW_CHAOS_STORM_S} s, fuzzer" \
      "${TRAPFLOW_CHAOS_FUZZ_S} s, ${TRAPFLOW_CHAOS_POWERCUTS} modem power cuts," \
@@ -50,6 +53,8 @@ set +e
   "tests/reliability/test_forge.py::test_a_worker_cannot_attach_a_result_for_another_pair_or_pool" \
   tests/reliability/test_supervisor_channel.py \
   tests/reliability/test_modem_replay_budget.py \
+  "tests/unit/test_modem_schedule.py::test_replayed_commands_leave_data_flowing_budget_or_not" \
+  tests/reliability/test_box_flood.py \
   tests/reliability/test_modem_session_correction.py \
   tests/reliability/test_viewer_hosts.py \
   tests/reliability/test_viewer_slow_clients.py \

@@ -5,8 +5,8 @@ Regression for issue 36 item 1: at 300 boxes a pair the VO lines written fell to
 pairs, at 1,000 to 23, at 10,000 to 0 with a MemoryError, and the run exited 0 with "lost
 0". Now the broker cuts each result to the pool's max_detections (the most confident kept)
 where results enter the trusted side and counts what it cut in the ledger (`boxes_cut`);
-VO keeps its pairs and the normalizer its memory. The 60 s run of the issue is
-`scripts/chaos.sh`'s box flood; this one runs 15 s.
+VO keeps its pairs and the normalizer its memory. scripts/chaos.sh runs it for the issue's
+60 s (TRAPFLOW_CHAOS_BOX_FLOOD_S); the suite's run is 15 s.
 """
 
 from __future__ import annotations
@@ -20,12 +20,13 @@ import psutil
 import pytest
 
 from tests.conftest import Pipeline, only_pools, write_config
+from tests.reliability import figures, scaled
 
 pytestmark = pytest.mark.slow  # starts a whole pipeline
 
 BOXES = 1000
 LIMIT = 256  # the default max_detections
-RUN_S = 15
+RUN_S = round(scaled("TRAPFLOW_CHAOS_BOX_FLOOD_S", 15))
 
 
 @pytest.mark.timeout(180)
@@ -64,6 +65,11 @@ def test_a_flood_of_boxes_is_cut_counted_and_leaves_vo_its_pairs(
     assert per_seq and max(per_seq.values()) == LIMIT
     # VO got its pairs: written, nothing lost, and most of what capture made.
     vo_lines = sum("stereo_vo" in obj for obj in lines)
+    figures("box_flood", seconds=RUN_S, boxes_per_pair=BOXES, mono_results=mono["processed"],
+            boxes_cut=mono["boxes_cut"], vo_lines=vo_lines, vo_lost=vo["lost"],
+            pairs=ledger["reached_broker"], normalizer_peak_mb=round(peak_mb, 1))
+    print(f"box flood {RUN_S} s: VO wrote {vo_lines} of {ledger['reached_broker']} pairs, "
+          f"{mono['boxes_cut']} boxes cut, normalizer peak {peak_mb:.0f} MB")
     assert vo["lost"] == 0 and vo_lines == vo["processed"]
     assert vo["processed"] >= 0.95 * ledger["reached_broker"], (vo, ledger["reached_broker"])
     assert peak_mb < 200, f"the normalizer peaked at {peak_mb:.0f} MB"

@@ -1,19 +1,31 @@
 """MOTChallenge text files: read detections or tracks (`frame,id,x,y,w,h,conf,...`), the
 frame rate from seqinfo.ini, write tracks; and `track_file`, the tracker over one file, with
 the interval counts a live run writes (visits, MaxN and dwell per label, the label being the
-MOT class column, trapflow.tracking.counts)."""
+MOT class column, trapflow.tracking.counts).
+
+`track_file` streams: rows are read one line at a time, frames go to the tracker in frame
+order through a bounded reorder window (trapflow.tracking.frame_window) and each frame's
+tracked rows are written as soon as it is tracked, so its memory is that of the window and
+the live tracks, whatever the file's size. Its outputs are written beside their names as
+NAME.part and renamed when whole: a failure leaves no half file and no earlier file
+replaced."""
 
 from __future__ import annotations
 
 import configparser
+import io
 import math
-from collections.abc import Iterable, Sequence
+import os
+from collections.abc import Callable, Generator, Iterable, Iterator, Sequence
+from contextlib import ExitStack, closing
 from pathlib import Path
+from typing import IO, NamedTuple
 
 import msgspec
 
 from trapflow.errors import TrapflowError
 from trapflow.tracking.counts import DEFAULT_INTERVAL_S, Counter, IntervalCounts
+from trapflow.tracking.frame_window import DEFAULT_FRAMES, FrameOrderError, FrameWindow
 from trapflow.tracking.tracker import Det, Tracker, TrackerConfig
 
 # A MOT row's class column (8th) when it names none: detection files put -1 there.
@@ -101,18 +113,69 @@ def parse_line(line: str, where: str) -> MotRow | None:
     return MotRow(frame=frame, id=tid, x=x, y=y, w=w, h=h, conf=conf, cls=cls)
 
 
+# A MOT row is well under 200 characters: a longer line is no row, and reading it whole
+# would cost the memory streaming bounds.
+MAX_LINE_CHARS = 1 << 20
+
+
+class MotStream:
+    """The rows of a MOTChallenge text file one at a time, in file order; bytes_read() says
+    how far it has come (for progress)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._file: io.TextIOWrapper | None = None
+        self._raw: io.BufferedReader | None = None
+        self.done = False
+
+    def total_bytes(self) -> int:
+        """The file's size, 0 when it cannot be read (rows() then says why)."""
+        try:
+            return self.path.stat().st_size
+        except OSError:
+            return 0
+
+    def bytes_read(self) -> int:
+        """Bytes taken from the file so far (read ahead by at most a buffer)."""
+        if self._raw is None:
+            return self.total_bytes() if self.done else 0
+        return self._raw.tell()
+
+    def rows(self) -> Generator[tuple[int, MotRow], None, None]:
+        """(line number, row) for every row; blank lines are skipped. Lines are cut as
+        str.splitlines cuts a whole text, so line numbers are the same either way."""
+        try:
+            self._raw = open(self.path, "rb")  # noqa: SIM115 - closed below
+        except OSError as exc:
+            raise MotFormatError(f"{self.path}: cannot read: {exc}") from None
+        self._file = io.TextIOWrapper(self._raw, encoding="utf-8")  # universal newlines
+        n = 0
+        try:
+            while line := self._readline(n):
+                for piece in line.splitlines():
+                    n += 1
+                    row = parse_line(piece, f"{self.path}:{n}")
+                    if row is not None:
+                        yield n, row
+        finally:
+            self._file.close()
+            self._file, self._raw, self.done = None, None, True
+
+    def _readline(self, n: int) -> str:
+        assert self._file is not None
+        try:
+            line = self._file.readline(MAX_LINE_CHARS)
+        except (OSError, UnicodeDecodeError) as exc:
+            raise MotFormatError(f"{self.path}: cannot read after line {n}: {exc}") from None
+        if len(line) >= MAX_LINE_CHARS and not line.endswith("\n"):
+            raise MotFormatError(f"{self.path}:{n + 1}: expected a MOT row, got a line of "
+                                 f"more than {MAX_LINE_CHARS} characters")
+        return line
+
+
 def read_mot(path: Path) -> list[MotRow]:
     """Every row of a MOTChallenge text file, in file order."""
-    try:
-        lines = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise MotFormatError(f"{path}: cannot read: {exc}") from None
-    rows = []
-    for n, line in enumerate(lines, 1):
-        row = parse_line(line, f"{path}:{n}")
-        if row is not None:
-            rows.append(row)
-    return rows
+    return [row for _n, row in MotStream(path).rows()]
 
 
 def read_fps(path: Path) -> float:
@@ -149,61 +212,186 @@ def write_mot(path: Path, rows: Iterable[MotRow]) -> None:
     path.write_text("".join(format_row(r) + "\n" for r in ordered))
 
 
+class Tracked(NamedTuple):
+    """What one frame gave: its rows with a track id (in the frame's order), the detections
+    past max_boxes, and the counting intervals it closed."""
+
+    rows: list[MotRow]
+    capped: int
+    counts: list[IntervalCounts]
+
+
+class FrameTracker:
+    """The tracker over one sequence's frames, fed in increasing frame order (time =
+    (frame - 1) / fps), pure; with `count`, the closed intervals of `interval_s` seconds,
+    counted as a live run counts them (the frames with a detection are the effort; a
+    track's label is the majority of its rows' class column, `NO_CLASS_LABEL` where there
+    is none). Its totals grow as it goes; its memory is the live tracks'."""
+
+    def __init__(self, fps: float, config: TrackerConfig | None = None, count: bool = True,
+                 interval_s: float = DEFAULT_INTERVAL_S) -> None:
+        self.fps = fps
+        self._tracker = Tracker(config)
+        self._counter = Counter(interval_s) if count else None
+        self._t_s: float | None = None
+        self._live: set[int] = set()  # ids written and not yet ended
+        self.frames = self.detections = self.tracked = self.tracks = self.capped = 0
+
+    def feed(self, frame: int, rows: Sequence[MotRow]) -> Tracked:
+        """One frame's detection rows (after every earlier frame's)."""
+        t_s = self._t_s = (frame - 1) / self.fps
+        upd = self._tracker.update(t_s, [
+            Det(label=str(r.cls) if r.cls >= 0 else NO_CLASS_LABEL, confidence=r.conf,
+                box=(r.x, r.y, r.x + r.w, r.y + r.h)) for r in rows])
+        counts: list[IntervalCounts] = []
+        if self._counter is not None:
+            counts = self._counter.ended(upd.ended) + self._counter.observe(t_s, upd.seen)
+        self._live.difference_update(e.id for e in upd.ended)
+        out = [msgspec.structs.replace(r, id=tid)
+               for r, tid in zip(rows, upd.track_ids, strict=True) if tid is not None]
+        new = {r.id for r in out} - self._live
+        self._live |= new
+        self.tracks += len(new)
+        self.frames += 1
+        self.detections += len(rows)
+        self.tracked += len(out)
+        self.capped += upd.capped
+        return Tracked(out, upd.capped, counts)
+
+    def finish(self) -> list[IntervalCounts]:
+        """End every track at the last frame; the intervals still open or waiting."""
+        if self._counter is None or self._t_s is None:
+            return []
+        t_s = self._t_s
+        return self._counter.ended(self._tracker.flush(t_s)) + self._counter.flush(t_s)
+
+
 def track_rows(rows: Sequence[MotRow], fps: float, config: TrackerConfig | None = None,
                capped: list[int] | None = None, counts: list[IntervalCounts] | None = None,
                interval_s: float = DEFAULT_INTERVAL_S) -> list[MotRow]:
-    """The tracker over detection rows (time = (frame - 1) / fps): the rows it gave an id.
-    `capped`, when given, gets the detections each frame left out (past max_boxes);
-    `counts` the closed intervals of `interval_s` seconds, counted as a live run counts
-    them (the frames with a detection are the effort; a track's label is the majority of
-    its rows' class column, `NO_CLASS_LABEL` where there is none)."""
+    """The tracker over detection rows in memory, in any order (FrameTracker over them
+    sorted by frame): the rows it gave an id. `capped`, when given, gets the detections
+    each frame left out (past max_boxes); `counts` the closed intervals."""
     by_frame: dict[int, list[MotRow]] = {}
     for r in rows:
         by_frame.setdefault(r.frame, []).append(r)
-    tracker = Tracker(config)
-    counter = Counter(interval_s) if counts is not None else None
+    ft = FrameTracker(fps, config, counts is not None, interval_s)
     out = []
-    t_s = 0.0
     for frame in sorted(by_frame):
-        dets = by_frame[frame]
-        t_s = (frame - 1) / fps
-        upd = tracker.update(t_s, [
-            Det(label=str(r.cls) if r.cls >= 0 else NO_CLASS_LABEL, confidence=r.conf,
-                box=(r.x, r.y, r.x + r.w, r.y + r.h)) for r in dets])
-        if capped is not None and upd.capped:
-            capped.append(upd.capped)
-        if counter is not None and counts is not None:
-            counts += counter.ended(upd.ended) + counter.observe(t_s, upd.seen)
-        out += [msgspec.structs.replace(r, id=tid)
-                for r, tid in zip(dets, upd.track_ids, strict=True) if tid is not None]
-    if counter is not None and counts is not None and by_frame:
-        counts += counter.ended(tracker.flush(t_s)) + counter.flush(t_s)
+        got = ft.feed(frame, by_frame[frame])
+        if capped is not None and got.capped:
+            capped.append(got.capped)
+        if counts is not None:
+            counts += got.counts
+        out += got.rows
+    if counts is not None:
+        counts += ft.finish()
     return out
 
 
 def write_counts(path: Path, counts: Iterable[IntervalCounts]) -> None:
     """Interval counts as a live run's counts.jsonl: one `{"counts": {...}}` a line."""
-    path.write_bytes(b"".join(msgspec.json.encode({"counts": c}) + b"\n" for c in counts))
+    path.write_bytes(b"".join(_count_line(c) for c in counts))
+
+
+def _count_line(c: IntervalCounts) -> bytes:
+    return msgspec.json.encode({"counts": c}) + b"\n"
+
+
+class ReadProgress(NamedTuple):
+    """How far track_file has come: bytes of the detections file read, of its size; frames
+    and detections tracked."""
+
+    bytes_read: int
+    total_bytes: int
+    frames: int
+    detections: int
 
 
 def track_file(det_path: Path, out_path: Path, fps: float | None = None,
                config: TrackerConfig | None = None, counts_path: Path | None = None,
-               interval_s: float = DEFAULT_INTERVAL_S) -> TrackSummary:
-    """Track a MOT detection file into a MOT track file; fps None: from seqinfo.ini. With
-    `counts_path`, the interval counts too (times in seconds from the first frame)."""
+               interval_s: float = DEFAULT_INTERVAL_S,
+               progress: Callable[[ReadProgress], None] | None = None,
+               window: int = DEFAULT_FRAMES) -> TrackSummary:
+    """Track a MOT detection file into a MOT track file (rows by frame, then id); fps None:
+    from seqinfo.ini. With `counts_path`, the interval counts too (times in seconds from
+    the first frame). Streams (the module's docstring): a row may come at most `window`
+    frames after a later frame's; `progress` is told after each frame."""
     if fps is None:
         fps = read_fps(det_path)
     if not fps > 0:
         raise MotFormatError(f"fps: expected more than 0, got {fps}")
     if not MIN_FPS <= fps <= MAX_FPS:
         raise MotFormatError(f"fps: expected {MIN_FPS:g} to {MAX_FPS:g}, got {fps:g}")
-    rows = read_mot(det_path)
-    capped: list[int] = []
-    counts: list[IntervalCounts] = []
-    tracked = track_rows(rows, fps, config, capped, counts, interval_s)
-    write_mot(out_path, tracked)
-    if counts_path is not None:
-        write_counts(counts_path, counts)
-    return TrackSummary(frames=len({r.frame for r in rows}), detections=len(rows),
-                        tracked=len(tracked), tracks=len({r.id for r in tracked}), fps=fps,
-                        capped=sum(capped), intervals=len(counts))
+    stream = MotStream(det_path)
+    total = stream.total_bytes()
+    ft = FrameTracker(fps, config, counts_path is not None, interval_s)
+    order: FrameWindow[MotRow] = FrameWindow(window)
+    intervals = 0
+    paths = [out_path] if counts_path is None else [out_path, counts_path]
+    with _Published(paths) as files, closing(stream.rows()) as rows:
+        for frames in _frames(rows, order, det_path):
+            for frame, dets in frames:
+                got = ft.feed(frame, dets)
+                files[0].write("".join(format_row(r) + "\n" for r in
+                                       sorted(got.rows, key=lambda r: r.id)).encode())
+                if counts_path is not None:
+                    files[1].write(b"".join(_count_line(c) for c in got.counts))
+                intervals += len(got.counts)
+                if progress is not None:
+                    progress(ReadProgress(stream.bytes_read(), total, ft.frames,
+                                          ft.detections))
+        closed = ft.finish()
+        if counts_path is not None:
+            files[1].write(b"".join(_count_line(c) for c in closed))
+    return TrackSummary(frames=ft.frames, detections=ft.detections, tracked=ft.tracked,
+                        tracks=ft.tracks, fps=fps, capped=ft.capped,
+                        intervals=intervals + len(closed))
+
+
+def _frames(rows: Iterator[tuple[int, MotRow]], order: FrameWindow[MotRow], where: Path
+            ) -> Iterator[list[tuple[int, list[MotRow]]]]:
+    """The frames that leave the window as rows come, then those left at the end; a row
+    too late for its frame is an error naming its line."""
+    for n, row in rows:
+        try:
+            gone = order.add(row.frame, row)
+        except FrameOrderError as exc:
+            raise MotFormatError(f"{where}:{n}: {exc}") from None
+        if gone:
+            yield gone
+    yield order.drain()
+
+
+class _Published:
+    """Files written as NAME.part beside their names, renamed onto them when the block
+    ends without an error; removed when it ends with one."""
+
+    def __init__(self, paths: list[Path]) -> None:
+        self.paths = paths
+        self.parts = [p.with_name(p.name + ".part") for p in paths]
+        self._stack = ExitStack()
+
+    def __enter__(self) -> list[IO[bytes]]:
+        try:
+            return [self._stack.enter_context(open(part, "wb")) for part in self.parts]
+        except OSError as exc:
+            self._stack.close()
+            self._remove()
+            raise MotFormatError(f"cannot write {exc.filename}: {exc.strerror}") from None
+
+    def __exit__(self, kind: type[BaseException] | None, *_: object) -> None:
+        try:
+            self._stack.close()
+            if kind is None:
+                for part, path in zip(self.parts, self.paths, strict=True):
+                    os.replace(part, path)
+        except OSError as exc:
+            self._remove()
+            raise MotFormatError(f"cannot write {exc.filename}: {exc.strerror}") from None
+        if kind is not None:
+            self._remove()
+
+    def _remove(self) -> None:
+        for part in self.parts:
+            part.unlink(missing_ok=True)

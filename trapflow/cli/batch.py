@@ -8,6 +8,7 @@ import click
 
 from trapflow.batch.plan import WHOLE, find_inputs
 from trapflow.cli.exit import CommandFailed, bad_input, failed
+from trapflow.cli.outputs import In, Out, check_outputs
 from trapflow.config import schema as configmod
 from trapflow.errors import TrapflowError
 
@@ -76,6 +77,10 @@ def process(inputs: tuple[str, ...], pools: tuple[str, ...], config_path: str | 
 
     if scheduler and local:
         raise click.UsageError("give --scheduler ADDRESS or --local N, not both")
+    # The same --out again resumes: what is there is kept and added to, never replaced.
+    check_outputs("process", [Out(out, "--out", folder=True, appends=True)],
+                  [*(In(Path(p), "INPUT") for p in inputs),
+                   *([In(Path(config_path), "--config")] if config_path else [])])
     try:
         cfg = configmod.load(config_path)
         found = find_inputs(inputs)

@@ -9,6 +9,7 @@ import click
 import yaml
 
 from trapflow.calibration.camera import StereoRig
+from trapflow.cli.outputs import Out, check_outputs
 from trapflow.errors import ConfigError
 from trapflow.synth.dataset import write_synth
 from trapflow.synth.options import parse_options
@@ -58,17 +59,22 @@ def dataset() -> None:
               default=70.0, show_default=True, help="Horizontal field of view, degrees.")
 @click.option("--option", "-o", "options", type=OptionType(), multiple=True,
               help="World option KEY=VALUE (as source.options), repeatable.")
-@click.option("--overwrite", is_flag=True, help="Replace an existing non-empty OUT.")
+@click.option("--force", "--overwrite", "force", is_flag=True,
+              help="Write into an OUT that is not empty: the dataset's own files and folders "
+                   "in it are replaced, anything else is left as it is.")
 def synth(out: Path, frames: int, seed: int, moving: bool, width: int, height: int,
           rate_hz: float, baseline: float, hfov: float, options: tuple[tuple[str, Any], ...],
-          overwrite: bool) -> None:
+          force: bool) -> None:
     """Render a KITTI-style stereo sequence with YOLO labels into OUT, with data.yaml and
     images/ beside labels/ for Ultralytics and the same boxes in coco.json."""
+    check_outputs("dataset synth", [Out(out, "OUT", folder=True, force_does=(
+        "write into it (the dataset's own files and folders in it are replaced)"))],
+        force=force)
     rig = StereoRig.from_fov(width, height, hfov, baseline)
     try:
         opts = parse_options(dict(options), prefix="--option")
         counts = write_synth(out, frames=frames, seed=seed, moving=moving, rig=rig,
-                             rate_hz=rate_hz, options=opts, overwrite=overwrite)
+                             rate_hz=rate_hz, options=opts, overwrite=force)
     except ConfigError as exc:
         raise click.UsageError(str(exc)) from None
     summary = ", ".join(f"{k}={v}" for k, v in sorted(counts.items()))

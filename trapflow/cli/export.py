@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 import yaml
 
 from trapflow.cli.exit import bad_input, failed
+from trapflow.cli.outputs import In, Out, check_outputs, force_option, replacing_folder
 from trapflow.errors import yaml_problem
+
+if TYPE_CHECKING:
+    from trapflow.config.schema import Config
 
 # Metadata file keys (YAML) -> Deployment fields; flags of the same name override them.
 META_KEYS = {"latitude": "latitude", "longitude": "longitude", "deployment_id": "deployment_id",
@@ -27,7 +31,8 @@ META_KEYS = {"latitude": "latitude", "longitude": "longitude", "deployment_id": 
 @click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
               help="The run's YAML config (observe and events file names; default: built-in "
                    "defaults).")
-def report(run_dir: Path, output: Path | None, config_path: str | None) -> None:
+@force_option()
+def report(run_dir: Path, output: Path | None, config_path: str | None, force: bool) -> None:
     """Write one self-contained HTML page of a run: detections per class per hour, visits and
     MaxN per label per hour, length-frequency per label, VO path, pool rates over time, drops
     and losses, restarts, events."""
@@ -39,12 +44,22 @@ def report(run_dir: Path, output: Path | None, config_path: str | None) -> None:
     try:
         cfg = load(config_path)
         finished_run(run_dir, "report")
+        check_outputs("report", [Out(output or run_dir / "report.html", "-o")],
+                      _run_inputs(run_dir, cfg, config_path), force)
         path = write_report(run_dir, output, cfg.events.folder, cfg.observe.counts_file,
                             cfg.observe.tracks_file)
     except (ConfigError, ReportError, RunInUse) as exc:
         raise bad_input(exc) from None
     click.echo(f"written: {path}")
     _say_damage(run_dir, cfg.normalizer.results_file, cfg.observe.tracks_file, "report")
+
+
+def _run_inputs(run_dir: Path, cfg: Config, config_path: str | None) -> list[In]:
+    """The files of a finished run that exports read: never an output."""
+    names = (cfg.normalizer.results_file, cfg.observe.tracks_file, cfg.observe.counts_file,
+             "ledger.json", cfg.events.folder)
+    return [In(run_dir, "RUN_DIR"), *(In(run_dir / n, "RUN_DIR's") for n in names),
+            *([In(Path(config_path), "--config")] if config_path else [])]
 
 
 def _say_damage(run_dir: Path, results_file: str, tracks_file: str, what: str) -> None:
@@ -105,11 +120,12 @@ def _metadata(meta: Path | None) -> dict[str, Any]:
 @click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
               help="The run's YAML config (export, observe and events file names; default: "
                    "built-in defaults).")
+@force_option("Replace an OUT folder that is not empty (once the new package is whole).")
 def camtrapdp(run_dir: Path, out: Path, meta: Path | None, latitude: float | None,
               longitude: float | None, depth: float | None, location_name: str | None,
               deployment_id: str | None, setup_by: str | None, habitat: str | None,
               taxa: tuple[str, ...], min_confidence: float | None,
-              config_path: str | None) -> None:
+              config_path: str | None, force: bool) -> None:
     """Write RUN_DIR's tracks and events as a Camtrap DP package in OUT (datapackage.json,
     deployments.csv, media.csv, observations.csv, media/)."""
     from trapflow.config.schema import load
@@ -122,6 +138,9 @@ def camtrapdp(run_dir: Path, out: Path, meta: Path | None, latitude: float | Non
         finished_run(run_dir, "export")
     except (ConfigError, RunInUse) as exc:
         raise bad_input(exc) from None
+    check_outputs("export camtrapdp", [Out(out, "OUT", folder=True)],
+                  [*_run_inputs(run_dir, cfg, config_path),
+                   *([In(meta, "--meta")] if meta else [])], force)
 
     fields = _metadata(meta)
     flags = {"latitude": latitude, "longitude": longitude, "depth_m": depth,
@@ -140,10 +159,11 @@ def camtrapdp(run_dir: Path, out: Path, meta: Path | None, latitude: float | Non
         raise bad_input(f"export camtrapdp: Camtrap DP requires the deployment's "
                         f"{' and '.join(missing)}; pass --{missing[0]} or put it in --meta")
     try:
-        rows = write_package(
-            run_dir, out, Deployment(**fields), cfg.events.folder,
-            min_confidence=cfg.export.min_confidence if min_confidence is None
-            else min_confidence, tracks_file=cfg.observe.tracks_file)
+        with replacing_folder(out) as into:
+            rows = write_package(
+                run_dir, into, Deployment(**fields), cfg.events.folder,
+                min_confidence=cfg.export.min_confidence if min_confidence is None
+                else min_confidence, tracks_file=cfg.observe.tracks_file)
     except ExportError as exc:
         raise bad_input(exc) from None
     except TypeError as exc:  # a metadata value of the wrong kind

@@ -9,6 +9,7 @@ import click
 
 from trapflow import registry
 from trapflow.cli.exit import CommandFailed, failed
+from trapflow.cli.outputs import Out, check_outputs, force_option
 from trapflow.cli.sources import SizeType, SourceSpecType, WorkersType
 from trapflow.cli.view_params import ViewAddressType
 from trapflow.config import schema as configmod
@@ -189,10 +190,16 @@ def view(run_dir: Path, config_path: str | None, listen: tuple[str, int] | None,
 @click.option("--endpoint", multiple=True, help="Tap endpoint(s) instead of --run-dir.")
 @click.option("--timeout", type=click.FloatRange(min=0, min_open=True),
               help="Give up after this many seconds.")
+@force_option("Save frames into a --save-frames folder that is not empty (files of the same "
+              "name are replaced).")
 def tap(what: str, count: int | None, save_frames: Path | None, run_dir: Path,
-        endpoint: tuple[str, ...], timeout: float | None) -> None:
+        endpoint: tuple[str, ...], timeout: float | None, force: bool) -> None:
     """Attach to a running pipeline and print one line per message."""
     from trapflow.cli.tap import run_tap
+
+    if save_frames is not None:
+        check_outputs("tap", [Out(save_frames, "--save-frames", folder=True, force_does=(
+            "write into it (files of the same name are replaced)"))], force=force)
 
     try:
         n = run_tap(what, run_dir, list(endpoint), count, save_frames, timeout,

@@ -16,6 +16,7 @@ from typing import IO
 
 import click
 
+from trapflow.cli.outputs import In, Out, check_outputs, force_option
 from trapflow.config.modem import DEFAULT_LABELS, ModemConfig, OutboxConfig
 from trapflow.runtime.signals import stop_on_signals
 
@@ -129,6 +130,9 @@ def surface(
         # A regular file, or one this run creates (its first run keeps state too: issue 26
         # item 8); not a terminal, pipe or device, which have no place for one beside them.
         state_path = output.with_name(output.name + ".state")
+    check_outputs("surface", [Out(p, flag, appends=True) for p, flag in (
+        (output, "-o"), (state_path, "--state"), (counter_path, "--counter")) if p is not None],
+        [In(key_path, "--key")] if key_path is not None else [])
     if command_text is not None:
         _send_command(
             port,
@@ -270,6 +274,7 @@ def _send_command(
     default=None,
     help="Symlink to create for the surface end.",
 )
+@force_option("Replace a --link-a or --link-b path that is there and is not a symlink.")
 def modem_sim(
     bit_rate: float,
     latency: float,
@@ -279,10 +284,13 @@ def modem_sim(
     seed: int,
     link_a: Path | None,
     link_b: Path | None,
+    force: bool,
 ) -> None:
     """Simulate an acoustic modem between two pseudo-terminals; prints both ends."""
     from trapflow.modem.sim import LinkSimulator
 
+    check_outputs("modem-sim", [Out(p, flag, link=True) for p, flag in (
+        (link_a, "--link-a"), (link_b, "--link-b")) if p is not None], force=force)
     stop = stop_on_signals()
     sim = LinkSimulator(bit_rate, latency, loss, corrupt, noise, seed, (link_a, link_b))
     a, b = sim.names

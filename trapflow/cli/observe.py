@@ -3,15 +3,40 @@ and count them per interval as a live run does (counts.jsonl lines)."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import click
 
 from trapflow.cli.exit import bad_input
+from trapflow.cli.outputs import In, Out, check_outputs, force_option
 from trapflow.config.schema import ObserveConfig
 from trapflow.errors import TrapflowError
-from trapflow.tracking.motformat import track_file
+from trapflow.tracking.motformat import ReadProgress, track_file
 from trapflow.tracking.stage import tracker_config
+
+PROGRESS_EVERY_S = 5.0  # a long file says how far it has come this often, on stderr
+
+
+def progress_line(p: ReadProgress, elapsed_s: float) -> str:
+    """One progress line of `trapflow track`."""
+    share = f" ({100 * p.bytes_read / p.total_bytes:.0f} %)" if p.total_bytes else ""
+    return (f"track: {p.bytes_read / 1e6:.1f} of {p.total_bytes / 1e6:.1f} MB read{share}, "
+            f"{p.frames} frames, {p.detections} detections, {elapsed_s:.0f} s")
+
+
+class _Progress:
+    """Says on stderr how far track_file has come, every PROGRESS_EVERY_S (monotonic)."""
+
+    def __init__(self) -> None:
+        self.t0 = time.monotonic()
+        self.due = self.t0 + PROGRESS_EVERY_S
+
+    def __call__(self, p: ReadProgress) -> None:
+        now = time.monotonic()
+        if now >= self.due:
+            self.due = now + PROGRESS_EVERY_S
+            click.echo(progress_line(p, now - self.t0), err=True)
 
 
 @click.command("track")
@@ -33,16 +58,28 @@ from trapflow.tracking.stage import tracker_config
 @click.option("--interval", "interval_s", type=click.FloatRange(min=0, min_open=True),
               default=ObserveConfig().interval_s, show_default=True,
               help="Seconds per counting interval, from the first frame (observe.interval_s).")
+@force_option()
 def track(detections: Path, out: Path, fps: float | None, max_boxes: int,
-          counts: Path | None, interval_s: float) -> None:
-    """Track DETECTIONS (MOTChallenge `frame,-1,x,y,w,h,conf[,class]`) into tracks with
-    ids, with the tracker of a live run (observe defaults), and write the counts a live
-    run writes. MaxN is the most confirmed tracks of one class at one frame."""
+          counts: Path | None, interval_s: float, force: bool) -> None:
+    """Track DETECTIONS (MOTChallenge `frame,-1,x,y,w,h,conf[,class]`, sorted by frame;
+    a row may come up to 64 frames late) into tracks with ids, with the tracker of a live
+    run (observe defaults), and write the counts a live run writes. MaxN is the most
+    confirmed tracks of one class at one frame. Streams: memory does not grow with the
+    file; a long one says how far it has come on stderr."""
     counts = counts or out.with_name(out.stem + ".counts.jsonl")
+    check_outputs("track", [
+        Out(out, "-o"), Out(counts, "--counts"),
+        *(Out(p.with_name(p.name + ".part"), f"{flag} (written first as)", scratch=True)
+          for p, flag in ((out, "-o"), (counts, "--counts")))],
+        [In(detections, "DETECTIONS"),
+         *(In(d / "seqinfo.ini", "its seqinfo.ini") for d in
+           ((detections.parent, detections.parent.parent) if fps is None else ()))],
+        force)
     try:
         summary = track_file(detections, out, fps,
                              tracker_config(ObserveConfig(max_boxes=max_boxes)),
-                             counts_path=counts, interval_s=interval_s)
+                             counts_path=counts, interval_s=interval_s,
+                             progress=_Progress())
     except TrapflowError as exc:
         raise bad_input(exc) from None
     click.echo(f"{summary.detections} detections in {summary.frames} frames at "

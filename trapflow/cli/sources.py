@@ -16,6 +16,7 @@ import msgspec
 
 from trapflow.calibration.camera import StereoRig
 from trapflow.cli.exit import CommandFailed, bad_input, failed
+from trapflow.cli.outputs import In, Out, check_outputs, force_option
 from trapflow.config import schema as configmod
 from trapflow.errors import ConfigError, TrapflowError
 from trapflow.runtime.signals import stop_on_signals
@@ -104,15 +105,23 @@ class SourceSpecType(click.ParamType[tuple[str, str]]):
               default=Path("calib.yaml"), show_default=True)
 @click.option("--camera-info", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Also write a ROS camera_info pair, left.yaml and right.yaml, in this folder.")
+@force_option()
 def calibrate(left_glob: str, right_glob: str, pattern: tuple[int, int], square: float,
-              model: str, output: Path, camera_info: Path | None) -> None:
+              model: str, output: Path, camera_info: Path | None, force: bool) -> None:
     """Stereo checkerboard calibration from LEFT_GLOB and RIGHT_GLOB image pairs."""
     from trapflow.calibration.calibrate import calibrate_stereo, expand
     from trapflow.calibration.formats import write_camera_info
     from trapflow.calibration.model import save_calibration
 
+    lefts, rights = expand(left_glob), expand(right_glob)
+    outs = [Out(output, "-o"), Out(output.with_name(output.name + ".tmp"), "-o", scratch=True)]
+    if camera_info is not None:
+        outs += [Out(camera_info / name, "--camera-info", makes_folder=True)
+                 for name in ("left.yaml", "right.yaml")]
+    check_outputs("calibrate", outs, [*(In(p, "LEFT_GLOB") for p in lefts),
+                                      *(In(p, "RIGHT_GLOB") for p in rights)], force)
     try:
-        report = calibrate_stereo(expand(left_glob), expand(right_glob), pattern, square, model)
+        report = calibrate_stereo(lefts, rights, pattern, square, model)
     except TrapflowError as exc:  # no usable views in these images: the calibration failed
         raise failed(exc) from None
     try:
@@ -145,25 +154,44 @@ def calibrate(left_glob: str, right_glob: str, pattern: tuple[int, int], square:
               help="Stop after this many seconds (default: when the pipeline ends).")
 @click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False), default=None,
               help="YAML config whose recording section applies (recording.vision_msgs).")
+@click.option("--wait", "wait_s", type=click.FloatRange(min=0), default=30.0, show_default=True,
+              help="Seconds to wait for the pipeline of --run-dir while it starts.")
+@force_option()
 def record(run_dir: Path, endpoints: tuple[str, ...], output: Path,
-           duration: float | None, config_path: str | None) -> None:
+           duration: float | None, config_path: str | None, wait_s: float,
+           force: bool) -> None:
     """Record image pairs and results from a running pipeline to an MCAP rosbag2 file,
-    until the pipeline in --run-dir ends (its last results written), --duration or Ctrl-C."""
+    until the pipeline in --run-dir ends (its last results written), --duration or Ctrl-C.
+    A pipeline still starting is waited for (--wait); a stopped one is refused."""
     from trapflow.config.schema import load
+    from trapflow.recording.recorder import PART_SUFFIX
     from trapflow.recording.recorder import record as record_tap
 
+    check_outputs("record", [
+        Out(output, "-o"),
+        Out(output.with_name(output.name + PART_SUFFIX), "-o",
+            hint=f"a recording cut short: trapflow recover {output}{PART_SUFFIX} makes it a "
+                 "valid file")],
+        [In(Path(config_path), "--config")] if config_path else [], force)
     try:
         vision_msgs = load(config_path).recording.vision_msgs
     except TrapflowError as exc:
         raise bad_input(exc) from None
     rig, ended = None, None
     if not endpoints:  # pairs from the broker's tap, results from the normalizer's
+        from trapflow.cli.attach import attach
         from trapflow.config.schema import Config
         from trapflow.wire.endpoints import Endpoints
 
+        try:  # the directory itself from here on: runs/latest may move on
+            found = attach(run_dir, wait_s, lambda line: click.echo(f"record: {line}",
+                                                                    err=True))
+        except TrapflowError as exc:
+            raise bad_input(exc) from None
+        run_dir = found.run_dir
         ep = Endpoints.for_run(Config().network, run_dir)
         endpoints = (ep.tap, ep.results_tap)
-        rig = _running_rig(run_dir)
+        rig = _status_rig(run_dir, found.status)
         ended = _pipeline_ended(run_dir)
     from trapflow.recording.recorder import RecorderError
 
@@ -201,16 +229,15 @@ def _pipeline_ended(run_dir: Path) -> Callable[[], bool]:
     return ended
 
 
-def _running_rig(run_dir: Path) -> StereoRig | None:
-    """The rig of the pipeline running in run_dir (for CameraInfo), or None with a warning."""
-    from trapflow.wire.control_client import request
-
+def _status_rig(run_dir: Path, status: Mapping[str, Any]) -> StereoRig | None:
+    """The rig in the status of the pipeline running in run_dir (for CameraInfo), None
+    when it names none, or None with a warning when it cannot be read."""
     try:
-        found = request(run_dir, "status").get("rig")
+        found = status.get("rig")
         if found:
             return msgspec.convert({k: v for k, v in found.items()
                                     if k in StereoRig.__struct_fields__}, StereoRig)
-    except (TrapflowError, msgspec.ValidationError) as exc:
+    except msgspec.ValidationError as exc:
         click.echo(f"warning: no rig from {run_dir} ({exc}); recording without CameraInfo",
                    err=True)
     return None
@@ -349,7 +376,8 @@ def replay(path: Path, rate: float, loop: bool, assert_lossless: bool, gate: boo
 @click.argument("path", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="MCAP file to write (default: PATH without .part).")
-def recover(path: Path, output: Path | None) -> None:
+@force_option()
+def recover(path: Path, output: Path | None, force: bool) -> None:
     """Make a recording cut by a crash or power loss (FILE.part) a valid MCAP file.
 
     Every message up to the last complete one is kept.
@@ -358,8 +386,9 @@ def recover(path: Path, output: Path | None) -> None:
     from trapflow.recording.recorder import recovered_name
 
     out = output or recovered_name(path)
-    if out.exists():
-        raise bad_input(f"recover: {out} exists; name another output with -o")
+    check_outputs("recover", [Out(out, "-o"),
+                              Out(out.with_name(out.name + ".recovering"), "-o", scratch=True)],
+                  [In(path, "PATH")], force)
     try:
         n = recover_file(path, out)
     except TrapflowError as exc:

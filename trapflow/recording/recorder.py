@@ -167,9 +167,12 @@ class Recorder:
         """Record one pair; raw BGR payloads are JPEG-encoded first."""
         if header.encoding == "raw":
             left, right = (self._jpeg(header, b) for b in (left, right))
-        # Each eye keeps its own capture time, carried to the wall clock of the pair.
-        t_left = header.t_wall_ns + (header.t_left_ns - header.t_mono_ns)
-        t_right = header.t_wall_ns + (header.t_right_ns - header.t_mono_ns)
+        # The left image is stamped with the pair's capture time, the one its results carry
+        # (`timestamp`), so a replay or a `process` of the recording labels every result as
+        # the live run did; the right keeps its skew from the left. (Carried from each eye's
+        # own monotonic time, the stamps were 1-58 ms off the live results', issue 32.)
+        t_left = header.t_wall_ns
+        t_right = header.t_wall_ns + (header.t_right_ns - header.t_left_ns)
         for topic, frame_id, t, data in (
             (TOPIC_LEFT, FRAME_LEFT, t_left, left), (TOPIC_RIGHT, FRAME_RIGHT, t_right, right)
         ):

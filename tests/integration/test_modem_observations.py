@@ -25,6 +25,7 @@ from tests.conftest import (
     stop_surface,
     write_config,
 )
+from trapflow.export.check import check_run
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
 
@@ -68,6 +69,11 @@ def test_tracks_and_counts_reach_the_surface_exactly_once(
     assert len(got_counts) == len(counts)
     assert sum(c["pairs"] for c in got_counts) == sum(c["pairs"] for c in counts)
     assert "mono_ir" not in kinds
+    # The modem's counters are in the ledger, none refused as too large (issue 32), and the
+    # surface's file tells the run's story.
+    modem = json.loads((run_dir / "ledger.json").read_text())["modem"]
+    assert modem.get("too_large", 0) == 0 and modem["frames"] > 0, modem
+    assert check_run(run_dir, surface=out) == []
 
 
 def _epoch(stamp: str) -> float:
@@ -122,6 +128,10 @@ def test_a_new_label_reaches_the_surface_before_older_detections(
     detections = [(i, r["mono_ir"]) for i, r in enumerate(got)
                   if "mono_ir" in r and r["mono_ir"]["label"] != "none"]
     assert len(detections) == sum(1 for x in lines if x["label"] != "none")
+    # `none` lines fit their frames too (issue 32: each was 104 bytes, all refused), so
+    # every line of the run reached the surface.
+    assert sum("mono_ir" in r for r in got) == len(lines)
+    assert json.loads((run_dir / "ledger.json").read_text())["modem"].get("too_large", 0) == 0
     for i, n in news:
         t_news = _epoch(n["time"])
         # The news names the track it is about, at the time its confirming line says.

@@ -257,3 +257,17 @@ def test_a_vo_line_with_its_pose_fits_a_frame_and_round_trips(reinit: bool, ok: 
         for got, want in zip(back[key], sent[key], strict=True):
             assert max(abs(g - w) for g, w in zip(got[:3], want[:3], strict=True)) <= 2e-4, key
             assert abs(got[3] - want[3]) <= 5e-5, key
+
+
+def test_a_none_line_fits_a_frame_and_an_inverted_box_still_round_trips() -> None:
+    """Regression (issue 32): a mono `none` line (`box: []`) fell back to the generic form,
+    104 bytes where a default frame body holds 80, so every one was refused as too large."""
+    from trapflow.modem.codec import LinkCodec
+
+    codec = LinkCodec()
+    none = {"mono_ir": {"timestamp": "2026-11-29 01:00:00.123", "seq": 1234, "label": "none",
+                        "confidence": 0.0, "box": [], "model": "3f9c2a1b", "v": 2}}
+    wire = codec.encode(none)
+    assert len(wire) <= 32 and wire[0] != 0x7F and codec.decode(wire) == none
+    inverted = {"mono_ir": {**none["mono_ir"], "label": "crab", "box": [5.0, 5.0, 1.0, 9.0]}}
+    assert codec.decode(codec.encode(inverted)) == inverted

@@ -237,3 +237,47 @@ def test_unsendable_records_are_counted_and_logged_once_per_kind(
         box.close()
         os.close(master)
         os.close(slave)
+
+
+MEASURED = {"mono_ir": {"timestamp": "2026-11-29 01:00:00.123", "seq": 1234, "label": "crab",
+                        "confidence": 0.84, "box": [750.0, 98.0, 864.0, 166.0],
+                        "range_m": 1.337, "range_sd_m": 0.008, "length_m": 0.134,
+                        "length_sd_m": 0.008, "xyz": [0.724, 0.171, 1.111],
+                        "disparity_px": 98.73, "length_method": "endpoints",
+                        "model": "3f9c2a1b", "track": 3, "v": 2}}
+
+
+def test_an_aggregate_of_measured_detections_carries_its_best_on_the_defaults(
+        tmp_path: Path) -> None:
+    """Regression (issue 32): one measured mono record made an aggregate 81 bytes where the
+    default frame body holds 80, so every aggregate arrived with `"best": []`. The best
+    records now ride as their core (what, when, where, which track) when whole ones do not
+    fit, the most confident first."""
+    import copy
+    import os
+
+    master, slave = os.openpty()
+    path = tmp_path / "outbox.sqlite"
+    box = Outbox(path, OutboxConfig())
+    sender = ModemSender(path, os.ttyname(slave), ModemConfig())
+    try:
+        records = []
+        for i, conf in enumerate((0.84, 0.91, 0.55, 0.7)):
+            rec = copy.deepcopy(MEASURED)
+            rec["mono_ir"].update(seq=1234 + i, confidence=conf)
+            records.append(rec)
+        summary = sender._summary("mono_ir/*", records)
+        best = summary["aggregate"]["best"]
+        assert best, summary
+        assert [b["mono_ir"]["confidence"] for b in best] == sorted(
+            (b["mono_ir"]["confidence"] for b in best), reverse=True)
+        assert best[0]["mono_ir"]["confidence"] == 0.91
+        assert set(best[0]["mono_ir"]) == {"timestamp", "seq", "label", "confidence", "box",
+                                           "track", "v"}
+        assert len(sender.codec.encode(summary)) <= ModemConfig().max_frame_payload - 16
+        assert sender.codec.decode(sender.codec.encode(summary)) == summary
+    finally:
+        sender.close()
+        box.close()
+        os.close(master)
+        os.close(slave)

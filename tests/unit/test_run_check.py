@@ -78,17 +78,23 @@ def test_a_surface_file_against_the_run(tmp_path: Path) -> None:
              {"track": {"id": 1, "label": "crab", "start": stamp(2)[:19], "duration_s": 1}},
              {"counts": {"start": "2026-11-28 10:00:00", "minutes": 0, "pairs": 8, "labels": [
                  {"label": "crab", "visits": 2, "max_n": 1, "dwell_s": 2}]}},
-             {"health": {"uptime_s": 5}}]
+             {"health": {"uptime_s": 5}},
+             {"aggregate": {"class": "mono_ir/*", "count": 2, "best": [
+                 {"mono_ir": {"timestamp": stamp(3), "seq": 3, "label": "crab",
+                              "track": 1}}]}}]
     write_lines(tmp_path / "surface.jsonl", heard)
     assert check_run(run, surface=tmp_path / "surface.jsonl") == []
     heard[1]["mono_ir"]["track"] = 2
     heard[2]["track"]["label"] = "scallop"
+    heard[5]["aggregate"]["best"][0]["mono_ir"]["label"] = "fish"
     write_lines(tmp_path / "surface.jsonl", heard)
     assert check_run(run, surface=tmp_path / "surface.jsonl") == [
         f"surface surface.jsonl line 2: mono_ir seq 3 (timestamp {stamp(3)}, label crab, "
         "track 2) is no line of results.jsonl",
         f"surface surface.jsonl line 3: track 1 scallop from {stamp(2)[:19]}, tracks.jsonl "
-        f"has crab from {stamp(2)[:19]}"]
+        f"has crab from {stamp(2)[:19]}",
+        f"surface surface.jsonl line 6: an aggregate's best mono_ir seq 3 (timestamp "
+        f"{stamp(3)}, label fish, track 1) is no line of results.jsonl"]
 
 
 def _check(*args: str) -> subprocess.CompletedProcess[str]:

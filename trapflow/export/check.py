@@ -213,17 +213,25 @@ def _surface(run: _Run, path: Path, out: list[str]) -> None:
     counts = {_secs(c["start_s"]): c for _n, c in run.counts.items
               if isinstance(c.get("start_s"), (int, float))}
     labels = {str(t.get("label", "")) for _n, t in run.by_id.values()}
+    def result(n: int, kind: str, body: dict[str, Any], within: str = "") -> None:
+        mine = results.get((kind, body.get("seq", -1)), [])
+        keys = [k for k in ("timestamp", "label", "track") if k in body]
+        if not any(all(b.get(k) == body[k] for k in keys) for b in mine):
+            out.append(f"{name} line {n}: {within}{kind} seq {body.get('seq')} "
+                       f"({', '.join(f'{k} {body[k]}' for k in keys)}) is no line of "
+                       f"{run.results.name}")
+
     for n, obj in got.items:
         (kind, body), = obj.items()
         if not isinstance(body, dict):
             out.append(f"{name} line {n}: {kind} is not a record")
         elif kind in run.seqs:
-            mine = results.get((kind, body.get("seq", -1)), [])
-            keys = [k for k in ("timestamp", "label", "track") if k in body]
-            if not any(all(b.get(k) == body[k] for k in keys) for b in mine):
-                out.append(f"{name} line {n}: {kind} seq {body.get('seq')} "
-                           f"({', '.join(f'{k} {body[k]}' for k in keys)}) is no line of "
-                           f"{run.results.name}")
+            result(n, kind, body)
+        elif kind == "aggregate":  # its best records, whole or their core, are lines too
+            for rec in body.get("best") or []:
+                for bkind, bbody in (rec.items() if isinstance(rec, dict) else ()):
+                    if bkind in run.seqs and isinstance(bbody, dict):
+                        result(n, bkind, bbody, "an aggregate's best ")
         elif kind == "track":
             _n, t = run.by_id.get(body.get("id", -1), (0, {}))
             box = (t.get("label"), _secs(t["first_s"]) if t else None)

@@ -232,16 +232,27 @@ def _dec_label_counts(r: Reader, ctx: _Ctx) -> Any:
              "dwell_s": r.uvarint()} for _ in range(r.uvarint())]
 
 
+_NO_BOX = (0, 0, -1, -1)  # a `none` line's empty box: no real box has a negative extent
+
+
 def _enc_box(out: bytearray, v: Any, ctx: _Ctx) -> None:
+    if v == []:  # the detector saw nothing (label `none`): 4 bytes, not a generic record
+        for q in _NO_BOX:
+            put_svarint(out, q)
+        return
     if not isinstance(v, list) or len(v) != 4:
         raise _Unfit
     x1, y1, x2, y2 = (round(_num(x) * 10) for x in v)
+    if x2 < x1 or y2 < y1:  # an inverted box rides as it is, generic
+        raise _Unfit
     for q in (x1, y1, x2 - x1, y2 - y1):
         put_svarint(out, q)
 
 
 def _dec_box(r: Reader, ctx: _Ctx) -> Any:
     x1, y1, w, h = (r.svarint() for _ in range(4))
+    if (x1, y1, w, h) == _NO_BOX:
+        return []
     return [x1 / 10, y1 / 10, (x1 + w) / 10, (y1 + h) / 10]
 
 

@@ -49,6 +49,18 @@ BACKLOG_INTERVAL_S = 5.0
 MAX_TOLD = 64  # (reason, kind) pairs of unsendable records logged; more are only counted
 
 
+# What an aggregate's best record keeps when the whole one does not fit its frame.
+CORE_KEYS = ("timestamp", "seq", "label", "confidence", "box", "track", "v")
+
+
+def _core(record: dict[str, Any]) -> dict[str, Any]:
+    """A record with only its CORE_KEYS (a record of another shape unchanged)."""
+    (kind, body), = record.items()
+    if not isinstance(body, dict):
+        return record
+    return {kind: {k: body[k] for k in CORE_KEYS if k in body}}
+
+
 class ModemSender:
     """Sends outbox records over a serial link; call step() in a loop, or run(stop)."""
 
@@ -310,7 +322,11 @@ class ModemSender:
         summary["count"] = len(records)
         summary["best"] = best
         record = {"aggregate": summary}
-        # Keep the summary inside one frame: drop the weakest best records until it fits.
+        # Keep the summary inside one frame: the best records whole if they fit, else as
+        # their core (what was seen, when, where, which track: a measured detection alone
+        # made an aggregate 81 bytes of the default 80), then the weakest dropped until it fits.
+        if len(self.codec.encode(record)) > self._max_body:
+            summary["best"] = best = [_core(r) for r in best]
         while best and len(self.codec.encode(record)) > self._max_body:
             best.pop()
         return record

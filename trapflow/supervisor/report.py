@@ -254,6 +254,9 @@ class Report:
         # Lines the normalizer could not write, the disk being full: counted, never silent.
         out["not_written_disk_full"] = {k[len(DISK_FULL_PREFIX):]: n for k, n in
                                         sorted(norm.items()) if k.startswith(DISK_FULL_PREFIX)}
+        if self.cfg.modem.enabled:  # what the link carried, refused, aggregated, expired
+            modem = next((c.counters for c in snap.nodes if c.name == "modem"), {})
+            out["modem"] = dict(sorted(modem.items()))
         return out
 
     def read_results(self) -> None:

@@ -41,6 +41,7 @@ from trapflow.config.runtime import (
     SupervisorConfig,
     ViewerConfig,
 )
+from trapflow.config.schedule import PowerConfig, ScheduleConfig
 from trapflow.errors import ConfigError, yaml_problem
 
 
@@ -59,6 +60,8 @@ class Config(Section):
     recording: RecordingConfig = msgspec.field(default_factory=RecordingConfig)
     energy: EnergyConfig = msgspec.field(default_factory=EnergyConfig)
     gate: MotionGateConfig = msgspec.field(default_factory=MotionGateConfig)
+    schedule: ScheduleConfig = msgspec.field(default_factory=ScheduleConfig)
+    power: PowerConfig = msgspec.field(default_factory=PowerConfig)
     supervisor: SupervisorConfig = msgspec.field(default_factory=SupervisorConfig)
     network: NetworkConfig = msgspec.field(default_factory=NetworkConfig)
     frames: FramesConfig = msgspec.field(default_factory=FramesConfig)
@@ -81,6 +84,9 @@ class Config(Section):
                 raise ValueError(
                     f"pool {name!r}: the ordered policy takes count 0 or 1, got {pool.count}"
                 )
+        if self.schedule.between == "poweroff" and self.power.wake == "none":
+            raise ValueError("schedule.between: poweroff needs power.wake rtc or command "
+                             "(with none the board would not wake again)")
 
     def validated(self) -> Config:
         """Re-run validation after programmatic changes."""
@@ -260,9 +266,11 @@ __all__ = [
     "OutboxConfig",
     "Policy",
     "PoolConfig",
+    "PowerConfig",
     "RecordingConfig",
     "RemoteConfig",
     "RigConfig",
+    "ScheduleConfig",
     "Section",
     "SourceConfig",
     "SupervisorConfig",

@@ -9,11 +9,13 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+import cv2
 import msgspec
 import numpy as np
 
 from trapflow.errors import ProtocolError
 from trapflow.plugin import Pair, Worker
+from trapflow.tracking.review import sharpness
 from trapflow.wire import jpeg, messages
 
 # Result bodies that depend on the stereo geometry, stamped with the rig's id.
@@ -83,6 +85,49 @@ def to_frame_pixels(body: messages.Body, reduction: int, width: int, height: int
 
 
 @dataclass(frozen=True)
+class ViewSpec:
+    """Which boxes a detector's worker crops for the review queue's best views: those at
+    or above `min_confidence` (tracks start there), the `most` most confident of a pair,
+    each with its longest side at most `crop_px`, as a JPEG of `quality`."""
+
+    min_confidence: float
+    crop_px: int
+    most: int = 4
+    quality: int = 85
+    min_px: int = 8  # a box smaller than this on a side is no view
+
+
+def crop_views(body: messages.Body, pair: Pair, spec: ViewSpec) -> messages.Body:
+    """A detector's body (its boxes in frame pixels) with the crops of its confident boxes
+    from the pair's decoded left image, taken now that the worker holds the pixels (a pair
+    leaves the frame ring before its result reaches the normalizer); unchanged when it is
+    no detector's, or has no box to crop, or the plugin took no images."""
+    if not isinstance(body, messages.MonoIR) or not isinstance(pair.left, np.ndarray):
+        return body
+    img, r = pair.left, float(pair.reduction)
+    h, w = img.shape[:2]
+    dets = sorted((d for d in body.detections if d.confidence >= spec.min_confidence),
+                  key=lambda d: -d.confidence)[:spec.most]
+    views = []
+    for d in dets:
+        x1, y1 = max(0, int(d.box[0] / r)), max(0, int(d.box[1] / r))
+        x2, y2 = min(w, int(np.ceil(d.box[2] / r))), min(h, int(np.ceil(d.box[3] / r)))
+        if x2 - x1 < spec.min_px or y2 - y1 < spec.min_px:
+            continue
+        crop = img[y1:y2, x1:x2]
+        scale = spec.crop_px / max(crop.shape[:2])
+        if scale < 1:
+            crop = cv2.resize(crop, (max(1, round(crop.shape[1] * scale)),
+                                     max(1, round(crop.shape[0] * scale))),
+                              interpolation=cv2.INTER_AREA)
+        ok, buf = cv2.imencode(".jpg", crop, [cv2.IMWRITE_JPEG_QUALITY, spec.quality])
+        if ok:
+            views.append(messages.BoxView(box=d.box, jpeg=buf.tobytes(),
+                                          sharpness=round(sharpness(crop), 2)))
+    return msgspec.structs.replace(body, views=views) if views else body
+
+
+@dataclass(frozen=True)
 class Processed:
     """A pair through a plugin: the pair as decoded, its result, and the CPU time (all
     threads) the plugin spent on it."""
@@ -94,10 +139,12 @@ class Processed:
 
 def process_pair(plugin: Worker, header: messages.StereoPair, left: Any, right: Any, *,
                  pool: str, worker: str, calib: str, gap: int = 0,
-                 decoded: dict[Need, Pair] | None = None) -> Processed:
+                 decoded: dict[Need, Pair] | None = None,
+                 views: ViewSpec | None = None) -> Processed:
     """Decode the pair for `plugin` (or take it from `decoded`: this pair decoded already
     for other plugins, by what they needed), run the plugin, and build the result; a
-    stereo result is stamped with `calib`, the id of the rig it was computed with. Raises
+    stereo result is stamped with `calib`, the id of the rig it was computed with; with
+    `views`, a detector's confident boxes carry their crops (crop_views). Raises
     whatever decoding or the plugin raised: the caller fails that one pair."""
     need = (plugin.needs_images, plugin.colour, plugin.max_size)
     pair = decoded.get(need) if decoded is not None else None
@@ -113,6 +160,8 @@ def process_pair(plugin: Worker, header: messages.StereoPair, left: Any, right: 
         body = to_frame_pixels(body, pair.reduction, header.width, header.height)
     if isinstance(body, STAMPED) and not body.calib:
         body = msgspec.structs.replace(body, calib=calib)
+    if views is not None:
+        body = crop_views(body, pair, views)
     result = messages.Result(seq=header.seq, t_wall_ns=header.t_wall_ns,
                              t_mono_ns=header.t_mono_ns, pool=pool, worker=worker,
                              proc_ns=proc_ns, body=body, source_time=header.source_time)

@@ -24,7 +24,7 @@ import zmq
 from trapflow import registry
 from trapflow.errors import ProtocolError, WorkerError
 from trapflow.plugin import Context, Worker, configure_plugin
-from trapflow.pools.pair_path import process_pair
+from trapflow.pools.pair_path import ViewSpec, process_pair
 from trapflow.runtime.lifecycle import EXIT_RECYCLED_JOBS, EXIT_RECYCLED_RSS
 from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec, freeze_heap
 from trapflow.runtime.ratelog import RateLimitedLog
@@ -71,6 +71,12 @@ class WorkerNode(Node):
             self.dealer = self._open_dealer()
         self.plugin: Worker | None = None
         self.rig = spec.the_rig()
+        # A detector's confident boxes leave with their crops while this worker holds the
+        # pixels: the review queue's best views (the pair is gone from the ring by the time
+        # its result reaches the normalizer).
+        self.views: ViewSpec | None = None
+        if self.cfg.review.enabled and self.cfg.observe.enabled:
+            self.views = ViewSpec(self.cfg.observe.high, self.cfg.review.crop_px)
         self.calib = self.rig.id
         self._reader: RingReader | None = None
         self._next_save = 0.0
@@ -315,7 +321,8 @@ class WorkerNode(Node):
                 raw_left, raw_right = frames[2], frames[3]
             seq = header.seq
             done = process_pair(self.plugin, header, raw_left, raw_right, pool=self.pool,
-                                worker=self.ident, calib=self.calib, gap=job.gap)
+                                worker=self.ident, calib=self.calib, gap=job.gap,
+                                views=self.views)
             if ref is not None:
                 # The slot must still hold this pair, or the result came from other bytes.
                 self._ring().check(ref)

@@ -121,6 +121,15 @@ class Reviewer:
         self.views[track] = view
         return True
 
+    def offer_crop(self, track: int, confidence: float,
+                   box: tuple[float, float, float, float], sharp: float, jpeg: bytes,
+                   t_s: float) -> bool:
+        """A detector worker's crop of a live track's box (its longest side in frame
+        pixels, its sharpness measured by the worker): kept when it scores best (True)."""
+        side = max(box[2] - box[0], box[3] - box[1])
+        score = view_score(confidence, side, sharp, self.cfg.crop_px)
+        return self.offer(track, BestView(score, confidence, box, t_s, jpeg))
+
     def ended(self, record: dict[str, Any]) -> dict[str, Any] | None:
         """A finished track (its tracks.jsonl object): its review line when it is queued
         (the best view's crop under `jpeg`, bytes, for the caller to write), else None."""

@@ -79,11 +79,23 @@ class Detection(Msg, frozen=True):
     unmeasured: str = ""  # out_of_view, textureless, ambiguous, low_score, bad_box, ...
 
 
+class BoxView(Msg, frozen=True):
+    """A small JPEG crop of one detection's box, cut from the pair's left image by the
+    worker while it holds the pixels (trapflow.pools.pair_path.crop_views): the review
+    queue's best view of a track. `box` is the detection's box as the result has it (the
+    normalizer matches them by it); never written to results.jsonl."""
+
+    box: tuple[float, float, float, float]
+    jpeg: bytes
+    sharpness: float  # variance of the Laplacian (trapflow.tracking.review.sharpness)
+
+
 class MonoIR(Msg, frozen=True, tag="mono_ir"):
     """Mono image recognition: the detections in the left image."""
 
     detections: list[Detection] = []
     model: str = ""  # short hash of the ONNX model that found them (onnx_session.model_hash)
+    views: list[BoxView] = []  # crops of its confident boxes, for the review queue
 
 
 class StereoIR(Msg, frozen=True, tag="stereo_ir"):

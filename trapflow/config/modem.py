@@ -22,8 +22,10 @@ DEFAULT_LABELS = (
 def _priorities() -> list[str]:
     # Observations first: a label seen for the first time in the run and a new MaxN are
     # the news, then interval counts (MaxN, visits) and finished tracks answer the
-    # questions asked of a trap in a few bytes; per-pair detections follow.
-    return ["new_label", "new_max_n", "counts", "track", "stereo_ir/scallop", "mono_ir/crab",
+    # questions asked of a trap in a few bytes; the thumbnails of tracks queued for review
+    # (a few hundred bytes each) come next, then per-pair detections.
+    return ["new_label", "new_max_n", "counts", "track", "thumb", "stereo_ir/scallop",
+            "mono_ir/crab",
             "health", "tags", "stereo_ir/*", "mono_ir/*", "stereo_vo", "*"]  # fmt: skip
 
 

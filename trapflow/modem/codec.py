@@ -9,6 +9,8 @@ so is refused by the sender, counted (`too_large`) and logged once per kind.
 
 from __future__ import annotations
 
+import base64
+import binascii
 import calendar
 import math
 import time
@@ -388,6 +390,22 @@ def _dec_records(r: Reader, ctx: _Ctx) -> Any:
     return [_decode(r.take(r.uvarint()), ctx) for _ in range(r.uvarint())]
 
 
+def _enc_b64(out: bytearray, v: Any, ctx: _Ctx) -> None:
+    # Bytes carried in a JSON record as base64 text: their length, then the bytes.
+    if not isinstance(v, str):
+        raise _Unfit
+    try:
+        data = base64.b64decode(v, validate=True)
+    except (binascii.Error, ValueError):
+        raise _Unfit from None
+    put_uvarint(out, len(data))
+    out += data
+
+
+def _dec_b64(r: Reader, ctx: _Ctx) -> Any:
+    return base64.b64encode(r.take(r.uvarint())).decode()
+
+
 def _enc_calib(out: bytearray, v: Any, ctx: _Ctx) -> None:
     # A rig id (StereoRig.id): 8 hex digits ride as 4 bytes; anything else goes generic.
     if not isinstance(v, str) or len(v) != 8 or v != v.lower():
@@ -457,6 +475,11 @@ KINDS: dict[int, tuple[str, list[tuple[str, tuple[Enc, Dec]]]]] = {
     # a label of the table and an id under 128: a label's first track, a new run-wide MaxN.
     9: ("new_label", [("label", LABEL), ("time", SECS), ("track", UINT)]),
     10: ("new_max_n", [("label", LABEL), ("time", SECS), ("max_n", UINT)]),
+    # One packet of a queued track's thumbnail (trapflow.modem.thumb.record): its segments
+    # from `first` on, with what rebuilds the header; 9 bytes besides them for a track id
+    # under 128 (thumb.PACKET_OVERHEAD counts 10).
+    11: ("thumb", [("track", UINT), ("first", UINT), ("width", UINT), ("height", UINT),
+                   ("quality", UINT), ("shape", UINT), ("data", (_enc_b64, _dec_b64))]),
 }  # fmt: skip
 _BY_KEY = {key: (kind, fields) for kind, (key, fields) in KINDS.items()}
 

@@ -18,7 +18,10 @@ the table of docs/review.md (`scripts/measure_thumbs.py`).
 
 from __future__ import annotations
 
+import base64
+import binascii
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -27,11 +30,14 @@ import numpy as np
 SIDES = (96, 80, 64, 56, 48, 40, 32, 24)
 QUALITIES = (90, 75, 60, 50, 40, 30, 25, 20, 15, 10)
 QUALITY_FLOOR = 25
-# Bytes a packet's fields other than its segments take in its record (kind, field mask,
-# track, start segment, width, height, quality; counted against the budget), and the most
-# segment bytes one packet carries (it must fit a DATA frame with room to spare).
-PACKET_OVERHEAD = 8
+# Bytes a packet's fields other than its segments take in its link record (kind, field
+# mask, track, start segment, width, height, quality, shape, data length: one byte each,
+# two for a track id from 128 to 16383; counted against the budget), and the most segment
+# bytes one packet carries (it must fit a DATA frame with room to spare).
+PACKET_OVERHEAD = 10
 MAX_PACKET = 72
+# The outbox record of one packet (its class: the message class `thumb`).
+RECORD = "thumb"
 _SOS, _EOI = b"\xff\xda", b"\xff\xd9"
 
 
@@ -157,6 +163,19 @@ def _segments(packet: Packet) -> list[bytes]:
     return _split(_SOS + b"\x00\x02" + packet.data)[1]
 
 
+def total_segments(packet: Packet) -> int:
+    """How many segments the thumbnail a packet belongs to has (its MCUs over the restart
+    interval): any one packet says it."""
+    mcu = _mcu(packet.colour)
+    mcus = (-(-packet.width // mcu)) * (-(-packet.height // mcu))
+    return -(-mcus // packet.interval)
+
+
+def segment_count(packet: Packet) -> int:
+    """How many segments one packet carries."""
+    return len(_segments(packet))
+
+
 def assemble(packets: list[Packet], segments: int | None = None) -> bytes:
     """The JPEG of a thumbnail from the packets that arrived (any subset, any order, all of
     one thumbnail): the header rebuilt, a lost packet's segments flat grey. `segments`: how
@@ -171,8 +190,7 @@ def assemble(packets: list[Packet], segments: int | None = None) -> bytes:
             raise ValueError("thumbnail: packets of different thumbnails")
         for i, seg in enumerate(_segments(p)):
             got[p.first + i] = seg
-    mcus = (-(-p0.width // _mcu(p0.colour))) * (-(-p0.height // _mcu(p0.colour)))
-    total = segments if segments is not None else -(-mcus // p0.interval)
+    total = segments if segments is not None else total_segments(p0)
     flat = filler(*key) if len(got) < total else b""
     body = bytearray(header(*key))
     for i in range(total):
@@ -190,3 +208,29 @@ def decode(packets: list[Packet]) -> np.ndarray:
     if img is None:
         raise ValueError("thumbnail: the packets do not decode")
     return img
+
+
+def record(track: int, packet: Packet) -> dict[str, Any]:
+    """One packet as an outbox record (JSON: the segments in base64), for the link codec's
+    `thumb` kind; `shape` is the restart interval and the colour flag in one number."""
+    return {RECORD: {"track": track, "first": packet.first, "width": packet.width,
+                     "height": packet.height, "quality": packet.quality,
+                     "shape": packet.interval * 2 + int(packet.colour),
+                     "data": base64.b64encode(packet.data).decode()}}
+
+
+def from_record(body: dict[str, Any]) -> tuple[int, Packet]:
+    """A `thumb` record's body back as (track, packet); ValueError when it is none."""
+    try:
+        shape = int(body["shape"])
+        packet = Packet(int(body["first"]), int(body["width"]), int(body["height"]),
+                        int(body["quality"]), bool(shape & 1), shape >> 1,
+                        base64.b64decode(body["data"], validate=True))
+        track = int(body["track"])
+    except (KeyError, TypeError, ValueError, binascii.Error) as exc:
+        raise ValueError(f"thumbnail: not a packet record: {exc}") from None
+    if not (0 < packet.width <= 1024 and 0 < packet.height <= 1024 and packet.interval > 0
+            and 1 <= packet.quality <= 100 and packet.first >= 0):
+        raise ValueError(f"thumbnail: packet out of range: {packet.width}x{packet.height} "
+                         f"q{packet.quality} interval {packet.interval}")
+    return track, packet

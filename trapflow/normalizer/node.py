@@ -16,11 +16,14 @@ import os
 import time
 from typing import IO, Any
 
+import cv2
+import numpy as np
 import zmq
 
 from trapflow.errors import ProtocolError
 from trapflow.gate.hint import HintPacer, RigMotion
 from trapflow.gate.policy import gated_pools, rig_config
+from trapflow.modem import thumb
 from trapflow.modem.outbox import Outbox, OutboxFull
 from trapflow.normalizer import checkpoint
 from trapflow.normalizer.result_json import dumps, normalize
@@ -85,7 +88,7 @@ class NormalizerNode(Node):
                 self.obs_files[name] = open(path, "ab", buffering=0)  # noqa: SIM115
                 set_file_mode(path)
         self.tracks = 0
-        self.reviews = 0  # tracks queued for review
+        self.reviews = self.thumbnails = 0  # tracks queued for review; thumbnails queued
         if self.obs_files:
             self.observers = checkpoint.load(spec.run_dir)
             for obs in self.observers.values():
@@ -109,6 +112,7 @@ class NormalizerNode(Node):
     def counters(self) -> dict[str, int]:
         out = {"lines": self.lines, "malformed": self.malformed, "outbox_refused": self.refused,
                "tracks": self.tracks, "reviews": self.reviews,
+               "thumbnails": self.thumbnails,
                "late_for_tracking": sum(o.late for o in self.observers.values()),
                "capped_for_tracking": sum(o.capped for o in self.observers.values()),
                "refused_subscriptions": self.gate.refused}
@@ -264,6 +268,7 @@ class NormalizerNode(Node):
             items = [obj["mono_ir"] for obj in objs]
             capped = observer.capped
             got = observer.feed(res.capture_ns(), items, res.t_wall_ns)
+            self._offer_views(observer, res, items)
             self.fed = True
             if got.tracks or got.counts or got.news:
                 self._save()  # before they are written or sent: never twice after a cut
@@ -300,6 +305,22 @@ class NormalizerNode(Node):
                 pass
         return True
 
+    @staticmethod
+    def _offer_views(observer: Observer, res: messages.Result,
+                     items: list[dict[str, Any]]) -> None:
+        """The worker's crops of a result's boxes (matched to them by box) offered as their
+        tracks' best views; a box of no confirmed track offers nothing."""
+        body = res.body
+        reviewer = getattr(observer, "reviewer", None)
+        if reviewer is None or not isinstance(body, messages.MonoIR) or not body.views:
+            return
+        crops = {v.box: v for v in body.views}
+        for det, item in zip(body.detections, items, strict=False):
+            view = crops.get(det.box)
+            if view is not None and item.get("track") is not None:
+                reviewer.offer_crop(item["track"], det.confidence, det.box, view.sharpness,
+                                    view.jpeg, res.t_wall_ns / 1e9)
+
     def _write_reviews(self, reviews: list[dict[str, Any]]) -> None:
         """Tracks queued for review: each best view's crop as review/POOL-TRACK.jpg, and a
         line in review.jsonl naming it (written whatever the modem does)."""
@@ -317,9 +338,35 @@ class NormalizerNode(Node):
                     line["crop"] = f"{rcfg.folder}/{name}"
                 except OSError as exc:
                     self.ratelog.warning("review", "review crop %s not written: %s", name, exc)
+            if jpeg and (sent := self._send_thumbnail(line["track"], jpeg)):
+                line["thumbnail"] = sent
             lines.append(dumps({"review": line}) + b"\n")
         self._append(rcfg.file, self.obs_files[rcfg.file], b"".join(lines), len(lines))
         self.reviews += len(lines)
+
+    def _send_thumbnail(self, track: int, jpeg: bytes) -> dict[str, int] | None:
+        """A queued track's crop fitted to `review.thumbnail_bytes`, its packets (each
+        decodes on its own) into the outbox as `thumb` records (docs/review.md); what was
+        queued (its review line's `thumbnail`), or None."""
+        budget = self.cfg.review.thumbnail_bytes
+        if self.outbox is None or budget <= 0:
+            return None
+        crop = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        packets = thumb.fit(crop, budget) if crop is not None else []
+        if not packets:
+            self.ratelog.warning("thumb", "track %d: no thumbnail fits %d bytes", track, budget)
+            return None
+        records = [thumb.record(track, p) for p in packets]
+        try:
+            self.outbox.append_many(records)
+        except OutboxFull as exc:
+            self.refused += len(records)
+            self.ratelog.warning("outbox", "outbox refused %d records: %s", len(records), exc)
+            return None
+        self.thumbnails += 1
+        p0 = packets[0]
+        return {"bytes": sum(p.cost() for p in packets), "packets": len(packets),
+                "width": p0.width, "height": p0.height, "quality": p0.quality}
 
     def _write_observations(self, obs: Observations) -> None:
         """Finished tracks and closed intervals to their files (unbuffered, as results)."""

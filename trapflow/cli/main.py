@@ -97,8 +97,9 @@ def start(config_path: str | None, workers: dict[str, int] | None, duration: flo
           encoding: str | None, seed: int | None, moving: bool | None,
           source_spec: tuple[str, str] | None, loop: bool | None,
           view: tuple[str, int] | None, metrics_file: str | None) -> None:
-    """Run the pipeline: capture, broker, worker pools and normalizer."""
-    from trapflow.supervisor.run import run as run_pipeline
+    """Run the pipeline: capture, broker, worker pools and normalizer (with a `schedule:`,
+    only inside its recording windows)."""
+    from trapflow.supervisor.windows import run_scheduled as run_pipeline
 
     try:
         cfg = configmod.load(config_path)

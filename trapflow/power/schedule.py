@@ -128,7 +128,7 @@ def _clock(s: Schedule, lo: float, hi: float) -> list[Interval]:
 
 def _sun_skips(s: Schedule, lo: float, hi: float) -> list[Interval]:
     assert s.sun is not None
-    out = []
+    out: list[Interval] = []
     for day in _days(lo, hi):
         date = dt.date(1970, 1, 1) + dt.timedelta(days=day)
         out.extend((t - s.sun_margin_s, t + s.sun_margin_s) for t in s.sun(date))
@@ -229,3 +229,38 @@ def per_day(s: Schedule | None, day: dt.date, days: int = 7) -> tuple[float, flo
     found = windows(s, lo, hi)
     begun = sum(1 for a, _ in found if a > lo or not windows(s, lo - 1.0, lo))
     return begun / days, sum(b - a for a, b in found) / days
+
+
+RECHECK_S = 3600.0
+"""A window that does not end within the horizon is looked at again this often."""
+
+
+@dataclass
+class WindowClock:
+    """The end of the window a run records in, as a deadline on the monotonic clock (a
+    wall-clock step does not shorten or stretch it); at the deadline the wall time decides
+    again, and a window that still holds (the clock stepped back, or it goes on) sets a new
+    deadline. Pure: the caller passes both clocks' readings."""
+
+    schedule: Schedule
+    deadline: float | None
+    """Monotonic seconds; None: no deadline (outside a window when started: due at once)."""
+
+    @classmethod
+    def start(cls, schedule: Schedule, mono: float, wall: float) -> WindowClock:
+        clock = cls(schedule, None)
+        clock.deadline = clock._deadline(verdict(schedule, wall), mono, wall)
+        return clock
+
+    @staticmethod
+    def _deadline(v: Verdict, mono: float, wall: float) -> float | None:
+        if not v.inside:
+            return None
+        return mono + (v.ends_at - wall if v.ends_at is not None else RECHECK_S)
+
+    def due(self, mono: float, wall: float) -> bool:
+        """Whether the window has ended (the run stops in order)."""
+        if self.deadline is not None and mono < self.deadline:
+            return False
+        self.deadline = self._deadline(verdict(self.schedule, wall), mono, wall)
+        return self.deadline is None

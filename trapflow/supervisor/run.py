@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import IO
 
 from trapflow.config.schema import Config
+from trapflow.power.schedule import WindowClock
 from trapflow.supervisor import ledger as run_ledger
 from trapflow.supervisor.setup import default_run_dir, discard_run_dir
 from trapflow.supervisor.shell import Supervisor
@@ -23,11 +24,12 @@ class RunResult:
     stats: messages.Stats | None
     failure: str | None = None
     capture_failures: dict[str, int] = field(default_factory=dict)  # pairs skipped, by kind
+    window_ended: bool = False  # stopped at the end of the schedule's recording window
 
 
 def run(cfg: Config, run_dir: Path | None = None, duration: float | None = None,
         out: IO[str] | None = None, announce: Callable[[str], None] | None = None,
-        ) -> RunResult:
+        window: WindowClock | None = None) -> RunResult:
     """Run a pipeline until duration, a signal, or the end of a finite source.
 
     Returns the exit status, the last stats the broker published (the run's totals) and,
@@ -40,14 +42,14 @@ def run(cfg: Config, run_dir: Path | None = None, duration: float | None = None,
     run_dir.mkdir(parents=True, exist_ok=True)
     if announce:
         announce(f"run directory: {run_dir}")
-    sup = Supervisor(cfg, run_dir, duration, out, latest=latest)
+    sup = Supervisor(cfg, run_dir, duration, out, latest=latest, window=window)
     try:
         code = sup.run()
     finally:
         if created and not sup.started:  # it failed before capture: no run to leave behind
             discard_run_dir(run_dir)
     return RunResult(code, sup.stats, sup.failure,
-                     run_ledger.capture_failures(sup.capture_counts()))
+                     run_ledger.capture_failures(sup.capture_counts()), sup.window_ended)
 
 
 def start(cfg: Config, run_dir: Path | None = None, duration: float | None = None,

@@ -30,6 +30,7 @@ from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import Config
 from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError, unreachable
 from trapflow.power.cpu import CpuMeter
+from trapflow.power.schedule import WindowClock
 from trapflow.runtime import sdnotify
 from trapflow.runtime.lifecycle import RECYCLE_EXITS
 from trapflow.runtime.node import NodeSpec, node_main
@@ -111,12 +112,15 @@ class Supervisor:
     """Lifecycle manager of one pipeline."""
 
     def __init__(self, cfg: Config, run_dir: Path, duration: float | None = None,
-                 out: IO[str] | None = None, latest: bool = False) -> None:
+                 out: IO[str] | None = None, latest: bool = False,
+                 window: WindowClock | None = None) -> None:
         self.cfg = cfg
         self.run_dir = run_dir
         self.latest = latest  # point runs/latest at run_dir once the run starts
         self.started = False  # capture spawned: the run exists, whatever happens next
         self.duration = duration
+        self.window = window  # the schedule's recording window: the run stops at its end
+        self.window_ended = False
         self.out = out or sys.stdout
         self.mp = mp.get_context("spawn")
         self.children: list[Child] = []
@@ -313,6 +317,10 @@ class Supervisor:
             if clock.due(now, self.ledger_model.capture().produced):
                 log.info("duration of %g s reached", self.duration)
                 self.planned_stop = True
+                break
+            if self.window is not None and self.window.due(now, time.time()):
+                log.info("the recording window ends")  # wall time decides windows only
+                self.planned_stop = self.window_ended = True
                 break
             if self.core.node("capture").finished and drain_until is None:
                 log.info("source exhausted; draining the pools")

@@ -58,12 +58,13 @@ def test_outbox_config_rejects(data: dict[str, Any], error: str) -> None:
         ("new_max_n", 1, 0.0, False),
         ("counts", 2, 0.0, False),
         ("track", 3, 0.0, False),
-        ("stereo_ir/scallop", 4, 0.0, False),
-        ("mono_ir/crab", 5, 0.0, True),
-        ("health", 6, 3600.0, False),
-        ("mono_ir/fish", 9, 0.0, True),
-        ("stereo_vo", 10, 600.0, True),
-        ("whatever", 11, 0.0, False),
+        ("thumb", 4, 0.0, False),  # review thumbnails: before per-pair detections (issue 34)
+        ("stereo_ir/scallop", 5, 0.0, False),
+        ("mono_ir/crab", 6, 0.0, True),
+        ("health", 7, 3600.0, False),
+        ("mono_ir/fish", 10, 0.0, True),
+        ("stereo_vo", 11, 600.0, True),
+        ("whatever", 12, 0.0, False),
     ],
 )
 def test_class_policy(cls: str, rank: int, ttl: float, aggregated: bool) -> None:

@@ -150,9 +150,16 @@ def surface(
         return
     stop = stop_on_signals()
     with _output(output) as out:
-        receiver = SurfaceReceiver(port, out, _labels(labels), baudrate, state_path=state_path)
+        receiver = SurfaceReceiver(port, out, _labels(labels), baudrate, state_path=state_path,
+                                   review_dir=_review_dir(output))
         receiver.run(stop)
     click.echo(json.dumps(receiver.stats()), err=True)
+
+
+def _review_dir(output: Path | None) -> Path | None:
+    """Where the thumbnails of the box's review queue go: `review/` beside the output (none
+    on standard output: their lines only)."""
+    return None if output is None else output.parent / "review"
 
 
 def _send_command(
@@ -196,7 +203,8 @@ def _send_command(
     stop = stop_on_signals()
     with contextlib.ExitStack() as stack:
         out = stack.enter_context(open(output, "ab")) if output is not None else None
-        receiver = SurfaceReceiver(port, out, _labels(labels), baudrate, state_path=state_path)
+        receiver = SurfaceReceiver(port, out, _labels(labels), baudrate, state_path=state_path,
+                                   review_dir=_review_dir(output))
         if sid is None:  # the last session heard (a wrong one is corrected by the box)
             sid = receiver.current or bytes(4)
         try:

@@ -225,6 +225,13 @@ def data_payload(session: bytes, floor: int, messages: Iterable[tuple[int, bytes
     return bytes(out)
 
 
+def max_body(max_frame_payload: int) -> int:
+    """The largest message body a DATA payload of `max_frame_payload` bytes is sure to
+    carry: the worst case around it is the session, the floor and the id delta (5 bytes
+    each) and the body's length."""
+    return max_frame_payload - 12 - SESSION_BYTES
+
+
 def message_cost(floor: int, msg_id: int, body: bytes) -> int:
     """Bytes one message adds to a DATA payload."""
     out = bytearray()

@@ -22,7 +22,7 @@ import msgspec
 from trapflow.config.modem import ModemConfig, OutboxConfig
 from trapflow.errors import ProtocolError, unreachable
 from trapflow.modem.codec import LinkCodec
-from trapflow.modem.frame import ACK, COMMAND, SESSION_BYTES, Deframer, parse_ack
+from trapflow.modem.frame import ACK, COMMAND, Deframer, max_body, parse_ack
 from trapflow.modem.outbox import ACKED, REJECTED, OutboxQueue, Stored
 from trapflow.modem.port import LinkPort
 from trapflow.modem.schedule import (
@@ -97,9 +97,7 @@ class ModemSender:
         self._backlog = 0
         self.commands: collections.deque[bytes] = collections.deque()  # in, for the node
         self.replies: collections.deque[OutReply] = collections.deque()  # out, before any DATA
-        # Worst case around a body in a DATA payload: session, floor, id delta (5 bytes
-        # each), length.
-        self._max_body = self.cfg.max_frame_payload - 12 - SESSION_BYTES
+        self._max_body = max_body(self.cfg.max_frame_payload)
 
     # --- the loop -----------------------------------------------------------------
 

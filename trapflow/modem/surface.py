@@ -25,6 +25,7 @@ import msgspec
 
 from trapflow.config.modem import DEFAULT_LABELS
 from trapflow.errors import ProtocolError
+from trapflow.modem import thumb
 from trapflow.modem.codec import LinkCodec
 from trapflow.modem.frame import (
     ACK,
@@ -45,6 +46,7 @@ from trapflow.modem.surface_state import (
     load_state,
     save_state,
 )
+from trapflow.modem.surface_thumb import Thumbnails
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +74,7 @@ class SurfaceReceiver:
         reopen_interval_s: float = 1.0,
         state_path: Path | None = None,
         on_reply: Callable[[bytes], None] | None = None,
+        review_dir: Path | None = None,
     ) -> None:
         self.port = LinkPort(port, baudrate, reopen_interval_s)
         self.out = out  # None: DATA is left unacknowledged (for a surface that writes it)
@@ -79,6 +82,8 @@ class SurfaceReceiver:
         self.replies = 0
         self.data_ignored = 0
         self.codec = LinkCodec(labels)
+        # Thumbnails of the box's review queue become JPEGs here (None: lines only).
+        self.thumbs = Thumbnails(review_dir) if review_dir is not None else None
         self.deframer = Deframer()
         self.fsync_interval_s = fsync_interval_s
         self._last_fsync = time.monotonic()
@@ -268,6 +273,8 @@ class SurfaceReceiver:
                 self.undecodable += 1
                 log.warning("message %d undecodable: %s", msg_id, exc)
                 record = {"undecodable": {"id": msg_id, "hex": body.hex()}}
+            if self.thumbs is not None and isinstance(record.get(thumb.RECORD), dict):
+                record = {thumb.RECORD: self.thumbs.add(session, record[thumb.RECORD])}
             assert self.out is not None
             self.out.write(msgspec.json.encode(record) + b"\n")
             self.written += 1
@@ -303,5 +310,6 @@ class SurfaceReceiver:
             "cut_bytes": self.cut_bytes,
             "replies": self.replies,
             "data_ignored": self.data_ignored,
+            "thumbnails": 0 if self.thumbs is None else self.thumbs.written,
             "link": self.deframer.stats(),
         }

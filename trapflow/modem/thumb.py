@@ -33,9 +33,10 @@ QUALITY_FLOOR = 25
 # Bytes a packet's fields other than its segments take in its link record (kind, field
 # mask, track, start segment, width, height, quality, shape, data length: one byte each,
 # two for a track id from 128 to 16383; counted against the budget), and the most segment
-# bytes one packet carries (it must fit a DATA frame with room to spare).
+# bytes one packet carries by default: its record then fits the 80-byte message body of a
+# default DATA frame (modem.max_frame_payload 96; max_packet() for another).
 PACKET_OVERHEAD = 10
-MAX_PACKET = 72
+MAX_PACKET = 70
 # The outbox record of one packet (its class: the message class `thumb`).
 RECORD = "thumb"
 _SOS, _EOI = b"\xff\xda", b"\xff\xd9"
@@ -121,20 +122,27 @@ def _resize(crop: np.ndarray, side: int, colour: bool) -> np.ndarray:
     return cv2.resize(img, size, interpolation=interp)
 
 
-def _packets(img: np.ndarray, quality: int, colour: bool) -> list[Packet]:
-    """One encoding as packets: a segment per MCU row, halved until each fits MAX_PACKET."""
+def max_packet(max_body: int) -> int:
+    """The most segment bytes a packet may carry when a message body may take `max_body`
+    bytes (trapflow.modem.frame.max_body)."""
+    return max(8, min(MAX_PACKET, max_body - PACKET_OVERHEAD))
+
+
+def _packets(img: np.ndarray, quality: int, colour: bool,
+             most: int = MAX_PACKET) -> list[Packet]:
+    """One encoding as packets: a segment per MCU row, halved until each fits `most`."""
     h, w = img.shape[:2]
     interval = -(-w // _mcu(colour))
     while True:
         segs = _split(_encode(img, quality, interval))[1]
-        if max(map(len, segs)) <= MAX_PACKET - 2 or interval == 1:
+        if max(map(len, segs)) <= most - 2 or interval == 1:
             break
         interval = max(1, interval // 2)
     out: list[Packet] = []
     first, run = 0, b""
     for i, seg in enumerate(segs):
         marker = bytes((0xFF, 0xD0 + (i % 8)))
-        if run and len(run) + 2 + len(seg) > MAX_PACKET:
+        if run and len(run) + 2 + len(seg) > most:
             out.append(Packet(first, w, h, quality, colour, interval, run))
             first, run = i, b""
         run = seg if not run else run + marker + seg
@@ -142,15 +150,18 @@ def _packets(img: np.ndarray, quality: int, colour: bool) -> list[Packet]:
     return out
 
 
-def fit(crop: np.ndarray, budget: int, colour: bool = True) -> list[Packet]:
+def fit(crop: np.ndarray, budget: int, colour: bool = True,
+        most: int = MAX_PACKET) -> list[Packet]:
     """A crop (BGR) as the packets of the best thumbnail within `budget` bytes (the sum of
-    the packets' cost); [] when not even the smallest fits."""
+    the packets' cost), each carrying at most `most` segment bytes; [] when not even the
+    smallest fits (or a segment is larger than `most`)."""
     fallback: list[Packet] = []
     for side in SIDES:
         img = _resize(crop, side, colour)
         for quality in QUALITIES:
-            packets = _packets(img, quality, colour)
-            if sum(p.cost() for p in packets) <= budget:
+            packets = _packets(img, quality, colour, most)
+            if (sum(p.cost() for p in packets) <= budget
+                    and max(len(p.data) for p in packets) <= most):
                 if quality >= QUALITY_FLOOR:
                     return packets
                 if not fallback:
@@ -217,6 +228,21 @@ def record(track: int, packet: Packet) -> dict[str, Any]:
                      "height": packet.height, "quality": packet.quality,
                      "shape": packet.interval * 2 + int(packet.colour),
                      "data": base64.b64encode(packet.data).decode()}}
+
+
+def records(track: int, jpeg: bytes, budget: int,
+            most: int = MAX_PACKET) -> list[dict[str, Any]]:
+    """A queued track's crop (a JPEG) as the outbox records of its thumbnail within
+    `budget` bytes, each packet at most `most` segment bytes (max_packet); [] when the
+    crop does not decode or no thumbnail fits."""
+    crop = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+    packets = fit(crop, budget, True, most) if crop is not None and crop.size else []
+    return [record(track, p) for p in packets]
+
+
+def cost(recs: list[dict[str, Any]]) -> int:
+    """What a thumbnail's records take against its budget (Packet.cost summed)."""
+    return sum(from_record(r[RECORD])[1].cost() for r in recs)
 
 
 def from_record(body: dict[str, Any]) -> tuple[int, Packet]:

@@ -16,14 +16,13 @@ import os
 import time
 from typing import IO, Any
 
-import cv2
-import numpy as np
 import zmq
 
 from trapflow.errors import ProtocolError
 from trapflow.gate.hint import HintPacer, RigMotion
 from trapflow.gate.policy import gated_pools, rig_config
 from trapflow.modem import thumb
+from trapflow.modem.frame import max_body
 from trapflow.modem.outbox import Outbox, OutboxFull
 from trapflow.normalizer import checkpoint
 from trapflow.normalizer.result_json import dumps, normalize
@@ -351,12 +350,11 @@ class NormalizerNode(Node):
         budget = self.cfg.review.thumbnail_bytes
         if self.outbox is None or budget <= 0:
             return None
-        crop = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
-        packets = thumb.fit(crop, budget) if crop is not None else []
-        if not packets:
+        most = thumb.max_packet(max_body(self.cfg.modem.max_frame_payload))
+        records = thumb.records(track, jpeg, budget, most)
+        if not records:
             self.ratelog.warning("thumb", "track %d: no thumbnail fits %d bytes", track, budget)
             return None
-        records = [thumb.record(track, p) for p in packets]
         try:
             self.outbox.append_many(records)
         except OutboxFull as exc:
@@ -364,9 +362,10 @@ class NormalizerNode(Node):
             self.ratelog.warning("outbox", "outbox refused %d records: %s", len(records), exc)
             return None
         self.thumbnails += 1
-        p0 = packets[0]
-        return {"bytes": sum(p.cost() for p in packets), "packets": len(packets),
-                "width": p0.width, "height": p0.height, "quality": p0.quality}
+        first = records[0][thumb.RECORD]
+        return {"bytes": thumb.cost(records),
+                "packets": len(records), "width": first["width"], "height": first["height"],
+                "quality": first["quality"]}
 
     def _write_observations(self, obs: Observations) -> None:
         """Finished tracks and closed intervals to their files (unbuffered, as results)."""

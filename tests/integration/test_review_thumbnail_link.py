@@ -7,10 +7,12 @@ output, which decodes to the thumbnail's size."""
 
 from __future__ import annotations
 
+import logging
 import subprocess
 import threading
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -20,7 +22,7 @@ from tests import builders
 from tests.conftest import modem_cli, poll_for
 from tests.integration.test_modem_link import lines_of, start_sim, stop
 from trapflow.config.modem import ModemConfig, OutboxConfig
-from trapflow.config.schema import ObserveConfig, ReviewConfig
+from trapflow.config.schema import ObserveConfig, ReviewConfig, from_data
 from trapflow.modem import thumb
 from trapflow.modem.outbox import Outbox
 from trapflow.modem.sender import ModemSender
@@ -28,6 +30,7 @@ from trapflow.normalizer.node import NormalizerNode
 from trapflow.normalizer.result_json import normalize
 from trapflow.plugin import Pair
 from trapflow.pools.pair_path import ViewSpec, crop_views
+from trapflow.runtime.ratelog import RateLimitedLog
 from trapflow.tracking.stage import Observer
 from trapflow.wire import messages
 
@@ -115,3 +118,31 @@ def test_a_queued_tracks_thumbnail_reaches_the_surface_and_decodes(
           f"{thumb.cost(records)} bytes in {len(records)} packets; sender sent "
           f"{stats['bytes']} bytes ({stats['retransmits']} retransmits) in {elapsed:.1f} s "
           f"at 300 bit/s with 5 % loss")
+
+
+def test_the_normalizer_writes_the_crop_the_line_and_the_thumbnail_records(
+        tmp_path: Path) -> None:
+    """The normalizer's own step for a queued track (no pipeline: its writer alone)."""
+    review = _queued_review()
+    cfg = from_data({"modem": {"enabled": True}})
+    node = NormalizerNode.__new__(NormalizerNode)  # its writer only: no sockets
+    path = tmp_path / cfg.review.file
+    with open(path, "ab", buffering=0) as fh:
+        node.__dict__.update(
+            cfg=cfg, spec=SimpleNamespace(run_dir=tmp_path), obs_files={cfg.review.file: fh},
+            outbox=Outbox(tmp_path / "outbox.sqlite", OutboxConfig()), reviews=0,
+            thumbnails=0, refused=0, full_now=False, disk_full={},
+            ratelog=RateLimitedLog(logging.getLogger("test")))
+        node._write_reviews([{"review": review}])
+    line = lines_of(path)[0]["review"]
+    crop = cv2.imread(str(tmp_path / line["crop"]), cv2.IMREAD_COLOR)
+    assert line["crop"] == f"review/mono-{review['track']}.jpg" and crop is not None
+    assert "jpeg" not in line
+    sent = line["thumbnail"]
+    assert sent["bytes"] <= cfg.review.thumbnail_bytes and sent["packets"] >= 2
+    stored = node.outbox.read()
+    assert [s.cls for s in stored] == ["thumb"] * sent["packets"]
+    assert [s.record() for s in stored] == thumb.records(review["track"], review["jpeg"],
+                                                         cfg.review.thumbnail_bytes)
+    assert node.thumbnails == 1 and node.reviews == 1
+    node.outbox.close()

@@ -92,7 +92,7 @@ class FakeRun:
     def __init__(self, t: FakeTime, ends: list[bool]) -> None:
         self.t, self.ends, self.began = t, ends, []
 
-    def __call__(self, cfg: Any, run_dir: Any, duration: Any, out: Any, announce: Any,
+    def __call__(self, cfg: Any, run_dir: Any, duration: Any, *, out: Any, announce: Any,
                  window: WindowClock) -> RunResult:
         self.began.append(self.t.wall)
         ended = self.ends.pop(0)
@@ -161,5 +161,5 @@ def test_a_schedule_with_no_window_is_a_config_error(tmp_path: Path) -> None:
 
 def test_no_schedule_is_one_plain_run() -> None:
     calls = []
-    run_scheduled(config.Config(), run=lambda *a: calls.append(a) or RunResult(0, None))
+    run_scheduled(config.Config(), run=lambda *a, **kw: calls.append(a) or RunResult(0, None))
     assert len(calls) == 1

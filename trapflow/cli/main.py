@@ -338,6 +338,7 @@ def _add_commands() -> None:
     from trapflow.cli import measure as cli_measure
     from trapflow.cli import modem as cli_modem
     from trapflow.cli import observe as cli_observe
+    from trapflow.cli import plan as cli_plan
     from trapflow.cli import remote as cli_remote
     from trapflow.cli import sources as cli_sources
     from trapflow.cli.batch import process
@@ -345,7 +346,7 @@ def _add_commands() -> None:
     for cmd in (*cli_modem.COMMANDS, process, cli_sources.calibrate, cli_sources.record,
                 cli_sources.replay, cli_sources.recover, cli_dataset.dataset,
                 *cli_export.COMMANDS, *cli_remote.COMMANDS, *cli_observe.COMMANDS,
-                *cli_measure.COMMANDS):
+                *cli_measure.COMMANDS, *cli_plan.COMMANDS):
         main.add_command(cmd)
 
 

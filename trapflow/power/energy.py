@@ -26,9 +26,12 @@ class Board:
     """Added by a fully busy GPU."""
     lamp_w: float = 0.0
     """The trap's lamp while on."""
+    off_w: float = 0.0
+    """Powered off between recording windows, waiting for the wake alarm."""
 
     def __post_init__(self) -> None:
-        if min(self.idle_w, self.core_w, self.camera_w, self.gpu_w, self.lamp_w) < 0:
+        if min(self.idle_w, self.core_w, self.camera_w, self.gpu_w, self.lamp_w,
+               self.off_w) < 0:
             raise ValueError(f"board {self.name!r}: expected watts >= 0")
         if self.cores < 1:
             raise ValueError(f"board {self.name!r}: expected cores >= 1, got {self.cores}")
@@ -37,13 +40,21 @@ class Board:
 # Rough figures of the order published for each board (vendor product briefs and power
 # modes, independent idle and stress measurements of the Pi 5: about 2.7 W idle, about 8 W
 # with four cores busy); they are starting points, configurable, and a deployment should
-# replace them with a measurement of its own board, cameras and lamp.
+# replace them with a measurement of its own board, cameras and lamp. Off: a Pi 5 halted
+# with POWER_OFF_ON_HALT=1 in its EEPROM config draws about 0.01 W (the RTC keeps its alarm;
+# with the default setting a halted Pi 5 draws over 1 W); the Orin Nano's figure is a rough
+# guess for a carrier board that cuts the module's power, to be measured.
 BOARDS: dict[str, Board] = {
-    "pi5": Board("pi5", idle_w=2.7, core_w=1.3, cores=4, camera_w=0.2),
+    "pi5": Board("pi5", idle_w=2.7, core_w=1.3, cores=4, camera_w=0.2, off_w=0.01),
     # Orin Nano: the module's 7 W / 15 W power modes over ~4.5 W idle (developer kit).
     "orin_nano": Board("orin_nano", idle_w=4.5, core_w=0.8, cores=6, camera_w=0.2,
-                       gpu_w=5.0),
+                       gpu_w=5.0, off_w=0.1),
 }
+
+RECORDING_CPU_S_PER_HOUR: dict[str, float] = {"pipeline": 898.0}
+"""CPU seconds an hour of recording when no run is given to plan from: the whole pipeline
+on its defaults (motion-gated recognisers) on the default synthetic world, as measured in
+docs/benchmarks.md ("Motion gate, whole pipelines"), about 0.25 busy cores."""
 
 
 @dataclass(frozen=True)

@@ -32,8 +32,8 @@ from trapflow.power.schedule import (
     verdict,
 )
 from trapflow.runtime import sdnotify
+from trapflow.supervisor import run as run_module
 from trapflow.supervisor.run import RunResult
-from trapflow.supervisor.run import run as run_pipeline
 
 log = logging.getLogger(__name__)
 
@@ -78,12 +78,13 @@ class _Signals:
 def run_scheduled(cfg: Config, run_dir: Path | None = None, duration: float | None = None,
                   out: IO[str] | None = None, announce: Callable[[str], None] | None = None,
                   *, clocks: Clocks | None = None,
-                  run: Callable[..., RunResult] = run_pipeline) -> RunResult:
+                  run: Callable[..., RunResult] | None = None) -> RunResult:
     """Record in every window of cfg.schedule until a signal, --duration, a failed run, or
     the board powering off; without a schedule, one run as before."""
+    run = run or run_module.run  # looked up now: a test may stand in for it
     schedule = from_config(cfg.schedule)
     if schedule is None:
-        return run(cfg, run_dir, duration, out, announce)
+        return run(cfg, run_dir, duration, out=out, announce=announce)
     clocks = clocks or Clocks()
     say = announce or (lambda line: None)
     notifier = sdnotify.Notifier()
@@ -94,7 +95,7 @@ def run_scheduled(cfg: Config, run_dir: Path | None = None, duration: float | No
         if v.inside:
             say(f"recording window until {utc_text(v.ends_at)}" if v.ends_at is not None
                 else "recording window with no end in sight")
-            last = run(cfg, run_dir, duration, out, announce,
+            last = run(cfg, run_dir, duration, out=out, announce=announce,
                        window=WindowClock.start(schedule, clocks.mono(), now))
             if last.code != 0 or not last.window_ended:
                 return last  # a failure, a signal, --duration or the source's end

@@ -18,7 +18,7 @@ from trapflow.modem.codec import LinkCodec
 from trapflow.modem.frame import max_body
 from trapflow.modem.surface_thumb import Thumbnails
 from trapflow.plugin import Pair
-from trapflow.pools.pair_path import ViewSpec, crop_views
+from trapflow.pools.pair_path import ViewPacer, ViewSpec, crop_views
 from trapflow.tracking.review import Reviewer
 from trapflow.wire import messages
 
@@ -54,6 +54,24 @@ def test_the_worker_crops_confident_boxes_from_the_reduced_image() -> None:
         messages.StereoVO(ok=True)
     # the view survives the wire
     assert messages.decode_result(messages.encode(builders.result(out))).body == out
+
+
+def test_a_worker_crops_one_pair_a_second_of_capture_time() -> None:
+    import msgspec
+
+    pacer = ViewPacer(ViewSpec(0.5, 128, every_s=1.0))
+    with_view = messages.MonoIR(views=[messages.BoxView(box=(0, 0, 9, 9), jpeg=b"j",
+                                                        sharpness=1.0)])
+
+    def at(s: float) -> messages.StereoPair:
+        return msgspec.structs.replace(builders.pair_header(), t_mono_ns=int(s * 1e9))
+
+    assert pacer.due(at(10.0)) is not None
+    pacer.done(at(10.0), messages.MonoIR())  # no crop: the next pair is due still
+    assert pacer.due(at(10.1)) is not None
+    pacer.done(at(10.1), with_view)
+    assert pacer.due(at(10.5)) is None and pacer.due(at(11.1)) is not None
+    assert pacer.due(at(3.0)) is not None  # the clock went back: due
 
 
 def test_a_track_keeps_its_largest_sharpest_most_confident_crop() -> None:

@@ -92,9 +92,36 @@ class ViewSpec:
 
     min_confidence: float
     crop_px: int
-    most: int = 4
+    most: int = 2
     quality: int = 85
     min_px: int = 8  # a box smaller than this on a side is no view
+    every_s: float = 1.0  # a worker sends crops with at most one pair a second (ViewPacer)
+
+
+class ViewPacer:
+    """Which pairs a worker crops: one a `every_s` of capture time at most, so crops (tens
+    of kilobytes) stay a small share of what results carry to the normalizer; a pair that
+    brought none leaves the next one due. Capture time, never the wall clock; a clock that
+    went back (a replay started again) makes the next pair due."""
+
+    def __init__(self, spec: ViewSpec) -> None:
+        self.spec = spec
+        self.next_ns: int | None = None
+
+    @staticmethod
+    def _t(header: messages.StereoPair) -> int:
+        return header.t_wall_ns if header.source_time else header.t_mono_ns
+
+    def due(self, header: messages.StereoPair) -> ViewSpec | None:
+        """The spec when this pair's boxes are to be cropped, else None."""
+        t, nxt = self._t(header), self.next_ns
+        every = int(self.spec.every_s * 1e9)
+        return self.spec if nxt is None or t >= nxt or t < nxt - every else None
+
+    def done(self, header: messages.StereoPair, body: messages.Body) -> None:
+        """The pair's result: crops sent make the next pair due `every_s` later."""
+        if isinstance(body, messages.MonoIR) and body.views:
+            self.next_ns = self._t(header) + int(self.spec.every_s * 1e9)
 
 
 def crop_views(body: messages.Body, pair: Pair, spec: ViewSpec) -> messages.Body:

@@ -24,7 +24,7 @@ import zmq
 from trapflow import registry
 from trapflow.errors import ProtocolError, WorkerError
 from trapflow.plugin import Context, Worker, configure_plugin
-from trapflow.pools.pair_path import ViewSpec, process_pair
+from trapflow.pools.pair_path import ViewPacer, ViewSpec, process_pair
 from trapflow.runtime.lifecycle import EXIT_RECYCLED_JOBS, EXIT_RECYCLED_RSS
 from trapflow.runtime.node import ACTIVE, FINALIZED, INACTIVE, Node, NodeSpec, freeze_heap
 from trapflow.runtime.ratelog import RateLimitedLog
@@ -74,9 +74,9 @@ class WorkerNode(Node):
         # A detector's confident boxes leave with their crops while this worker holds the
         # pixels: the review queue's best views (the pair is gone from the ring by the time
         # its result reaches the normalizer).
-        self.views: ViewSpec | None = None
+        self.views: ViewPacer | None = None
         if self.cfg.review.enabled and self.cfg.observe.enabled:
-            self.views = ViewSpec(self.cfg.observe.high, self.cfg.review.crop_px)
+            self.views = ViewPacer(ViewSpec(self.cfg.observe.high, self.cfg.review.crop_px))
         self.calib = self.rig.id
         self._reader: RingReader | None = None
         self._next_save = 0.0
@@ -322,7 +322,7 @@ class WorkerNode(Node):
             seq = header.seq
             done = process_pair(self.plugin, header, raw_left, raw_right, pool=self.pool,
                                 worker=self.ident, calib=self.calib, gap=job.gap,
-                                views=self.views)
+                                views=None if self.views is None else self.views.due(header))
             if ref is not None:
                 # The slot must still hold this pair, or the result came from other bytes.
                 self._ring().check(ref)
@@ -335,6 +335,8 @@ class WorkerNode(Node):
                                         reason=reason[:300], kind=type(exc).__name__)])
             return
         result, proc_ns = done.result, done.result.proc_ns
+        if self.views is not None:
+            self.views.done(header, result.body)
         self.processed += 1
         self.proc_us += proc_ns // 1000
         self.proc_cpu_us += done.cpu_ns // 1000

@@ -250,7 +250,8 @@ class Supervisor:
             self.notifier.ready(f"running in {self.run_dir}")
             self._supervise()
         finally:
-            self.notifier.stopping()
+            if not self.window_ended:  # between windows the service goes on (waits up)
+                self.notifier.stopping()
             if self.children:
                 self._stop_all()
                 self._judge()

@@ -186,10 +186,7 @@ def build_rows(run_dir: Path, dep: Deployment, events_folder: str = "events", *,
     by_seq: dict[int, list[obs.Detection]] = {}
     for d in boxes:
         by_seq.setdefault(d.seq, []).append(d)
-    spans: dict[str, list[dt.datetime]] = {}  # event folder -> its first and last image
-    for f in frames:
-        span = spans.setdefault(f.event, [f.time, f.time])
-        span[:] = [min(span[0], f.time), max(span[1], f.time)]
+    spans = _spans(frames)
     framed: set[int] = set()  # tracks whose best frame has its row
     for f in frames:
         kept = [d for d in by_seq.get(f.seq, []) if d.confidence >= min_confidence]
@@ -218,6 +215,15 @@ def build_rows(run_dir: Path, dep: Deployment, events_folder: str = "events", *,
     start, end = min(spanned), max(spanned)
     return Rows([_deployment_row(dep, dep_id, start, end)], media, observations, files, start,
                 end, labels)
+
+
+def _spans(frames: list[obs.Frame]) -> dict[str, tuple[dt.datetime, dt.datetime]]:
+    """Each event folder's first and last image time."""
+    spans: dict[str, tuple[dt.datetime, dt.datetime]] = {}
+    for f in frames:
+        first, last = spans.get(f.event, (f.time, f.time))
+        spans[f.event] = (min(first, f.time), max(last, f.time))
+    return spans
 
 
 def _deployment_row(dep: Deployment, dep_id: str, start: dt.datetime,

@@ -171,18 +171,7 @@ def build_rows(run_dir: Path, dep: Deployment, events_folder: str = "events", *,
              for d in [obs.detection(b, times[b["seq"]])] if d is not None]
     media, frames, files = _media(run_dir / events_folder, times, dep_id)
     tracks = obs.read_tracks(run_dir / tracks_file)
-    observations: list[dict[str, Any]] = []
-    labels: set[str] = set()
-    best: dict[int, list[tuple[obs.Detection, dict[str, Any]]]] = {}  # seq -> tracks' best
-    for track in tracks or []:
-        if track["best_confidence"] < min_confidence:
-            continue
-        models = {d.model for d in boxes if d.track == track["id"]}
-        observations.append(obs.event_row(track, dep_id, dep.taxa, models))
-        labels.add(str(track.get("label", "")))
-        found = obs.best_detection(track, boxes)
-        if found is not None:
-            best.setdefault(found.seq, []).append((found, track))
+    observations, labels, best = _event_rows(tracks or [], boxes, dep, dep_id, min_confidence)
     by_seq: dict[int, list[obs.Detection]] = {}
     for d in boxes:
         by_seq.setdefault(d.seq, []).append(d)
@@ -215,6 +204,27 @@ def build_rows(run_dir: Path, dep: Deployment, events_folder: str = "events", *,
     start, end = min(spanned), max(spanned)
     return Rows([_deployment_row(dep, dep_id, start, end)], media, observations, files, start,
                 end, labels)
+
+
+def _event_rows(tracks: list[dict[str, Any]], boxes: list[obs.Detection], dep: Deployment,
+                dep_id: str, min_confidence: float
+                ) -> tuple[list[dict[str, Any]], set[str],
+                           dict[int, list[tuple[obs.Detection, dict[str, Any]]]]]:
+    """The event-level row of each track at or above min_confidence, the labels they carry,
+    and each one's best detection by its seq (the media-level rows come from those)."""
+    observations: list[dict[str, Any]] = []
+    labels: set[str] = set()
+    best: dict[int, list[tuple[obs.Detection, dict[str, Any]]]] = {}
+    for track in tracks:
+        if track["best_confidence"] < min_confidence:
+            continue
+        models = {d.model for d in boxes if d.track == track["id"]}
+        observations.append(obs.event_row(track, dep_id, dep.taxa, models))
+        labels.add(str(track.get("label", "")))
+        found = obs.best_detection(track, boxes)
+        if found is not None:
+            best.setdefault(found.seq, []).append((found, track))
+    return observations, labels, best
 
 
 def _spans(frames: list[obs.Frame]) -> dict[str, tuple[dt.datetime, dt.datetime]]:

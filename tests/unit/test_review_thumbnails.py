@@ -49,7 +49,11 @@ def test_the_worker_crops_confident_boxes_from_the_reduced_image() -> None:
     crop = cv2.imdecode(np.frombuffer(out.views[0].jpeg, np.uint8), cv2.IMREAD_COLOR)
     assert crop.shape[:2] == (85, 128)  # 150 x 100 reduced pixels shrunk to 128 wide
     assert out.views[0].sharpness > 0
-    # bytes only (no images), or not a detector: unchanged
+    # bytes only (a plugin with needs_images False gets the encoded bytes), or not a
+    # detector: unchanged (cropping the bytes failed every pair of such a detector)
+    encoded = Pair(header=builders.pair_header(), left=np.zeros(1000, np.uint8),
+                   right=np.zeros(1000, np.uint8))
+    assert crop_views(body, encoded, ViewSpec(0.5, 128)) == body
     assert crop_views(messages.StereoVO(ok=True), pair, ViewSpec(0.5, 128)) == \
         messages.StereoVO(ok=True)
     # the view survives the wire

@@ -129,7 +129,8 @@ def crop_views(body: messages.Body, pair: Pair, spec: ViewSpec) -> messages.Body
     from the pair's decoded left image, taken now that the worker holds the pixels (a pair
     leaves the frame ring before its result reaches the normalizer); unchanged when it is
     no detector's, or has no box to crop, or the plugin took no images."""
-    if not isinstance(body, messages.MonoIR) or not isinstance(pair.left, np.ndarray):
+    if (not isinstance(body, messages.MonoIR) or not isinstance(pair.left, np.ndarray)
+            or pair.left.ndim < 2):  # a plugin without images gets the encoded bytes
         return body
     img, r = pair.left, float(pair.reduction)
     h, w = img.shape[:2]

@@ -6,9 +6,12 @@ MOT class column, trapflow.tracking.counts).
 `track_file` streams: rows are read one line at a time, frames go to the tracker in frame
 order through a bounded reorder window (trapflow.tracking.frame_window) and each frame's
 tracked rows are written as soon as it is tracked, so its memory is that of the window and
-the live tracks, whatever the file's size. Its outputs are written beside their names as
-NAME.part and renamed when whole: a failure leaves no half file and no earlier file
-replaced."""
+the live tracks, whatever the file's size. With a re-link pass
+(trapflow.tracking.relink), each frame's rows are held for the pass's longest gap plus the
+tracker's `max_gap_s` before they are written, so that a track joined to an earlier one is
+written with the earlier one's id: memory is then that of the frames held too. Its outputs
+are written beside their names as NAME.part and renamed when whole: a failure leaves no
+half file and no earlier file replaced."""
 
 from __future__ import annotations
 
@@ -16,6 +19,7 @@ import configparser
 import io
 import math
 import os
+from collections import deque
 from collections.abc import Callable, Generator, Iterable, Iterator, Sequence
 from contextlib import ExitStack, closing
 from pathlib import Path
@@ -26,6 +30,7 @@ import msgspec
 from trapflow.errors import TrapflowError
 from trapflow.tracking.counts import DEFAULT_INTERVAL_S, Counter, IntervalCounts
 from trapflow.tracking.frame_window import DEFAULT_FRAMES, FrameOrderError, FrameWindow
+from trapflow.tracking.relink import RelinkConfig, Relinker
 from trapflow.tracking.tracker import Det, Tracker, TrackerConfig
 
 # A MOT row's class column (8th) when it names none: detection files put -1 there.
@@ -55,7 +60,7 @@ class TrackSummary(msgspec.Struct, frozen=True, kw_only=True):
     frames: int  # frames with at least one detection
     detections: int
     tracked: int  # detections written with a track id
-    tracks: int
+    tracks: int  # ids written (a re-linked track is one)
     fps: float
     capped: int = 0  # detections past the tracker's max_boxes in their frame: not tracked
     intervals: int = 0  # counting intervals written
@@ -213,8 +218,10 @@ def write_mot(path: Path, rows: Iterable[MotRow]) -> None:
 
 
 class Tracked(NamedTuple):
-    """What one frame gave: its rows with a track id (in the frame's order), the detections
-    past max_boxes, and the counting intervals it closed."""
+    """What one frame gave: the rows with a track id of the frames it let out (without a
+    re-link pass, its own; with one, those held long enough), in frame order and each
+    frame's in its order; the detections past max_boxes, and the counting intervals it
+    closed (the counts are the tracker's, before any re-link)."""
 
     rows: list[MotRow]
     capped: int
@@ -226,12 +233,21 @@ class FrameTracker:
     (frame - 1) / fps), pure; with `count`, the closed intervals of `interval_s` seconds,
     counted as a live run counts them (the frames with a detection are the effort; a
     track's label is the majority of its rows' class column, `NO_CLASS_LABEL` where there
-    is none). Its totals grow as it goes; its memory is the live tracks'."""
+    is none). With `relink`, rows come out through the re-link pass, later (Tracked). Its
+    totals grow as it goes; its memory is the live tracks' and the frames held."""
 
     def __init__(self, fps: float, config: TrackerConfig | None = None, count: bool = True,
-                 interval_s: float = DEFAULT_INTERVAL_S) -> None:
+                 interval_s: float = DEFAULT_INTERVAL_S,
+                 relink: RelinkConfig | None = None) -> None:
         self.fps = fps
         self._tracker = Tracker(config)
+        self._relinker = None if relink is None else Relinker(relink)
+        # Rows wait this long: every track that may join one of them has then begun and
+        # every track they may join has ended (the tracker ends one max_gap_s after its
+        # last box).
+        self._hold_s = 0.0 if relink is None else (
+            relink.max_gap_s + self._tracker.config.max_gap_s)
+        self._held: deque[tuple[float, list[MotRow]]] = deque()
         self._counter = Counter(interval_s) if count else None
         self._t_s: float | None = None
         self._live: set[int] = set()  # ids written and not yet ended
@@ -256,26 +272,51 @@ class FrameTracker:
         self.detections += len(rows)
         self.tracked += len(out)
         self.capped += upd.capped
-        return Tracked(out, upd.capped, counts)
+        return Tracked(self._relinked(t_s, out), upd.capped, counts)
 
-    def finish(self) -> list[IntervalCounts]:
-        """End every track at the last frame; the intervals still open or waiting."""
-        if self._counter is None or self._t_s is None:
-            return []
+    def finish(self) -> Tracked:
+        """End every track at the last frame: the rows still held, the intervals still
+        open or waiting."""
+        if self._t_s is None:
+            return Tracked([], 0, [])
         t_s = self._t_s
-        return self._counter.ended(self._tracker.flush(t_s)) + self._counter.flush(t_s)
+        ended = self._tracker.flush(t_s)
+        rows = self._relinked(math.inf, [])
+        if self._relinker is not None:
+            self.tracks -= self._relinker.joins
+        if self._counter is None:
+            return Tracked(rows, 0, [])
+        return Tracked(rows, 0, self._counter.ended(ended) + self._counter.flush(t_s))
+
+    def _relinked(self, t_s: float, rows: list[MotRow]) -> list[MotRow]:
+        """Without a re-link pass, rows; with one, the rows held hold_s or more, ids
+        rewritten (t_s inf: every row held)."""
+        if self._relinker is None:
+            return rows
+        self._relinker.add(t_s, [(r.id, str(r.cls) if r.cls >= 0 else NO_CLASS_LABEL,
+                                  (r.x, r.y, r.x + r.w, r.y + r.h)) for r in rows])
+        self._held.append((t_s, rows))
+        horizon = t_s - self._hold_s
+        self._relinker.decide(horizon)
+        out: list[MotRow] = []
+        while self._held and self._held[0][0] <= horizon:
+            out += [r if (i := self._relinker.id(r.id)) == r.id
+                    else msgspec.structs.replace(r, id=i) for r in self._held.popleft()[1]]
+        return out
 
 
 def track_rows(rows: Sequence[MotRow], fps: float, config: TrackerConfig | None = None,
                capped: list[int] | None = None, counts: list[IntervalCounts] | None = None,
-               interval_s: float = DEFAULT_INTERVAL_S) -> list[MotRow]:
+               interval_s: float = DEFAULT_INTERVAL_S,
+               relink: RelinkConfig | None = None) -> list[MotRow]:
     """The tracker over detection rows in memory, in any order (FrameTracker over them
     sorted by frame): the rows it gave an id. `capped`, when given, gets the detections
-    each frame left out (past max_boxes); `counts` the closed intervals."""
+    each frame left out (past max_boxes); `counts` the closed intervals; `relink`: through
+    the re-link pass."""
     by_frame: dict[int, list[MotRow]] = {}
     for r in rows:
         by_frame.setdefault(r.frame, []).append(r)
-    ft = FrameTracker(fps, config, counts is not None, interval_s)
+    ft = FrameTracker(fps, config, counts is not None, interval_s, relink)
     out = []
     for frame in sorted(by_frame):
         got = ft.feed(frame, by_frame[frame])
@@ -284,9 +325,10 @@ def track_rows(rows: Sequence[MotRow], fps: float, config: TrackerConfig | None 
         if counts is not None:
             counts += got.counts
         out += got.rows
+    last = ft.finish()
     if counts is not None:
-        counts += ft.finish()
-    return out
+        counts += last.counts
+    return out + last.rows
 
 
 def write_counts(path: Path, counts: Iterable[IntervalCounts]) -> None:
@@ -312,11 +354,13 @@ def track_file(det_path: Path, out_path: Path, fps: float | None = None,
                config: TrackerConfig | None = None, counts_path: Path | None = None,
                interval_s: float = DEFAULT_INTERVAL_S,
                progress: Callable[[ReadProgress], None] | None = None,
-               window: int = DEFAULT_FRAMES) -> TrackSummary:
+               window: int = DEFAULT_FRAMES, relink: RelinkConfig | None = None
+               ) -> TrackSummary:
     """Track a MOT detection file into a MOT track file (rows by frame, then id); fps None:
     from seqinfo.ini. With `counts_path`, the interval counts too (times in seconds from
     the first frame). Streams (the module's docstring): a row may come at most `window`
-    frames after a later frame's; `progress` is told after each frame."""
+    frames after a later frame's; `progress` is told after each frame; `relink`: ids
+    rewritten by the re-link pass (without it, or when it joins nothing, the same file)."""
     if fps is None:
         fps = read_fps(det_path)
     if not fps > 0:
@@ -325,28 +369,30 @@ def track_file(det_path: Path, out_path: Path, fps: float | None = None,
         raise MotFormatError(f"fps: expected {MIN_FPS:g} to {MAX_FPS:g}, got {fps:g}")
     stream = MotStream(det_path)
     total = stream.total_bytes()
-    ft = FrameTracker(fps, config, counts_path is not None, interval_s)
+    ft = FrameTracker(fps, config, counts_path is not None, interval_s, relink)
     order: FrameWindow[MotRow] = FrameWindow(window)
     intervals = 0
     paths = [out_path] if counts_path is None else [out_path, counts_path]
     with _Published(paths) as files, closing(stream.rows()) as rows:
         for frames in _frames(rows, order, det_path):
             for frame, dets in frames:
-                got = ft.feed(frame, dets)
-                files[0].write("".join(format_row(r) + "\n" for r in
-                                       sorted(got.rows, key=lambda r: r.id)).encode())
-                if counts_path is not None:
-                    files[1].write(b"".join(_count_line(c) for c in got.counts))
-                intervals += len(got.counts)
+                intervals += _write(files, ft.feed(frame, dets))
                 if progress is not None:
                     progress(ReadProgress(stream.bytes_read(), total, ft.frames,
                                           ft.detections))
-        closed = ft.finish()
-        if counts_path is not None:
-            files[1].write(b"".join(_count_line(c) for c in closed))
+        intervals += _write(files, ft.finish())
     return TrackSummary(frames=ft.frames, detections=ft.detections, tracked=ft.tracked,
-                        tracks=ft.tracks, fps=fps, capped=ft.capped,
-                        intervals=intervals + len(closed))
+                        tracks=ft.tracks, fps=fps, capped=ft.capped, intervals=intervals)
+
+
+def _write(files: list[IO[bytes]], got: Tracked) -> int:
+    """A Tracked's rows (by frame, then id) and counts (files[1], where given); the number
+    of counting intervals written."""
+    files[0].write("".join(format_row(r) + "\n" for r in
+                           sorted(got.rows, key=lambda r: (r.frame, r.id))).encode())
+    if len(files) > 1:
+        files[1].write(b"".join(_count_line(c) for c in got.counts))
+    return len(got.counts)
 
 
 def _frames(rows: Iterator[tuple[int, MotRow]], order: FrameWindow[MotRow], where: Path

@@ -59,6 +59,7 @@ from trapflow.synth.options import SynthOptions
 from trapflow.synth.render import World
 from trapflow.tracking.assign import iou_matrix
 from trapflow.tracking.motformat import MotRow, read_mot, track_rows
+from trapflow.tracking.relink import RelinkConfig
 from trapflow.tracking.tracker import TrackerConfig
 from trapflow.wire.messages import Truth
 
@@ -151,9 +152,9 @@ def make_sequence(seed: int, frames: int) -> SynthSequence:
 # --- trackers under test: detection rows -> track rows --------------------------------
 
 
-def run_trapflow(config: TrackerConfig, fps: float = FPS
+def run_trapflow(config: TrackerConfig, fps: float = FPS, relink: RelinkConfig | None = None
                  ) -> Callable[[list[MotRow]], list[MotRow]]:
-    return lambda dets: track_rows(dets, fps, config)
+    return lambda dets: track_rows(dets, fps, config, relink=relink)
 
 
 def run_greedy(dets: list[MotRow], iou_min: float = 0.3, conf_min: float = 0.3,
@@ -355,7 +356,8 @@ def evaluate_real(seqs: Sequence[RealSequence], fps: float, with_bytetrack: bool
     MaxN three ways; then per rate the pooled scores."""
     cfg = TrackerConfig()
     trackers: dict[str, Callable[[list[MotRow]], list[MotRow]]] = {
-        "trapflow": run_trapflow(cfg, fps)}
+        "trapflow": run_trapflow(cfg, fps),
+        "trapflow-relink": run_trapflow(cfg, fps, RelinkConfig())}
     if with_bytetrack:
         trackers["bytetrack"] = lambda d: run_bytetrack(d, tuned=False, fps=fps)
     per: dict[str, dict[str, dict[str, object]]] = {}
@@ -544,7 +546,9 @@ def main() -> None:
                     default=list(LIVE_SEEDS), help="comma-separated held-out seeds")
     args = ap.parse_args()
     trackers: dict[str, Callable[[list[MotRow]], list[MotRow]]] = {
-        "trapflow": run_trapflow(TrackerConfig()), "greedy-iou": run_greedy}
+        "trapflow": run_trapflow(TrackerConfig()),
+        "trapflow-relink": run_trapflow(TrackerConfig(), relink=RelinkConfig()),
+        "greedy-iou": run_greedy}
     import importlib.util
 
     if importlib.util.find_spec("trackers") is None:
@@ -563,7 +567,8 @@ def main() -> None:
         "detector": {"p_drop": P_DROP, "p_drop_occluded": P_DROP_OCCLUDED, "p_low": P_LOW,
                      "p_wrong_label": P_WRONG_LABEL, "jitter": JITTER,
                      "false_per_pair": FALSE_PER_PAIR},
-        "tracker_config": repr(TrackerConfig()), "splits": {}}
+        "tracker_config": repr(TrackerConfig()), "relink_config": repr(RelinkConfig()),
+        "splits": {}}
     for split, seeds in splits.items():
         seqs = [make_sequence(s, args.frames) for s in seeds]
         res = evaluate(seqs, trackers)

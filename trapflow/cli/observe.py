@@ -13,9 +13,12 @@ from trapflow.cli.outputs import In, Out, check_outputs, force_option
 from trapflow.config.schema import ObserveConfig
 from trapflow.errors import TrapflowError
 from trapflow.tracking.motformat import ReadProgress, track_file
+from trapflow.tracking.relink import RelinkConfig
 from trapflow.tracking.stage import tracker_config
 
 PROGRESS_EVERY_S = 5.0  # a long file says how far it has come this often, on stderr
+# The re-link pass is on by default only where it helped every set (docs/benchmarks.md).
+RELINK_DEFAULT = True
 
 
 def progress_line(p: ReadProgress, elapsed_s: float) -> str:
@@ -58,9 +61,17 @@ class _Progress:
 @click.option("--interval", "interval_s", type=click.FloatRange(min=0, min_open=True),
               default=ObserveConfig().interval_s, show_default=True,
               help="Seconds per counting interval, from the first frame (observe.interval_s).")
+@click.option("--relink/--no-relink", default=RELINK_DEFAULT, show_default=True,
+              help="Join a track that ended to one that began at most --relink-gap seconds "
+                   "later where its motion led, same class (its rows are written with the "
+                   "first one's id; the counts are the tracker's).")
+@click.option("--relink-gap", "relink_gap_s", type=click.FloatRange(min=0, min_open=True),
+              default=RelinkConfig().max_gap_s, show_default=True,
+              help="Longest gap, in seconds, between two tracks the re-link pass joins.")
 @force_option()
 def track(detections: Path, out: Path, fps: float | None, max_boxes: int,
-          counts: Path | None, interval_s: float, force: bool) -> None:
+          counts: Path | None, interval_s: float, relink: bool, relink_gap_s: float,
+          force: bool) -> None:
     """Track DETECTIONS (MOTChallenge `frame,-1,x,y,w,h,conf[,class]`, sorted by frame;
     a row may come up to 64 frames late) into tracks with ids, with the tracker of a live
     run (observe defaults), and write the counts a live run writes. MaxN is the most
@@ -79,7 +90,8 @@ def track(detections: Path, out: Path, fps: float | None, max_boxes: int,
         summary = track_file(detections, out, fps,
                              tracker_config(ObserveConfig(max_boxes=max_boxes)),
                              counts_path=counts, interval_s=interval_s,
-                             progress=_Progress())
+                             progress=_Progress(),
+                             relink=RelinkConfig(max_gap_s=relink_gap_s) if relink else None)
     except TrapflowError as exc:
         raise bad_input(exc) from None
     click.echo(f"{summary.detections} detections in {summary.frames} frames at "

@@ -45,9 +45,9 @@ class RelinkConfig:
 
     max_gap_s: float = 1.0
     """Longest time from a piece's last box to the next piece's first box."""
-    gate: float = 1.0
+    gate: float = 3.0
     """Largest miss of a join across no gap, in box sides."""
-    gate_per_s: float = 1.0
+    gate_per_s: float = 4.0
     """Added to the gate per second of gap, in box sides."""
     velocity_s: float = 0.5
     """A piece's end (start) velocity is fitted to its boxes of its last (first) this

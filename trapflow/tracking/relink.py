@@ -41,7 +41,8 @@ SIZE_RATIO = 2.0
 @dataclass(frozen=True)
 class RelinkConfig:
     """Limits of a join; defaults chosen on the synthetic development seeds and the crocea
-    set together (docs/benchmarks.md, "Tracking")."""
+    set together (docs/benchmarks.md, "Tracking"; the pass is off by default in `trapflow
+    track`: it lost on the held-out synthetic worlds)."""
 
     max_gap_s: float = 1.0
     """Longest time from a piece's last box to the next piece's first box."""

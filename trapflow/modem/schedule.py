@@ -56,8 +56,8 @@ REPLY_AIRTIME_SHARE = 0.2
 to go: four recorded command frames replayed once a second took 101 % of a 300 bit/s link
 and no data frame got out (issue 36 item 2). Over it, the next DATA frame goes first.
 Repeated replies count in it and are held to REPEAT_AIRTIME_SHARE, so the replies to new
-commands keep the difference (15 %) however many replayed frames arrive."""
-REPEAT_AIRTIME_SHARE = 0.05
+commands keep the difference (10 %) however many replayed frames arrive."""
+REPEAT_AIRTIME_SHARE = 0.1
 """Budget or not, repeated replies take at most this share of the air time; beyond it one is
 dropped (the surface asks again if it still waits)."""
 BURST_FRAMES = 1

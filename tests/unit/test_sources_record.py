@@ -71,7 +71,7 @@ def test_results_ahead_of_their_pair_take_its_capture_time_and_order(tmp_path: P
                 for t, m in got["/trapflow/results/mono_ir"]]
     assert [(b["seq"], b["confidence"]) for _, b in recorded] == [
         (0, 0.9), (0, 0.5), (1, 0.8), (2, 0.7)]
-    left = header(0).t_left_ns - header(0).t_mono_ns
-    assert recorded[0][0] == recorded[1][0] == header(0).t_wall_ns + left
+    # A pair's results at its capture time (t_wall_ns, the left image's stamp).
+    assert recorded[0][0] == recorded[1][0] == header(0).t_wall_ns
     assert recorded[2][0] == 1_751_892_763_120_000_000  # its own timestamp: no pair to take
-    assert recorded[3][0] == header(2).t_wall_ns + left
+    assert recorded[3][0] == header(2).t_wall_ns

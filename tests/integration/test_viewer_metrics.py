@@ -113,7 +113,7 @@ def test_view_attaches_to_a_running_pipeline(spawn, run_dir: Path, started_procs
         if n["name"] in ("broker", "normalizer"):
             assert n["counters"].get("refused_subscriptions", 0) == 0, n
     view.send_signal(signal.SIGINT)
-    assert view.wait(10) == 0
+    assert view.wait(30) == 0  # a loaded 2-core machine took over 10 s
     assert p.status() is not None, "detaching the viewer disturbed the pipeline"
     code, _, err = p.stop()
     assert code == 0, err

@@ -111,8 +111,8 @@ def test_utc_and_iso_agree_with_results_labels() -> None:
 
 def test_a_tracks_best_frame_has_one_row_when_two_events_hold_its_image(tmp_path: Path) -> None:
     """A pair whose left image two event folders hold (events that overlap, a restarted
-    events node): media.csv lists it in both, the track's best frame is one row (the first
-    event's), as Camtrap DP has one media-level row per track's best view."""
+    events node): media.csv lists it once (the first event's), and the track's best frame
+    is one row, as Camtrap DP has one media-level row per track's best view."""
     line = {"mono_ir": {"timestamp": "2026-11-29 01:00:00.500", "seq": 5, "label": "crab",
                         "confidence": 0.9, "box": [1.0, 2.0, 11.0, 12.0], "track": 1, "v": 2}}
     (tmp_path / "results.jsonl").write_text(json.dumps(line) + "\n")
@@ -125,6 +125,6 @@ def test_a_tracks_best_frame_has_one_row_when_two_events_hold_its_image(tmp_path
         cv2.imwrite(str(tmp_path / "events" / ev / "left" / "5.jpg"),
                     np.zeros((24, 32, 3), np.uint8))
     rows = build_rows(tmp_path, Deployment(latitude=0.0, longitude=0.0))
-    assert len(rows.media) == 2
+    assert [m["mediaID"] for m in rows.media] == ["ev-a-5"]
     frames = [o for o in rows.observations if o["observationLevel"] == "media"]
     assert [(o["eventID"], o["mediaID"]) for o in frames] == [("track-1", "ev-a-5")]

@@ -119,15 +119,21 @@ def _size(jpg: Path) -> tuple[int, int]:
 
 def _media(events: Path, times: dict[int, dt.datetime],
            dep_id: str) -> tuple[list[dict[str, Any]], list[obs.Frame], list[tuple[Path, str]]]:
-    """media.csv's rows: the left image of every pair with a result in the event folders."""
+    """media.csv's rows: the left image of every pair with a result in the event folders,
+    once per pair: a pair two event folders hold (events that overlap) is the first's, so
+    its boxes are not counted twice."""
     media: list[dict[str, Any]] = []
     frames: list[obs.Frame] = []
     files: list[tuple[Path, str]] = []
+    listed: set[int] = set()
     for ev in sorted(p for p in events.glob("*") if (p / "left").is_dir()):
         for jpg in sorted((ev / "left").glob("*.jpg")):
             if not jpg.stem.isdigit() or int(jpg.stem) not in times:
                 continue  # a pair without a result: no time to give it
             seq = int(jpg.stem)
+            if seq in listed:
+                continue
+            listed.add(seq)
             media_id = f"{ev.name}-{seq}"
             rel = f"media/{ev.name}/{jpg.name}"
             files.append((jpg, rel))

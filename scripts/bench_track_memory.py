@@ -21,16 +21,9 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.kits
-from tests.kits.motgen import write_detections
+from tests.kits.motgen import PEAK_CHILD, write_detections
 
-CHILD = """
-import resource, runpy, sys
-sys.argv = ["trapflow", *sys.argv[1:]]
-try:
-    runpy.run_module("trapflow", run_name="__main__")
-finally:
-    print("peak_kib", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)
-"""
+CHILD = PEAK_CHILD  # the real CLI, saying its peak memory as it exits
 
 
 def main() -> None:

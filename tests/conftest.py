@@ -57,6 +57,27 @@ def modem_cli(*args: str) -> subprocess.Popen[bytes]:
 MODEM_SEND_ARGS = ["--bit-rate", "19200", "--ack-timeout", "0.4", "--no-aggregate", "--no-ttl"]
 
 
+def run_sender_until(outbox: Path, cfg: Any, done: Callable[[], Any], timeout: float,
+                     what: str) -> tuple[float, dict[str, Any]]:
+    """The box's sender (a ModemConfig `cfg`) in a thread of this process until done()
+    holds: the seconds it took and the sender's stats then."""
+    import threading
+
+    from trapflow.modem.sender import ModemSender
+
+    sender = ModemSender(outbox, cfg.port, cfg)
+    halt = threading.Event()
+    thread = threading.Thread(target=sender.run, args=(halt,))
+    thread.start()
+    started = time.monotonic()
+    try:
+        poll_for(done, timeout, what=what)
+        return time.monotonic() - started, sender.stats()
+    finally:
+        halt.set()
+        thread.join(timeout=10)
+
+
 def modem_link(tmp: Path, procs: list[subprocess.Popen[bytes]], seed: int,
                bit_rate: str = "19200", loss: str = "0.1") -> None:
     """The link simulator (latency 0.05 s) between the pseudo-terminals tmp/a (the box's

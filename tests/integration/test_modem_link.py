@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 
-from tests.conftest import modem_cli, poll_for
+from tests.conftest import modem_cli, poll_for, run_sender_until
 from trapflow.config.modem import ModemConfig, OutboxConfig
 from trapflow.modem.outbox import Outbox
 from trapflow.modem.sender import ModemSender
@@ -82,18 +82,8 @@ def test_300_bits_10_percent_loss(
                       bytes_per_hour=3000, ack_timeout_s=1.5, ttl_s={"stereo_vo": 3.0},
                       aggregate=["mono_ir/*"], aggregate_interval_s=1.0, aggregate_backlog=4,
                       reopen_interval_s=0.5)  # fmt: skip
-    sender = ModemSender(tmp_path / "outbox.sqlite", cfg.port, cfg)
-    halt = threading.Event()
-    thread = threading.Thread(target=sender.run, args=(halt,))
-    thread.start()
-    started = time.monotonic()
-    try:
-        poll_for(lambda: box.counts()[2] == 0, 90, what="the outbox to drain")
-        elapsed = time.monotonic() - started
-        stats = sender.stats()
-    finally:
-        halt.set()
-        thread.join(timeout=10)
+    elapsed, stats = run_sender_until(tmp_path / "outbox.sqlite", cfg,
+                                      lambda: box.counts()[2] == 0, 90, "the outbox to drain")
     surface_stats = stop(surface)
     sim_stats = stop(started_procs[0])
     got = lines_of(out)

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import logging
 import subprocess
-import threading
-import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -19,13 +17,12 @@ import numpy as np
 import pytest
 
 from tests import builders
-from tests.conftest import modem_cli, poll_for
+from tests.conftest import modem_cli, run_sender_until
 from tests.integration.test_modem_link import lines_of, start_sim, stop
 from trapflow.config.modem import ModemConfig, OutboxConfig
 from trapflow.config.schema import ObserveConfig, ReviewConfig, from_data
 from trapflow.modem import thumb
 from trapflow.modem.outbox import Outbox
-from trapflow.modem.sender import ModemSender
 from trapflow.normalizer.node import NormalizerNode
 from trapflow.normalizer.result_json import normalize
 from trapflow.plugin import Pair
@@ -83,18 +80,9 @@ def test_a_queued_tracks_thumbnail_reaches_the_surface_and_decodes(
     started_procs.append(surface)
     cfg = ModemConfig(enabled=True, port=str(tmp_path / "a"), bit_rate=300.0,
                       ack_timeout_s=1.5, reopen_interval_s=0.5)
-    sender = ModemSender(tmp_path / "outbox.sqlite", cfg.port, cfg)
-    halt = threading.Event()
-    thread = threading.Thread(target=sender.run, args=(halt,))
-    thread.start()
-    started = time.monotonic()
-    try:
-        poll_for(lambda: box.counts()[2] == 0, 70, what="the thumbnail to be acknowledged")
-        elapsed = time.monotonic() - started
-        stats = sender.stats()
-    finally:
-        halt.set()
-        thread.join(timeout=10)
+    elapsed, stats = run_sender_until(tmp_path / "outbox.sqlite", cfg,
+                                      lambda: box.counts()[2] == 0, 70,
+                                      "the thumbnail to be acknowledged")
     surface_stats = stop(surface)
     box.close()
 

@@ -70,3 +70,15 @@ def write_detections(path: Path, size_bytes: int, seed: int = 0, fps: float = 30
                         or not -a.h < a.y < HEIGHT):
                     live[i] = _spawn(rng, fps)
     return frame
+
+
+# `python -c PEAK_CHILD ARGS...` runs the real trapflow CLI with ARGS and, as it exits, says
+# its peak resident memory on stderr (`peak_kib N`, KiB on Linux).
+PEAK_CHILD = """
+import resource, runpy, sys
+sys.argv = ["trapflow", *sys.argv[1:]]
+try:
+    runpy.run_module("trapflow", run_name="__main__")
+finally:
+    print("peak_kib", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)
+"""

@@ -16,19 +16,11 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import REPO
-from tests.kits.motgen import write_detections
+from tests.kits.motgen import PEAK_CHILD, write_detections
 from trapflow.tracking.motformat import format_row, read_mot, track_rows
 
 SMALL = 700_000  # bytes of the small file; the large one has eight times as many
-# The child runs the real CLI and says its peak resident memory (KiB, Linux) as it exits.
-CHILD = """
-import resource, runpy, sys
-sys.argv = ["trapflow", *sys.argv[1:]]
-try:
-    runpy.run_module("trapflow", run_name="__main__")
-finally:
-    print("peak_kib", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)
-"""
+CHILD = PEAK_CHILD  # the real CLI, saying its peak memory as it exits
 
 
 def _track(det: Path, out: Path) -> int:

@@ -342,3 +342,34 @@ def test_replayed_commands_leave_data_flowing_budget_or_not(budget: int) -> None
     assert reply_share <= 0.20 and REPLY_AIRTIME_SHARE <= 0.20
     assert repeat_share <= REPEAT_AIRTIME_SHARE + burst
     assert data >= 20 and replies >= 4  # every frame's first answer went out
+
+
+@pytest.mark.parametrize("repeat", [False, True])
+def test_a_reply_longer_than_the_burst_still_goes_out(repeat: bool) -> None:
+    """Regression: a status reply (about 200 bytes) is longer than the shares' burst (one
+    data frame of the default 96-byte payload). The share let a frame through only with its
+    whole air time in the bucket, which never holds more than the burst: with data always
+    waiting such a reply never went out, and its repeats were all dropped, so one lost
+    reply lost the command (a CI run's status command timed out after 60 s at 25 % loss).
+    Now it goes once the bucket is full, and pays its air time back before the next."""
+    s = Schedule(ModemConfig(bit_rate=9600.0, window=2), SESSION, [])
+    cs = classes([(0, [(i, 10) for i in range(1, 2000)], [])])
+    big = OutReply(bytes(200), repeat)
+    t, sent_at = NOW, []
+    while t < NOW + 20.0:
+        d = s.next(t, WALL, [big], 0, cs, 0)
+        assert not isinstance(d, DropReply) or t - (sent_at or [NOW])[-1] < 5.0
+        if isinstance(d, SendReply):
+            sent_at.append(t)
+            s.on_air(len(d.wire), t, WALL, d.repeat, reply=True)
+        elif isinstance(d, SendData):
+            for c, _ in d.batch:
+                c.queue.popleft()
+            s.on_air(len(d.wire), t, WALL)
+        t = max(t + 0.01, s.link_free_at)
+    airtime = s.airtime(len(frame(REPLY, bytes(200))))
+    share = REPEAT_AIRTIME_SHARE if repeat else REPLY_AIRTIME_SHARE
+    assert sent_at, "the long reply never went out"
+    # Within its share over the 20 s: the first at once, then one per air time / share.
+    assert len(sent_at) <= 1 + 20.0 * share / airtime + 1
+    assert len(sent_at) >= 20.0 * share / airtime - 1

@@ -178,8 +178,12 @@ def pack(classes: Iterable[ClassQueue], head_bytes: int, low: int, max_payload: 
 
 class AirShare:
     """A share of the link's air time, as a bucket of air seconds: it fills at `share`
-    seconds per second up to `burst_s`; a frame takes its air time out (down to -burst_s,
-    so one let through while nothing else waited is paid back). Monotonic time only."""
+    seconds per second up to `burst_s`; a frame takes its air time out (down to minus the
+    larger of the burst and the frame, so one let through while nothing else waited is
+    paid back). A frame longer than the burst goes once the bucket is full: were it held
+    to its whole air time it would never go (a status reply is longer than one data frame,
+    and its retransmissions' answers were all dropped, so one lost reply lost the command).
+    Monotonic time only."""
 
     def __init__(self, share: float, burst_s: float) -> None:
         self.share = share
@@ -195,11 +199,11 @@ class AirShare:
     def allows(self, airtime: float, now: float) -> bool:
         """Whether a frame of this air time is within the share now."""
         self._fill(now)
-        return self.credit >= airtime
+        return self.credit >= min(airtime, self.burst_s)
 
     def spend(self, airtime: float, now: float) -> None:
         self._fill(now)
-        self.credit = max(-self.burst_s, self.credit - airtime)
+        self.credit = max(-max(self.burst_s, airtime), self.credit - airtime)
 
 
 class Schedule:

@@ -36,7 +36,9 @@ def test_trigger_keeps_preroll_and_postroll_pairs(spawn, run_dir: Path) -> None:
     info = json.loads((ev / "event.json").read_text())
     lefts = sorted((ev / "left").glob("*.jpg"))
     rights = sorted((ev / "right").glob("*.jpg"))
-    assert info["pairs"] == len(lefts) == len(rights) >= 10
+    seen = {d.name: (json.loads((d / "event.json").read_text()) if (d / "event.json").exists()
+                     else None) for d in events}
+    assert info["pairs"] == len(lefts) == len(rights) >= 10, (len(lefts), len(rights), seen)
     assert [f.name for f in lefts] == [f.name for f in rights]
     assert cv2.imread(str(lefts[0])).shape == (240, 320, 3)
     assert info["results"] >= 1 and (ev / "results.jsonl").read_text().count("stereo_ir") >= 1

@@ -75,7 +75,8 @@ def attach_viewer(run_dir: Path, started: list[subprocess.Popen[bytes]],
     out = subprocess.DEVNULL if quiet else subprocess.PIPE
     view = subprocess.Popen(
         [sys.executable, "-m", "trapflow", "view", "--run-dir", str(run_dir), "--listen",
-         f"127.0.0.1:{port}"], stdout=out, stderr=out, cwd=REPO)
+         f"127.0.0.1:{port}"], stdout=out, stderr=out, cwd=REPO,
+        env={**os.environ, "PYTHONFAULTHANDLER": "1"})  # SIGABRT dumps its threads' stacks
     started.append(view)
     use_token(port, run_dir)
     return view, port

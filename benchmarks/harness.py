@@ -121,7 +121,10 @@ class Figure:
 
 
 def figure(s: Summary, unit: str = "", scale: float = 1.0, digits: int = 2) -> Figure:
-    """A summary as a figure, its values times scale (seconds to ms: 1000)."""
+    """A summary as a figure, its values times scale (seconds to ms: 1000); one sample has
+    no spread to show."""
+    if s.n < 2:
+        return Figure(round(s.median * scale, digits + 2), unit, digits=digits)
     return Figure(round(s.median * scale, digits + 2), unit, round(s.low * scale, digits + 2),
                   round(s.high * scale, digits + 2), digits)
 

@@ -109,7 +109,7 @@ if [ "$QUICK" = 1 ]; then
   echo "[bench] cpu per pair by role and the VO floor (quick)" >&2
   "$PY" scripts/bench_cpu.py --quick --out "$OUT" > /dev/null
   echo "[bench] JPEG decode (quick)" >&2
-  "$PY" scripts/bench_decode.py --repeats 10 --out "$OUT" > /dev/null
+  "$PY" -m benchmarks.decode --quick --out "$OUT" > /dev/null
   echo "[bench] stereo VO against the plugin before issue 27 (quick)" >&2
   "$PY" scripts/bench_vo.py --pairs 40 --no-drift --out "$OUT" > /dev/null
   { echo "# trapflow benchmark (quick), $(date -u '+%Y-%m-%d %H:%M UTC'), $(nproc) cores"
@@ -135,12 +135,10 @@ if want remote; then
   "$PY" scripts/bench_remote.py --out "$OUT" > /dev/null
 fi
 if want shm; then
-  for part in bench_shm bench_synth; do
-    if [ -f "scripts/$part.py" ]; then
-      echo "[bench] $part" >&2
-      "$PY" "scripts/$part.py" --out "$OUT" > /dev/null
-    fi
-  done
+  echo "[bench] bench_shm" >&2
+  "$PY" scripts/bench_shm.py --out "$OUT" > /dev/null
+  echo "[bench] synth" >&2
+  "$PY" -m benchmarks.synth --out "$OUT" > /dev/null
 fi
 if want cpu; then
   echo "[bench] cpu per pair by role and the VO floor" >&2
@@ -148,7 +146,7 @@ if want cpu; then
 fi
 if want decode; then
   echo "[bench] JPEG decode" >&2
-  "$PY" scripts/bench_decode.py --out "$OUT" > /dev/null
+  "$PY" -m benchmarks.decode --out "$OUT" > /dev/null
 fi
 if want vo; then
   echo "[bench] stereo VO against the plugin before issue 27" >&2
@@ -172,7 +170,7 @@ if want viewer; then
 fi
 if want modem; then
   echo "[bench] modem link" >&2
-  "$PY" scripts/bench_modem.py --out "$OUT/modem.json" > "$OUT/modem.txt"
+  "$PY" -m benchmarks.modem --out "$OUT" > /dev/null
 fi
 if want tracking; then
   echo "[bench] tracking (held-out synthetic sequences, offline and in live runs)" >&2
@@ -201,10 +199,10 @@ fresh() { [ -f "$1" ] && [ "$(stat -c %Y "$1")" -ge "$started" ]; }
   echo
   for md in "$OUT"/transport.md "$OUT"/peers.md "$OUT"/remote.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/cpu.md \
             "$OUT"/decode.md "$OUT"/bench_vo.md "$OUT"/bench_algorithms.md "$OUT"/quantize_detector.md \
-            "$OUT"/process.md "$OUT"/viewer.md; do
+            "$OUT"/process.md "$OUT"/viewer.md "$OUT"/modem.md; do
     if fresh "$md"; then cat "$md"; echo; fi
   done
-  for part in modem tracking measure gate recycle; do
+  for part in tracking measure gate recycle; do
     if fresh "$OUT/$part.txt"; then
       echo "## ${part^}"
       echo

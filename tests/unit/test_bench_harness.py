@@ -56,6 +56,7 @@ def test_figure_scales_a_summary() -> None:
     f = h.figure(h.summarise([0.001, 0.002, 0.004]), "ms", scale=1000, digits=1)
     assert (f.value, f.low, f.high, f.unit) == (2.0, 1.0, 4.0, "ms")
     assert h.cell(f) == "2.0 [1.0-4.0]"
+    assert h.cell(h.figure(h.summarise([0.5]), "s")) == "0.50"  # one run: no spread
 
 
 def _result() -> h.Result:

@@ -1,13 +1,12 @@
 """Modem link bench: bytes per result (JSON vs link encoding), results per hour, outbox append rate.
 
-Writes a JSON file (default bench-results/modem.json) and prints a table.
-Usage: python scripts/bench_modem.py [--out PATH] [--bit-rate 300] [--appends 2000]
+Usage: python -m benchmarks.modem [--quick] [--repeats 3] [--out bench-results]
+       [--bit-rate 300] [--bytes-per-hour 0] [--appends 2000]
+Writes modem.json and modem.md into the output folder and prints the tables.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import tempfile
 import time
@@ -16,6 +15,7 @@ from typing import Any
 
 import msgspec
 
+from benchmarks import harness as h
 from trapflow.config.modem import BITS_PER_BYTE, ModemConfig, OutboxConfig
 from trapflow.modem.codec import LinkCodec
 from trapflow.modem.frame import OVERHEAD, message_cost
@@ -64,9 +64,42 @@ def append_rate(n: int, fsync_interval_s: float) -> dict[str, float]:
     return {"appends_per_s": round(n / elapsed, 1), "fsyncs": syncs, "n": n}
 
 
+def per_kind(cfg: ModemConfig, budget: float) -> h.Result:
+    """Bytes per result as JSON and in the link encoding, and results per hour."""
+    codec = LinkCodec(cfg.labels)
+    r = h.Result("modem", f"Modem link: {cfg.bit_rate:g} bit/s, budget {budget:.0f} B/h, "
+                 f"frames up to {cfg.max_frame_payload} B payload", key="kind",
+                 notes=["on air: link bytes per result with frames packed full of results "
+                        "of this kind; results/h within the budget."],
+                 data={"bit_rate": cfg.bit_rate, "budget_bytes_per_hour": budget,
+                       "max_frame_payload": cfg.max_frame_payload})
+    for kind, rec in SAMPLES.items():
+        js = len(msgspec.json.encode(rec)) + 1  # one JSON line
+        link = len(codec.encode(rec))
+        air = on_air(link, cfg)
+        r.add(kind, json=h.Figure(js, "B"), link=h.Figure(link, "B"),
+              ratio=h.Figure(round(js / link, 2)), **{
+                  "on air": h.Figure(round(air, 1), "B", digits=1),
+                  "results/h": h.Figure(int(budget / air)),
+                  "JSON results/h": h.Figure(int(budget / js))})
+    return r
+
+
+def appends(n: int, repeats: int) -> h.Result:
+    """The outbox's append rate, fsync once a second and after every append."""
+    r = h.Result("modem", "Outbox appends", key="fsync",
+                 notes=[f"Median of {repeats} runs [min-max]."])
+    for name, n_runs, interval in (("interval 1 s", n, 1.0),
+                                   ("every append", max(50, n // 10), 1e-9)):
+        runs = [append_rate(n_runs, interval) for _ in range(repeats)]
+        r.add(name, appends=h.figure(h.summarise([x["appends_per_s"] for x in runs]), "/s",
+                                     digits=0),
+              fsyncs=h.Figure(int(runs[0]["fsyncs"])), n=h.Figure(n_runs))
+    return r
+
+
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--out", type=Path, default=Path("bench-results/modem.json"))
+    ap = h.options(__doc__, repeats=3, quick_help="a tenth of the appends")
     ap.add_argument("--bit-rate", type=float, default=300.0)
     ap.add_argument("--bytes-per-hour", type=int, default=0, help="0: the link's capacity")
     ap.add_argument("--appends", type=int, default=2000)
@@ -74,42 +107,10 @@ def main() -> None:
     cfg = ModemConfig(bit_rate=args.bit_rate, bytes_per_hour=args.bytes_per_hour)
     capacity = cfg.bit_rate / BITS_PER_BYTE * 3600
     budget = min(capacity, cfg.bytes_per_hour) if cfg.bytes_per_hour else capacity
-    codec = LinkCodec(cfg.labels)
-    rows = {}
-    print(f"link {cfg.bit_rate:g} bit/s = {capacity:.0f} B/h; budget {budget:.0f} B/h; "
-          f"frames up to {cfg.max_frame_payload} B payload")  # fmt: skip
-    print(
-        f"{'kind':<10} {'json B':>7} {'link B':>7} {'ratio':>6} {'on air B':>9} {'results/h':>10}"
-    )
-    for kind, rec in SAMPLES.items():
-        js = len(msgspec.json.encode(rec)) + 1  # one JSON line
-        link = len(codec.encode(rec))
-        air = on_air(link, cfg)
-        rows[kind] = {"json_bytes": js, "link_bytes": link, "ratio": round(js / link, 2),
-                      "on_air_bytes": round(air, 1), "results_per_hour": int(budget / air),
-                      "json_results_per_hour": int(budget / js)}  # fmt: skip
-        r = rows[kind]
-        print(
-            f"{kind:<10} {js:>7} {link:>7} {r['ratio']:>6} {air:>9.1f} {r['results_per_hour']:>10}"
-        )
-    rates = {
-        "fsync_interval_1s": append_rate(args.appends, 1.0),
-        "fsync_every_append": append_rate(max(50, args.appends // 10), 1e-9),
-    }
-    for name, r in rates.items():
-        print(
-            f"outbox append, {name}: {r['appends_per_s']:.0f}/s ({r['fsyncs']} fsyncs, n={r['n']})"
-        )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    result = {
-        "bit_rate": cfg.bit_rate,
-        "budget_bytes_per_hour": budget,
-        "max_frame_payload": cfg.max_frame_payload,
-        "per_kind": rows,
-        "outbox": rates,
-    }
-    args.out.write_text(json.dumps(result, indent=2))
-    print(f"wrote {args.out}")
+    n = max(100, args.appends // 10) if args.quick else args.appends
+    results = [per_kind(cfg, budget), appends(n, args.repeats)]
+    h.write(args.out, "modem", results)
+    print(h.markdown(results))
 
 
 if __name__ == "__main__":

@@ -26,10 +26,10 @@ from trapflow.wire import messages
 
 
 def vo_line(reinit: bool = False, ok: bool = True) -> dict[str, Any]:
-    """A VO line as the normalizer writes it (trapflow.normalizer.result_json), with Rt (when ok)
-    and pose: a small step about a skew axis, a pose far from the start (a large turn, metres
-    away)."""
-    from trapflow.normalizer.result_json import normalize
+    """A VO line as the normalizer gives it to the modem (trapflow.normalizer.result_json:
+    its results.jsonl line without `pool`), with Rt (when ok) and pose: a small step about a
+    skew axis, a pose far from the start (a large turn, metres away)."""
+    from trapflow.normalizer.result_json import link_record, normalize
 
     step = cv2.Rodrigues(np.array([0.0031, -0.0122, 0.0007]))[0]
     pose = np.hstack([cv2.Rodrigues(np.array([0.4, -1.9, 0.25]))[0],
@@ -38,8 +38,8 @@ def vo_line(reinit: bool = False, ok: bool = True) -> dict[str, Any]:
                              translation=(0.0123456789, -0.0031234, 0.1987654321),
                              pose=tuple(pose.ravel()), inliers=143 if ok else 3,
                              reinit=reinit, calib="0a1b2c3d")
-    line = normalize(result(body, seq=1234567, t_wall_ns=1_764_000_000_123_000_000,
-                            pool="vo"))[0]
+    line = link_record(normalize(result(body, seq=1234567, t_wall_ns=1_764_000_000_123_000_000,
+                                        pool="vo"))[0])
     assert ("Rt" in line["stereo_vo"]) == ok and "pose" in line["stereo_vo"]
     return line
 

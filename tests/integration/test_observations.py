@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import REPO, Pipeline, only_pools, write_config
+from trapflow.normalizer.result_json import SCHEMA_VERSION
 from trapflow.tracking.motformat import read_mot
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
@@ -60,7 +61,7 @@ def test_a_run_tracks_counts_and_measures(tmp_path: Path, run_dir: Path,
     boxes = [d for d in lines if d["label"] != "none"]
     assert boxes, "the detector found nothing"
     assert all("track" in d for d in boxes)  # every detection line says its track
-    assert all(d["v"] == 2 and list(d)[-1] == "v" for d in lines)
+    assert all(d["v"] == SCHEMA_VERSION and list(d)[-1] == "v" for d in lines)
     tracked = [d for d in boxes if d["track"] is not None]
     # Weak boxes (below observe.high, 0.5) only extend tracks, so clutter stays untracked;
     # confident boxes belong to tracks, but for each track's first one (null until confirmed).

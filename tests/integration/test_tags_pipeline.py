@@ -11,6 +11,7 @@ import pytest
 from tests.conftest import Pipeline, write_config
 from tests.kits.scenes import pose, rot_x, tag_image
 from trapflow.calibration.camera import StereoRig
+from trapflow.normalizer.result_json import SCHEMA_VERSION
 
 pytestmark = pytest.mark.slow  # starts whole pipelines
 
@@ -53,7 +54,7 @@ def test_every_processed_pair_writes_a_tags_line(spawn, run_dir: Path) -> None:
             assert [g["id"] for g in got] == [TAGGED[seq]]
         else:
             assert got == [{"timestamp": got[0]["timestamp"], "seq": seq, "corners": [],
-                            "calib": calib, "v": 2}]
+                            "calib": calib, "pool": "tags", "v": SCHEMA_VERSION}]
 
 
 @pytest.mark.timeout(90)

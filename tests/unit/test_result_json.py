@@ -9,7 +9,13 @@ import numpy as np
 import pytest
 
 from tests import builders
-from trapflow.normalizer.result_json import SCHEMA_VERSION, dumps, normalize, timestamp
+from trapflow.normalizer.result_json import (
+    SCHEMA_VERSION,
+    dumps,
+    link_record,
+    normalize,
+    timestamp,
+)
 from trapflow.wire import messages
 
 T = 1751892763120000000  # 2025-07-07 12:52:43.120 UTC
@@ -18,7 +24,7 @@ GOLDEN = [
     (messages.MonoIR(detections=[messages.Detection(label="crab", confidence=0.71234,
                                                     box=(5.43, 7.81, 15.6, 18.14))]),
      '{"mono_ir":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"label":"crab",'
-     '"confidence":0.712,"box":[5.4,7.8,15.6,18.1],"v":2}}'),
+     '"confidence":0.712,"box":[5.4,7.8,15.6,18.1],"pool":"mono","v":3}}'),
     # Measured on the stereo pair: metres to the millimetre, the method named.
     (messages.MonoIR(detections=[messages.Detection(
         label="crab", confidence=0.9, box=(5.0, 7.0, 15.0, 18.0), range_m=1.23456,
@@ -27,27 +33,28 @@ GOLDEN = [
      '{"mono_ir":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"label":"crab",'
      '"confidence":0.9,"box":[5.0,7.0,15.0,18.0],"range_m":1.235,"range_sd_m":0.012,'
      '"length_m":0.2,"length_sd_m":0.008,"xyz":[0.1,-0.2,1.2],"disparity_px":97.65,'
-     '"length_method":"endpoints","v":2}}'),
+     '"length_method":"endpoints","pool":"mono","v":3}}'),
     # Not measured: no numbers, the reason instead.
     (messages.MonoIR(detections=[messages.Detection(
         label="crab", confidence=0.9, box=(5.0, 7.0, 15.0, 18.0), unmeasured="out_of_view")]),
      '{"mono_ir":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"label":"crab",'
-     '"confidence":0.9,"box":[5.0,7.0,15.0,18.0],"unmeasured":"out_of_view","v":2}}'),
+     '"confidence":0.9,"box":[5.0,7.0,15.0,18.0],"unmeasured":"out_of_view","pool":"mono","v":3}}'),
     (messages.MonoIR(),
      '{"mono_ir":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"label":"none",'
-     '"confidence":0.0,"box":[],"v":2}}'),
+     '"confidence":0.0,"box":[],"pool":"mono","v":3}}'),
     (messages.StereoIR(label="scallop", confidence=0.9),
      '{"stereo_ir":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"label":"scallop",'
-     '"confidence":0.9,"v":2}}'),
+     '"confidence":0.9,"pool":"mono","v":3}}'),
     (messages.StereoVO(ok=True, rotation=(1, 0, 0, 0, 1, 0, 0, 0, 1), translation=(0.1, 0, 0.25),
                        inliers=120),
      '{"stereo_vo":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"ok":true,"inliers":120,'
-     '"Rt":[[1.0,0.0,0.0,0.1],[0.0,1.0,0.0,0.0],[0.0,0.0,1.0,0.25]],"v":2}}'),
+     '"Rt":[[1.0,0.0,0.0,0.1],[0.0,1.0,0.0,0.0],[0.0,0.0,1.0,0.25]],"pool":"mono","v":3}}'),
     (messages.StereoVO(ok=False, reinit=True),
      '{"stereo_vo":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"ok":false,"inliers":0,'
-     '"reinit":true,"v":2}}'),
+     '"reinit":true,"pool":"mono","v":3}}'),
     (messages.Extra(name="brightness", fields={"mean": 0.123456, "n": 3}),
-     '{"brightness":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"mean":0.123,"n":3,"v":2}}'),
+     '{"brightness":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"mean":0.123,"n":3,'
+     '"pool":"mono","v":3}}'),
 ]
 
 
@@ -77,11 +84,12 @@ def test_size_budget() -> None:
         model="0a1b2c3d")
     obj = normalize(builders.result(body, seq=10**9))[0]
     line = dumps(obj)
-    assert len(line) <= 165, line
+    assert len(line) <= 180, line  # 165 before lines named their pool (14 bytes for "mono")
     codec = LinkCodec()
-    bare = {"mono_ir": {k: v for k, v in obj["mono_ir"].items() if k not in ("v", "model")}}
-    assert len(codec.encode(obj)) <= len(codec.encode(bare)) + 6
-    back = codec.decode(codec.encode(obj))["mono_ir"]
+    sent = link_record(obj)
+    bare = {"mono_ir": {k: v for k, v in sent["mono_ir"].items() if k not in ("v", "model")}}
+    assert len(codec.encode(sent)) <= len(codec.encode(bare)) + 6
+    back = codec.decode(codec.encode(sent))["mono_ir"]
     assert (back["v"], back["model"]) == (SCHEMA_VERSION, "0a1b2c3d")
 
 
@@ -105,7 +113,8 @@ def test_a_pair_without_tags_writes_one_line() -> None:
     """Regression (issue 12): a pair the tags pool processed and found no tag in wrote no line,
     so "processed, nothing found" could not be told from "not processed"."""
     out = [dumps(o).decode() for o in normalize(builders.result(messages.Tags(), t_wall_ns=T))]
-    assert out == ['{"tags":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"corners":[],"v":2}}']
+    assert out == ['{"tags":{"timestamp":"2025-07-07 12:52:43.120","seq":7,"corners":[],'
+                   '"pool":"mono","v":3}}']
 
 
 def test_stereo_results_carry_the_rig_id() -> None:
@@ -156,3 +165,27 @@ def test_each_quantity_keeps_its_precision_whatever_decimals(decimals: int) -> N
     extra = messages.Extra(name="b", fields={"mean": 0.123456789123})
     assert normalize(builders.result(extra), decimals)[0]["b"]["mean"] == round(0.123456789123,
                                                                                 decimals)
+
+
+def test_every_line_names_its_pool_and_the_link_leaves_it_out() -> None:
+    """Two pools may run one plugin (a local and a remote digest pool): the line names its
+    pool, since its kind does not. The modem carries the line without it, in its kind's
+    table as before (the `pool` key alone would have sent it generic), so the link's bytes
+    are what they were."""
+    from tests.unit.test_results_schema import SHAPES
+    from trapflow.modem.codec import GENERIC, KINDS, LinkCodec
+
+    codec, tables = LinkCodec(), {key: {name for name, _c in fields}
+                                  for key, fields in KINDS.values()}
+    for shapes in SHAPES.values():
+        for body in shapes:
+            for obj in normalize(builders.result(body, pool="mono_b")):
+                (kind, item), = obj.items()
+                assert item["pool"] == "mono_b" and list(item)[-2:] == ["pool", "v"]
+                sent = link_record(obj)
+                assert sent[kind] == {k: v for k, v in item.items() if k != "pool"}
+                if kind in tables:  # every key the link carries is in its kind's table
+                    assert set(sent[kind]) <= tables[kind], (kind, set(sent[kind]) - tables[kind])
+                    assert "pool" not in tables[kind]
+                else:  # a plugin's kind travels generic, as before
+                    assert codec.encode(sent)[0] == GENERIC

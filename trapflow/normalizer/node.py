@@ -25,7 +25,7 @@ from trapflow.modem import thumb
 from trapflow.modem.frame import max_body
 from trapflow.modem.outbox import Outbox, OutboxFull
 from trapflow.normalizer import checkpoint
-from trapflow.normalizer.result_json import dumps, normalize
+from trapflow.normalizer.result_json import dumps, link_record, normalize
 from trapflow.runtime.files import append_whole, is_disk_full, write_atomically
 from trapflow.runtime.node import ACTIVE, FINALIZED, Node, NodeSpec, release_memory
 from trapflow.runtime.ratelog import RateLimitedLog
@@ -285,8 +285,8 @@ class NormalizerNode(Node):
                 log.debug("visual odometry: the rig %s", "moves" if self.rig.moving
                           else "is still")
         if self.outbox is not None:
-            sent = objs if (self.cfg.modem.detections or not objs
-                            or "mono_ir" not in objs[0]) else []
+            sent = [link_record(o) for o in objs] if (self.cfg.modem.detections or not objs
+                                                      or "mono_ir" not in objs[0]) else []
             try:
                 self.outbox.append_many(sent)
             except OutboxFull as exc:

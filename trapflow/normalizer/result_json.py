@@ -1,10 +1,13 @@
 """Results -> compact JSON objects, the wire contract of the modem and results.jsonl.
 
 Shape: {"mono_ir": {"timestamp": "2025-07-07 12:52:43.120", "seq": 17, "label": "crab",
-"confidence": 0.71, "box": [5.4, 7.8, 15.6, 18.1], "v": 2}} -- numbers as numbers, UTC times.
-Every line ends with `v`, the version of this shape (SCHEMA_VERSION: raised when a key
-changes meaning or goes; a new key does not raise it); lines of ONNX-based pools also carry
-`model`, the short hash of the model file that produced them.
+"confidence": 0.71, "box": [5.4, 7.8, 15.6, 18.1], "pool": "mono", "v": 3}} -- numbers as
+numbers, UTC times. Every line names `pool`, the pool whose result it is (two pools may run
+one plugin, so a line's kind does not say which pool made it), and ends with `v`, the
+version of this shape (SCHEMA_VERSION: raised when the keys a line carries change: one added,
+gone or meaning another thing); lines of ONNX-based pools also carry `model`, the short hash
+of the model file that produced them. The modem carries every key of a line but `pool`
+(link_record): the surface knows results by kind, and the pool would cost a frame its bytes.
 Each quantity keeps the precision it needs, whatever the modem's codec later quantises:
 confidences 1e-3, pixels 0.1, rotations and translations (VO's `Rt` and `pose`, tag poses) 1e-9.
 """
@@ -19,10 +22,13 @@ import msgspec
 from trapflow.wire import messages
 
 _json = msgspec.json.Encoder()
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 """2: detection lines carry `track` (their track's id, null until confirmed) and, where the
 stereo pair measured them, range_m, range_sd_m, xyz, disparity_px, length_m, length_sd_m,
-length_method, or `unmeasured` with the reason."""
+length_method, or `unmeasured` with the reason. 3: every line carries `pool`."""
+POOL_KEY = "pool"
+"""The key of a line that names the pool whose result it is (lines of v2 and before lack it:
+readers then fall back to the pool that ledger.json or the normalizer's routes give its kind)."""
 
 CONFIDENCE_DIGITS = 3
 """Scores: 1e-3 is finer than any threshold a user sets."""
@@ -61,9 +67,10 @@ def _rows(values: tuple[float, ...], nd: int) -> list[list[float]]:
 def normalize(res: messages.Result, decimals: int = 3) -> list[dict[str, Any]]:
     """One JSON-able object per reported item of a result (one per detection or tag).
 
-    Stereo results also carry `calib`, the id of the rig they were computed with.
-    `decimals` (`normalizer.decimals`) rounds only the float fields of plugin-defined results
-    (Extra), whose quantities trapflow does not know; built-in fields keep their own precision.
+    Stereo results also carry `calib`, the id of the rig they were computed with; every line
+    `pool`, the pool whose result it is. `decimals` (`normalizer.decimals`) rounds only the
+    float fields of plugin-defined results (Extra), whose quantities trapflow does not know;
+    built-in fields keep their own precision.
     """
     objs = _items(res, decimals)
     calib = getattr(res.body, "calib", "")
@@ -74,8 +81,22 @@ def normalize(res: messages.Result, decimals: int = 3) -> list[dict[str, Any]]:
                 item["calib"] = calib
             if model:
                 item["model"] = model
+            item[POOL_KEY] = res.pool
             item["v"] = SCHEMA_VERSION
     return objs
+
+
+def link_record(obj: dict[str, Any]) -> dict[str, Any]:
+    """A line as the modem carries it: without `pool` (the link codec's tables hold every
+    other key of a built-in kind, so its bytes are what they were before lines named it)."""
+    return {kind: {k: v for k, v in item.items() if k != POOL_KEY} if isinstance(item, dict)
+            else item for kind, item in obj.items()}
+
+
+def line_pool(item: dict[str, Any]) -> str | None:
+    """The pool a line's body names, or None (a line of v2 or before)."""
+    pool = item.get(POOL_KEY)
+    return pool if isinstance(pool, str) else None
 
 
 def _items(res: messages.Result, decimals: int) -> list[dict[str, Any]]:

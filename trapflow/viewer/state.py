@@ -135,7 +135,8 @@ class LiveCounts:
                            for k, n in sorted(self._max_n.items())]}
 
 
-# Result kind (the key of a result line) -> the default pool that makes it.
+# Result kind (the key of a result line) -> the default pool that makes it: the pool of a line
+# from before lines named their own (`pool`, results.jsonl v3).
 KIND_POOL = {"mono_ir": "mono", "stereo_ir": "stereo", "stereo_vo": "vo", "tags": "tags"}
 
 
@@ -181,7 +182,9 @@ class ViewState:
             self._last_dropped[name] = p.dropped
             s.gated_now = p.gated > self._last_gated.get(name, p.gated)
             self._last_gated[name] = p.gated
-            window = self._latency_window.get(self._kind_of(name))
+            window = self._latency_window.get(name)  # lines name their pool
+            if window is None:
+                window = self._latency_window.get(self._kind_of(name))
             lat = sorted(window)[len(window) // 2] * 1000 if window else 0.0
             if window is not None:
                 window.clear()
@@ -211,7 +214,9 @@ class ViewState:
         if t_s is not None:
             latency = max(0.0, now_wall - t_s)
             self.latency.setdefault(kind, Histogram()).observe(latency)
-            self._latency_window.setdefault(kind, deque(maxlen=256)).append(latency)
+            pool = fields.get("pool")  # two pools of one plugin: each its own window
+            self._latency_window.setdefault(pool if isinstance(pool, str) else kind,
+                                            deque(maxlen=256)).append(latency)
         seq = fields.get("seq")
         if kind == "stereo_vo":
             self._on_vo(fields)

@@ -56,6 +56,12 @@ RECORDS: list[tuple[dict[str, Any], int]] = [  # record, most link bytes allowed
                  "temp_c": 61.2, "mem_pct": 40.1, "disk_free_mb": 20000, "backlog": 12,
                  "link": "active", "pools": {"mono": [4.5, 10], "stereo": [1.0, 200]},
                  "watts": 5.6, "days": 31.2}}, 52),
+    # the image-health state and its ratios to the baseline ride appended (issue 33)
+    ({"health": {"timestamp": TS, "uptime_s": 3600, "cpu_pct": 55.5, "load1": 1.25,
+                 "temp_c": 61.2, "mem_pct": 40.1, "disk_free_mb": 20000, "backlog": 12,
+                 "link": "active", "pools": {"mono": [4.5, 10], "stereo": [1.0, 200]},
+                 "watts": 5.6, "days": 31.2, "image": "fouled+turbid",
+                 "image_ratio": [0.31, 0.55, 0.82]}}, 72),
     ({"aggregate": {"class": "mono_ir/crab", "from": TS, "to": "2025-07-07 12:53:42.999",
                     "count": 57, "best": [{"mono_ir": {"timestamp": TS, "seq": 17, "label": "crab",
                                                        "confidence": 0.71,

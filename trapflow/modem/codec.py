@@ -460,7 +460,11 @@ KINDS: dict[int, tuple[str, list[tuple[str, tuple[Enc, Dec]]]]] = {
                    ("pools", (_enc_pools, _dec_pools)), ("level", STR),
                    # appended (issue 25): the power model's watts at the host's CPU load
                    # now, and days on the configured battery at that draw, to 0.1
-                   ("watts", _fixed(10)), ("days", _fixed(10))]),
+                   ("watts", _fixed(10)), ("days", _fixed(10)),
+                   # appended (issue 33): the image-health state (learning, ok, fouled,
+                   # turbid, fouled+turbid) and sharpness, contrast, brightness to the
+                   # deployment's baseline, to 0.01
+                   ("image", STR), ("image_ratio", _fixed_list(100, 3))]),
     6: ("aggregate", [("class", STR), ("from", TS), ("to", TS), ("count", UINT),
                       ("best", (_enc_records, _dec_records))]),
     # A finished track (trapflow.tracking.stage.modem_track). Common case, 12 bytes after

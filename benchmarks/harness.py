@@ -30,7 +30,7 @@ def options(doc: str | None, *, repeats: int = 5, quick_help: str = "short windo
             ) -> argparse.ArgumentParser:
     """The options every benchmark takes (--quick, --repeats N, --out DIR); a bench adds its
     own to the parser it gets back. The module's docstring is the help text."""
-    ap = argparse.ArgumentParser(description=doc,
+    ap = argparse.ArgumentParser(prog=_prog(sys.argv[0]), description=doc,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help=quick_help)
     ap.add_argument("--repeats", type=int, default=repeats,
@@ -38,6 +38,12 @@ def options(doc: str | None, *, repeats: int = 5, quick_help: str = "short windo
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT,
                     help=f"folder for NAME.json and NAME.md (default {DEFAULT_OUT})")
     return ap
+
+
+def _prog(argv0: str) -> str | None:
+    """How the help names a bench: `python -m benchmarks.NAME` for a module of this package."""
+    path = Path(argv0)
+    return f"python -m benchmarks.{path.stem}" if path.parent.name == "benchmarks" else None
 
 
 # --- repeats ------------------------------------------------------------------------------
@@ -86,23 +92,27 @@ def per_call(fn: Callable[[], Any], calls: int,
 # --- CPU of a process tree ----------------------------------------------------------------
 
 
-def tree_cpu(pid: int) -> float:
+def tree_cpu(pid: int, *, children: bool = True) -> float:
     """User + system CPU seconds of process pid and its descendants, living and reaped.
 
     Sampled once at the start of a window and once at its end, the difference is what the
     tree spent in between: a child that ends inside the window moves from its own entry to
-    its parent's reaped-children times, so it is still counted. A process gone before the
-    sample counts 0."""
+    its parent's reaped-children times, so it is still counted (a child started before the
+    window and reaped inside it counts whole: join the last window's children first). With
+    children=False, the process's own CPU only (a row per process of a tree whose other
+    processes have rows of their own). A process gone before the sample counts 0."""
     try:
         root = psutil.Process(pid)
-        procs = [root, *root.children(recursive=True)]
+        procs = [root, *root.children(recursive=True)] if children else [root]
     except psutil.Error:
         return 0.0
     total = 0.0
     for p in procs:
         with contextlib.suppress(psutil.Error):
             t = p.cpu_times()
-            total += t.user + t.system + t.children_user + t.children_system
+            total += t.user + t.system
+            if children:
+                total += t.children_user + t.children_system
     return total
 
 

@@ -124,19 +124,19 @@ started=$(date +%s)
 load_before=$(cut -d' ' -f1-3 /proc/loadavg)
 if want transport; then
   echo "[bench] transport (broker path vs raw pyzmq)" >&2
-  "$PY" scripts/bench_transport.py --out "$OUT" > /dev/null
+  "$PY" -m benchmarks.transport --out "$OUT" > /dev/null
 fi
 if want peers; then
   echo "[bench] peers (raw pyzmq, trapflow, dora-rs, Zenoh, Cyclone DDS)" >&2
-  "$PY" scripts/bench_peers.py --out "$OUT" > /dev/null
+  "$PY" -m benchmarks.peers --out "$OUT" > /dev/null
 fi
 if want remote; then
   echo "[bench] remote pools (tcp with CURVE vs raw pyzmq over tcp)" >&2
   "$PY" scripts/bench_remote.py --out "$OUT" > /dev/null
 fi
 if want shm; then
-  echo "[bench] bench_shm" >&2
-  "$PY" scripts/bench_shm.py --out "$OUT" > /dev/null
+  echo "[bench] shm" >&2
+  "$PY" -m benchmarks.shm --out "$OUT" > /dev/null
   echo "[bench] synth" >&2
   "$PY" -m benchmarks.synth --out "$OUT" > /dev/null
 fi

@@ -100,6 +100,9 @@ def test_common_options() -> None:
     a = ap.parse_args(["--quick", "--out", "x/y", "--pairs", "4"])
     assert (a.quick, a.repeats, a.out, a.pairs) == (True, 7, Path("x/y"), 4)
     assert ap.parse_args([]).out == Path("bench-results")
+    # the help names a bench as it is run
+    assert h._prog("/repo/benchmarks/shm.py") == "python -m benchmarks.shm"
+    assert h._prog("/repo/scripts/other.py") is None
 
 
 BURN = ("import sys, time\n"
@@ -121,6 +124,7 @@ def test_tree_cpu_counts_a_living_child_that_burns() -> None:
         assert spent >= 0.28
         # the shell's own tree holds it too: its child, alive, not yet reaped
         assert h.tree_cpu(child.pid) >= 0.28
+        assert h.tree_cpu(child.pid, children=False) < 0.1  # the shell itself: no burn
     finally:
         child.communicate("", timeout=20)
 

@@ -20,7 +20,7 @@ acknowledgement per pair on the peer's own transport (the consumer answers each 
 The bench's own processes are children of this one; each is stopped by its pid, and the
 dora run by its process group (it starts one), at the end of its row.
 
-Usage: python scripts/bench_peers.py [--seconds 3] [--out DIR]
+Usage: python -m benchmarks.peers [--quick] [--seconds 3] [--only ROWS] [--out DIR]
 Writes DIR/peers.json and DIR/peers.md; prints the table.
 """
 
@@ -48,10 +48,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import psutil
+import zmq
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import bench_transport as bt  # a sibling script: its payload and its paths
+from benchmarks import harness as h
+from benchmarks import transport as bt  # its payload and its paths
 
 PAGE = bt.PAGE
 WINDOW = bt.WINDOW
@@ -175,7 +175,7 @@ def run_consumer(recv: Callable[[float], Any], ack: Callable[[int], None], out: 
     _note(out / "consumer.json", json.dumps(c.result()))
 
 
-# --- the peers' nodes (run as `bench_peers.py --node PEER-ROLE`) ------------------------------
+# --- the peers' nodes (run as `python -m benchmarks.peers --node PEER-ROLE`) -----------------
 
 
 def zenoh_node(role: str, kind: str, seconds: float, out: Path, port: int) -> None:
@@ -267,7 +267,7 @@ def cyclonedds_node(role: str, kind: str, seconds: float, out: Path, domain: int
     waitset = WaitSet(dp)
     waitset.attach(ReadCondition(r, SampleState.NotRead | ViewState.Any | InstanceState.Any))
 
-    def take(timeout: float) -> list[bytes]:
+    def take(timeout: float) -> list[bytes | bytearray]:
         samples = r.take(N=WINDOW * 4)
         if not samples and waitset.wait(duration(seconds=timeout)):
             samples = r.take(N=WINDOW * 4)
@@ -279,9 +279,9 @@ def cyclonedds_node(role: str, kind: str, seconds: float, out: Path, domain: int
         run_source(lambda b: w.write(pair_t(data=fit(b, size))),
                    lambda t: [PREFIX.unpack_from(x)[0] for x in take(t)], kind, seconds, out)
     else:
-        pending: list[bytes] = []
+        pending: list[bytes | bytearray] = []
 
-        def recv(timeout: float) -> bytes | None:
+        def recv(timeout: float) -> bytes | bytearray | None:
             if not pending:
                 pending.extend(take(timeout))
             return pending.pop(0) if pending else None
@@ -347,20 +347,23 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _cpu(procs: list[psutil.Process]) -> float:
-    """CPU seconds of these processes and all their descendants alive now."""
-    seen: dict[int, psutil.Process] = {}
-    for p in procs:
-        with contextlib.suppress(psutil.Error):
-            seen[p.pid] = p
-            for c in p.children(recursive=True):
-                seen[c.pid] = c
-    total = 0.0
-    for p in seen.values():
-        with contextlib.suppress(psutil.Error):
-            t = p.cpu_times()
-            total += t.user + t.system + t.children_user + t.children_system
-    return total
+def _cpu(procs: list[subprocess.Popen[bytes]]) -> float:
+    """CPU seconds of these processes (siblings) and their descendants."""
+    return sum(h.tree_cpu(p.pid) for p in procs)
+
+
+def _me() -> list[str]:
+    """The command that runs this module again (a peer's node)."""
+    return [sys.executable, "-m", "benchmarks.peers"]
+
+
+def _env(base: dict[str, str]) -> dict[str, str]:
+    """The nodes run in their temporary folder: the repository is put on their path so
+    that `-m benchmarks.peers` finds this module there."""
+    repo = str(Path(__file__).resolve().parents[1])
+    env = dict(base)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (repo, base.get("PYTHONPATH")) if p)
+    return env
 
 
 def _wait_for(path: Path, timeout: float, procs: list[subprocess.Popen[bytes]]) -> None:
@@ -399,10 +402,10 @@ def _started(cmds: list[list[str]], cwd: Path,
 
 
 def _dora_yaml(d: Path, kind: str, seconds: float) -> Path:
-    me = [sys.executable, str(Path(__file__).resolve())]
+    me = _me()
 
     def node(role: str) -> str:
-        args = " ".join([me[1], "--node", f"dora-{role}", "--kind", kind, "--seconds",
+        args = " ".join([*me[1:], "--node", f"dora-{role}", "--kind", kind, "--seconds",
                          str(seconds), "--dir", str(d)])
         return f"    path: {me[0]}\n    args: {args}\n"
 
@@ -426,9 +429,9 @@ def run_peer(peer: str, kind: str, seconds: float, tmp: Path) -> dict[str, Any]:
         return {"error": f"does not import: {type(exc).__name__}: {exc} "
                          "(pip install -e .[peers])"}
     d = Path(tempfile.mkdtemp(prefix=f"{peer}-{kind}-", dir=tmp))
-    me = [sys.executable, str(Path(__file__).resolve())]
+    me = _me()
     common = ["--kind", kind, "--seconds", str(seconds), "--dir", str(d)]
-    env = dict(os.environ)
+    env = _env(dict(os.environ))
     if peer == "dora":
         dora = Path(sys.executable).parent / "dora"
         cmds = [[str(dora) if dora.exists() else "dora", "run", "--log-level", "error",
@@ -444,11 +447,10 @@ def run_peer(peer: str, kind: str, seconds: float, tmp: Path) -> dict[str, Any]:
                 me + ["--node", f"{peer}-source", "--domain", domain] + common]
     try:
         with _started(cmds, d, env) as procs:
-            ps = [psutil.Process(p.pid) for p in procs]
             _wait_for(d / "go", START_TIMEOUT_S + 10, procs)
-            c0 = _cpu(ps)
+            c0 = _cpu(procs)
             _wait_for(d / "source.json", seconds + 20, procs)
-            cpu = _cpu(ps) - c0
+            cpu = _cpu(procs) - c0
             _wait_for(d / "consumer.json", 10, procs)
     except RuntimeError as exc:
         return {"version": version, "error": f"did not run: {exc}"}
@@ -464,7 +466,7 @@ def run_peer(peer: str, kind: str, seconds: float, tmp: Path) -> dict[str, Any]:
 
 def run_baseline(kind: str, seconds: float, tmp: Path) -> dict[str, Any]:
     r = bt.raw_pyzmq(kind, seconds, None, tmp)
-    return {"version": bt.zmq.__version__, "pairs": r["pairs"], "pairs_s": r["pairs_s"],
+    return {"version": zmq.__version__, "pairs": r["pairs"], "pairs_s": r["pairs_s"],
             "cpu_us_per_pair": r["cpu_us_per_pair"], "lost": 0, "reordered": 0}
 
 
@@ -485,48 +487,51 @@ LABELS = {"pyzmq": "raw pyzmq PUSH/PULL ipc", "trapflow-shm": "trapflow (ring, d
           "cyclonedds-array": "Eclipse Cyclone DDS, octet[N]", "dora": "dora-rs"}
 
 
-def markdown(out: dict[str, Any]) -> str:
+def result(out: dict[str, Any]) -> h.Result:
     m = out["machine"]
-    lines = [f"## Peers: 1 source -> 1 consumer, lossless, {WINDOW} pairs in flight "
-             "(same run, same pairs)", "",
-             f"{m['date']}; {m['cores']} cores, load average {m['load_before']} before and "
-             f"{m['load_after']} after the run; Python {m['python']}; windows of "
-             f"{out['seconds']:g} s after {WARMUP_S} s warm-up. JPEG pair: 2 x 1280x720 q90 "
-             f"({out['bytes']['jpeg']:,} B); raw pair: 2 x 1280x720x3 ({out['bytes']['raw']:,} "
-             "B). x pyzmq: ratio to raw pyzmq in this run. CPU: every process of the path "
-             "(source, consumer, broker, daemons).", "",
-             "| path | version | JPEG pairs/s | x pyzmq | CPU us/pair | raw pairs/s | x pyzmq | "
-             "CPU us/pair | lost / reordered (JPEG+raw) |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    r = h.Result("peers", f"Peers: 1 source -> 1 consumer, lossless, {WINDOW} pairs in flight "
+                 "(same run, same pairs)", key="path", data=out, notes=[
+        f"{m['date']}; {m['cores']} cores, load average {m['load_before']} before and "
+        f"{m['load_after']} after the run; Python {m['python']}; windows of "
+        f"{out['seconds']:g} s after {WARMUP_S} s warm-up. JPEG pair: 2 x 1280x720 q90 "
+        f"({out['bytes']['jpeg']:,} B); raw pair: 2 x 1280x720x3 ({out['bytes']['raw']:,} "
+        "B). x pyzmq: ratio to raw pyzmq in this run. CPU: every process of the path "
+        "(source, consumer, broker, daemons). lost / reordered: JPEG+raw."])
     for row in ROWS:
-        cells: list[str] = []
-        errors = []
-        lost, reordered = [], []
-        version = ""
-        for kind in ("jpeg", "raw"):
-            r = out[kind].get(row, {"error": "not run"})
-            version = r.get("version", version)
-            if "error" in r:
-                cells += ["-", "-", "-"]
-                errors.append(f"{kind}: {r['error']}")
-                continue
-            base = out[kind]["pyzmq"].get("pairs_s")
-            ratio = f"{r['pairs_s'] / base:.2f}x" if base else "-"
-            cells += [f"{r['pairs_s']:,.0f}", ratio, f"{r['cpu_us_per_pair']:,.0f}"]
-            lost.append(str(r["lost"]))
-            reordered.append(str(r["reordered"]))
-        tail = f"{'+'.join(lost)} / {'+'.join(reordered)}" if lost else "-"
-        lines.append(f"| {LABELS[row]} | {version} | " + " | ".join(cells) + f" | {tail} |")
+        figures, errors = _row(out, row)
+        r.add(LABELS[row], **figures)
         for e in errors:
-            lines.append(f"|  | ({e}) | | | | | | | |")
-    return "\n".join(lines) + "\n"
+            r.add("", version=h.Figure(f"({e})"))
+    return r
+
+
+def _row(out: dict[str, Any], row: str) -> tuple[dict[str, h.Figure], list[str]]:
+    """One path's figures over both payloads, and the errors of the payloads it missed."""
+    figures: dict[str, h.Figure] = {"version": h.Figure("")}
+    errors, lost, reordered = [], [], []
+    for kind, name in (("jpeg", "JPEG"), ("raw", "raw")):
+        r = out[kind].get(row, {"error": "not run"})
+        if "version" in r:
+            figures["version"] = h.Figure(str(r["version"]))
+        if "error" in r:
+            errors.append(f"{kind}: {r['error']}")
+            figures.update({f"{name} pairs/s": h.Figure(None), f"{name} x pyzmq": h.Figure(None),
+                            f"{name} CPU": h.Figure(None, "us/pair")})
+            continue
+        base = out[kind]["pyzmq"].get("pairs_s")
+        figures[f"{name} pairs/s"] = h.Figure(round(r["pairs_s"], 1), digits=0)
+        figures[f"{name} x pyzmq"] = h.Figure(round(r["pairs_s"] / base, 3) if base else None)
+        figures[f"{name} CPU"] = h.Figure(round(r["cpu_us_per_pair"]), "us/pair")
+        lost.append(str(r["lost"]))
+        reordered.append(str(r["reordered"]))
+    figures["lost / reordered"] = h.Figure(
+        f"{'+'.join(lost)} / {'+'.join(reordered)}" if lost else "-")
+    return figures, errors
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = h.options(__doc__, repeats=1, quick_help="1 s windows")
     ap.add_argument("--seconds", type=float, default=3.0, help="measured window per path")
-    ap.add_argument("--out", type=Path, default=Path("bench-results"))
     ap.add_argument("--only", default=",".join(ROWS), help="rows to run, comma-separated")
     ap.add_argument("--node", help=argparse.SUPPRESS)  # internal: one peer's source/consumer
     ap.add_argument("--kind", default="jpeg", help=argparse.SUPPRESS)
@@ -534,6 +539,8 @@ def main() -> None:
     ap.add_argument("--port", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--domain", type=int, default=0, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.quick:
+        args.seconds = 1.0
     if args.node:
         peer, role = args.node.rsplit("-", 1)
         if peer == "zenoh":
@@ -562,7 +569,7 @@ def main() -> None:
             if row not in rows and row != "pyzmq":
                 out[kind][row] = {"error": "not run (--only)"}
                 continue
-            print(f"[peers] {kind}: {row}", file=sys.stderr)
+            h.log("peers", f"{kind}: {row}")
             try:
                 if row == "pyzmq":
                     out[kind][row] = run_baseline(kind, args.seconds, tmp)
@@ -574,10 +581,9 @@ def main() -> None:
                 out[kind][row] = {"error": f"{type(exc).__name__}: {exc}"}
     shutil.rmtree(tmp, ignore_errors=True)
     out["machine"]["load_after"] = " ".join(f"{x:.1f}" for x in os.getloadavg())
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "peers.json").write_text(json.dumps(out, indent=1))
-    (args.out / "peers.md").write_text(markdown(out))
-    print(markdown(out))
+    tables = [result(out)]
+    h.write(args.out, "peers", tables)
+    print(h.markdown(tables))
 
 
 if __name__ == "__main__":

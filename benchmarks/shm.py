@@ -6,13 +6,14 @@ bytes, in one run.
 1 consumer process; the consumer touches every page of both images. Throughput is lossless
 with back-pressure (4 pairs in flight: a ring of 4 slots, freed by the consumer); latency
 is one-way at a fixed 30 pairs/s (stamp before the write into the ring -> consumer holds
-usable views). Prints JSON on stdout.
+usable views). Writes shm.json and shm.md into --out and prints the table.
+
+Usage: python -m benchmarks.shm [--quick] [--out bench-results] [--seconds 4]
+       [--latency-seconds 6]
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import multiprocessing as mp
 import os
 import sys
@@ -24,18 +25,16 @@ from typing import Any
 import msgspec
 import zmq
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_transport import (
+from benchmarks import harness as h
+from benchmarks.transport import (
     PAGE,
     WINDOW,
     _pcts,
-    cpu_s,
     header,
     make_payload,
     peak_rss_mb,
     raw_pyzmq,
 )
-
 from trapflow.wire import frame_msgs, frame_ring, messages
 from trapflow.wire.links import accept_link, connect_link, listen_link
 
@@ -58,11 +57,11 @@ def _shm_consumer(name: str, path: str, conn: Any) -> None:
         try:
             left, right = reader.view(ref)
             t = time.monotonic_ns()
-            h = msgspec.msgpack.decode(frames[0])
+            meta = msgspec.msgpack.decode(frames[0])
             left[::PAGE].sum()
             right[::PAGE].sum()
             reader.check(ref)
-            lats.append(t - h["t_mono_ns"])
+            lats.append(t - meta["t_mono_ns"])
             n += 1
         except frame_ring.StaleFrame:
             stale += 1
@@ -89,7 +88,7 @@ def shm_ring(kind: str, seconds: float, rate: float | None, tmp: Path) -> dict[s
             time.sleep(0.01)
         here.recv()
         time.sleep(0.3)
-        c0 = cpu_s(os.getpid()) + cpu_s(proc.pid)
+        c0 = h.tree_cpu(os.getpid())  # this process and its consumer
         n, full, t0 = 0, 0, time.monotonic()
         period = 1.0 / rate if rate else 0.0
         while (now := time.monotonic()) - t0 < seconds:
@@ -111,13 +110,14 @@ def shm_ring(kind: str, seconds: float, rate: float | None, tmp: Path) -> dict[s
         link.send([b"end"])
         res = here.recv()
         dt = time.monotonic() - t0
-        cpu = cpu_s(os.getpid()) + cpu_s(proc.pid) - c0
+        cpu = h.tree_cpu(os.getpid()) - c0
         proc.join(5)
     finally:
         if proc.is_alive():
             proc.kill()
             proc.join(5)
-        link.close()
+        if link is not None:
+            link.close()
         listener.close()
         writer.close()
         ring.close()
@@ -128,20 +128,21 @@ def shm_ring(kind: str, seconds: float, rate: float | None, tmp: Path) -> dict[s
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
+    ap = h.options(__doc__, repeats=1, quick_help="1.5 s windows")
     ap.add_argument("--seconds", type=float, default=4.0)
     ap.add_argument("--latency-seconds", type=float, default=6.0)
-    ap.add_argument("--out", type=Path, default=Path("bench-results"))
     args = ap.parse_args()
+    if args.quick:
+        args.seconds, args.latency_seconds = 1.5, 3.0
     frame_ring.cleanup_stale()
     tmp = Path(tempfile.mkdtemp(prefix="tfshm-"))
     out: dict[str, Any] = {"machine": {"cores": os.cpu_count(), "python": sys.version.split()[0],
                                        "pyzmq": zmq.__version__, "libzmq": zmq.zmq_version()}}
     for kind in ("jpeg", "raw"):
-        print(f"[bench] {kind}: throughput", file=sys.stderr)
+        h.log("shm", f"{kind}: throughput")
         base = raw_pyzmq(kind, args.seconds, None, tmp)
         shm = shm_ring(kind, args.seconds, None, tmp)
-        print(f"[bench] {kind}: 30 Hz latency", file=sys.stderr)
+        h.log("shm", f"{kind}: 30 Hz latency")
         base30 = raw_pyzmq(kind, args.latency_seconds, 30.0, tmp)
         shm30 = shm_ring(kind, args.latency_seconds, 30.0, tmp)
         out[kind] = {
@@ -150,25 +151,27 @@ def main() -> None:
             "latency_30hz": {"pyzmq_push_pull": base30, "shm_ring": shm30,
                              "ratio_p50": shm30["lat_us"]["p50"] / base30["lat_us"]["p50"]},
         }
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "shm.json").write_text(json.dumps(out, indent=1))
-    (args.out / "shm.md").write_text(markdown(out))
-    print(markdown(out))
+    tables = [result(out)]
+    h.write(args.out, "shm", tables)
+    print(h.markdown(tables))
 
 
-def markdown(out: dict[str, Any]) -> str:
+def result(out: dict[str, Any]) -> h.Result:
     """The ring alone (no broker): a floor for what the brokered shm path can reach."""
-    lines = ["## The shared-memory ring alone, 1 producer -> 1 consumer (no broker), "
-             "descriptors over a local link", "",
-             "| payload | pyzmq pairs/s | ring pairs/s | x pyzmq | pyzmq p50 / p99 us at 30 Hz "
-             "| ring p50 / p99 us at 30 Hz |", "|---|---:|---:|---:|---:|---:|"]
+    r = h.Result("shm", "The shared-memory ring alone, 1 producer -> 1 consumer (no broker), "
+                 "descriptors over a local link", key="payload", data=out)
     for kind in ("jpeg", "raw"):
         t, lat = out[kind]["throughput"], out[kind]["latency_30hz"]
-        b, r = lat["pyzmq_push_pull"]["lat_us"], lat["shm_ring"]["lat_us"]
-        lines.append(f"| {kind} | {t['pyzmq_push_pull']['pairs_s']:,.0f} | "
-                     f"{t['shm_ring']['pairs_s']:,.0f} | {t['ratio']:.2f}x | "
-                     f"{b['p50']:,.0f} / {b['p99']:,.0f} | {r['p50']:,.0f} / {r['p99']:,.0f} |")
-    return "\n".join(lines) + "\n"
+        b, ring = lat["pyzmq_push_pull"]["lat_us"], lat["shm_ring"]["lat_us"]
+        r.add(kind, **{
+            "pyzmq pairs/s": h.Figure(round(t["pyzmq_push_pull"]["pairs_s"], 1), digits=0),
+            "ring pairs/s": h.Figure(round(t["shm_ring"]["pairs_s"], 1), digits=0),
+            "x pyzmq": h.Figure(round(t["ratio"], 3)),
+            "pyzmq p50 at 30 Hz": h.Figure(round(b["p50"], 1), "us", digits=0),
+            "pyzmq p99 at 30 Hz": h.Figure(round(b["p99"], 1), "us", digits=0),
+            "ring p50 at 30 Hz": h.Figure(round(ring["p50"], 1), "us", digits=0),
+            "ring p99 at 30 Hz": h.Figure(round(ring["p99"], 1), "us", digits=0)})
+    return r
 
 
 if __name__ == "__main__":

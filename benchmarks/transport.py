@@ -3,14 +3,16 @@
 1280x720 stereo pairs, JPEG (q90) and raw, between separate processes on one host.
 Throughput is lossless with back-pressure (a window of pairs in flight per consumer);
 latency is one-way at a fixed 30 pairs/s (stamp before send -> consumer holds the
-buffer); CPU and peak RSS are read from /proc. Prints JSON on stdout.
+buffer); CPU and peak RSS are read from /proc. Writes transport.json and transport.md into
+--out and prints the tables.
+
+Usage: python -m benchmarks.transport [--quick] [--repeats 5] [--out bench-results]
+       [--seconds 4] [--latency-seconds 8]
 """
 
 from __future__ import annotations
 
-import argparse
 import gc
-import json
 import multiprocessing as mp
 import os
 import statistics
@@ -23,9 +25,9 @@ from typing import Any
 import cv2
 import msgspec
 import numpy as np
-import psutil
 import zmq
 
+from benchmarks import harness as h
 from trapflow.config import schema as configmod
 from trapflow.runtime.node import NodeSpec, node_main
 from trapflow.wire import messages
@@ -40,7 +42,6 @@ WINDOW = 4  # pairs in flight per consumer, as in the peer measurements
 # with the pair made in place in the slot (begin/commit, the harness touches one byte a
 # page as the consumer does): no copy on either side, the ring's own cost.
 FRAMES = ("zmq", "shm", "shm_inplace")
-REPEATS = 5  # throughput runs per path, median reported
 
 
 def make_payload(kind: str) -> tuple[bytes, bytes]:
@@ -72,14 +73,6 @@ def peak_rss_mb(pid: int) -> float:
     return 0.0
 
 
-def cpu_s(pid: int) -> float:
-    try:
-        t = psutil.Process(pid).cpu_times()
-        return float(t.user + t.system)
-    except psutil.NoSuchProcess:
-        return 0.0
-
-
 # --- raw pyzmq baseline ------------------------------------------------------------------
 
 
@@ -97,10 +90,10 @@ def _raw_consumer(endpoint: str, conn: Any) -> None:
         if len(frames) == 1:
             break
         t = time.monotonic_ns()
-        h = msgspec.msgpack.decode(frames[0].bytes)
+        meta = msgspec.msgpack.decode(frames[0].bytes)
         for f in frames[1:]:
             np.frombuffer(f.buffer, np.uint8)[::PAGE].sum()
-        lats.append(t - h["t_mono_ns"])
+        lats.append(t - meta["t_mono_ns"])
         n += 1
     conn.send({"n": n, "lat": lats, "rss": peak_rss_mb(os.getpid())})
     ctx.destroy(linger=0)
@@ -118,7 +111,7 @@ def raw_pyzmq(kind: str, seconds: float, rate: float | None, tmp: Path) -> dict[
     proc.start()
     here.recv()
     time.sleep(0.3)
-    c0 = cpu_s(os.getpid()) + cpu_s(proc.pid)
+    c0 = h.tree_cpu(os.getpid())  # this process and its consumer
     n, t0 = 0, time.monotonic()
     period = 1.0 / rate if rate else 0.0
     while (now := time.monotonic()) - t0 < seconds:
@@ -131,7 +124,7 @@ def raw_pyzmq(kind: str, seconds: float, rate: float | None, tmp: Path) -> dict[
     push.send(b"end")
     res = here.recv()
     dt = time.monotonic() - t0
-    cpu = cpu_s(os.getpid()) + cpu_s(proc.pid) - c0
+    cpu = h.tree_cpu(os.getpid()) - c0
     proc.join(5)
     ctx.destroy(linger=0)
     return {"pairs": res["n"], "pairs_s": res["n"] / dt, "lat_us": _pcts(res["lat"]),
@@ -160,9 +153,9 @@ def raw_pyzmq_fanout(seconds: float, tmp: Path, consumers: int = 3) -> dict[str,
     time.sleep(0.3)
     n, t0 = 0, time.monotonic()
     while time.monotonic() - t0 < seconds:
-        h = header(n, "raw")
+        hdr = header(n, "raw")
         for push in pushes:
-            push.send_multipart([h, left, right], copy=False)
+            push.send_multipart([hdr, left, right], copy=False)
         n += 1
     for push in pushes:
         push.send(b"end")
@@ -229,6 +222,7 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
     for p in procs:
         p.start()
     left, right = make_payload(kind)
+    link: Link | None = None
     if kind == "raw":  # capture writes arrays; the ring copies them once
         left_a = np.frombuffer(left, np.uint8)
         right_a = np.frombuffer(right, np.uint8)
@@ -259,7 +253,6 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
             return False
         return True
 
-    link: Link | None = None
     out: Link | None = None
     lats: list[int] = []
     completed = 0
@@ -293,8 +286,8 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
         take(100)
     time.sleep(0.5)
     take(200)
-    pids = [os.getpid()] + [p.pid for p in procs]
-    c0 = [cpu_s(p) for p in pids]
+    pids = [os.getpid()] + [_pid(p) for p in procs]
+    c0 = [h.tree_cpu(p, children=False) for p in pids]  # a row per process
     lats.clear()
     completed = 0
     window = WINDOW * workers
@@ -319,10 +312,10 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
     while completed < sent * pools and time.monotonic() < end:
         take(200)
     dt = time.monotonic() - t0
-    cpu = [cpu_s(p) - c for p, c in zip(pids, c0, strict=True)]
-    rss = {"harness": peak_rss_mb(os.getpid()), "broker": peak_rss_mb(procs[0].pid)}
-    for i, p in enumerate(procs[1:]):
-        rss[f"worker{i}"] = peak_rss_mb(p.pid)
+    cpu = [h.tree_cpu(p, children=False) - c for p, c in zip(pids, c0, strict=True)]
+    rss = {"harness": peak_rss_mb(os.getpid()), "broker": peak_rss_mb(pids[1])}
+    for i, pid in enumerate(pids[2:]):
+        rss[f"worker{i}"] = peak_rss_mb(pid)
     for p in procs:
         p.terminate()
     for p in procs:
@@ -342,6 +335,11 @@ def trapflow_path(kind: str, seconds: float, rate: float | None, workers: int,
             "broker_cpu_pct": cpu[1] / dt * 100, "rss_mb": rss}
 
 
+def _pid(p: mp.process.BaseProcess) -> int:
+    assert p.pid is not None, "a started process has a pid"
+    return p.pid
+
+
 def _median_run(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """The run with the median pairs/s, with the spread of all runs added."""
     ordered = sorted(runs, key=lambda r: r["pairs_s"])
@@ -350,9 +348,11 @@ def _median_run(runs: list[dict[str, Any]]) -> dict[str, Any]:
     return mid
 
 
-def _spread(run: dict[str, Any]) -> str:
-    runs = run.get("pairs_s_runs") or [run["pairs_s"]]
-    return f"[{min(runs):,.0f}-{max(runs):,.0f}]"
+def _rate(run: dict[str, Any], digits: int = 0) -> h.Figure:
+    """Pairs/s of the median run with the [min-max] of all runs."""
+    s = h.summarise(run.get("pairs_s_runs") or [run["pairs_s"]])
+    return h.Figure(round(run["pairs_s"], 1), "", s.low if s.n > 1 else None,
+                    s.high if s.n > 1 else None, digits)
 
 
 def jpeg_decode_cost(n: int = 20) -> dict[str, float]:
@@ -368,112 +368,135 @@ def jpeg_decode_cost(n: int = 20) -> dict[str, float]:
     return {"decode_ms_per_pair": per_pair * 1e3}
 
 
-def markdown(out: dict[str, Any]) -> str:
-    """The transport results as markdown tables, ratios against raw pyzmq in the same run."""
-    m = out["machine"]
-    lines = ["## Transport: trapflow vs raw pyzmq PUSH/PULL (same run, same payload)", "",
-             f"{m['cores']} cores, Python {m['python']}, pyzmq {m['pyzmq']}, "
-             f"libzmq {m['libzmq']}. 1280x720 stereo pairs; lossless, {WINDOW} pairs in "
-             "flight per consumer; consumers touch every page. trapflow-zmq: bytes through "
-             "the broker; trapflow-shm: copied once into the shared-memory ring by the "
-             "harness (capture), descriptors through the broker over local links; "
-             "trapflow-shm_inplace: the same, the pair made in its slot (a byte a page "
-             "touched, no copy on either side: the ring's own cost). Throughput: median of "
-             f"{REPEATS} runs (pyzmq and trapflow interleaved), [min-max] next to it; x pyzmq: "
-             "ratio of the medians, [min-max] of the ratios run by run (each trapflow run "
-             "against the pyzmq run just before it).", "",
-             "| payload | path | pairs/s | x pyzmq | CPU us/pair | by process (us/pair) |",
-             "|---|---|---:|---:|---:|---|"]
+def results(out: dict[str, Any]) -> list[h.Result]:
+    """The transport's tables, ratios against raw pyzmq in the same run."""
+    return [_throughput(out), _fanout(out), _latency(out)]
+
+
+def _throughput(out: dict[str, Any]) -> h.Result:
+    m, repeats = out["machine"], out["repeats"]
+    r = h.Result("transport", "Transport: trapflow vs raw pyzmq PUSH/PULL (same run, same "
+                 "payload)", key="payload, path", data=out, notes=[
+        f"{m['cores']} cores, Python {m['python']}, pyzmq {m['pyzmq']}, libzmq {m['libzmq']}. "
+        f"1280x720 stereo pairs; lossless, {WINDOW} pairs in flight per consumer; consumers "
+        "touch every page. trapflow-zmq: bytes through the broker; trapflow-shm: copied once "
+        "into the shared-memory ring by the harness (capture), descriptors through the broker "
+        "over local links; trapflow-shm_inplace: the same, the pair made in its slot (a byte "
+        "a page touched, no copy on either side: the ring's own cost). Throughput: median of "
+        f"{repeats} runs (pyzmq and trapflow interleaved), [min-max] next to it; x pyzmq: "
+        "ratio of the medians, [min-max] of the ratios run by run (each trapflow run against "
+        "the pyzmq run just before it)."])
     for kind in ("jpeg", "raw"):
         t = out[kind]["throughput"]
         b = t["pyzmq_push_pull"]
-        lines.append(f"| {kind} | pyzmq PUSH/PULL | {b['pairs_s']:,.0f} {_spread(b)} | 1.00x | "
-                     f"{b['cpu_us_per_pair']:,.0f} | |")
+        r.add(f"{kind}, pyzmq PUSH/PULL", **{
+            "pairs/s": _rate(b), "x pyzmq": h.Figure(1.0), "CPU": h.Figure(
+                round(b["cpu_us_per_pair"]), "us/pair"), "by process": h.Figure("")})
         for f in FRAMES:
-            r = t[f"trapflow_{f}"]
-            paired = t[f"paired_{f}"]
-            lines.append(f"| {kind} | trapflow-{f} | {r['pairs_s']:,.0f} {_spread(r)} | "
-                         f"{t[f'ratio_{f}']:.2f}x [{min(paired):.2f}-{max(paired):.2f}] | "
-                         f"{r['cpu_us_per_pair']:,.0f} | "
-                         f"{r['cpu_us_per_pair_by_process']} |")
+            run, paired = t[f"trapflow_{f}"], t[f"paired_{f}"]
+            by = ", ".join(f"{k} {v}" for k, v in run["cpu_us_per_pair_by_process"].items())
+            r.add(f"{kind}, trapflow-{f}", **{
+                "pairs/s": _rate(run),
+                "x pyzmq": h.Figure(round(t[f"ratio_{f}"], 3), "",
+                                    *((min(paired), max(paired)) if len(paired) > 1 else ())),
+                "CPU": h.Figure(round(run["cpu_us_per_pair"]), "us/pair"),
+                "by process": h.Figure(by, "us/pair")})
+    r.notes.append(f"Load average {out['load']['before']} before, {out['load']['after']} "
+                   "after.")
+    return r
+
+
+def _fanout(out: dict[str, Any]) -> h.Result:
     fan = out["raw"]["fanout3"]
     base = fan["pyzmq_push_pull"]["pairs_s"]
-    lines += ["", "Fan-out, raw pairs, 1 source -> 3 pools (every pool gets every pair), "
-              "pairs/s per pool (slowest):", "",
-              "| path | pairs/s | x pyzmq |", "|---|---:|---:|",
-              f"| pyzmq PUSH/PULL x3 | {base:,.0f} | 1.00x |"]
+    r = h.Result("transport", "Fan-out, raw pairs, 1 source -> 3 pools (every pool gets every "
+                 "pair), pairs/s per pool (slowest)", key="path")
+    r.add("pyzmq PUSH/PULL x3", **{"pairs/s": h.Figure(round(base, 1), digits=0),
+                                   "x pyzmq": h.Figure(1.0)})
     for f in FRAMES:
-        r = fan[f"trapflow_{f}"]
-        lines.append(f"| trapflow-{f} | {r['pairs_s']:,.0f} | {r['pairs_s'] / base:.2f}x |")
-    lines += ["", f"Load average {out['load']['before']} before, {out['load']['after']} after."]
-    lines += ["", "One-way latency at 30 pairs/s, capture stamp before send -> the worker holds "
-              "the pair (us):", "",
-              "| payload | path | p50 | p99 | max | x pyzmq p50 | broker CPU % of a core | "
-              "peak RSS MB |", "|---|---|---:|---:|---:|---:|---:|---|"]
+        rate = fan[f"trapflow_{f}"]["pairs_s"]
+        r.add(f"trapflow-{f}", **{"pairs/s": h.Figure(round(rate, 1), digits=0),
+                                  "x pyzmq": h.Figure(round(rate / base, 3))})
+    return r
+
+
+def _latency(out: dict[str, Any]) -> h.Result:
+    r = h.Result("transport", "One-way latency at 30 pairs/s", key="payload, path", notes=[
+        "Capture stamp before send -> the worker holds the pair. JPEG decode of one "
+        f"1280x720 pair costs a worker {out['jpeg_decode']['decode_ms_per_pair']:.1f} ms of "
+        "CPU (one core); with raw frames in the ring no worker decodes anything."])
     for kind in ("jpeg", "raw"):
         lat = out[kind]["latency_30hz"]
         b = lat["pyzmq_push_pull"]["lat_us"]
-        lines.append(f"| {kind} | pyzmq | {b['p50']:,.0f} | {b['p99']:,.0f} | {b['max']:,.0f} "
-                     "| 1.00x | | |")
+        r.add(f"{kind}, pyzmq", **_pcts_figures(b), **{"x pyzmq p50": h.Figure(1.0)})
         for f in FRAMES:
-            r = lat[f"trapflow_{f}"]
-            rss = ", ".join(f"{k} {v:.0f}" for k, v in r["rss_mb"].items())
-            lines.append(f"| {kind} | trapflow-{f} | {r['lat_us']['p50']:,.0f} | "
-                         f"{r['lat_us']['p99']:,.0f} | {r['lat_us']['max']:,.0f} | "
-                         f"{lat[f'ratio_p50_{f}']:.2f}x | {r['broker_cpu_pct']:.1f} | {rss} |")
-    dec = out["jpeg_decode"]["decode_ms_per_pair"]
-    lines += ["", f"JPEG decode of one 1280x720 pair costs a worker {dec:.1f} ms of CPU "
-              "(one core); with raw frames in the ring no worker decodes anything."]
-    return "\n".join(lines) + "\n"
+            run = lat[f"trapflow_{f}"]
+            rss = ", ".join(f"{k} {v:.0f}" for k, v in run["rss_mb"].items())
+            r.add(f"{kind}, trapflow-{f}", **_pcts_figures(run["lat_us"]), **{
+                "x pyzmq p50": h.Figure(round(lat[f"ratio_p50_{f}"], 3)),
+                "broker CPU": h.Figure(round(run["broker_cpu_pct"], 2), "% of a core",
+                                       digits=1),
+                "peak RSS": h.Figure(rss, "MB")})
+    return r
+
+
+def _pcts_figures(lat_us: dict[str, float]) -> dict[str, h.Figure]:
+    return {k: h.Figure(round(lat_us[k], 1), "us", digits=0) for k in ("p50", "p99", "max")}
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
+    ap = h.options(__doc__, repeats=5, quick_help="1.5 s windows, 2 repeats")
     ap.add_argument("--seconds", type=float, default=4.0)
     ap.add_argument("--latency-seconds", type=float, default=8.0)
-    ap.add_argument("--out", type=Path, default=Path("bench-results"))
     args = ap.parse_args()
+    if args.quick:
+        args.seconds, args.latency_seconds, args.repeats = 1.5, 3.0, 2
     tmp = Path(tempfile.mkdtemp(prefix="tfbench-"))
     gc.freeze()  # every producer here (pyzmq's and trapflow's) runs with a frozen heap
     out: dict[str, Any] = {"machine": {"cores": os.cpu_count(), "python": sys.version.split()[0],
                                        "pyzmq": zmq.__version__, "libzmq": zmq.zmq_version()},
-                           "load": {"before": round(os.getloadavg()[0], 2)}}
+                           "load": {"before": round(os.getloadavg()[0], 2)},
+                           "repeats": args.repeats}
     for kind in ("jpeg", "raw"):
-        print(f"[bench] {kind}: throughput (pyzmq, trapflow zmq, trapflow shm)", file=sys.stderr)
-        # Interleaved repeats, median kept: a shared machine's noise hits every path alike.
-        runs: dict[str, list[dict[str, Any]]] = {"base": [], **{f: [] for f in FRAMES}}
-        for _ in range(REPEATS):
-            runs["base"].append(raw_pyzmq(kind, args.seconds, None, tmp))
-            for f in FRAMES:
-                runs[f].append(trapflow_path(kind, args.seconds, None, 1, tmp, frames=f))
-        base = _median_run(runs["base"])
-        tf = {f: _median_run(runs[f]) for f in FRAMES}
-        print(f"[bench] {kind}: 30 Hz latency", file=sys.stderr)
-        base30 = raw_pyzmq(kind, args.latency_seconds, 30.0, tmp)
-        tf30 = {f: trapflow_path(kind, args.latency_seconds, 30.0, 1, tmp, frames=f)
-                for f in FRAMES}
-        out[kind] = {
-            "throughput": {"pyzmq_push_pull": base, **{f"trapflow_{f}": tf[f] for f in FRAMES},
-                           **{f"ratio_{f}": tf[f]["pairs_s"] / base["pairs_s"] for f in FRAMES},
-                           **{f"paired_{f}": [r["pairs_s"] / b["pairs_s"] for b, r in
-                                              zip(runs["base"], runs[f], strict=True)]
-                              for f in FRAMES}},
-            "latency_30hz": {"pyzmq_push_pull": base30,
-                             **{f"trapflow_{f}": tf30[f] for f in FRAMES},
-                             **{f"ratio_p50_{f}": tf30[f]["lat_us"]["p50"]
-                                / base30["lat_us"]["p50"] for f in FRAMES}},
-        }
-    print("[bench] raw: fan-out to 3 pools", file=sys.stderr)
+        out[kind] = measure_kind(kind, args.seconds, args.latency_seconds, args.repeats, tmp)
+    h.log("transport", "raw: fan-out to 3 pools")
     base3 = raw_pyzmq_fanout(args.seconds, tmp)
     out["raw"]["fanout3"] = {"pyzmq_push_pull": base3, **{
         f"trapflow_{f}": trapflow_path("raw", args.seconds, None, 1, tmp, pools=3, frames=f)
         for f in FRAMES}}
     out["jpeg_decode"] = jpeg_decode_cost()
     out["load"]["after"] = round(os.getloadavg()[0], 2)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "transport.json").write_text(json.dumps(out, indent=1))
-    (args.out / "transport.md").write_text(markdown(out))
-    print(markdown(out))
+    tables = results(out)
+    h.write(args.out, "transport", tables)
+    print(h.markdown(tables))
+
+
+def measure_kind(kind: str, seconds: float, latency_seconds: float, repeats: int,
+                 tmp: Path) -> dict[str, Any]:
+    """Throughput (interleaved repeats, the median run kept) and 30 Hz latency of one
+    payload kind on every path."""
+    h.log("transport", f"{kind}: throughput (pyzmq, trapflow zmq, trapflow shm)")
+    # Interleaved repeats, median kept: a shared machine's noise hits every path alike.
+    runs: dict[str, list[dict[str, Any]]] = {"base": [], **{f: [] for f in FRAMES}}
+    for _ in range(repeats):
+        runs["base"].append(raw_pyzmq(kind, seconds, None, tmp))
+        for f in FRAMES:
+            runs[f].append(trapflow_path(kind, seconds, None, 1, tmp, frames=f))
+    base = _median_run(runs["base"])
+    tf = {f: _median_run(runs[f]) for f in FRAMES}
+    h.log("transport", f"{kind}: 30 Hz latency")
+    base30 = raw_pyzmq(kind, latency_seconds, 30.0, tmp)
+    tf30 = {f: trapflow_path(kind, latency_seconds, 30.0, 1, tmp, frames=f) for f in FRAMES}
+    return {
+        "throughput": {"pyzmq_push_pull": base, **{f"trapflow_{f}": tf[f] for f in FRAMES},
+                       **{f"ratio_{f}": tf[f]["pairs_s"] / base["pairs_s"] for f in FRAMES},
+                       **{f"paired_{f}": [r["pairs_s"] / b["pairs_s"] for b, r in
+                                          zip(runs["base"], runs[f], strict=True)]
+                          for f in FRAMES}},
+        "latency_30hz": {"pyzmq_push_pull": base30, **{f"trapflow_{f}": tf30[f] for f in FRAMES},
+                         **{f"ratio_p50_{f}": tf30[f]["lat_us"]["p50"] / base30["lat_us"]["p50"]
+                            for f in FRAMES}},
+    }
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -95,6 +96,72 @@ def test_a_surface_file_against_the_run(tmp_path: Path) -> None:
         f"has crab from {stamp(2)[:19]}",
         f"surface surface.jsonl line 6: an aggregate's best mono_ir seq 3 (timestamp "
         f"{stamp(3)}, label fish, track 1) is no line of results.jsonl"]
+
+
+def _digest(seq: int, pool: str | None) -> dict[str, Any]:
+    body: dict[str, Any] = {"timestamp": stamp(seq), "seq": seq, "hex": "ab"}
+    return {"digest": {**body, "pool": pool, "v": 3} if pool else {**body, "v": 2}}
+
+
+def _two_pools(run: Path, lines: list[dict[str, Any]], local: int, remote: int,
+               **ledger: Any) -> None:
+    """The made run with two pools of one plugin (a local and a remote digest pool)."""
+    write_lines(run / "results.jsonl", results() + lines)
+    led = json.loads((run / "ledger.json").read_text())
+    pool = {**led["pools"]["vo"], "kinds": ["digest"]}
+    led["pools"].update(hash={**pool, "processed": local},
+                        hash_remote={**pool, "processed": remote})
+    (run / "ledger.json").write_text(json.dumps({**led, **ledger}))
+
+
+def test_two_pools_of_one_plugin_each_credited_their_own_lines(tmp_path: Path) -> None:
+    """Regression (issue 32): every line of a kind was credited to one pool (the last the
+    normalizer routed), so two pools of one plugin never agreed with the ledger. A line
+    names its pool: each pool is held to its own lines, a seq both processed counted once
+    for each; a line of a pool the ledger lacks is a disagreement."""
+    run = make_run(tmp_path / "run")
+    lines = [_digest(s, "hash") for s in range(1, 9)] + [_digest(s, "hash_remote")
+                                                         for s in (2, 4, 6)]
+    _two_pools(run, lines, 8, 3)
+    assert check_run(run) == []
+    _two_pools(run, lines[:-1] + [_digest(6, "hash_spare")], 8, 3)
+    assert check_run(run) == [
+        "ledger.json pool hash_remote: processed 3, results.jsonl has 2 distinct seqs of "
+        "digest",
+        "results.jsonl: 1 seqs of pool hash_spare, which ledger.json does not have"]
+
+
+def test_lines_naming_no_pool_are_credited_by_kind(tmp_path: Path) -> None:
+    """A run from before lines named their pool: its lines are credited by kind, to the one
+    pool whose `kinds` list it (the made run's lines name none); a kind two pools list
+    cannot be credited, and says so."""
+    run = make_run(tmp_path / "run")
+    _two_pools(run, [_digest(s, None) for s in range(1, 4)], 3, 0)
+    assert check_run(run) == [
+        "ledger.json pool hash: processed 3, results.jsonl has 0 distinct seqs of digest",
+        "results.jsonl: 3 seqs of digest, which name no pool, and pools hash, hash_remote "
+        "all make digest"]
+
+
+def test_a_later_start_is_held_to_its_own_lines(tmp_path: Path) -> None:
+    """A run directory started again (after a power cut): results.jsonl holds both starts'
+    lines, ledger.json counts the last start's, from the byte it names (`results_from`);
+    the tracks and counts checks read every line."""
+    run = make_run(tmp_path / "run")
+    first = (run / "results.jsonl").read_bytes()
+    later = [_digest(s, "hash") for s in range(20, 25)]
+    _two_pools(run, later, 5, 0, results_from=len(first))
+    (run / "results.jsonl").write_bytes(first + b"".join(
+        json.dumps(o).encode() + b"\n" for o in later))
+    led = json.loads((run / "ledger.json").read_text())
+    led["pools"]["mono"]["processed"] = led["pools"]["vo"]["processed"] = 0  # not this start
+    (run / "ledger.json").write_text(json.dumps(led))
+    assert check_run(run) == []
+    led["pools"]["hash"]["processed"] = 6
+    (run / "ledger.json").write_text(json.dumps(led))
+    assert check_run(run) == [
+        "ledger.json pool hash: processed 6, results.jsonl has 5 distinct seqs of digest from "
+        "line 17 (this start's)"]
 
 
 def _check(*args: str) -> subprocess.CompletedProcess[str]:

@@ -91,23 +91,57 @@ def _line(kind: str, seq: int, **extra: object) -> bytes:
 ])
 def test_delivered_counts_distinct_results_per_kind(lines: list[bytes], counts: dict[str, int],
                                                     unreadable: int) -> None:
+    """Lines that name no pool (a normalizer from before lines did): counted per kind."""
     whole = Delivered()
     whole.feed(b"".join(lines))
-    assert (whole.counts, whole.unreadable) == (counts, unreadable)
+    assert (whole.kinds, whole.pools, whole.unreadable) == (counts, {}, unreadable)
     # Fed in pieces that cut lines anywhere (the file read while the normalizer writes).
     data = b"".join(lines)
     pieces = Delivered()
     for i in range(0, len(data), 7):
         pieces.feed(data[i:i + 7])
-    assert (pieces.counts, pieces.unreadable, pieces.offset) == (counts, unreadable, len(data))
+    assert (pieces.kinds, pieces.unreadable, pieces.offset) == (counts, unreadable, len(data))
 
 
 def test_delivered_waits_for_the_end_of_a_line() -> None:
     d = Delivered()
     d.feed(_line("mono_ir", 1)[:-5])
-    assert d.counts == {} and d.offset == 0
+    assert d.kinds == {} and d.offset == 0
     d.feed(_line("mono_ir", 1)[-5:])
-    assert d.counts == {"mono_ir": 1}
+    assert d.kinds == {"mono_ir": 1}
+
+
+def test_two_pools_of_one_plugin_are_each_credited_their_own_lines() -> None:
+    """Regression (issue 32): the routes kept kind -> pool, so with two pools of one plugin
+    (a local and a remote digest pool) every line of that kind was credited to the last pool
+    routed: the other got no kind and its processed was the broker's, and the credited pool
+    counted both pools' lines. A line names its pool: each is credited its own, and a seq
+    both pools processed counts once for each."""
+    led = RunLedger()
+    led.on_capture(CaptureCounters(produced=10))
+    led.on_stats(Stats(t_wall_ns=0, uptime_s=1.0, pairs_in=10, rate_in=2.0, malformed=0,
+                       pools={"hash": PoolStats(received=10, processed=10),
+                              "hash_remote": PoolStats(received=10, processed=4, lost=6)}))
+    led.on_normalizer({"route:hash:digest": 1, "route:hash_remote:digest": 1})
+    led.delivered.feed(b"".join([*(_line("digest", s, pool="hash") for s in range(10)),
+                                 *(_line("digest", s, pool="hash_remote") for s in range(4)),
+                                 _line("digest", 2, pool="hash")]))  # written twice
+    pools = led.ledger({"hash": "latest", "hash_remote": "latest"}, {})["pools"]
+    assert (pools["hash"]["processed"], pools["hash_remote"]["processed"]) == (10, 4)
+    assert pools["hash"]["kinds"] == pools["hash_remote"]["kinds"] == ["digest"]
+    assert pools["hash_remote"]["lost"] == 6 and led.delivered.total() == 14
+
+
+def test_lines_naming_no_pool_are_credited_by_kind_to_its_one_pool() -> None:
+    """The fallback for a normalizer from before lines named their pool: a kind one pool
+    alone makes is that pool's; a kind two pools make is neither's (its pools keep the
+    broker's count, as before lines were counted)."""
+    d = Delivered()
+    d.feed(b"".join([_line("stereo_vo", 1), _line("stereo_vo", 2), _line("digest", 1),
+                     _line("mono_ir", 1, pool="mono")]))
+    routes = {"vo": {"stereo_vo"}, "a": {"digest"}, "b": {"digest"}, "mono": {"mono_ir"}}
+    assert d.by_pool(routes) == {"vo": 2, "a": 0, "b": 0, "mono": 1}
+    assert d.by_pool({}) == {"mono": 1}
 
 
 def test_processed_is_what_was_delivered_once_routed() -> None:
@@ -118,7 +152,7 @@ def test_processed_is_what_was_delivered_once_routed() -> None:
     led.on_stats(_stats(100, received=100, processed=80, pending=5, in_flight=5, lost=10))
     assert led.ledger({"vo": "ordered"}, {})["pools"]["vo"]["processed"] == 80  # not routed
     led.on_normalizer({"lines": 97, "route:vo:stereo_vo": 1})
-    led.delivered.feed(b"".join(_line("stereo_vo", s) for s in range(97)))
+    led.delivered.feed(b"".join(_line("stereo_vo", s, pool="vo") for s in range(97)))
     vo = led.ledger({"vo": "ordered"}, {})["pools"]["vo"]
     assert (vo["processed"], vo["lost"]) == (97, 3)
 

@@ -5,9 +5,14 @@ id, and both numbers.
 What must agree:
 
 - ledger.json and results.jsonl: each pool's `processed` is the number of distinct seqs
-  among the lines of the kinds its results became (the pool's `kinds`); `processed` is the
-  one ledger state that counts written lines (the others count pairs that wrote none:
-  dropped, gated, failed, timed out, lost, unfinished), so it is the one compared.
+  among the lines that name it (`pool`; two pools may run one plugin, so a line's kind does
+  not say its pool); `processed` is the one ledger state that counts written lines (the
+  others count pairs that wrote none: dropped, gated, failed, timed out, lost, unfinished),
+  so it is the one compared. Lines of a run from before lines named their pool are credited
+  by kind: to the one pool whose `kinds` in ledger.json list it. A run directory used again
+  (a start after a power cut, or after a clean stop) holds every start's lines, and its
+  ledger.json counts the last start's: they are compared with the lines from the byte it
+  names (`results_from`) on; the tracks and counts checks read every line.
 - results.jsonl and tracks.jsonl: every track id a detection line carries is a track of
   tracks.jsonl; the track's label is the one most of its lines carry (allowing for its
   first boxes, written before it was confirmed and without its id); each line's time lies
@@ -28,7 +33,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from trapflow.export.run_files import Jsonl, label_s, read_json, read_jsonl
+from trapflow.export.run_files import (
+    Jsonl,
+    first_line_at,
+    label_s,
+    read_json,
+    read_jsonl,
+    results_from,
+    written,
+)
 
 # Result times are written to the millisecond, tracks' and counts' to 3 decimals.
 TIME_TOL_S = 0.002
@@ -89,27 +102,31 @@ def _load(run_dir: Path, results_file: str, tracks_file: str, counts_file: str,
     return run
 
 
-def _ledger(run: _Run, out: list[str]) -> None:
-    """Each pool's processed against the distinct seqs of its kinds in results.jsonl."""
+def _ledger(run: _Run, results_path: Path, out: list[str]) -> None:
+    """Each pool's processed against the distinct seqs of the lines credited to it
+    (run_files.written: by the pool a line names, else by its kind)."""
     if run.ledger is None or not isinstance(run.ledger.get("pools"), dict):
         out.append("ledger.json: missing or not a ledger; a finished run always leaves it")
         return
-    claimed: set[str] = set()
-    known = True
-    for pool, p in sorted(run.ledger["pools"].items()):
-        kinds = p.get("kinds")
-        if not isinstance(kinds, list):  # a ledger from before pools said their kinds
-            known = False
-            continue
-        claimed.update(kinds)
-        got = sum(len(run.seqs.get(k, ())) for k in kinds)
-        if p.get("processed") != got:
-            of = "/".join(kinds) or "no kind"
-            out.append(f"ledger.json pool {pool}: processed {p.get('processed')}, "
-                       f"{run.results.name} has {got} distinct seqs of {of}")
-    for kind in sorted(set(run.seqs) - claimed if known else ()):
-        out.append(f"{run.results.name}: {len(run.seqs[kind])} seqs of {kind}, which no pool "
-                   "of ledger.json made")
+    got = written(run.results, run.ledger,
+                  first_line_at(results_path, results_from(run.ledger)))
+    if not got.compared:  # old lines and a ledger from before pools said their kinds
+        return
+    name = run.results.name
+    since = f" from line {got.first_line} (this start's)" if got.first_line > 1 else ""
+    pools = {k: p for k, p in run.ledger["pools"].items() if isinstance(p, dict)}
+    for pool, p in sorted(pools.items()):
+        have = len(got.pools.get(pool, ()))
+        if p.get("processed") != have:
+            of = "/".join(sorted(got.kinds.get(pool) or p.get("kinds") or [])) or "no kind"
+            out.append(f"ledger.json pool {pool}: processed {p.get('processed')}, {name} has "
+                       f"{have} distinct seqs of {of}{since}")
+    for what, seqs in sorted(got.unclaimed.items()):
+        makers = sorted(k for k, p in pools.items() if what in (p.get("kinds") or []))
+        why = ("which ledger.json does not have" if what.startswith("pool ") else
+               f"which name no pool, and pools {', '.join(makers)} all make {what}"
+               if makers else "which no pool of ledger.json made")
+        out.append(f"{name}{since}: {len(seqs)} seqs of {what}, {why}")
 
 
 def _tracks(run: _Run, out: list[str]) -> None:
@@ -262,7 +279,7 @@ def check_run(run_dir: Path, *, results_file: str = "results.jsonl",
     tell one story. A run without tracking (no tracks.jsonl) is checked for the rest."""
     out: list[str] = []
     run = _load(run_dir, results_file, tracks_file, counts_file, out)
-    _ledger(run, out)
+    _ledger(run, run_dir / results_file, out)
     if run.tracks.exists or run.tracked:
         _tracks(run, out)
     if run.counts.exists:

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from trapflow.errors import TrapflowError
+from trapflow.normalizer.result_json import line_pool
 from trapflow.supervisor.setup import LOCK_FILE, supervisor_alive
 
 
@@ -92,6 +93,66 @@ def read_json(path: Path) -> dict[str, Any] | None:
     return obj if isinstance(obj, dict) else None
 
 
+@dataclass
+class Written:
+    """results.jsonl's written results as ledger.json counts them: distinct seqs per pool of
+    the ledger, from the lines of the start the ledger tells of (`results_from`)."""
+
+    pools: dict[str, set[int]] = field(default_factory=dict)  # ledger pool -> seqs
+    # Seqs no pool of the ledger can be credited with, by what the lines say: "pool X" (a
+    # pool the ledger lacks) or a kind (a line without `pool` whose kind no pool, or
+    # several, list among their `kinds`).
+    unclaimed: dict[str, set[int]] = field(default_factory=dict)
+    kinds: dict[str, set[str]] = field(default_factory=dict)  # pool -> kinds of its lines
+    first_line: int = 1  # the first line of results.jsonl the ledger's start wrote
+    compared: bool = True  # False: a ledger from before pools said their kinds, old lines
+
+
+def first_line_at(path: Path, offset: int) -> int:
+    """The number (from 1) of the line of `path` that starts at byte `offset`."""
+    if offset <= 0:
+        return 1
+    try:
+        with path.open("rb") as f:
+            return f.read(offset).count(b"\n") + 1
+    except OSError:
+        return 1
+
+
+def written(results: Jsonl, ledger: dict[str, Any], first_line: int = 1) -> Written:
+    """Each line credited to the pool it names (`pool`, results.jsonl v3); a line of a run
+    from before lines named their pool, to the one pool whose `kinds` in ledger.json list its
+    kind. Lines before `first_line` are earlier starts' in a reused run directory."""
+    pools = {name: p for name, p in (ledger.get("pools") or {}).items() if isinstance(p, dict)}
+    makers: dict[str, list[str]] = {}
+    listed = True
+    for name, p in pools.items():
+        if isinstance(p.get("kinds"), list):
+            for kind in p["kinds"]:
+                makers.setdefault(kind, []).append(name)
+        else:
+            listed = False
+    out = Written(pools={name: set() for name in pools}, first_line=first_line)
+    for n, obj in results.items:
+        (kind, body), = obj.items()
+        if n < first_line or not isinstance(body, dict) or not isinstance(body.get("seq"), int):
+            continue
+        pool = line_pool(body)
+        if pool is not None:
+            key = pool if pool in out.pools else f"pool {pool}"
+        elif not listed:  # neither the lines nor the ledger say which pool: not compared
+            out.compared = False
+            continue
+        else:
+            who = makers.get(kind, [])
+            key = who[0] if len(who) == 1 else kind
+        (out.pools if key in out.pools else out.unclaimed).setdefault(key, set()).add(
+            body["seq"])
+        if key in out.pools:
+            out.kinds.setdefault(key, set()).add(kind)
+    return out
+
+
 def _ids(ids: list[int]) -> str:
     """Track ids as a short phrase: "track 4", "tracks 3, 4, 5"."""
     shown = ", ".join(map(str, ids[:8])) + (f" and {len(ids) - 8} more" if len(ids) > 8 else "")
@@ -109,21 +170,20 @@ def damage(run_dir: Path, results_file: str = "results.jsonl",
     out: list[str] = []
     if results.cut is not None:
         out.append(f"{results.cut_text()}: that line's result is left out")
-    seqs: dict[str, set[int]] = {}
     carried: set[int] = set()
     last = ""  # the latest result time ("YYYY-MM-DD HH:MM:SS.mmm" sorts as time)
     for _n, obj in results.items:
-        (kind, body), = obj.items()
+        (_kind, body), = obj.items()
         if isinstance(body, dict) and isinstance(body.get("seq"), int):
-            seqs.setdefault(kind, set()).add(body["seq"])
             last = max(last, str(body.get("timestamp", "")))
             if isinstance(body.get("track"), int):
                 carried.add(body["track"])
     ledger = read_json(run_dir / "ledger.json") or {}
+    got = written(results, ledger, first_line_at(run_dir / results_file,
+                                                 results_from(ledger)))
     for pool, p in sorted((ledger.get("pools") or {}).items()):
-        kinds = p.get("kinds") if isinstance(p, dict) else None
-        if isinstance(kinds, list) and isinstance(p.get("processed"), int):
-            have = sum(len(seqs.get(k, ())) for k in kinds)
+        if got.compared and isinstance(p, dict) and isinstance(p.get("processed"), int):
+            have = len(got.pools.get(pool, ()))
             if have < p["processed"]:
                 out.append(f"{results.name} holds {have} of the {p['processed']} results "
                            f"ledger.json counts for pool {pool}: the pairs of the other "
@@ -144,6 +204,14 @@ def damage(run_dir: Path, results_file: str = "results.jsonl",
             out.append(f"{results.name} ends at {last}, before {_ids(after)} end: the boxes, "
                        "best frames and blanks after it are left out")
     return out
+
+
+def results_from(ledger: dict[str, Any]) -> int:
+    """The byte of results.jsonl where the lines of the start ledger.json tells of begin
+    (`results_from`: 0 for a run directory's first start, and for a ledger from before it
+    was said)."""
+    at = ledger.get("results_from", 0)
+    return at if isinstance(at, int) and not isinstance(at, bool) and at > 0 else 0
 
 
 def label_s(label: Any) -> float | None:

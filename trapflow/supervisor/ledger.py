@@ -25,7 +25,9 @@ __all__ = ["UNFINISHED", "Delivered", "RunLedger", "capture_failures", "combine"
            "verdict"]
 
 # The normalizer's heartbeat counters route:<pool>:<kind> say which pool's results become lines
-# of which kind (the first key of a results.jsonl line); results.jsonl itself has no pool.
+# of which kind (the first key of a results.jsonl line): ledger.json's `kinds` of a pool. A
+# line names its pool itself (`pool`, results.jsonl v3); the routes credit the lines of a
+# normalizer from before that, by kind, to the one pool that makes it.
 ROUTE_PREFIX = "route:"
 # The console's width: the status line never wraps on an 80-column terminal.
 STATUS_WIDTH = 80
@@ -36,24 +38,28 @@ RECENT_SEQS = 65536
 
 class _Line(msgspec.Struct):
     seq: int = -1
+    pool: str | None = None  # result_json.POOL_KEY; None on a line of v2 and before
 
 
 _line_dec = msgspec.json.Decoder(dict[str, _Line])
 
 
 class Delivered:
-    """Distinct results per kind in results.jsonl, fed its bytes as they are appended.
+    """Distinct results per pool in results.jsonl, fed its bytes as they are appended.
 
     The results file is what was delivered: counting it (not what a dead broker or
     normalizer last reported) makes the ledger agree with it pair by pair after kills.
     A result of several lines (one per detection) counts once; so does one written twice.
+    Each line counts for the pool it names; a line that names none (a normalizer from
+    before lines did) counts for its kind, credited to a pool by the routes (by_pool).
     """
 
     def __init__(self) -> None:
-        self.counts: dict[str, int] = {}
+        self.pools: dict[str, int] = {}  # distinct results per pool, of lines naming it
+        self.kinds: dict[str, int] = {}  # distinct results per kind, of lines naming no pool
         self.offset = 0  # bytes of the file consumed (whole lines only)
         self.unreadable = 0  # lines that are not a result (a torn write after a power cut)
-        self._recent: dict[str, tuple[set[int], deque[int]]] = {}
+        self._recent: dict[tuple[bool, str], tuple[set[int], deque[int]]] = {}
         self._tail = b""
 
     def feed(self, data: bytes) -> None:
@@ -73,31 +79,49 @@ class Delivered:
             self.unreadable += 1
             return
         for kind, item in obj.items():
-            seen, order = self._recent.setdefault(kind, (set(), deque()))
+            named = item.pool is not None
+            key = item.pool if item.pool is not None else kind
+            seen, order = self._recent.setdefault((named, key), (set(), deque()))
             if item.seq in seen:
                 return
             seen.add(item.seq)
             order.append(item.seq)
             if len(order) > RECENT_SEQS:
                 seen.discard(order.popleft())
-            self.counts[kind] = self.counts.get(kind, 0) + 1
+            counts = self.pools if named else self.kinds
+            counts[key] = counts.get(key, 0) + 1
             return
 
-    def by_pool(self, routes: dict[str, str]) -> dict[str, int]:
-        """Counts per pool, given kind -> pool routes."""
-        out: dict[str, int] = {}
-        for kind, pool in routes.items():
-            out[pool] = out.get(pool, 0) + self.counts.get(kind, 0)
+    def total(self) -> int:
+        """Distinct results written (the end summary's count)."""
+        return sum(self.pools.values()) + sum(self.kinds.values())
+
+    def by_pool(self, routes: dict[str, set[str]]) -> dict[str, int]:
+        """Counts per pool: the lines that name it, and those naming none of a kind that
+        this pool alone is routed (pool -> kinds); a kind two pools make is nobody's then.
+        A pool is absent until a line counts for it or it is routed."""
+        makers: dict[str, list[str]] = {}
+        for pool, kinds in routes.items():
+            for kind in kinds:
+                makers.setdefault(kind, []).append(pool)
+        out = dict(self.pools)
+        for pool in routes:
+            out.setdefault(pool, 0)
+        for kind, n in self.kinds.items():
+            who = makers.get(kind, [])
+            if len(who) == 1:
+                out[who[0]] += n
         return out
 
 
-def routes_of(counters: dict[str, int]) -> dict[str, str]:
-    """kind -> pool from the normalizer's route:<pool>:<kind> counters."""
-    out: dict[str, str] = {}
+def routes_of(counters: dict[str, int]) -> dict[str, set[str]]:
+    """pool -> the kinds its results became, from the normalizer's route:<pool>:<kind>
+    counters (two pools of one plugin: both list its kind)."""
+    out: dict[str, set[str]] = {}
     for key in counters:
         if key.startswith(ROUTE_PREFIX):
             pool, _, kind = key[len(ROUTE_PREFIX):].partition(":")
-            out[kind] = pool
+            out.setdefault(pool, set()).add(kind)
     return out
 
 
@@ -169,7 +193,11 @@ class RunLedger:
     _capture: CaptureCounters | None = None  # the live capture's own
     seen_capture: bool = False
     delivered: Delivered = field(default_factory=Delivered)  # results.jsonl, as written
-    routes: dict[str, str] = field(default_factory=dict)  # result kind -> pool
+    routes: dict[str, set[str]] = field(default_factory=dict)  # pool -> its result kinds
+    # The byte of results.jsonl where this start's lines begin: 0, or its size when the run
+    # directory held a results.jsonl (a start after a power cut or a stop): ledger.json's
+    # counts are this start's, and `trapflow check` compares them with the lines from here.
+    results_from: int = 0
     # Pairs the brokers had counted lost, per pool, when a planned stop began: what they
     # count lost after it (workers told to leave, a queue never served) is the stop's doing.
     lost_at_stop: dict[str, int] | None = None
@@ -189,7 +217,8 @@ class RunLedger:
         self.seen_capture = True
 
     def on_normalizer(self, counters: dict[str, int]) -> None:
-        self.routes.update(routes_of(counters))
+        for pool, kinds in routes_of(counters).items():
+            self.routes.setdefault(pool, set()).update(kinds)
 
     def stopping(self) -> None:
         """A planned stop begins (before any process is told): keep what was lost so far.
@@ -266,18 +295,9 @@ class RunLedger:
         up, and the broker's queue to it ended with the broker) is lost either way, and
         counted in `unwritten` too: a stop never hides a normalizer that fell behind
         (issue 36 item 1: 87 of 602 results written, "lost 0")."""
-        cap = self.capture()
         s = self.stats
         produced = self.produced()
-        out: dict[str, Any] = {
-            "produced": produced,
-            "dropped_at_capture": cap.dropped,  # the broker was not reading
-            # Read but never sent: unreadable, cut short, two sizes, too large for the ring.
-            "failed_at_capture": cap.failed,
-            "capture_failures": {k: n for k, n in sorted(cap.failures.items()) if n},
-            "reached_broker": s.pairs_in if s else 0,
-            "pools": {},
-        }
+        out = self._head(produced)
         delivered = self.delivered.by_pool(self.routes)
         for name, p in (s.pools.items() if s else ()):
             # Processed: the results written for this pool (known once its results are
@@ -296,8 +316,9 @@ class RunLedger:
                 "unwritten": unwritten,
                 # Replaced on purpose (max_rss_mb, max_jobs), by why; not restarts.
                 "recycled": dict((supervision or {}).get("recycled", {}).get(name, {})),
-                # The results.jsonl kinds its results became (`trapflow check` pairs them).
-                "kinds": sorted(k for k, pool in self.routes.items() if pool == name),
+                # The results.jsonl kinds its results became (`trapflow check` credits a
+                # line that names no pool by them).
+                "kinds": sorted(self.routes.get(name, ())),
             }
             if not final:
                 out["pools"][name][IN_PROGRESS] = in_progress
@@ -306,6 +327,22 @@ class RunLedger:
         if supervision is not None:
             out["supervision"] = supervision
         return out
+
+    def _head(self, produced: int) -> dict[str, Any]:
+        """The ledger's counts before the pools: capture's and the broker's."""
+        cap = self.capture()
+        return {
+            "produced": produced,
+            "dropped_at_capture": cap.dropped,  # the broker was not reading
+            # Read but never sent: unreadable, cut short, two sizes, too large for the ring.
+            "failed_at_capture": cap.failed,
+            "capture_failures": {k: n for k, n in sorted(cap.failures.items()) if n},
+            "reached_broker": self.stats.pairs_in if self.stats else 0,
+            # This start's lines of results.jsonl begin at this byte (a reused run directory
+            # holds earlier starts' lines before it); every count here is this start's.
+            "results_from": self.results_from,
+            "pools": {},
+        }
 
     def _unfinished(self, name: str, p: PoolStats, rest: int, unwritten: int, final: bool,
                     planned_stop: bool) -> int:

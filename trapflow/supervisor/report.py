@@ -100,6 +100,8 @@ def _full_stats(stats: messages.Stats) -> dict[str, Any]:
     """Stats as plain data with every field, zeros included (the wire form omits them)."""
     out = msgspec.structs.asdict(stats)
     out["pools"] = {n: msgspec.structs.asdict(p) for n, p in stats.pools.items()}
+    if stats.image is not None:
+        out["image"] = msgspec.structs.asdict(stats.image)
     return out
 
 
@@ -254,6 +256,9 @@ class Report:
         # Lines the normalizer could not write, the disk being full: counted, never silent.
         out["not_written_disk_full"] = {k[len(DISK_FULL_PREFIX):]: n for k, n in
                                         sorted(norm.items()) if k.startswith(DISK_FULL_PREFIX)}
+        image = self.ledger_model.stats.image if self.ledger_model.stats else None
+        if image is not None:  # capture's image-health watch as it last told (fouling...)
+            out["image_health"] = msgspec.structs.asdict(image)  # every field, zeros too
         if self.cfg.modem.enabled:  # what the link carried, refused, aggregated, expired
             modem = next((c.counters for c in snap.nodes if c.name == "modem"), {})
             out["modem"] = dict(sorted(modem.items()))
@@ -301,7 +306,7 @@ class Report:
         c = self.cfg
         out.write("".join(f"{line}\n" for line in run_summary.summary_lines(
             run_dir / c.normalizer.results_file,
-            sum(self.ledger_model.delivered.counts.values()), run_dir / c.outbox.path,
+            self.ledger_model.delivered.total(), run_dir / c.outbox.path,
             run_dir / c.events.folder if c.events.enabled else None, c.source.kind,
             snap.source_where, c.outbox)))
         out.flush()

@@ -213,6 +213,7 @@ class Supervisor:
         results = self.run_dir / self.cfg.normalizer.results_file
         if results.exists():  # a reused run directory: this run's results start at its end
             self.ledger_model.delivered.offset = results.stat().st_size
+            self.ledger_model.results_from = self.ledger_model.delivered.offset
         self.ctx = new_context()
         self.run_log: RunLogging | None = None
         try:

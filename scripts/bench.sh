@@ -13,8 +13,8 @@ trapflow installed, nothing else running): per algorithm CPU and wall ms per pai
 1280x720 on one core (detector int8 and fp32), the pipeline's parallel overhead per pair
 at 10 pairs/s, and the VO floor under saturating recognisers. About 4 minutes on the
 2-core development machine (not yet timed on a Pi);
-writes OUT_DIR/pi.md and pi.json and prints the table (scripts/bench_pi.py --help for
-another size or rate).
+writes OUT_DIR/pi.md and pi.json and prints the table (python -m benchmarks.pi --help
+for another size or rate).
 
 Parts, in order, with their run time on a 2-core machine (full / --quick):
   transport   broker path vs raw pyzmq, JPEG and raw pairs        ~3 min  / skipped
@@ -102,18 +102,18 @@ PY=${PYTHON:-python}
 mkdir -p "$OUT"
 if [ "$QUICK" = pi ]; then
   echo "[bench] deployment table on $(uname -m), $(nproc) cores (a few minutes)" >&2
-  "$PY" scripts/bench_pi.py --out "$OUT"
+  "$PY" -m benchmarks.pi --out "$OUT"
   exit 0
 fi
 if [ "$QUICK" = 1 ]; then
   echo "[bench] cpu per pair by role and the VO floor (quick)" >&2
-  "$PY" scripts/bench_cpu.py --quick --out "$OUT" > /dev/null
+  "$PY" -m benchmarks.cpu --quick --out "$OUT" > /dev/null
   echo "[bench] JPEG decode (quick)" >&2
   "$PY" -m benchmarks.decode --quick --out "$OUT" > /dev/null
   echo "[bench] stereo VO against the plugin before issue 27 (quick)" >&2
-  "$PY" scripts/bench_vo.py --pairs 40 --no-drift --out "$OUT" > /dev/null
+  "$PY" -m benchmarks.vo --quick --out "$OUT" > /dev/null
   { echo "# trapflow benchmark (quick), $(date -u '+%Y-%m-%d %H:%M UTC'), $(nproc) cores"
-    echo; cat "$OUT/cpu.md"; echo; cat "$OUT/decode.md"; echo; cat "$OUT/bench_vo.md"; } > "$OUT/bench.md"
+    echo; cat "$OUT/cpu.md"; echo; cat "$OUT/decode.md"; echo; cat "$OUT/vo.md"; } > "$OUT/bench.md"
   echo "[bench] wrote $OUT/bench.md" >&2
   exit 0
 fi
@@ -142,7 +142,7 @@ if want shm; then
 fi
 if want cpu; then
   echo "[bench] cpu per pair by role and the VO floor" >&2
-  "$PY" scripts/bench_cpu.py --out "$OUT" > /dev/null
+  "$PY" -m benchmarks.cpu --out "$OUT" > /dev/null
 fi
 if want decode; then
   echo "[bench] JPEG decode" >&2
@@ -150,11 +150,11 @@ if want decode; then
 fi
 if want vo; then
   echo "[bench] stereo VO against the plugin before issue 27" >&2
-  "$PY" scripts/bench_vo.py --out "$OUT" > /dev/null
+  "$PY" -m benchmarks.vo --out "$OUT" > /dev/null
 fi
 if want algorithms; then
   echo "[bench] algorithms" >&2
-  "$PY" scripts/bench_algorithms.py --out "$OUT" > /dev/null
+  "$PY" -m benchmarks.algorithms --out "$OUT" > /dev/null
 fi
 if want detector; then
   echo "[bench] detector int8 vs fp32 (time and accuracy, held-out synthetic pairs)" >&2
@@ -198,7 +198,7 @@ fresh() { [ -f "$1" ] && [ "$(stat -c %Y "$1")" -ge "$started" ]; }
   echo "Parts: ${PARTS:-all}; load average before: $load_before, after: $(cut -d' ' -f1-3 /proc/loadavg)"
   echo
   for md in "$OUT"/transport.md "$OUT"/peers.md "$OUT"/remote.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/cpu.md \
-            "$OUT"/decode.md "$OUT"/bench_vo.md "$OUT"/bench_algorithms.md "$OUT"/quantize_detector.md \
+            "$OUT"/decode.md "$OUT"/vo.md "$OUT"/algorithms.md "$OUT"/quantize_detector.md \
             "$OUT"/process.md "$OUT"/viewer.md "$OUT"/modem.md; do
     if fresh "$md"; then cat "$md"; echo; fi
   done

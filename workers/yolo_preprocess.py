@@ -85,7 +85,7 @@ def allocate_tensor(
 ) -> tuple[np.ndarray, Letterbox]:
     """The float32 input tensor the straightforward way, new arrays at every step (a padded
     copy, a channel swap, a float copy, a division): what Preprocessor must equal bit for
-    bit, and the baseline scripts/bench_algorithms.py times it against."""
+    bit, and the baseline benchmarks/algorithms.py times it against."""
     boxed, lb = letterbox(image, size, fill, placement)
     x = boxed[:, :, ::-1] if rgb else boxed
     x = x.transpose(2, 0, 1).astype(np.float32)

@@ -2,16 +2,13 @@
 VO speed at 1280x720 and 640x480 on one core, and VO drift over a 30 m path, all on frames of
 the moving synthetic world (trapflow.synth; --drift-world testkit: the older flat test floor).
 
-Writes bench_algorithms.json and bench_algorithms.md into --out. Uses the packaged demo
+Writes algorithms.json and algorithms.md into --out. Uses the packaged demo
 models when present, else tiny stand-in ONNX models (then only pre/post-processing is timed).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import multiprocessing as mp
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -25,7 +22,7 @@ from trapflow_workers.crab_detector import VARIANTS, CrabDetector
 from trapflow_workers.scene_classifier import SceneClassifier
 from trapflow_workers.stereo_vo import StereoOdometry
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.kits
+from benchmarks import harness as h
 from tests.kits.scenes import FloorWorld, circle_path
 from trapflow.calibration.camera import StereoRig
 from trapflow.plugin import Worker
@@ -174,14 +171,14 @@ def _variants_table(v: dict[str, Any], size: str) -> str:
 def _detector_only(out: Path, pairs: int) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         params, origin = _models(Path(tmp))
-        variants = {f"{w}x{h}": _detector_variants(StereoRig.from_fov(w, h, 70.0, 0.12),
-                                                   params["mono"], pairs, 3)
-                    for w, h in ((1280, 720), (1920, 1080))}
-    (out / "detector_variants.json").write_text(
-        json.dumps({"detector_variants": variants, "models": origin}, indent=2))
-    md = "".join(f"{_variants_table(v, k)}\n\n" for k, v in variants.items())
-    (out / "detector_variants.md").write_text(md)
-    print(md)
+        variants = {f"{w}x{ht}": _detector_variants(StereoRig.from_fov(w, ht, 70.0, 0.12),
+                                                    params["mono"], pairs, 3)
+                    for w, ht in ((1280, 720), (1920, 1080))}
+    md = "\n\n".join(_variants_table(v, k) for k, v in variants.items())
+    results = [h.Result("detector_variants", data={"detector_variants": variants,
+                                                   "models": origin}, notes=[md.strip()])]
+    h.write(out, "detector_variants", results)
+    print(h.markdown(results))
 
 
 def _together(rig: StereoRig, params: dict[str, dict[str, Any]], n: int) -> dict[str, Any]:
@@ -266,8 +263,7 @@ def _table(rows: list[tuple[str, str, dict[str, float]]]) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--out", default="bench-results", help="folder for the JSON and markdown")
+    ap = h.options(__doc__, repeats=1, quick_help="30 pairs a run, 10 for the variants")
     ap.add_argument("--frames", type=int, default=120, help="pairs per algorithm run")
     ap.add_argument("--path-m", type=float, default=30.0, help="VO drift path length")
     ap.add_argument(
@@ -285,7 +281,9 @@ def main() -> None:
                     help="only the detector variants; writes detector_variants.json and .md")
     ap.add_argument("--steps", type=int, default=600, help="pairs along the testkit path")
     args = ap.parse_args()
-    out = Path(args.out)
+    if args.quick:
+        args.frames, args.variant_pairs, args.steps = 30, 10, 150
+    out = args.out
     out.mkdir(parents=True, exist_ok=True)
     if args.detector_only:
         _detector_only(out, args.variant_pairs)
@@ -313,7 +311,6 @@ def main() -> None:
         "threads": 1,
         "frames_from": f"moving synthetic world, {RATE_HZ:g} pairs/s",
     }
-    (out / "bench_algorithms.json").write_text(json.dumps(report, indent=2))
     where = (
         f"moving synthetic world at {args.speed:g} m/s"
         if args.drift_world == "world"
@@ -328,8 +325,10 @@ def main() -> None:
         f"segment metric, segments of {seg_m} m), {drift['end_drift_pct']:.3f} % at the end.\n"
     )
     md += "".join(f"\n{_variants_table(v, k)}\n" for k, v in variants.items())
-    (out / "bench_algorithms.md").write_text(md)
-    print(md)
+    # The tables are still this bench's own text (a note of one result).
+    results = [h.Result("algorithms", data=report, notes=[md.strip()])]
+    h.write(out, "algorithms", results)
+    print(h.markdown(results))
 
 
 if __name__ == "__main__":

@@ -7,13 +7,12 @@ and for workers the part spent inside the plugin's process() (the workers' proc_
 Part `floor`: a plugin that burns CPU (not sleeps) 2 s per pair in the stereo pool and
 100 ms in two mono workers, beside the real VO: VO pairs/s against the capture rate.
 
-Usage: python scripts/bench_cpu.py [--quick] [--parts cpu,floor] [--out bench-results]
+Usage: python -m benchmarks.cpu [--quick] [--parts cpu,floor] [--out bench-results]
 Writes cpu.json and cpu.md into the output folder.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import signal
 import subprocess
@@ -25,6 +24,8 @@ from typing import Any
 
 import psutil
 import yaml
+
+from benchmarks import harness as h
 
 ROLES = ("capture", "worker:mono", "worker:stereo", "worker:vo")
 OTHER = "broker + normalizer + supervisor"
@@ -42,14 +43,6 @@ def _status(run: Path) -> dict[str, Any] | None:
     return s
 
 
-def _cpu(pid: int) -> float:
-    try:
-        t = psutil.Process(pid).cpu_times()
-    except psutil.Error:
-        return 0.0
-    return float(t.user + t.system)
-
-
 def _snapshot(sup: int, run: Path) -> tuple[dict[int, tuple[str, float, int]], int,
                                              dict[str, Any]]:
     """Per process: (role, CPU seconds, CPU microseconds inside process()); pairs captured;
@@ -57,14 +50,17 @@ def _snapshot(sup: int, run: Path) -> tuple[dict[int, tuple[str, float, int]], i
     s = _status(run)
     if s is None:
         raise SystemExit("status did not answer during the window")
-    procs: dict[int, tuple[str, float, int]] = {sup: (OTHER, _cpu(sup), 0)}
+    # a row per process: each its own CPU (the supervisor's children have rows of their own)
+    procs: dict[int, tuple[str, float, int]] = {sup: (OTHER, h.tree_cpu(sup, children=False),
+                                                      0)}
     produced = 0
     for n in s["nodes"]:
         if not n["pid"]:
             continue
         role = n["name"].rsplit(":", 1)[0] if n["name"].startswith("worker:") else n["name"]
         c = n.get("counters") or {}
-        procs[n["pid"]] = (role if role in ROLES else OTHER, _cpu(n["pid"]),
+        procs[n["pid"]] = (role if role in ROLES else OTHER,
+                           h.tree_cpu(n["pid"], children=False),
                            int(c.get("proc_cpu_us", 0)))
         if n["name"] == "capture":
             produced = int(c.get("produced", 0))
@@ -140,7 +136,7 @@ def part_cpu(rates: list[float], warmup: float, window: float) -> dict[str, Any]
     for rate in rates:
         for name, enc in (("default", []), ("raw", ["--encoding", "raw"]),
                           ("jpeg", ["--encoding", "jpeg"])):
-            print(f"[bench_cpu] {name} at {rate:g} pairs/s", file=sys.stderr)
+            h.log("cpu", f"{name} at {rate:g} pairs/s")
             out[f"{name}@{rate:g}"] = run_window(["--rate", str(rate), *enc], warmup, window)
     return out
 
@@ -150,54 +146,56 @@ def part_floor(rate: float, warmup: float, window: float,
     burn = "trapflow.testing.plugins:Burn"
     cfg = {"pools": {"stereo": {"plugin": burn, "params": {"cpu_s": 2.0}, "timeout_s": 120.0},
                      "mono": {"plugin": burn, "count": 2, "params": {"cpu_s": 0.1}}}}
-    print(f"[bench_cpu] VO floor at {rate:g} pairs/s", file=sys.stderr)
+    h.log("cpu", f"VO floor at {rate:g} pairs/s")
     return run_window(["--rate", str(rate), *extra], warmup, window, cfg)
 
 
-def markdown(r: dict[str, Any]) -> str:
-    lines = [f"## CPU per captured pair by process role ({r['cores']} cores, synthetic "
-             f"1280x720, mono + stereo + vo; load average {r['load']})", ""]
-    for rate in r["rates"]:
-        runs = {k.split("@")[0]: v for k, v in r["cpu"].items() if k.endswith(f"@{rate:g}")}
-        lines += [f"At {rate:g} pairs/s requested (reached: " + ", ".join(
-            f"{k} {v['capture_hz']}" for k, v in runs.items()) + "). CPU ms per pair: per "
-            "captured pair for capture and the rest, per pair it processed for a worker (its "
-            "pairs processed in the window after the slash); in brackets the part inside "
-            "process(). The total is what one pair costs when every pool processes it:", "",
-            "| role | " + " | ".join(runs) + " |", "|---|" + "---:|" * len(runs)]
-        for role in (*ROLES, OTHER):
-            cells = []
-            for v in runs.values():
-                x = v["roles"][role]
-                cells.append(f"{x['cpu_ms_per_processed']:.1f}" + (
-                    f" ({x['process_ms_per_processed']:.1f}) / {x['processed']}"
-                    if role.startswith("worker:") else ""))
-            lines.append(f"| {role} | " + " | ".join(cells) + " |")
-        lines.append("| **total** | " + " | ".join(f"**{v['every_pool_cpu_ms']:.1f}**"
-                                                 for v in runs.values()) + " |")
-        d, raw = runs["default"]["every_pool_cpu_ms"], runs["raw"]["every_pool_cpu_ms"]
-        inside = sum(x["process_ms_per_processed"] for x in runs["default"]["roles"].values())
-        source = runs["default"]["roles"]["capture"]["cpu_ms"]
-        lines += ["", f"default / raw: **{d / raw:.2f}x**; jpeg / raw: "
-                  f"{runs['jpeg']['every_pool_cpu_ms'] / raw:.2f}x; default outside process() and "
-                  f"the source (capture): {100 * (d - inside - source) / d:.0f} % of the total.",
-                  ""]
+def results(r: dict[str, Any]) -> list[h.Result]:
+    """A table per rate (roles by run) and the VO floor in words."""
+    out = [_rate_table(r, rate) for rate in r["rates"]]
     if "floor" in r:
         f = r["floor"]
-        lines += ["## VO floor under saturating recognisers", "",
-                  f"stereo burns 2 s CPU per pair, two mono workers 100 ms each: capture "
-                  f"{f['capture_hz']} pairs/s, VO {f['vo_hz']} pairs/s "
-                  f"(window {f['window_s']} s; VO pool received {f['vo']['received']}, "
-                  f"dropped {f['vo']['dropped']}).", ""]
-    return "\n".join(lines)
+        out.append(h.Result("cpu", "VO floor under saturating recognisers", notes=[
+            f"stereo burns 2 s CPU per pair, two mono workers 100 ms each: capture "
+            f"{f['capture_hz']} pairs/s, VO {f['vo_hz']} pairs/s (window {f['window_s']} s; "
+            f"VO pool received {f['vo']['received']}, dropped {f['vo']['dropped']})."]))
+    out[0].data = r
+    return out
+
+
+def _rate_table(r: dict[str, Any], rate: float) -> h.Result:
+    runs = {k.split("@")[0]: v for k, v in r["cpu"].items() if k.endswith(f"@{rate:g}")}
+    t = h.Result("cpu", f"CPU per captured pair by process role ({r['cores']} cores, synthetic "
+                 f"1280x720, mono + stereo + vo; load average {r['load']})" if rate ==
+                 r["rates"][0] else "", key="role", notes=[
+        f"At {rate:g} pairs/s requested (reached: " + ", ".join(
+            f"{k} {v['capture_hz']}" for k, v in runs.items()) + "). CPU ms per pair: per "
+        "captured pair for capture and the rest, per pair it processed for a worker (its "
+        "pairs processed in the window after the slash); in brackets the part inside "
+        "process(). The total is what one pair costs when every pool processes it."])
+    for role in (*ROLES, OTHER):
+        cells = {}
+        for name, v in runs.items():
+            x = v["roles"][role]
+            cells[name] = h.Figure(f"{x['cpu_ms_per_processed']:.1f}" + (
+                f" ({x['process_ms_per_processed']:.1f}) / {x['processed']}"
+                if role.startswith("worker:") else ""), "ms")
+        t.add(role, **cells)
+    t.add("**total**", **{name: h.Figure(f"**{v['every_pool_cpu_ms']:.1f}**", "ms")
+                          for name, v in runs.items()})
+    d, raw = runs["default"]["every_pool_cpu_ms"], runs["raw"]["every_pool_cpu_ms"]
+    inside = sum(x["process_ms_per_processed"] for x in runs["default"]["roles"].values())
+    source = runs["default"]["roles"]["capture"]["cpu_ms"]
+    t.notes.append(f"default / raw: **{d / raw:.2f}x**; jpeg / raw: "
+                   f"{runs['jpeg']['every_pool_cpu_ms'] / raw:.2f}x; default outside process() "
+                   f"and the source (capture): {100 * (d - inside - source) / d:.0f} % of the "
+                   "total.")
+    return t
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="short windows (about 3 minutes)")
+    ap = h.options(__doc__, repeats=1, quick_help="short windows (about 3 minutes)")
     ap.add_argument("--parts", default="cpu,floor", help="comma-separated: cpu, floor")
-    ap.add_argument("--out", default="bench-results", help="folder for cpu.json and cpu.md")
     args = ap.parse_args()
     warmup, window = (6.0, 8.0) if args.quick else (15.0, 30.0)
     parts = set(args.parts.split(","))
@@ -209,15 +207,11 @@ def main() -> None:
     if "floor" in parts:
         r["floor"] = part_floor(15.0, warmup, window)
     r["load"] = " ".join(f"{x:.1f}" for x in psutil.getloadavg())
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "cpu.json").write_text(json.dumps(r, indent=1) + "\n")
-    if "cpu" in r:
-        (out / "cpu.md").write_text(markdown(r))
-    elif "floor" in r:
+    if "cpu" not in r:
         r["cpu"], r["rates"] = {}, []
-        (out / "cpu.md").write_text(markdown(r))
-    print(json.dumps(r))
+    tables = results(r) if r["rates"] or "floor" in r else [h.Result("cpu", data=r)]
+    h.write(args.out, "cpu", tables)
+    print(h.markdown(tables))
 
 
 if __name__ == "__main__":

@@ -8,8 +8,11 @@ import numpy as np
 import pytest
 
 from trapflow.calibration.camera import StereoRig
+from trapflow.config.image_health import ImageHealthConfig
 from trapflow.config.schema import SourceConfig
 from trapflow.errors import ConfigError
+from trapflow.image_health.measure import measure
+from trapflow.image_health.watch import Watch
 from trapflow.sources.synthetic import SyntheticSource
 from trapflow.synth.geometry import inv_pose
 from trapflow.synth.options import SynthOptions, parse_options
@@ -94,6 +97,17 @@ def _floor_match(left: np.ndarray, right: np.ndarray, u: int, v: int, d_range: r
     costs = [np.abs(zero_mean(right[v - 6:v + 7, u - d - 6:u - d + 7]) - patch).sum()
              for d in d_range]
     return d_range[int(np.argmin(costs))]
+
+
+def test_a_moving_rig_never_flags_image_health(moving_world: World) -> None:
+    """Issue 33: the floor passing under a moving rig, animals coming and going, is no
+    fouling and no turbidity (the watch's windows scaled down with its sampling)."""
+    cfg = ImageHealthConfig(every_s=5.0, baseline_s=50.0, window_s=40.0, hold_s=30.0)
+    watch = Watch(cfg)
+    for t in range(0, 200, 5):
+        watch.add(float(t), measure(moving_world.render(int(t * moving_world.rate_hz))[0]))
+        assert watch.view.state in ("learning", "ok"), (t, watch.view)
+    assert watch.view.state == "ok" and watch.view.samples == 40
 
 
 def test_disparity_matches_the_floor_depth() -> None:

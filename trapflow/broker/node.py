@@ -115,6 +115,7 @@ class BrokerNode(Node):
         # the run's start; unknown after a restart until the supervisor tells it again.
         ladder = self.cfg.ladder
         self.level = ladder.levels[0].name if ladder.enabled and not spec.restarted else ""
+        self.image: messages.ImageHealth | None = None  # capture's latest image-health view
         self.level_reason = ""
 
     def counters(self) -> dict[str, int]:
@@ -194,6 +195,13 @@ class BrokerNode(Node):
     def _on_capture(self, frames: list[Any]) -> None:
         if len(frames) == 2 and frame_bytes(frames[0]) == tap_msgs.TOPIC_TRUTH:
             self.tap.publish(tap_msgs.TOPIC_TRUTH, frames[1])  # out of band, for the tap only
+            return
+        if len(frames) == 2 and frame_bytes(frames[0]) == messages.IMAGE_HEALTH:
+            try:  # out of band: capture's image-health view, in the next Stats
+                self.image = messages.decode_image_health(frame_bytes(frames[1]))
+            except ProtocolError as exc:
+                self.malformed += 1
+                self.ratelog.warning("capture", "dropped malformed image health: %s", exc)
             return
         ref: frame_msgs.FrameRef | None = None
         try:
@@ -501,7 +509,8 @@ class BrokerNode(Node):
         return self.malformed + self.remote.malformed
 
     def _publish_stats(self, now: float) -> None:
-        self.tap.publish_stats(now, self._malformed(), self.level, self.level_reason)
+        self.tap.publish_stats(now, self._malformed(), self.level, self.level_reason,
+                               self.image)
 
     def _goodbye(self, ident: bytes, reason: str) -> None:
         """Remember a worker that left on purpose: a send to it afterwards is no news."""

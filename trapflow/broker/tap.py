@@ -94,8 +94,10 @@ class BrokerTap:
         """Whether interval_s passed since the last stats."""
         return now - self._last_stats >= interval_s
 
-    def publish_stats(self, now: float, malformed: int, level: str, level_reason: str) -> None:
-        """The broker's Stats, with rates since the last ones."""
+    def publish_stats(self, now: float, malformed: int, level: str, level_reason: str,
+                      image: messages.ImageHealth | None = None) -> None:
+        """The broker's Stats, with rates since the last ones (and capture's latest
+        image-health view, as it told it)."""
         dt = now - self._last_stats
         self._last_stats = now
         state = self._state
@@ -114,6 +116,7 @@ class BrokerTap:
             remote=self._roster.stats(dt, state.worker_pools()),
             level=level,
             level_reason=level_reason,
+            image=image,
         )
         self._last_in = state.pairs_in
         self.publish(tap_msgs.TOPIC_STATS, messages.encode(stats))  # cheap: once a second

@@ -20,6 +20,7 @@ import numpy as np
 import zmq
 
 from trapflow.capture.busy import Busy, Drop, Wait, when_busy
+from trapflow.capture.image_watch import ImageWatch
 from trapflow.errors import unreachable
 from trapflow.gate.duty import DutyCycle
 from trapflow.gate.motion import MotionConfig, MotionDetector
@@ -77,6 +78,9 @@ class CaptureNode(Node):
         self.period_ns = int(1e9 / self.src_cfg.rate_hz)
         self.next_ns = 0  # when the next pair is due (monotonic)
         self.motion = MotionDetector(MotionConfig()) if gated or self.duty.enabled else None
+        # Fouling and turbidity: one left image every few seconds, its state to the broker.
+        ih = self.cfg.image_health
+        self.image_watch = ImageWatch(ih, spec.run_dir, self.rig.size) if ih.enabled else None
         if self.duty.enabled and not spec.restarted:
             log.info("duty cycling: %g pairs/s after %g s without motion, %g pairs/s again on "
                      "the first pair that moves (visual odometry runs at the idle rate too)",
@@ -234,10 +238,21 @@ class CaptureNode(Node):
         self.produced += 1
         if self.produced == 1:
             self.beat(due=True)  # the supervisor times --duration from the first pair
+        if self.image_watch is not None:
+            self._watch_image(f, header)
         if f.truth is not None:
             truth = msgspec.structs.replace(f.truth, seq=seq)
             # Truth is for tests and viewers; never worth a wait.
             self._deliver([tap_msgs.TOPIC_TRUTH, messages.encode(truth)])
+
+    def _watch_image(self, f: Frames, header: messages.StereoPair) -> None:
+        """A sample for the image-health watch when one is due; its view goes to the broker
+        (out of band, never worth a wait: the next sample says it again)."""
+        assert self.image_watch is not None
+        t_ns = header.t_wall_ns if header.source_time else header.t_mono_ns
+        view = self.image_watch.pair(f.left, t_ns / 1e9)
+        if view is not None:
+            self._deliver([messages.IMAGE_HEALTH, messages.encode(view)])
 
     def _header(self, f: Frames, seq: int) -> messages.StereoPair:
         """The pair's header, stamped now, with what the motion gate saw in its left image."""

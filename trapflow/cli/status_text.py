@@ -42,6 +42,16 @@ def counts_text(counts: dict[str, Any]) -> list[str]:
     return lines
 
 
+def image_text(image: dict[str, Any]) -> str:
+    """The image-health watch's line: its state, and its ratios to the baseline."""
+    head = f"image health: {image['state']}"
+    if image["state"] == "learning":
+        return f"{head} (the baseline, {image['samples']} samples so far)"
+    return (f"{head}; sharpness {image['sharpness']:.2f}, contrast {image['contrast']:.2f}, "
+            f"brightness {image['brightness']:.2f} of the baseline; {image['samples']} "
+            f"samples, {image['changes']} changes")
+
+
 def supervision_text(sup: dict[str, Any]) -> list[str]:
     """The supervision part of the status reply: give-ups, the ladder, pools' runtime
     changes and the latest timeline entries."""
@@ -101,6 +111,8 @@ def format_status(reply: dict[str, Any], as_json: bool = False) -> str:
             lines.append(f"{r['worker']:<34} {r['host']:<16} {r['pool']:<10} {r['state']:<8} "
                          f"{r.get('processed', 0):>9} {r.get('rate', 0.0):>7}  "
                          f"{r.get('reason', '')}")
+        if stats.get("image"):
+            lines.append(image_text(stats["image"]))
     if reply.get("counts"):
         lines += counts_text(reply["counts"])
     if reply.get("supervision"):

@@ -20,6 +20,7 @@ import yaml
 
 from trapflow.config.base import Section
 from trapflow.config.capture import DEFAULT_JPEG_QUALITY, FramesConfig, RigConfig, SourceConfig
+from trapflow.config.image_health import ImageHealthConfig
 from trapflow.config.ladder import LadderConfig
 from trapflow.config.modem import HealthConfig, ModemConfig, OutboxConfig
 from trapflow.config.outputs import (
@@ -68,6 +69,7 @@ class Config(Section):
     outbox: OutboxConfig = msgspec.field(default_factory=OutboxConfig)
     modem: ModemConfig = msgspec.field(default_factory=ModemConfig)
     health: HealthConfig = msgspec.field(default_factory=HealthConfig)
+    image_health: ImageHealthConfig = msgspec.field(default_factory=ImageHealthConfig)
     events: EventsConfig = msgspec.field(default_factory=EventsConfig)
     viewer: ViewerConfig = msgspec.field(default_factory=ViewerConfig)
     ladder: LadderConfig = msgspec.field(default_factory=LadderConfig)

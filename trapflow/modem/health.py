@@ -1,8 +1,9 @@
 """Health telemetry: a small record (uptime, CPU, temperature, memory, disk, backlog, pools,
-the degradation ladder's level, and the power model's watts and days on the battery).
+the degradation ladder's level, the power model's watts and days on the battery, and the
+image-health watch's state with its ratios to the baseline).
 
-Sized for the modem link (about 40 bytes encoded); sampled with psutil on an interval, and
-at once when the ladder's level changes.
+Sized for the modem link (about 40-65 bytes encoded); sampled with psutil on an interval,
+and at once when the ladder's level or the image-health state changes.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import psutil
 from trapflow.config.modem import HealthConfig
 from trapflow.config.schema import EnergyConfig
 from trapflow.power.energy import BOARDS, estimate
+from trapflow.wire.messages import ImageHealth
 
 PoolRates = dict[str, tuple[float, int]]  # pool -> (results per second, drops so far)
 
@@ -70,6 +72,8 @@ class HealthMonitor:
         self._next = 0.0
         self.level = ""  # the ladder's level, from the broker's stats ("": none)
         self._level_due = False
+        self.image: ImageHealth | None = None  # capture's image-health view, from the stats
+        self._image_due = False
         psutil.cpu_percent(None)  # prime: the next call reports usage since now
 
     def sample(
@@ -98,6 +102,8 @@ class HealthMonitor:
             }
         if self.level:
             body["level"] = self.level
+        if self.image is not None:
+            body.update(image_fields(self.image))
         if self.energy is not None:
             body.update(self._power(body["cpu_pct"]))
         return {"health": body}
@@ -121,11 +127,31 @@ class HealthMonitor:
             self._level_due = bool(level)
             self.level = level
 
+    def set_image(self, image: ImageHealth | None) -> None:
+        """The image-health view as the stats say; a change of its state is reported at
+        once, as a level change is (fouled, turbid, ok again, the baseline learnt)."""
+        if image is None:
+            return
+        if self.image is not None and image.state != self.image.state:
+            self._image_due = True
+        self.image = image
+
     def __call__(self, sender_stats: dict[str, Any]) -> dict[str, Any] | None:
         """A record when the interval has passed, else None."""
         now = time.monotonic()
-        if not self._level_due and (not self.cfg.enabled or now < self._next):
+        due = self._level_due or self._image_due
+        if not due and (not self.cfg.enabled or now < self._next):
             return None
-        self._level_due = False
+        self._level_due = self._image_due = False
         self._next = now + self.cfg.interval_s
         return self.sample(int(sender_stats.get("backlog", 0)), str(sender_stats.get("state", "")))
+
+
+def image_fields(image: ImageHealth) -> dict[str, Any]:
+    """The health record's image fields: the state, and once a baseline is learnt, the
+    sharpness, contrast and brightness ratios to it at 0.01 (about 10 bytes on the link)."""
+    out: dict[str, Any] = {"image": image.state}
+    if image.state != "learning":
+        out["image_ratio"] = [round(image.sharpness, 2), round(image.contrast, 2),
+                              round(image.brightness, 2)]
+    return out

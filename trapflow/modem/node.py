@@ -1,9 +1,9 @@
 """The modem process: sends outbox records to the surface and adds health records, and
 executes the surface's signed commands.
 
-Owns a SUB of the broker's stats (pool rates and the ladder's level for health: a level
-change sends a health record at once) and a REQ to the supervisor's control socket
-(trapflow.wire.control_client.ControlClient)
+Owns a SUB of the broker's stats (pool rates, the ladder's level and capture's image-health
+state for health: a change of level or of image state sends a health record at once) and a
+REQ to the supervisor's control socket (trapflow.wire.control_client.ControlClient)
 through which commands run. The serial port is opened and
 re-opened by the sender; while it is missing the node is inactive with the reason, the
 outbox keeps filling, and sending resumes when the port is back.
@@ -230,4 +230,6 @@ class ModemNode(Node):
             self.pools = {n: (p.rate, p.dropped) for n, p in stats.pools.items()}
             if self.health is not None:
                 self.health.set_level(stats.level)
+                self.health.set_image(stats.image)
             self.health_now.level = stats.level  # a record asked for now says it too
+            self.health_now.set_image(stats.image)

@@ -38,6 +38,23 @@ class SynthOptions(msgspec.Struct, kw_only=True, forbid_unknown_fields=True, fro
     """Number of AprilTag 36h11 markers laid on the floor (ids 0..tags-1)."""
     tag_size_m: Annotated[float, msgspec.Meta(ge=0.03, le=0.5)] = 0.12
     """Side of a tag's black square in metres."""
+    # The lens and the water over a deployment (trapflow.synth.murk), by the world's time
+    # t = pair index / rate_hz: off (null onset) unless asked, so the default world is as it was.
+    fouling_onset_s: Annotated[float, msgspec.Meta(ge=0)] | None = None
+    """World time (s) at which the ports start to foul (null: never)."""
+    fouling_ramp_s: Annotated[float, msgspec.Meta(ge=0, le=1e7)] = 3600.0
+    """Seconds from the fouling's onset to its full extent (0: at once)."""
+    fouling_blur_px: Annotated[float, msgspec.Meta(ge=0, le=40)] = 6.0
+    """Blur (Gaussian sigma, pixels) of a fully fouled port where its growth is thickest."""
+    fouling_cover: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.6
+    """Light a fully fouled port loses where its growth is thickest (0..1); uneven over the
+    image, as silt and growth are."""
+    turbidity_onset_s: Annotated[float, msgspec.Meta(ge=0)] | None = None
+    """World time (s) at which the water starts to turn turbid (null: never)."""
+    turbidity_ramp_s: Annotated[float, msgspec.Meta(ge=0, le=1e7)] = 3600.0
+    """Seconds from the turbidity's onset to its full extent (0: at once)."""
+    turbidity_veil: Annotated[float, msgspec.Meta(ge=0, le=0.95)] = 0.6
+    """Share of the image's light replaced by the water's colour at full turbidity (haze)."""
 
 
 def parse_options(data: Any, prefix: str = "source.options") -> SynthOptions:

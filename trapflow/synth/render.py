@@ -22,11 +22,12 @@ import numpy as np
 from trapflow.calibration.camera import StereoRig
 from trapflow.synth.animals import Placement, Population
 from trapflow.synth.geometry import Trajectory, floor_points, inv_pose, right_of
+from trapflow.synth.murk import Murk
 from trapflow.synth.options import SynthOptions
 from trapflow.synth.rays import Frustum, RayGrid
 from trapflow.synth.sprites import Sprite, boulder, tag_sprite
 from trapflow.synth.texture import Floor
-from trapflow.synth.water import F_SCALE, Light, Noise, Snow, to_u8
+from trapflow.synth.water import BACKSCATTER, F_SCALE, Light, Noise, Snow, to_u8
 from trapflow.wire.messages import Truth, TruthObject
 
 GRID = 4  # the floor is ray-cast every GRID pixels and resampled
@@ -83,6 +84,8 @@ class World:
         self.gain = 1.0
         probe = self._floor_view(self.pose0)
         self.gain = TARGET_MEAN / max(float(probe.img.mean()), 1.0)
+        self.murk = Murk(opts, h, w, np.clip(BACKSCATTER * self.gain, 0, 255),
+                         np.random.default_rng([seed, 6]))
         self._static: list[_View] | None = None
         self._sprite_cache: dict[tuple[int, int], tuple[int, int, np.ndarray, np.ndarray]] = {}
         self._contrib_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
@@ -323,6 +326,16 @@ class World:
             drawn = [_Drawn(place=p, x0=g[0], y0=g[1], body=g[3]) for p in self.tags
                      if (g := self._warp(p, w2cs[0], 0, id(p))) is not None] + drawn
         truth_objects = self._truth_objects(drawn, w2cs[0])
+        self._water_and_lens(views, index, pose_l, w2cs, rng)
+        pose = np.round(self.pose0_inv @ pose_l, 12) + 0.0  # + 0.0: no negative zeros
+        truth = Truth(seq=-1, pose=tuple(float(v) for v in pose[:3].reshape(-1)),
+                      objects=truth_objects, scene_label=scene_label(truth_objects))
+        return views[0].img, views[1].img, truth
+
+    def _water_and_lens(self, views: list[_View], index: int, pose_l: np.ndarray,
+                        w2cs: list[np.ndarray], rng: np.random.Generator) -> None:
+        """Snow, motion blur, fouling and turbidity (before the sensor), then sensor noise."""
+        t = index / self.rate_hz
         if self.opts.snow > 0:
             pts = self.snow.points(t, pose_l[:3, 3])
             colour = np.array([200.0, 215.0, 200.0]) * min(self.gain, 1.5)
@@ -332,12 +345,10 @@ class World:
             kernel = self._blur_kernel(index)
             for view in views:
                 cv2.filter2D(view.img, -1, kernel, dst=view.img)
+        if self.murk.enabled:
+            self.murk.apply([v.img for v in views], t)
         for view in views:
             self.noise.apply(view.img, rng)
-        pose = np.round(self.pose0_inv @ pose_l, 12) + 0.0  # + 0.0: no negative zeros
-        truth = Truth(seq=-1, pose=tuple(float(v) for v in pose[:3].reshape(-1)),
-                      objects=truth_objects, scene_label=scene_label(truth_objects))
-        return views[0].img, views[1].img, truth
 
     def _blur_kernel(self, index: int) -> np.ndarray:
         """A line kernel along the image motion of the floor centre (horizontal if static)."""

@@ -449,6 +449,27 @@ class RemoteWorker(Msg, frozen=True):
     reason: str = ""  # why it was evicted
 
 
+# The first frame of capture's out-of-band image-health message to the broker
+# ([IMAGE_HEALTH, ImageHealth]); the broker keeps the latest and publishes it in its Stats.
+IMAGE_HEALTH = b"image_health"
+
+
+ImageState = Literal["learning", "ok", "fouled", "turbid", "fouled+turbid"]
+
+
+class ImageHealth(Msg, frozen=True, tag="image_health"):
+    """What capture's image-health watch says now (trapflow.image_health): the state and
+    each statistic's ratio to the deployment's baseline (1.0: as at the start; 0.0 while
+    the baseline is learnt)."""
+
+    state: ImageState = "learning"
+    sharpness: float = 0.0  # fine detail for the image's own contrast, to its baseline
+    contrast: float = 0.0  # spread of grey levels for the brightness, to its baseline
+    brightness: float = 0.0  # mean grey level, to its baseline
+    samples: int = 0  # pairs looked at so far
+    changes: int = 0  # times the state changed after the baseline was learnt
+
+
 class Stats(Msg, frozen=True, tag="stats"):
     """Published once a second on the tap: the numbers every view reads."""
 
@@ -461,6 +482,7 @@ class Stats(Msg, frozen=True, tag="stats"):
     remote: list[RemoteWorker] = []
     level: str = ""  # the degradation ladder's level ("": no ladder)
     level_reason: str = ""
+    image: ImageHealth | None = None  # capture's image-health watch, the latest it told
 
 
 # --- codecs ---------------------------------------------------------------------
@@ -589,6 +611,15 @@ def decode_heartbeat(data: Buffer) -> Heartbeat:
     """Decode a Heartbeat a node sent to the supervisor."""
     hb: Heartbeat = decode_bounded(_heartbeat_dec, data, "heartbeat", MAX_HEADER_BYTES)
     return hb
+
+
+_image_health_dec = msgspec.msgpack.Decoder(ImageHealth)
+
+
+def decode_image_health(data: Buffer) -> ImageHealth:
+    """Decode capture's ImageHealth message."""
+    msg: ImageHealth = decode_bounded(_image_health_dec, data, "image health", MAX_HEADER_BYTES)
+    return msg
 
 
 _truth_dec = msgspec.msgpack.Decoder(Truth)

@@ -196,16 +196,24 @@ def cell(f: Figure | None) -> str:
     return text
 
 
+def _right(f: Figure | None) -> bool:
+    """A cell aligned right: a number, or text that does not start with a letter ('-',
+    '**12.0**', '2.0 (0.7) / 10')."""
+    return f is None or not isinstance(f.value, str) or not f.value[:1].isalpha()
+
+
 def _num(x: float, digits: int) -> str:
     return f"{x:,.{digits}f}" if isinstance(x, float) else f"{x:,}"
 
 
 def columns(rows: Iterable[Row]) -> list[tuple[str, str]]:
-    """(name, unit) of every column, in the order first seen (pure)."""
+    """(name, unit) of every column, in the order first seen (pure). A column holds one unit:
+    figures of one name in two units are refused (the heading would misstate one)."""
     seen: dict[str, str] = {}
     for row in rows:
         for name, f in row.figures.items():
-            seen.setdefault(name, f.unit)
+            if f.value is not None and seen.setdefault(name, f.unit) != f.unit:
+                raise ValueError(f"column {name!r} in {seen[name]!r} and {f.unit!r}")
     return list(seen.items())
 
 
@@ -216,8 +224,7 @@ def table(rows: Sequence[Row], key: str = "") -> str:
     if not cols and not rows:
         return ""
     heads = [f"{n} ({u})" if u else n for n, u in cols]
-    numeric = [not any(isinstance(r.figures.get(n, Figure(None)).value, str) for r in rows)
-               for n, _ in cols]
+    numeric = [all(_right(r.figures.get(n)) for r in rows) for n, _ in cols]
     lines = ["| " + " | ".join([key, *heads]) + " |",
              "|---|" + "".join("---:|" if num else "---|" for num in numeric)]
     for r in rows:

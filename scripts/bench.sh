@@ -132,7 +132,7 @@ if want peers; then
 fi
 if want remote; then
   echo "[bench] remote pools (tcp with CURVE vs raw pyzmq over tcp)" >&2
-  "$PY" scripts/bench_remote.py --out "$OUT" > /dev/null
+  "$PY" -m benchmarks.remote --out "$OUT" > /dev/null
 fi
 if want shm; then
   echo "[bench] shm" >&2
@@ -162,11 +162,11 @@ if want detector; then
 fi
 if want process; then
   echo "[bench] process (Dask LocalCluster vs one plain loop)" >&2
-  "$PY" scripts/bench_process.py --out "$OUT" > /dev/null
+  "$PY" -m benchmarks.process --out "$OUT" > /dev/null
 fi
 if want viewer; then
   echo "[bench] live viewer (no page, a page open, no viewer: 30 s each)" >&2
-  "$PY" scripts/bench_viewer.py --out "$OUT" > /dev/null
+  "$PY" -m benchmarks.viewer --out "$OUT" > /dev/null
 fi
 if want modem; then
   echo "[bench] modem link" >&2
@@ -187,7 +187,7 @@ if want gate; then
 fi
 if want recycle; then
   echo "[bench] worker recycling (health check per pair, replacement time)" >&2
-  "$PY" scripts/bench_recycle.py --out "$OUT/recycle.json" > "$OUT/recycle.txt"
+  "$PY" -m benchmarks.recycle --out "$OUT" > /dev/null
 fi
 # One section per part run, in the order above; a file older than this run is an earlier
 # run's and is left out.
@@ -199,10 +199,10 @@ fresh() { [ -f "$1" ] && [ "$(stat -c %Y "$1")" -ge "$started" ]; }
   echo
   for md in "$OUT"/transport.md "$OUT"/peers.md "$OUT"/remote.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/cpu.md \
             "$OUT"/decode.md "$OUT"/vo.md "$OUT"/algorithms.md "$OUT"/quantize_detector.md \
-            "$OUT"/process.md "$OUT"/viewer.md "$OUT"/modem.md; do
+            "$OUT"/process.md "$OUT"/viewer.md "$OUT"/modem.md "$OUT"/recycle.md; do
     if fresh "$md"; then cat "$md"; echo; fi
   done
-  for part in tracking measure gate recycle; do
+  for part in tracking measure gate; do
     if fresh "$OUT/$part.txt"; then
       echo "## ${part^}"
       echo

@@ -83,6 +83,14 @@ def test_columns_keep_the_order_first_seen_and_ints_print_whole() -> None:
                                                       "n": h.Figure(10_000)})]
     assert h.columns(rows) == [("n", ""), ("x", "s")]
     assert h.table(rows, "k").splitlines()[2:] == ["| a | 3 |  |", "| b | 10,000 | 1.50 |"]
+    with pytest.raises(ValueError, match="'t'"):  # one column, two units: refused
+        h.columns([h.Row("a", {"t": h.Figure(1.0, "us")}), h.Row("b", {"t": h.Figure(1.0, "s")})])
+
+
+def test_alignment_follows_what_cells_hold() -> None:
+    rows = [h.Row("a", {"n": h.Figure("**2.0**"), "w": h.Figure("harness 1, broker 2")}),
+            h.Row("b", {"n": h.Figure("-"), "w": h.Figure(3.0)})]
+    assert h.table(rows).splitlines()[1] == "|---|---:|---|"
 
 
 def test_json_round_trip(tmp_path: Path) -> None:

@@ -11,13 +11,12 @@ Chromium (`--client chromium`; the browser's own CPU is not counted).
 Cost of the viewer in a window = the viewer process's CPU + the broker's CPU beyond the
 baseline (the broker's CPU per pair above the baseline's, times the pairs it took), as a
 share of one core over the window. CPU = user + system time of the process (psutil).
-Usage: python scripts/bench_viewer.py [--seconds 30 --warmup 15 --client http|chromium
-       --out bench-results]
+Usage: python -m benchmarks.viewer [--quick] [--seconds 30 --warmup 15 --client http|chromium
+       --out bench-results]   (--quick: 10 s windows after 8 s)
 """
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import os
@@ -33,6 +32,8 @@ from pathlib import Path
 from typing import Any
 
 import psutil
+
+from benchmarks import harness as h
 
 POLL_S = 0.5  # what the page does: /api/state twice a second, both images when they change
 BUDGET_OPEN, BUDGET_CLOSED = 0.03, 0.005  # issue 22 item 5: share of one core
@@ -85,11 +86,6 @@ def _pipeline(titles: tuple[str, ...], *args: str) -> Iterator[tuple[list[psutil
             pipeline.kill()
 
 
-def _cpu(p: psutil.Process) -> float:
-    t = p.cpu_times()
-    return float(t.user + t.system)
-
-
 def _pairs_in(run: Path) -> int:
     """Pairs the broker took so far, from the pipeline's status (its own counter)."""
     out = subprocess.run([sys.executable, "-m", "trapflow", "status", "--json", "--run-dir",
@@ -104,14 +100,19 @@ def _window(procs: dict[str, psutil.Process], run: Path, seconds: float,
     """CPU seconds of each process and pairs through the broker over one window; `during`
     runs for the window (a client) and returns what it did."""
     n0 = _pairs_in(run)
-    c0 = {k: _cpu(p) for k, p in procs.items()}
+    c0 = {k: h.tree_cpu(p.pid) for k, p in procs.items()}
     t0 = time.monotonic()
-    extra = during(seconds) if during is not None else (time.sleep(seconds) or {})
+    extra = during(seconds) if during is not None else _idle(seconds)
     dt = time.monotonic() - t0
-    c1 = {k: _cpu(p) for k, p in procs.items()}
+    c1 = {k: h.tree_cpu(p.pid) for k, p in procs.items()}
     pairs = _pairs_in(run) - n0
     return {"window_s": round(dt, 1), "pairs": pairs, "rate_hz": round(pairs / dt, 2),
             **{f"{k}_cpu_s": round(c1[k] - c0[k], 3) for k in procs}, **extra}
+
+
+def _idle(seconds: float) -> dict[str, Any]:
+    time.sleep(seconds)
+    return {}
 
 
 def _http_client(base: str) -> Callable[[float], dict[str, Any]]:
@@ -195,47 +196,46 @@ def bench(seconds: float, warmup: float, client: str) -> dict[str, Any]:
     return out
 
 
-def _markdown(r: dict[str, Any]) -> str:
-    b, c, o = r["baseline"], r["no_page"], r["page_open"]
-
-    def row(name: str, w: dict[str, Any], budget: float) -> str:
-        return (f"| {name} | {w['window_s']} | {w['rate_hz']} | {100 * w['viewer_share']:.2f} | "
-                f"{100 * w['broker_cpu_s'] / w['window_s']:.2f} | "
-                f"{100 * w['broker_extra_share']:.2f} | **{100 * w['cost_share']:.2f}** | "
-                f"{100 * budget:g} |")
+def result(r: dict[str, Any]) -> h.Result:
+    b, o = r["baseline"], r["page_open"]
     load = ", ".join(f"{x:.2f}" for x in r["load_average"])
-    return (
-        "## Live viewer\n\n"
+    t = h.Result("viewer", "Live viewer", key="window", data=r, notes=[
         f"Default pipeline (1280x720 raw pairs, 15 pairs/s asked), load average {load} at the "
         f"end; page client: {r['client']}. Shares of one core; the viewer's cost is the "
         "viewer process plus the broker's CPU beyond its baseline per pair "
         f"({1000 * r['broker_cpu_s_per_pair_baseline']:.2f} ms per pair without a viewer, "
-        f"{b['rate_hz']} pairs/s, {100 * b['broker_cpu_s'] / b['window_s']:.2f} % of a core).\n\n"
-        "| window | s | pairs/s | viewer % | broker % | broker beyond baseline % | "
-        "viewer cost % | budget % |\n|---|---|---|---|---|---|---|---|\n"
-        + row("no page open", c, BUDGET_CLOSED) + "\n"
-        + row("page open", o, BUDGET_OPEN) + "\n\n"
+        f"{b['rate_hz']} pairs/s, {100 * b['broker_cpu_s'] / b['window_s']:.2f} % of a core).",
         f"With the page open the client made {o['client_polls']} polls and fetched "
-        f"{o['client_pairs']} pairs; the viewer received {r['previews_received']} previews.\n")
+        f"{o['client_pairs']} pairs; the viewer received {r['previews_received']} previews."])
+    for name, key, budget in (("no page open", "no_page", BUDGET_CLOSED),
+                              ("page open", "page_open", BUDGET_OPEN)):
+        w = r[key]
+        t.add(name, **{"s": h.Figure(w["window_s"], digits=1),
+                       "pairs/s": h.Figure(w["rate_hz"]),
+                       "viewer": h.Figure(round(100 * w["viewer_share"], 2), "%"),
+                       "broker": h.Figure(round(100 * w["broker_cpu_s"] / w["window_s"], 2), "%"),
+                       "broker beyond baseline": h.Figure(round(100 * w["broker_extra_share"], 2),
+                                                          "%"),
+                       "viewer cost": h.Figure(f"**{100 * w['cost_share']:.2f}**", "%"),
+                       "budget": h.Figure(f"{100 * budget:g}", "%")})
+    return t
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = h.options(__doc__, repeats=1, quick_help="10 s windows after 8 s")
     ap.add_argument("--seconds", type=float, default=30.0, help="length of each window")
     ap.add_argument("--warmup", type=float, default=15.0, help="seconds after start-up")
     ap.add_argument("--client", choices=("http", "chromium"), default="http",
                     help="the open page: a client polling as it does, or headless Chromium")
-    ap.add_argument("--out", default="bench-results", help="folder for viewer.json, viewer.md")
     ap.add_argument("--baseline", action="store_true",
                     help="accepted for older command lines: the baseline is always measured")
     args = ap.parse_args()
+    if args.quick:
+        args.seconds, args.warmup = 10.0, 8.0
     r = bench(args.seconds, args.warmup, args.client)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "viewer.json").write_text(json.dumps(r, indent=1) + "\n")
-    (out / "viewer.md").write_text(_markdown(r))
-    print(json.dumps(r))
+    results = [result(r)]
+    h.write(args.out, "viewer", results)
+    print(h.markdown(results))
 
 
 if __name__ == "__main__":

@@ -3,13 +3,13 @@ psutil, /proc/self/statm), and what a recycle costs its pool in a real run: wall
 from a worker's goodbye to its successor being active (trapflow.log), and the capture-time
 gap between the last pair a worker answered and the first its successor answered.
 
-Writes a JSON file (default bench-results/recycle.json) and prints it.
-Usage: python scripts/bench_recycle.py [--out PATH] [--reads 20000] [--duration 8]
+Writes recycle.json and recycle.md into --out and prints the table.
+Usage: python -m benchmarks.recycle [--quick] [--out bench-results] [--reads 20000]
+       [--duration 8]
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
 import subprocess
@@ -22,10 +22,12 @@ from typing import Any
 import psutil
 import yaml
 
+from benchmarks import harness as h
+
 REPO = Path(__file__).resolve().parent.parent
 
 
-def rss_read_us(reads: int) -> dict[str, float]:
+def rss_read_us(reads: int) -> dict[str, Any]:
     """Microseconds per memory_info() call, median and 95th percentile of 20 batches."""
     proc = psutil.Process()
     per_batch = []
@@ -36,7 +38,8 @@ def rss_read_us(reads: int) -> dict[str, float]:
             proc.memory_info()
         per_batch.append((time.perf_counter_ns() - t0) / batch / 1000)
     per_batch.sort()
-    return {"median_us": round(statistics.median(per_batch), 2),
+    s = h.summarise(per_batch, "iqr")
+    return {"median_us": round(s.median, 2), "iqr_us": [round(s.low, 2), round(s.high, 2)],
             "p95_us": round(per_batch[int(0.95 * (len(per_batch) - 1))], 2)}
 
 
@@ -92,21 +95,44 @@ def _replacement_s(log_text: str) -> list[float]:
 
 def _seconds(stamp: str) -> float:
     hms = stamp.split(" ")[1]
-    h, m, s = hms.split(":")
-    return int(h) * 3600 + int(m) * 60 + float(s)
+    hours, minutes, seconds = hms.split(":")
+    return int(hours) * 3600 + int(minutes) * 60 + float(seconds)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--out", type=Path, default=Path("bench-results/recycle.json"))
+    ap = h.options(__doc__, repeats=1, quick_help="2000 reads, a 5 s run")
     ap.add_argument("--reads", type=int, default=20000)
     ap.add_argument("--duration", type=float, default=8.0)
     args = ap.parse_args()
+    if args.quick:
+        args.reads, args.duration = 2000, 5.0
     out = {"rss_read": rss_read_us(args.reads), "run": recycle_gaps(args.duration),
            "cpus": psutil.cpu_count(), "load1": round(psutil.getloadavg()[0], 2)}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(out, indent=1) + "\n")
-    print(json.dumps(out, indent=1))
+    results = results_of(out)
+    h.write(args.out, "recycle", results)
+    print(h.markdown(results))
+
+
+def results_of(out: dict[str, Any]) -> list[h.Result]:
+    rss, run = out["rss_read"], out["run"]
+    check = h.Result("recycle", "Worker recycling", key="health check", data=out, notes=[
+        "One memory_info() call, the per-pair health check: median of 20 batches "
+        "[interquartile range]."])
+    low, high = rss.get("iqr_us") or (None, None)
+    check.add("RSS read", median=h.Figure(rss["median_us"], "us", low, high),
+              p95=h.Figure(rss["p95_us"], "us"))
+    r = h.Result("recycle", key="recycle", notes=[
+        "Replacement: a recycled worker's last state to its "
+        "successor's active (the log's stamps); capture gap: capture time between the last "
+        f"pair a worker answered and the first its successor answered. Run: {run['results']} "
+        f"results from {run['workers']} workers, recycled {run['recycled']}, lost "
+        f"{run['lost']}, restarts {run['restarts']}, dropped by policy "
+        f"{run['dropped_by_policy']}; {out['cpus']} cores, load {out['load1']}."])
+    for label, key in (("replacement", "replacement_wall_s"), ("capture gap", "capture_gap_s")):
+        s = run[key]
+        r.add(label, median=h.Figure(s["median"], "s"), max=h.Figure(s["max"], "s"),
+              n=h.Figure(s["n"]))
+    return [check, r]
 
 
 if __name__ == "__main__":

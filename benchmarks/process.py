@@ -5,17 +5,20 @@ and the overhead per pair and per task that Dask adds.
 The cluster is started before the clock starts (its start-up is reported on its own).
 The same cluster runs the input twice: cold, then warm (models kept by the workers).
 Writes process.json and process.md into --out.
+
+Usage: python -m benchmarks.process [--quick] [--repeats 1] [--pairs 96] [--size 320x240]
+       [--chunk 8] [--pools mono,stereo,tags] [--out bench-results]
+(--repeats N: the plain loop and both clusters N times in turn, each time reported and the
+medians; --repeat, its earlier name, still works.)
 """
 
 from __future__ import annotations
 
 import argparse
 import io
-import json
 import os
 import resource
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -24,7 +27,7 @@ from typing import Any
 import cv2
 import msgspec
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.kits
+from benchmarks import harness as h
 from tests.kits.scenes import FloorWorld, looking_down
 from trapflow.batch.chunk import ChunkTask, run_chunk
 from trapflow.batch.plan import Chunk, Input, find_inputs
@@ -59,7 +62,9 @@ def plain_loop(cfg: Config, inp: Input, n: int, pools: tuple[str, ...], out: Pat
 
 
 def worker_cpu() -> float:
-    """CPU seconds this Dask worker process has used (all its threads), run by client.run."""
+    """CPU seconds this Dask worker process has used (all its threads), run by client.run.
+    It runs inside the worker, sent by value: it reads its own process with the standard
+    library and imports nothing of the benchmarks."""
     use = resource.getrusage(resource.RUSAGE_SELF)
     return use.ru_utime + use.ru_stime
 
@@ -97,42 +102,37 @@ def on_cluster(cfg: Config, inp: Input, workers: int, opts: Options, out: Path) 
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--out", type=Path, default=Path("bench-results"))
+    ap = h.options(__doc__, repeats=1, quick_help="32 pairs")
     ap.add_argument("--pairs", type=int, default=96)
     ap.add_argument("--size", default="320x240")
     ap.add_argument("--chunk", type=int, default=8)
     ap.add_argument("--pools", default="mono,stereo,tags")
-    ap.add_argument("--repeat", type=int, default=1,
-                    help="measure the plain loop and both clusters this many times in turn "
-                         "and report each time and the medians (a shared machine's speed "
-                         "drifts by 5 %% from one minute to the next)")
-    args = ap.parse_args()
-    w, h = (int(v) for v in args.size.split("x"))
+    args = ap.parse_args()  # --repeats: a shared machine's speed drifts 5 % a minute
+    if args.quick:
+        args.pairs = 32
+    w, ht = (int(v) for v in args.size.split("x"))
     pools = tuple(args.pools.split(","))
     cfg = Config()
     opts = Options(pools=pools, chunk=args.chunk)
     load0 = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="trapflow-bench-") as tmp:
         root = Path(tmp)
-        write_folder(root / "scene", args.pairs, w, h)
+        write_folder(root / "scene", args.pairs, w, ht)
         inp = find_inputs([str(root / "scene")])[0]
         plain_loop(cfg, inp, min(4, args.pairs), pools, root / "warm")  # models, caches
         default_s, default_cpu = plain_loop(cfg, inp, args.pairs, pools, root / "plain-default")
         worker_setup()  # what every Dask worker does: OpenCV on one thread
         reports = []
-        for i in range(args.repeat):
+        for i in range(args.repeats):
             loop_s, loop_cpu = plain_loop(cfg, inp, args.pairs, pools, root / f"plain{i}")
             runs = [on_cluster(cfg, inp, n, opts, root / f"dask{n}-{i}") for n in (1, 2)]
             reports.append(summarise(args, pools, (loop_s, loop_cpu),
                                      (default_s, default_cpu), runs,
                                      (load0, os.getloadavg()[0])))
     report = reports[0] if len(reports) == 1 else with_medians(reports)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "process.json").write_text(json.dumps(report, indent=2))
-    md = markdown(report)
-    (args.out / "process.md").write_text(md)
-    print(md)
+    tables = results(report)
+    h.write(args.out, "process", tables)
+    print(h.markdown(tables))
 
 
 def summarise(args: argparse.Namespace, pools: tuple[str, ...], loop: tuple[float, float],
@@ -186,42 +186,49 @@ def with_medians(reports: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def markdown(r: dict[str, Any]) -> str:
-    n = r["pairs"]
-    lines = [f"## trapflow process ({n} pairs {r['size']}, pools {','.join(r['pools'])}, "
-             f"chunks of {r['chunk']} = {r['tasks']} tasks; load {r['load_before_after'][0]}"
-             f" before, {r['load_before_after'][1]} after)", "",
-             "Warm runs (models already loaded by the workers); the cold run of the same "
-             "cluster and its start-up are given apart. Every row runs OpenCV on one thread "
-             "(what each Dask worker does) but the first, which shows OpenCV's own threads. "
-             "CPU ms per pair: the workers' (all their threads) and this process's (client "
-             "and scheduler); 'work' is the workers' less what they burn idle (measured "
-             "for 3 s before, per second) over the run's wall time.", "",
-             "| run | s | pairs/s | speed-up vs plain loop | of workers x loop | vs 1 worker "
-             "| CPU ms/pair workers (work) | CPU ms/pair client | idle CPU ms/s workers, "
-             "client | cold run s | cluster start s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|",
-             f"| plain loop, OpenCV default threads | {r['plain_default_threads_s']:.2f} | "
-             f"{n / r['plain_default_threads_s']:.2f} | - | - | - | "
-             f"{r['plain_default_threads_cpu_ms_per_pair']} | - | - | - | - |",
-             f"| plain loop, 1 process | {r['plain_loop_s']:.2f} | {r['plain_pairs_per_s']:.2f} "
-             f"| 1.00 | - | - | {r['plain_cpu_ms_per_pair']} | - | - | - | - |"]
-    lines += [f"| LocalCluster, {d['workers']} worker(s) | {d['seconds']} | {d['pairs_per_s']} "
-              f"| {d['speedup']} | {d['of_ideal']} | {d['vs_one_worker']} "
-              f"| {d['worker_cpu_ms_per_pair']} ({d['worker_work_ms_per_pair']}) "
-              f"| {d['client_cpu_ms_per_pair']} | {d['idle_worker_cpu_ms_per_s']}, "
-              f"{d['idle_client_cpu_ms_per_s']} | {d['cold_s']} | {d['cluster_start_s']} |"
-              for d in r["dask"]]
-    if "repeats" in r:
-        keys = list(r["medians"])
-        lines += ["", f"{len(r['repeats'])} repetitions in turn (the table above is the last):",
-                  "", "| repetition | " + " | ".join(keys) + " |",
-                  "|---" * (len(keys) + 1) + "|"]
-        lines += [f"| {i + 1} | " + " | ".join(str(rep[k]) for k in keys) + " |"
-                  for i, rep in enumerate(r["repeats"])]
-        lines.append("| **median** | " + " | ".join(f"**{r['medians'][k]}**" for k in keys)
-                     + " |")
-    return "\n".join(lines) + "\n"
+def results(r: dict[str, Any]) -> list[h.Result]:
+    """The runs' table, and with repetitions their speed-ups and the medians."""
+    n, dash = r["pairs"], h.Figure("-")
+    t = h.Result("process", f"trapflow process ({n} pairs {r['size']}, pools "
+                 f"{','.join(r['pools'])}, chunks of {r['chunk']} = {r['tasks']} tasks; load "
+                 f"{r['load_before_after'][0]} before, {r['load_before_after'][1]} after)",
+                 key="run", data=r, notes=[
+        "Warm runs (models already loaded by the workers); the cold run of the same cluster "
+        "and its start-up are given apart. Every row runs OpenCV on one thread (what each "
+        "Dask worker does) but the first, which shows OpenCV's own threads. CPU ms per pair: "
+        "the workers' (all their threads) and this process's (client and scheduler); 'work' "
+        "is the workers' less what they burn idle (measured for 3 s before, per second) over "
+        "the run's wall time."])
+
+    def row(label: str, s: float, rate: float, speedup: h.Figure, of_ideal: h.Figure,
+            vs_one: h.Figure, workers: str, rest: tuple[str, str, str, str]) -> None:
+        t.add(label, **{"s": h.Figure(s), "pairs/s": h.Figure(rate), "speed-up vs plain loop":
+                        speedup, "of workers x loop": of_ideal, "vs 1 worker": vs_one,
+                        "CPU ms/pair workers (work)": h.Figure(workers),
+                        "CPU ms/pair client": h.Figure(rest[0]),
+                        "idle CPU ms/s workers, client": h.Figure(rest[1]),
+                        "cold run s": h.Figure(rest[2]), "cluster start s": h.Figure(rest[3])})
+
+    row("plain loop, OpenCV default threads", r["plain_default_threads_s"],
+        round(n / r["plain_default_threads_s"], 2), dash, dash, dash,
+        str(r["plain_default_threads_cpu_ms_per_pair"]), ("-", "-", "-", "-"))
+    row("plain loop, 1 process", r["plain_loop_s"], r["plain_pairs_per_s"], h.Figure(1.0),
+        dash, dash, str(r["plain_cpu_ms_per_pair"]), ("-", "-", "-", "-"))
+    for d in r["dask"]:
+        row(f"LocalCluster, {d['workers']} worker(s)", d["seconds"], d["pairs_per_s"],
+            h.Figure(d["speedup"]), h.Figure(d["of_ideal"]), h.Figure(d["vs_one_worker"]),
+            f"{d['worker_cpu_ms_per_pair']} ({d['worker_work_ms_per_pair']})",
+            (str(d["client_cpu_ms_per_pair"]),
+             f"{d['idle_worker_cpu_ms_per_s']}, {d['idle_client_cpu_ms_per_s']}",
+             str(d["cold_s"]), str(d["cluster_start_s"])))
+    if "repeats" not in r:
+        return [t]
+    reps = h.Result("process", key="repetition", notes=[
+        f"{len(r['repeats'])} repetitions in turn (the table above is the last)."])
+    for i, rep in enumerate(r["repeats"]):
+        reps.add(str(i + 1), **{k: h.Figure(v) for k, v in rep.items()})
+    reps.add("**median**", **{k: h.Figure(v) for k, v in r["medians"].items()})
+    return [t, reps]
 
 
 if __name__ == "__main__":

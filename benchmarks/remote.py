@@ -6,13 +6,14 @@ CURVE keys and ZAP (zmq.auth); the worker's a DEALER with its own keys, which de
 checks every job (decode_job, check_pair_frames) and answers Done + an encoded Result, as a
 remote worker does. Raw: the same ROUTER/DEALER pattern and payload, no keys, no decoding.
 Throughput is lossless with a window of pairs in flight; latency is the round trip from
-sending a pair to its answer, at a fixed rate. Prints JSON on stdout.
+sending a pair to its answer, at a fixed rate. Writes remote.json and remote.md into --out
+and prints the table.
+
+Usage: python -m benchmarks.remote [--quick] [--repeats 1] [--seconds 3] [--out bench-results]
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import multiprocessing as mp
 import statistics
 import tempfile
@@ -22,13 +23,13 @@ from typing import Any
 
 import zmq
 
+from benchmarks import harness as h
 from trapflow.wire import messages
 from trapflow.wire.curve import client_keys, server_keys, start_authenticator
 from trapflow.wire.keys import generate
 from trapflow.wire.transport import SocketSpec, new_context, open_socket
 
 WINDOW = 4  # pairs in flight, as a worker with credit 4
-SECONDS = 3.0  # per throughput run
 LATENCY_RATE_HZ = 30.0
 LATENCY_PAIRS = 90
 
@@ -84,7 +85,8 @@ def worker(mode: str, endpoint: str, keys: str) -> None:
     ctx.destroy(linger=0)
 
 
-def measure(mode: str, folder: Path, left: bytes, right: bytes) -> dict[str, Any]:
+def measure(mode: str, folder: Path, left: bytes, right: bytes,
+            seconds: float) -> dict[str, Any]:
     ctx = new_context()
     auth = None
     curve = None
@@ -109,14 +111,14 @@ def measure(mode: str, folder: Path, left: bytes, right: bytes) -> dict[str, Any
     def send(seq: int) -> None:
         router.send_multipart([ident, *frames, header(seq), left, right], copy=False)
 
-    # Throughput: keep WINDOW pairs in flight for SECONDS.
+    # Throughput: keep WINDOW pairs in flight for `seconds`.
     seq = 0
     for _ in range(WINDOW):
         send(seq)
         seq += 1
     done = 0
     t0 = time.perf_counter()
-    while time.perf_counter() - t0 < SECONDS:
+    while time.perf_counter() - t0 < seconds:
         router.recv_multipart()
         done += 1
         send(seq)
@@ -145,10 +147,33 @@ def measure(mode: str, folder: Path, left: bytes, right: bytes) -> dict[str, Any
             "rtt_ms_p99": round(lat[int(len(lat) * 0.99) - 1], 3)}
 
 
+MODES = ("raw", "plain", "curve")
+
+
+def result(report: dict[str, Any]) -> h.Result:
+    """Per path the median of the runs, [min-max] when there were several."""
+    r = h.Result("remote", "Remote pools over tcp (127.0.0.1)", key="path", data=report, notes=[
+        f"1280x720 JPEG pairs ({report['pair_bytes']} bytes), window {WINDOW}; raw: pyzmq "
+        "ROUTER/DEALER, nothing decoded; plain: trapflow's remote wire without keys; curve: "
+        f"with CURVE and ZAP. Median of {report['repeats']} runs a path (interleaved)."])
+    for mode in MODES:
+        runs = [x for x in report["rows"] if x["mode"] == mode]
+
+        def fig(key: str, unit: str = "", digits: int = 1, runs: list[dict[str, Any]] = runs,
+                ) -> h.Figure:
+            return h.figure(h.summarise([x[key] for x in runs]), unit, digits=digits)
+
+        r.add(mode, **{"pairs/s": fig("pairs_per_s"), "MB/s": fig("mb_per_s"),
+                       "round trip p50": fig("rtt_ms_p50", "ms", 3),
+                       "round trip p99": fig("rtt_ms_p99", "ms", 3)})
+    return r
+
+
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--out", type=Path, help="Folder for remote.json and remote.md.")
+    ap = h.options(__doc__, repeats=1, quick_help="1 s throughput windows")
+    ap.add_argument("--seconds", type=float, default=3.0, help="per throughput run")
     args = ap.parse_args()
+    seconds = 1.0 if args.quick else args.seconds
     left, right = payload()
     with tempfile.TemporaryDirectory(prefix="tf-bench-remote-") as tmp:
         folder = Path(tmp)
@@ -158,21 +183,13 @@ def main() -> None:
         (folder / "authorized").mkdir()
         (folder / "authorized" / "worker.key").write_bytes(
             (folder / "worker" / "client.key").read_bytes())
-        rows = [measure(mode, folder, left, right) for mode in ("raw", "plain", "curve")]
-    report = {"pair_bytes": len(left) + len(right), "window": WINDOW, "rows": rows}
-    print(json.dumps(report, indent=2))
-    if args.out:
-        args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "remote.json").write_text(json.dumps(report, indent=2))
-        lines = ["## Remote pools over tcp (127.0.0.1)", "",
-                 f"1280x720 JPEG pairs ({report['pair_bytes']} bytes), window {WINDOW}; "
-                 "raw: pyzmq ROUTER/DEALER, nothing decoded; plain: trapflow's remote wire "
-                 "without keys; curve: with CURVE and ZAP.", "",
-                 "| path | pairs/s | MB/s | round trip p50 ms | p99 ms |", "|---|---|---|---|---|"]
-        for r in rows:
-            lines.append(f"| {r['mode']} | {r['pairs_per_s']} | {r['mb_per_s']} | "
-                         f"{r['rtt_ms_p50']} | {r['rtt_ms_p99']} |")
-        (args.out / "remote.md").write_text("\n".join(lines) + "\n")
+        rows = [measure(mode, folder, left, right, seconds)
+                for _ in range(args.repeats) for mode in MODES]
+    report = {"pair_bytes": len(left) + len(right), "window": WINDOW, "repeats": args.repeats,
+              "rows": rows}
+    results = [result(report)]
+    h.write(args.out, "remote", results)
+    print(h.markdown(results))
 
 
 if __name__ == "__main__":

@@ -183,7 +183,11 @@ class TrapflowProcess:
 
     def wait(self, timeout: float) -> tuple[int, str, str]:
         out, err = self.proc.communicate(timeout=timeout)
+        self.ended()
         return self.proc.returncode, out, err
+
+    def ended(self) -> None:
+        """Called when the process has exited (subclasses check what it left)."""
 
     def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> tuple[int, str, str]:
         self.track()
@@ -212,7 +216,24 @@ class Pipeline(TrapflowProcess):
 
     def __init__(self, args: list[str], run_dir: Path, env: dict[str, str] | None = None):
         self.run_dir = run_dir
+        self.config = args[args.index("--config") + 1] if "--config" in args[:-1] else None
         super().__init__(["start", "--run-dir", str(run_dir), *args], env)
+
+    disagreements: list[str] | None = None  # `trapflow check` of a run that ended well
+
+    def ended(self) -> None:
+        """A run that ended with exit 0 must tell one story: `trapflow check` of its run
+        directory (with its config's file names), as it is the moment it ends (issue 32),
+        held by the spawn fixture."""
+        if self.disagreements is None and self.proc.returncode == 0 and (
+                self.run_dir / "ledger.json").exists():
+            from trapflow.config.schema import load
+            from trapflow.export.check import check_run
+
+            cfg = load(self.config)
+            self.disagreements = check_run(
+                self.run_dir, results_file=cfg.normalizer.results_file,
+                tracks_file=cfg.observe.tracks_file, counts_file=cfg.observe.counts_file)
 
     def results(self) -> list[dict[str, Any]]:
         path = self.run_dir / "results.jsonl"
@@ -289,8 +310,10 @@ def record_until(run_dir: Path, out: Path, done: Callable[[], Any],
 
 
 @pytest.fixture
-def spawn() -> Iterator[Callable[..., Pipeline]]:
-    """Start pipelines; at teardown kill what is left and assert nothing leaked."""
+def spawn(request: pytest.FixtureRequest) -> Iterator[Callable[..., Pipeline]]:
+    """Start pipelines; at teardown kill what is left and assert nothing leaked, and that
+    every run that ended with exit 0 passes `trapflow check` (a test whose run cannot, says
+    why with @pytest.mark.unchecked_run("why"))."""
     started: list[Pipeline] = []
 
     def _spawn(args: list[str], run_dir: Path, **kw: Any) -> Pipeline:
@@ -306,6 +329,10 @@ def spawn() -> Iterator[Callable[..., Pipeline]]:
         leaked += p.leftovers()
         p.kill_all()
     assert not leaked, f"processes left behind: {leaked}"
+    # Every run that ended well tells one story (`trapflow check`, issue 32).
+    told = {str(p.run_dir): p.disagreements for p in started if p.disagreements}
+    if request.node.get_closest_marker("unchecked_run") is None:
+        assert not told, f"trapflow check found disagreements: {told}"
 
 
 @pytest.fixture

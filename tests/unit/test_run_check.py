@@ -164,6 +164,36 @@ def test_a_later_start_is_held_to_its_own_lines(tmp_path: Path) -> None:
         "line 17 (this start's)"]
 
 
+def test_a_later_start_numbers_its_pairs_again(tmp_path: Path) -> None:
+    """Regression (issue 32): a run started again in its run directory numbers its pairs from
+    0 again, so one seq named two pairs, and the check counted both pairs' tracks as on one
+    pair: 'crab max_n 2, the tracks imply 4' on a power-cut run whose counts were right."""
+    run = make_run(tmp_path / "run")
+    shift = 10 * 0.5  # the second start's pairs: seqs 1-8 again, 5 s later, tracks 3 and 4
+    again = []
+    for obj in results():
+        (kind, body), = obj.items()
+        t = t_of(body["seq"]) + shift
+        body = {**body, "timestamp": stamp(body["seq"] + 10)}
+        if isinstance(body.get("track"), int):
+            body["track"] += 2
+        assert abs(t - t_of(body["seq"] + 10)) < 1e-9
+        again.append({kind: body})
+    first = (run / "results.jsonl").read_bytes()
+    write_lines(run / "results.jsonl", results() + again)
+    later = [{"track": {**t["track"], "id": t["track"]["id"] + 2,
+                        "first_s": round(t["track"]["first_s"] + shift, 3),
+                        "last_s": round(t["track"]["last_s"] + shift, 3)}} for t in tracks()]
+    write_lines(run / "tracks.jsonl", tracks() + later)
+    c = counts()
+    c[0]["counts"]["end_s"] = round(t_of(18), 3)
+    c[0]["counts"]["labels"][0]["visits"] = 4
+    write_lines(run / "counts.jsonl", c)
+    led = json.loads((run / "ledger.json").read_text())
+    (run / "ledger.json").write_text(json.dumps({**led, "results_from": len(first)}))
+    assert check_run(run) == []
+
+
 def _check(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "trapflow", "check", *args], cwd=REPO,
                           capture_output=True, text=True, timeout=60)

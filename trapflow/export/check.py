@@ -176,12 +176,12 @@ def _counts(run: _Run, out: list[str]) -> None:
     spans.sort()
     labels = {tid: str(t.get("label", "")) for tid, (_n, t) in run.by_id.items()}
     first: dict[int, float] = {}  # track -> the first time a line carries its id
-    at: dict[int, set[int]] = {}  # seq -> the tracks on its lines
-    times: dict[int, float] = {}
+    # A pair is its seq and capture time: a run directory started again numbers its pairs
+    # from 0 again, so one seq may be two pairs of results.jsonl.
+    at: dict[tuple[int, float], set[int]] = {}  # pair -> the tracks on its lines
     for _n, seq, t, _lb, tid in run.tracked:
         first[tid] = min(first.get(tid, t), t)
-        at.setdefault(seq, set()).add(tid)
-        times[seq] = t
+        at.setdefault((seq, t), set()).add(tid)
     visits: Counter[tuple[int, str]] = Counter()
     for tid, (n, track) in sorted(run.by_id.items()):
         seen = first.get(tid, float(track["first_s"]))
@@ -192,8 +192,8 @@ def _counts(run: _Run, out: list[str]) -> None:
         else:
             visits[(i, labels[tid])] += 1
     max_n: dict[tuple[int, str], int] = {}
-    for seq, tids in at.items():
-        i = _interval(spans, times[seq])
+    for (_seq, t), tids in at.items():
+        i = _interval(spans, t)
         if i is None:
             continue
         for lb, k in Counter(labels[x] for x in tids if x in labels).items():

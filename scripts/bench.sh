@@ -183,7 +183,7 @@ if want measure; then
 fi
 if want gate; then
   echo "[bench] motion gate" >&2
-  "$PY" scripts/bench_gate.py --out "$OUT" > "$OUT/gate.txt"
+  "$PY" -m benchmarks.gate --out "$OUT" > /dev/null
 fi
 if want recycle; then
   echo "[bench] worker recycling (health check per pair, replacement time)" >&2
@@ -199,10 +199,10 @@ fresh() { [ -f "$1" ] && [ "$(stat -c %Y "$1")" -ge "$started" ]; }
   echo
   for md in "$OUT"/transport.md "$OUT"/peers.md "$OUT"/remote.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/cpu.md \
             "$OUT"/decode.md "$OUT"/vo.md "$OUT"/algorithms.md "$OUT"/quantize_detector.md \
-            "$OUT"/process.md "$OUT"/viewer.md "$OUT"/modem.md "$OUT"/recycle.md; do
+            "$OUT"/process.md "$OUT"/viewer.md "$OUT"/modem.md "$OUT"/gate.md "$OUT"/recycle.md; do
     if fresh "$md"; then cat "$md"; echo; fi
   done
-  for part in tracking measure gate; do
+  for part in tracking measure; do
     if fresh "$OUT/$part.txt"; then
       echo "## ${part^}"
       echo

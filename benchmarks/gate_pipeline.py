@@ -6,8 +6,8 @@ the gate's active and idle time; from results.jsonl and the sequence's truth.jso
 animals (truth ids) mono detected at least once. `busy_rates` adds gated runs of the default
 sequence at each gate.busy_rate_hz (what the default was chosen by).
 
-Run by scripts/bench_gate.py (`scripts/bench.sh` part `gate`); writes no file of its own
-beyond the rendered sequences and the run directories under its folder.
+Run by benchmarks/gate.py (`scripts/bench.sh` part `gate`), which writes its table; writes
+no file of its own beyond the rendered sequences and the run directories under its folder.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from benchmarks import harness as h
 from trapflow.power.energy import BOARDS, cpu_from_rates, days_on_battery, estimate
 
 RECOGNISERS = ("mono", "stereo")
@@ -152,6 +153,33 @@ def run_all(folder: Path, pairs: int, size: tuple[int, int], rate: float,
                     round(len(base & set(g["animals_detected"])) / len(base), 4)
                     if base else None)
         out[name] = runs
-        print("pipeline", name, json.dumps(runs), flush=True)
+        h.log("gate", f"pipeline: {name}")
     out["load_after"] = os.getloadavg()
     return out
+
+
+def result(p: dict[str, Any]) -> h.Result:
+    """Per sequence and run: the recognisers' CPU, the pipeline's per hour, a Pi 5's watts
+    and days on the battery (measured, and with the original trap's costs), recall."""
+    r = h.Result("gate", f"Motion gate, whole pipelines ({p['pairs']} pairs {p['size']} at "
+                 f"{p['rate_hz']:g} pairs/s, battery {p['battery_wh']:g} Wh, "
+                 f"{100 * p['usable']:.0f} % usable)", key="sequence, run", notes=[
+        "recognisers x: their CPU against the ungated run of the same sequence; recall: "
+        "animals mono detected, against the ungated run; ROS 2 days: the original trap's "
+        "per-frame costs at the pairs each pool got."])
+    for name, runs in p.items():
+        if not isinstance(runs, dict) or name == "load_before":
+            continue
+        for kind, x in runs.items():
+            recall = x.get("animal_recall_vs_ungated")
+            r.add(f"{name}, {kind}", **{
+                "recognisers CPU": h.Figure(x["recognisers_cpu_s"], "s"),
+                "recognisers x": h.Figure(x.get("recognisers_cpu_ratio"), digits=3),
+                "pipeline CPU": h.Figure(x["pipeline_cpu_s_per_hour"], "s/h", digits=1),
+                "Pi 5": h.Figure(x["pi5_watts"], "W"),
+                "Pi 5 days": h.Figure(x["pi5_days"], digits=1),
+                "ROS 2 days": h.Figure(x["ros2_costs_pi5_days"], digits=1),
+                "recall": h.Figure(None if recall is None else round(100 * recall, 2), "%"),
+                "gate active": h.Figure(None if "gate_active_share" not in x else
+                                        round(100 * x["gate_active_share"], 2), "%")})
+    return r

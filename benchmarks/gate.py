@@ -1,10 +1,12 @@
 """Benchmark of the motion gate: CPU per pair of each background method at 1280x720, and on
-synthetic sequences with truth (static rig) what the gate would withhold, as JSON; then whole
-pipelines (bench_gate_pipeline.py): sequences rendered first with `trapflow dataset synth`
-and replayed as an image folder, gated default against `gate: always`, in one run.
+synthetic sequences with truth (static rig) what the gate would withhold; then whole
+pipelines (benchmarks/gate_pipeline.py): sequences rendered first with `trapflow dataset
+synth` and replayed as an image folder, gated default against `gate: always`, in one run.
+Writes gate.json and gate.md into --out and prints the tables.
 
-Usage: python scripts/bench_gate.py [--pairs 1800 --seeds 11,12,13 --out bench-results
-                                     --pipeline-pairs 900 --size 1280x720]
+Usage: python -m benchmarks.gate [--quick] [--pairs 1800 --seeds 11,12,13 --out bench-results
+                                  --pipeline-pairs 900 --size 1280x720]
+(--quick: 300 pairs a sequence, one seed, 2 rounds, no pipeline part)
 
 Miss rate: pairs with an animal in view that the gated pool would not get (after pre-roll,
 hold and keep-alive). Two recognisers are simulated: `gate` alone (no tracks), and `tracks`
@@ -14,21 +16,20 @@ animal is in view), what the observations' tracks give the gate.
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
+from typing import Any
 
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"
 
-import bench_gate_pipeline  # noqa: E402  (scripts/ is on the path when run as a script)
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+from benchmarks import gate_pipeline  # noqa: E402
+from benchmarks import harness as h  # noqa: E402
 from trapflow.calibration.camera import StereoRig  # noqa: E402
 from trapflow.gate.motion import METHODS, MotionConfig, MotionDetector  # noqa: E402
 from trapflow.gate.policy import Feed, GateConfig, GateState  # noqa: E402
@@ -184,16 +185,15 @@ def quality(seeds: list[int], pairs: int, gate: GateConfig) -> dict[str, object]
                 ids[k] = (s + len(r.tally.seen), f + len(r.tally.fed_ids & r.tally.seen))
         out[name] = {f"{m}{'+tracks' if tr else ''}": runs[(m, tr)].summary(*ids[(m, tr)])
                      for m, tr in runs}
-        print(name, json.dumps(out[name]), flush=True)
+        h.log("gate", f"quality: {name}")
     return out
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
+    ap = h.options(__doc__, repeats=1, quick_help="300 pairs, one seed, no pipeline part")
     ap.add_argument("--pairs", type=int, default=1800, help="pairs per default sequence")
     ap.add_argument("--seeds", default="11,12,13", help="held-out world seeds")
     ap.add_argument("--rounds", type=int, default=10, help="cost: passes over 100 pairs")
-    ap.add_argument("--out", default="bench-results", help="folder for gate.json")
     ap.add_argument("--pipeline-pairs", type=int, default=900,
                     help="pairs per replayed sequence of the pipeline part (0: skip it)")
     ap.add_argument("--size", default="1280x720", help="pipeline part: rendered pair size")
@@ -203,12 +203,14 @@ def main() -> None:
                     help="pipeline part: also gate the default world at these "
                          "gate.busy_rate_hz, comma-separated (how the default was chosen)")
     args = ap.parse_args()
+    if args.quick:
+        args.pairs, args.seeds, args.rounds, args.pipeline_pairs = 300, "11", 2, 0
     cv2.setNumThreads(1)
     rig = StereoRig.from_fov(1280, 720, 70.0, 0.12)
     world = World(rig, seed=5, moving=False, rate_hz=RATE_HZ, options=SynthOptions())
     sample = [world.render(i)[0] for i in range(100)]
     costs = {m: cost(sample, m, args.rounds) for m in METHODS}
-    print("cost", json.dumps(costs), flush=True)
+    h.log("gate", "cost per pair measured")
     gate = GateConfig()
     result = {
         "bench": "gate",
@@ -222,14 +224,39 @@ def main() -> None:
         "cost_per_pair": costs,
         "quality": quality([int(s) for s in args.seeds.split(",")], args.pairs, gate),
     }
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     if args.pipeline_pairs:
-        w, h = (int(v) for v in args.size.split("x"))
-        result["pipeline"] = bench_gate_pipeline.run_all(
-            out / "gate-pipeline", args.pipeline_pairs, (w, h), RATE_HZ, args.battery_wh,
+        w, ht = (int(v) for v in args.size.split("x"))
+        result["pipeline"] = gate_pipeline.run_all(
+            args.out / "gate-pipeline", args.pipeline_pairs, (w, ht), RATE_HZ, args.battery_wh,
             tuple(float(r) for r in args.busy_rates.split(",") if r))
-    (out / "gate.json").write_text(json.dumps(result, indent=2) + "\n")
+    tables = results(result)
+    h.write(args.out, "gate", tables)
+    print(h.markdown(tables))
+
+
+def results(r: dict[str, Any]) -> list[h.Result]:
+    """Cost per method; per scenario what each method's gate fed and withheld; the
+    pipelines' CPU, energy and recall when they ran."""
+    cost_t = h.Result("gate", f"Motion gate: cost per pair ({r['size']}, one thread)",
+                      key="method", data=r)
+    for m, c in r["cost_per_pair"].items():
+        cost_t.add(m, median=h.Figure(c["median_us"], "us", digits=1),
+                   p90=h.Figure(c["p90_us"], "us", digits=1), pairs=h.Figure(c["pairs"]))
+    out = [cost_t]
+    for name, by in r["quality"].items():
+        q = h.Result("gate", f"Gate on sequence '{name}'", key="method", notes=[
+            "fed: share of pairs the gated pool got; missed: animal pairs withheld; "
+            "animals fed: animals in view in at least one fed pair, of those seen."])
+        for m, s in by.items():
+            q.add(m, fed=h.Figure(round(100 * s["fed_fraction"], 2), "%"),
+                  missed=h.Figure(round(100 * s["miss_rate"], 2), "%"),
+                  **{"animals fed": h.Figure(f"{s['animals_fed']} / {s['animals']}"),
+                     "empty withheld": h.Figure(round(100 * s["empty_withheld"], 2), "%"),
+                     "empty with motion": h.Figure(round(100 * s["empty_motion"], 2), "%")})
+        out.append(q)
+    if "pipeline" in r:
+        out.append(gate_pipeline.result(r["pipeline"]))
+    return out
 
 
 if __name__ == "__main__":

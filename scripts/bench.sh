@@ -55,7 +55,7 @@ Parts, in order, with their run time on a 2-core machine (full / --quick):
   measure     stereo range and length against the synthetic truth per range
               bin, honesty of the stated sd, cost per box          ~2 min  / skipped
               track speeds over the ground, rig still and moving,
-              VO's poses against the truth (bench_speed.py)        ~5 min  / skipped
+              VO's poses against the truth (benchmarks/speed.py)   ~5 min  / skipped
   gate        motion gate: cost per pair per method, pairs fed, animals
               missed, empty water withheld; whole pipelines on rendered
               sequences gated vs ungated: recognisers' CPU, CPU per hour,
@@ -178,8 +178,8 @@ if want tracking; then
 fi
 if want measure; then
   echo "[bench] stereo measurement (held-out synthetic sequences)" >&2
-  "$PY" scripts/bench_measure.py --out "$OUT/measure.json" > "$OUT/measure.txt"
-  "$PY" scripts/bench_speed.py --out "$OUT/speed.json" >> "$OUT/measure.txt"
+  "$PY" -m benchmarks.measure --out "$OUT" > /dev/null
+  "$PY" -m benchmarks.speed --out "$OUT" > /dev/null
 fi
 if want gate; then
   echo "[bench] motion gate" >&2
@@ -199,10 +199,11 @@ fresh() { [ -f "$1" ] && [ "$(stat -c %Y "$1")" -ge "$started" ]; }
   echo
   for md in "$OUT"/transport.md "$OUT"/peers.md "$OUT"/remote.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/cpu.md \
             "$OUT"/decode.md "$OUT"/vo.md "$OUT"/algorithms.md "$OUT"/quantize_detector.md \
-            "$OUT"/process.md "$OUT"/viewer.md "$OUT"/modem.md "$OUT"/gate.md "$OUT"/recycle.md; do
+            "$OUT"/process.md "$OUT"/viewer.md "$OUT"/modem.md "$OUT"/measure.md "$OUT"/speed.md "$OUT"/gate.md \
+            "$OUT"/recycle.md; do
     if fresh "$md"; then cat "$md"; echo; fi
   done
-  for part in tracking measure; do
+  for part in tracking; do
     if fresh "$OUT/$part.txt"; then
       echo "## ${part^}"
       echo

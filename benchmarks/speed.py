@@ -11,25 +11,21 @@ animal's true positions in the true world frame at the same times. Only tracks w
 speed is at least --min-speed m/s are scored (a resting scallop has no relative error).
 Seeds given with --seeds; the defaults are held out (never used while developing).
 
-Writes bench-results/speed.json (or --out).
+Writes speed.json and speed.md into --out and prints the table.
+Usage: python -m benchmarks.speed [--quick] [--seeds S,S] [--pairs 300] [--rate 10]
+       [--every 2] [--min-speed 0.02] [--out bench-results]   (--quick: 100 pairs, one seed)
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
 import time
-from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.kits
-
-from bench_measure import usable
-
+from benchmarks import harness as h
+from benchmarks.measure import usable
 from trapflow.calibration.camera import StereoRig
 from trapflow.measure.stereo import Measured, measure
 from trapflow.synth.options import SynthOptions
@@ -120,14 +116,15 @@ def score(seqs: list[tuple[dict[int, list[View]], dict[int, list[View]], RigPose
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = h.options(__doc__, repeats=1, quick_help="100 pairs a sequence, one seed")
     ap.add_argument("--seeds", default=",".join(map(str, HELD_OUT_SEEDS)))
     ap.add_argument("--pairs", type=int, default=300, help="pairs per sequence")
     ap.add_argument("--rate", type=float, default=10.0, help="pairs per second")
     ap.add_argument("--every", type=int, default=2, help="measure every N-th pair")
     ap.add_argument("--min-speed", type=float, default=0.02, help="m/s, true speed scored")
-    ap.add_argument("--out", type=Path, default=Path("bench-results/speed.json"))
     args = ap.parse_args()
+    if args.quick:
+        args.pairs, args.seeds = 100, args.seeds.split(",")[0]
     cv2.setNumThreads(1)  # one core, as a pool worker runs
     seeds = [int(s) for s in args.seeds.split(",")]
     result: dict[str, Any] = {"seeds": seeds, "pairs_per_sequence": args.pairs,
@@ -138,16 +135,42 @@ def main() -> None:
         seqs = []
         cpu = {"vo_ms": 0.0, "measure_ms": 0.0, "boxes": 0.0}
         for seed in seeds:
-            *got, c = run_sequence(seed, moving, args.pairs, args.rate, args.every)
-            seqs.append((got[0], got[1], got[2], got[3]))
+            views, true, vo_poses, true_poses, c = run_sequence(seed, moving, args.pairs,
+                                                                args.rate, args.every)
+            seqs.append((views, true, vo_poses, true_poses))
             cpu = {k: cpu[k] + c[k] for k in cpu}
         key = "moving" if moving else "still"
         result[key] = score(seqs, moving, args.min_speed)
         result[key]["vo_ms_per_pair"] = round(cpu["vo_ms"] / (args.pairs * len(seeds)), 2)
         result[key]["measure_ms_per_box"] = round(cpu["measure_ms"] / max(cpu["boxes"], 1), 3)
-        print(key, json.dumps(result[key]))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1) + "\n")
+        h.log("speed", f"rig {key} done")
+    tables = [table(result)]
+    h.write(args.out, "speed", tables)
+    print(h.markdown(tables))
+
+
+def table(result: dict[str, Any]) -> h.Result:
+    """Speed errors per rig, with VO's motion removed and (rig moving) kept."""
+    t = h.Result("speed", f"Track speed over the ground against the truth ({result['rig']}, "
+                 f"seeds {','.join(map(str, result['seeds']))}, {result['pairs_per_sequence']} "
+                 f"pairs at {result['rate_hz']:g} pairs/s)", key="rig, frame", data=result,
+                 notes=[f"Tracks of a true speed of at least {result['min_true_speed_m_s']} m/s; "
+                        "error: |measured - true| / true. VO ms per pair and measurement ms "
+                        "per box: CPU in this run."])
+    for rig in ("still", "moving"):
+        r = result[rig]
+        for label, key in (("VO removed", "vo_removed"), ("rig motion kept", "rig_motion_kept")):
+            if key not in r:
+                continue
+            s = r[key]
+            t.add(f"{rig}, {label}", tracks=h.Figure(s["tracks"]), **{
+                "median error": h.Figure(s["median_err_pct"], "%"),
+                "p90 error": h.Figure(s["p90_err_pct"], "%"),
+                "within 10 %": h.Figure(s["within_10pct"], digits=3),
+                "no speed": h.Figure(r["tracks_without_speed"] if key == "vo_removed" else None),
+                "VO": h.Figure(r["vo_ms_per_pair"], "ms/pair"),
+                "measurement": h.Figure(r["measure_ms_per_box"], "ms/box", digits=3)})
+    return t
 
 
 if __name__ == "__main__":

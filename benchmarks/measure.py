@@ -8,26 +8,23 @@ does) and without. Also CPU ms per detection (its box, and its share of its pair
 beside the packaged detector's process() per pair, in the same run.
 Seeds given with --seeds; the defaults are held out (never used while developing).
 
-Writes bench-results/measure.json (or --out).
+Writes measure.json and measure.md into --out and prints the tables.
+Usage: python -m benchmarks.measure [--quick] [--seeds S,S] [--pairs 12] [--step 15]
+       [--matcher ncc|sgbm|both] [--out bench-results]     (--quick: 4 pairs, two seeds)
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
-import sys
 import time
 from collections import Counter
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.kits
-
+from benchmarks import harness as h
 from trapflow.calibration.camera import StereoRig
 from trapflow.measure.stereo import Matcher, Measured, MeasureParams, measure, pair_floor
 from trapflow.synth.options import SynthOptions
@@ -135,13 +132,14 @@ def detector(rig: StereoRig) -> Detect | None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = h.options(__doc__, repeats=1, quick_help="4 pairs a sequence, two seeds")
     ap.add_argument("--seeds", default=",".join(map(str, HELD_OUT_SEEDS)))
     ap.add_argument("--pairs", type=int, default=12, help="pairs per sequence")
     ap.add_argument("--step", type=int, default=15, help="pairs apart (5 Hz)")
     ap.add_argument("--matcher", choices=("ncc", "sgbm", "both"), default="both")
-    ap.add_argument("--out", type=Path, default=Path("bench-results/measure.json"))
     args = ap.parse_args()
+    if args.quick:
+        args.pairs, args.seeds = 4, ",".join(args.seeds.split(",")[:2])
     cv2.setNumThreads(1)  # one core, as a pool worker runs
     seeds = [int(s) for s in args.seeds.split(",")]
     params = MeasureParams()
@@ -161,10 +159,37 @@ def main() -> None:
                            "detector_process_ms_median": round(det, 3) if det else None,
                            "cost_vs_detector": round(ms / det, 3) if det else None,
                            "bins": summarise(rows)}
-            print(key, json.dumps({k: v for k, v in result[key].items() if k != "bins"}))
-            print(json.dumps(result[key]["bins"]["all 0.5-2.5 m"]))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1) + "\n")
+            h.log("measure", f"{key} done")
+    tables = results(result, [m + s for m in matchers for s in ("", "_no_floor")])
+    h.write(args.out, "measure", tables)
+    print(h.markdown(tables))
+
+
+def results(result: dict[str, Any], keys: list[str]) -> list[h.Result]:
+    """The cost of a measurement per configuration, then its errors per range bin."""
+    cost = h.Result("measure", f"Stereo measurement against the truth ({result['rig']}, "
+                    f"seeds {','.join(map(str, result['seeds']))})", key="matcher", data=result,
+                    notes=["CPU ms per detection: its box and its share of the pair's floor "
+                           "fit, median and 90th percentile; the packaged detector's "
+                           "process() per pair on the same pairs, interleaved."])
+    for key in keys:
+        r = result[key]
+        cost.add(key, **{
+            "CPU per detection": h.Figure(r["cpu_ms_per_detection_median"], "ms", digits=3),
+            "p90": h.Figure(r["cpu_ms_p90"], "ms", digits=3),
+            "detector process()": h.Figure(r["detector_process_ms_median"], "ms", digits=1),
+            "x detector": h.Figure(r["cost_vs_detector"], digits=3)})
+    out = [cost]
+    for key in keys:
+        t = h.Result("measure", f"{key}: errors per range bin", key="range")
+        for label, b in result[key]["bins"].items():
+            t.add(label, boxes=h.Figure(b["boxes"]), measured=h.Figure(b["measured"]), **{
+                "length error": h.Figure(b["length_err_median_pct"], "%"),
+                "range error": h.Figure(b["range_err_median_pct"], "%"),
+                "length within 2 sd": h.Figure(b["length_within_2sd"], digits=3),
+                "range within 2 sd": h.Figure(b["range_within_2sd"], digits=3)})
+        out.append(t)
+    return out
 
 
 if __name__ == "__main__":

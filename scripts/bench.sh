@@ -174,7 +174,7 @@ if want modem; then
 fi
 if want tracking; then
   echo "[bench] tracking (held-out synthetic sequences, offline and in live runs)" >&2
-  "$PY" scripts/bench_tracking.py --live --out "$OUT/tracking.json" > "$OUT/tracking.txt"
+  "$PY" -m benchmarks.tracking --live --out "$OUT" > /dev/null
 fi
 if want measure; then
   echo "[bench] stereo measurement (held-out synthetic sequences)" >&2
@@ -199,19 +199,9 @@ fresh() { [ -f "$1" ] && [ "$(stat -c %Y "$1")" -ge "$started" ]; }
   echo
   for md in "$OUT"/transport.md "$OUT"/peers.md "$OUT"/remote.md "$OUT"/shm.md "$OUT"/synth.md "$OUT"/cpu.md \
             "$OUT"/decode.md "$OUT"/vo.md "$OUT"/algorithms.md "$OUT"/quantize_detector.md \
-            "$OUT"/process.md "$OUT"/viewer.md "$OUT"/modem.md "$OUT"/measure.md "$OUT"/speed.md "$OUT"/gate.md \
-            "$OUT"/recycle.md; do
+            "$OUT"/process.md "$OUT"/viewer.md "$OUT"/modem.md "$OUT"/tracking.md \
+            "$OUT"/measure.md "$OUT"/speed.md "$OUT"/gate.md "$OUT"/recycle.md; do
     if fresh "$md"; then cat "$md"; echo; fi
-  done
-  for part in tracking; do
-    if fresh "$OUT/$part.txt"; then
-      echo "## ${part^}"
-      echo
-      echo '```'
-      cat "$OUT/$part.txt"
-      echo '```'
-      echo
-    fi
   done
 } > "$OUT/bench.md"
 echo "[bench] wrote $OUT/bench.md" >&2

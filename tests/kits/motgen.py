@@ -1,5 +1,5 @@
 """Seeded MOTChallenge detection files of any size, for `trapflow track`'s memory and speed
-checks (tests/reliability/test_track_streams.py, scripts/bench_track_memory.py).
+checks (tests/reliability/test_track_streams.py, benchmarks/track_memory.py).
 
 Animals cross a 1280x720 frame at constant speed with a little jitter, a few at a time,
 each seen for a few seconds; a detection is sometimes missed, and low-confidence clutter

@@ -73,7 +73,7 @@ class Update:
 class TrackerConfig:
     """Thresholds of the tracker; defaults tuned on development seeds only, never on the
     bench's held-out ones: the 16 of the synthetic bench's fake detections
-    (scripts/tune_tracking.py: mean of HOTA and IDF1 at full detector rate and at one pair
+    (benchmarks/tune_tracking.py: mean of HOTA and IDF1 at full detector rate and at one pair
     in three), and live runs' detections of development seeds at policy `latest` with a
     slow detector (docs/benchmarks.md, "Tracking inside a live run")."""
 

@@ -2,15 +2,15 @@
 held-out ones): coordinate descent over the thresholds, the gaps and the motion model's
 noise, scored by the mean of HOTA and IDF1 at both detector rates, pooled over sequences.
 
-    python scripts/tune_tracking.py [--seeds N] [--frames N] [--jobs N] [--rounds N]
-                                    [--set KEY=VALUE ...] [--keys KEY,KEY...]
+    python -m benchmarks.tune_tracking [--seeds N] [--frames N] [--jobs N] [--rounds N]
+                                       [--set KEY=VALUE ...] [--keys KEY,KEY...]
 
 --set starts from other values than TrackerConfig's defaults; --keys searches only those.
 
 Prints every configuration tried with its score and the best one; writes
 bench-results/tracking-tune.json. Sequences are cached in bench-results/tracking-cache/
 (rendering the synthetic world is most of a first run). Needs the same extras as
-scripts/bench_tracking.py.
+benchmarks/tracking.py. A tuner, not a benchmark: it keeps its own options.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from bench_tracking import (
+from benchmarks.tracking import (
     DEV_SEEDS,
     HELD_OUT_SEEDS,
     SynthSequence,
@@ -32,7 +32,6 @@ from bench_tracking import (
     make_sequence,
     run_trapflow,
 )
-
 from trapflow.tracking.tracker import TrackerConfig
 
 # The values tried per parameter; noise.* are the Kalman filter's Noise fields.
@@ -54,9 +53,10 @@ GRID: dict[str, Sequence[float]] = {
 
 def with_value(cfg: TrackerConfig, key: str, value: float) -> TrackerConfig:
     if key.startswith("noise."):
-        noise = dataclasses.replace(cfg.noise, **{key[6:]: value})
+        noise = dataclasses.replace(cfg.noise, **{key[6:]: value})  # floats all
         return dataclasses.replace(cfg, noise=noise)
-    return dataclasses.replace(cfg, **{key: int(value) if key == "min_hits" else value})
+    change: dict[str, Any] = {key: int(value) if key == "min_hits" else value}
+    return dataclasses.replace(cfg, **change)
 
 
 def value_of(cfg: TrackerConfig, key: str) -> float:

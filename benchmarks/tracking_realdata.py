@@ -1,4 +1,4 @@
-"""Real tracking data for the tracking bench (scripts/bench_tracking.py): real fish tracks
+"""Real tracking data for the tracking bench (benchmarks/tracking.py): real fish tracks
 with detections made from them, and a check that the bench's scorer scores as published.
 
 Crocea (realdata 08_fish_tracking_crocea): MOTChallenge ground truth of 12-25 large yellow

@@ -6,9 +6,9 @@ Detections: derived from truth with a seeded rng (boxes jittered, some dropped, 
 when occluded, some given a low confidence or a wrong label, false positives added), at
 full rate and with the detector seeing one pair in three. Scores count only the pairs the
 detector saw (no tracker can answer for the others). Development seeds (1001-1016) tune
-the defaults (scripts/tune_tracking.py); held-out seeds (2001-2006) are reported. Both
-trackers get the same frame rate and each pair's capture time. Writes
-bench-results/tracking.json and prints a table.
+the defaults (benchmarks/tune_tracking.py); held-out seeds (2001-2006) are reported. Both
+trackers get the same frame rate and each pair's capture time. Writes tracking.json and
+tracking.md into --out (default bench-results) and prints the tables.
 
 --live adds the tracker inside the pipeline: held-out seeds rendered by `trapflow dataset
 synth` are run through `trapflow start --source images:DIR` (the mono pool alone, fifo for
@@ -17,15 +17,16 @@ the run's tracked lines (frame = seq + 1) are scored against the dataset's gt/gt
 the pairs the detector saw, beside the other trackers on the run's own detections.
 
 --crocea adds the real fish tracks of realdata 08 (detections made from them, see
-scripts/tracking_realdata.py), per video beside ByteTrack, with MaxN per class three ways
+benchmarks/tracking_realdata.py), per video beside ByteTrack, with MaxN per class three ways
 (the truth's, confirmed tracks at one capture time, confident detections in one frame; --max-n
 adds the same on the synthetic sequences); --scorer-check scores a published tracker's
 output on TUD (realdata 08b) beside its published scores.
 
-    python scripts/bench_tracking.py [--split dev|held-out|both|none] [--frames N]
-                                     [--live [--live-seeds S,S] [--live-frames N]]
-                                     [--crocea [--crocea-seqs N,N] [--crocea-fps F]]
-                                     [--scorer-check] [--max-n]
+    python -m benchmarks.tracking [--quick] [--split dev|held-out|both|none] [--frames N]
+                                  [--live [--live-seeds S,S] [--live-frames N]]
+                                  [--crocea [--crocea-seqs N,N] [--crocea-fps F]]
+                                  [--scorer-check] [--max-n] [--out DIR]
+    (--quick: 150 pairs a sequence, 60 a live one)
 
 Needs the test extra (motmetrics) and, bench only, TrackEval and Roboflow's trackers:
 `pip install supervision && pip install --no-deps trackeval trackers` (--no-deps: both
@@ -35,7 +36,6 @@ Without trackers the ByteTrack rows are left out.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import signal
@@ -47,12 +47,19 @@ import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import numpy as np
 import yaml
-from tracking_realdata import CROCEA_FPS, RealSequence, crocea_sequences, scorer_check
 
+from benchmarks import harness as h
+from benchmarks.tracking_realdata import (
+    CROCEA_FPS,
+    RealSequence,
+    crocea_sequences,
+    scorer_check,
+)
 from trapflow.calibration.camera import StereoRig
 from trapflow.synth.dataset import labelled
 from trapflow.synth.options import SynthOptions
@@ -65,7 +72,7 @@ from trapflow.wire.messages import Truth
 
 FPS = 15.0
 WIDTH, HEIGHT = 640, 360
-# Development seeds (tuning, scripts/tune_tracking.py); the held-out ones are never tuned on.
+# Development seeds (tuning, benchmarks/tune_tracking.py); the held-out ones are never tuned on.
 DEV_SEEDS = tuple(range(1001, 1017))
 HELD_OUT_SEEDS = (2001, 2002, 2003, 2004, 2005, 2006)
 # A busy floor: more animals per scene and few empty scenes, so that tracks cross.
@@ -194,7 +201,7 @@ def run_greedy(dets: list[MotRow], iou_min: float = 0.3, conf_min: float = 0.3,
     return out
 
 
-def _fields(r: MotRow) -> dict[str, object]:
+def _fields(r: MotRow) -> dict[str, Any]:
     return {f: getattr(r, f) for f in r.__struct_fields__}
 
 
@@ -218,6 +225,7 @@ def run_bytetrack(dets: list[MotRow], tuned: bool, fps: float = FPS) -> list[Mot
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             res = tracker.update(d, timestamp=(frame - 1) / fps)
+        assert res.tracker_id is not None and res.confidence is not None, "tracked boxes"
         for box, tid, conf in zip(res.xyxy, res.tracker_id, res.confidence, strict=True):
             if tid >= 0:
                 x1, y1, x2, y2 = (float(v) for v in box)
@@ -242,24 +250,27 @@ def score(gt: list[MotRow], hyp: list[MotRow], frames: list[int]) -> dict[str, f
     import motmetrics as mm
     from trackeval.metrics import HOTA
 
-    g, h = _by_frame(gt), _by_frame(hyp)
+    g, hy = _by_frame(gt), _by_frame(hyp)
     empty = (np.zeros(0, int), np.zeros((0, 4)))
     acc = mm.MOTAccumulator(auto_id=False)
     gid = {k: i for i, k in enumerate(sorted({r.id for r in gt}))}
     hid = {k: i for i, k in enumerate(sorted({r.id for r in hyp}))}
-    data: dict[str, list[np.ndarray] | int] = {"gt_ids": [], "tracker_ids": [],
-                                               "similarity_scores": []}
+    gt_ids: list[np.ndarray] = []
+    tracker_ids: list[np.ndarray] = []
+    sims: list[np.ndarray] = []
     for f in frames:
         gi, gb = g.get(f, empty)
-        hi, hb = h.get(f, empty)
+        hi, hb = hy.get(f, empty)
         iou = iou_matrix(gb, hb)
         acc.update(list(gi), list(hi), np.where(iou >= 0.5, 1.0 - iou, np.nan), frameid=f)
-        data["gt_ids"].append(np.array([gid[k] for k in gi], int))  # type: ignore[union-attr]
-        data["tracker_ids"].append(np.array([hid[k] for k in hi], int))  # type: ignore[union-attr]
-        data["similarity_scores"].append(iou)  # type: ignore[union-attr]
-    data.update(num_gt_ids=len(gid), num_tracker_ids=len(hid), num_timesteps=len(frames),
-                num_gt_dets=sum(len(x) for x in data["gt_ids"]),  # type: ignore[union-attr]
-                num_tracker_dets=sum(len(x) for x in data["tracker_ids"]))  # type: ignore[union-attr]
+        gt_ids.append(np.array([gid[k] for k in gi], int))
+        tracker_ids.append(np.array([hid[k] for k in hi], int))
+        sims.append(iou)
+    data: dict[str, list[np.ndarray] | int] = {
+        "gt_ids": gt_ids, "tracker_ids": tracker_ids, "similarity_scores": sims,
+        "num_gt_ids": len(gid), "num_tracker_ids": len(hid), "num_timesteps": len(frames),
+        "num_gt_dets": sum(len(x) for x in gt_ids),
+        "num_tracker_dets": sum(len(x) for x in tracker_ids)}
     summary = mm.metrics.create().compute(acc, metrics=["idf1", "mota", "num_switches",
                                                    "num_false_positives", "num_misses",
                                                    "num_fragmentations"],
@@ -303,15 +314,25 @@ def pooled(per: list[dict[str, float]]) -> dict[str, float]:
     return agg
 
 
-def table(title: str, res: dict[str, dict[str, dict[str, float]]]) -> str:
-    lines = [title, f"{'rate':6} {'tracker':18} {'HOTA':>6} {'IDF1':>6} {'MOTA':>6} "
-             f"{'AssA':>6} {'DetA':>6} {'IDSW':>5}"]
+def result(title: str, res: dict[str, dict[str, dict[str, float]]]) -> h.Result:
+    """Per detector rate and tracker: HOTA, IDF1, MOTA, AssA, DetA (%) and ID switches."""
+    r = h.Result("tracking", f"Tracking: {title}", key="rate, tracker")
     for rate, per in res.items():
         for name, m in per.items():
-            lines.append(f"{rate:6} {name:18} {m['HOTA'] * 100:6.1f} {m['IDF1'] * 100:6.1f} "
-                         f"{m['MOTA'] * 100:6.1f} {m['AssA'] * 100:6.1f} {m['DetA'] * 100:6.1f} "
-                         f"{int(m['IDSW']):5d}")
-    return "\n".join(lines)
+            r.add(f"{rate}, {name}", **{k: h.Figure(round(m[k] * 100, 2), "%", digits=1)
+                                        for k in ("HOTA", "IDF1", "MOTA", "AssA", "DetA")},
+                  IDSW=h.Figure(int(m["IDSW"])))
+    return r
+
+
+def max_n_result(title: str, mx: dict[str, dict[str, dict[str, dict[int, int]]]]) -> h.Result:
+    """MaxN per class three ways, per detector rate and sequence."""
+    r = h.Result("tracking", title, key="rate, sequence")
+    for rate, per_seq in mx.items():
+        for name, m in per_seq.items():
+            r.add(f"{rate}, {name}", **{k: h.Figure(str(sorted(v.items())))
+                                        for k, v in m.items()})
+    return r
 
 
 # --- MaxN against the truth's, and the real sets ------------------------------------------
@@ -381,23 +402,25 @@ def evaluate_real(seqs: Sequence[RealSequence], fps: float, with_bytetrack: bool
     return {"fps": fps, "per_sequence": per, "results": pooled_res}
 
 
-def real_table(title: str, real: dict[str, object]) -> str:
-    """Per rate and sequence: HOTA / IDF1 / ID switches of each tracker, and MaxN."""
-    lines = [title]
+def real_results(title: str, real: dict[str, object]) -> list[h.Result]:
+    """Per rate and sequence: HOTA / IDF1 / ID switches of each tracker, and MaxN; then
+    the pooled scores."""
+    r = h.Result("tracking", f"Tracking: {title}, per sequence (HOTA / IDF1 / IDSW)",
+                 key="rate, sequence")
     per: dict[str, dict[str, dict[str, object]]] = real["per_sequence"]  # type: ignore[assignment]
     for rate, seqs in per.items():
         for name, row in seqs.items():
-            cells = []
+            cells = {}
             for tr, m in row.items():
                 if tr != "max_n":
                     m = dict(m)  # type: ignore[call-overload]
-                    cells.append(f"{tr} {m['HOTA'] * 100:5.1f}/{m['IDF1'] * 100:5.1f}/"
-                                 f"{int(m['IDSW']):3d}")
+                    cells[tr] = h.Figure(f"{m['HOTA'] * 100:.1f} / {m['IDF1'] * 100:.1f} / "
+                                         f"{int(m['IDSW'])}")
             mx: dict[str, dict[int, int]] = row["max_n"]  # type: ignore[assignment]
-            maxn = " ".join(f"{k}={sorted(v.items())}" for k, v in mx.items())
-            lines.append(f"{rate:6} {name:10} " + "  ".join(cells) + f"  MaxN {maxn}")
-    lines.append(table("pooled", real["results"]))  # type: ignore[arg-type]
-    return "\n".join(lines)
+            cells["MaxN"] = h.Figure(" ".join(f"{k}={sorted(v.items())}"
+                                              for k, v in mx.items()))
+            r.add(f"{rate}, {name}", **cells)
+    return [r, result(f"{title}, pooled", real["results"])]  # type: ignore[arg-type]
 
 
 def synth_max_n(seqs: Sequence[SynthSequence]) -> dict[str, dict[str, dict[str, dict[int, int]]]]:
@@ -523,11 +546,10 @@ def live_results(seeds: Sequence[int], frames: int,
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = h.options(__doc__, repeats=1, quick_help="150 pairs a sequence, 60 a live one")
     ap.add_argument("--split", choices=("dev", "held-out", "both", "none"), default="both",
                     help="offline sequences to score (none: the live part alone)")
     ap.add_argument("--frames", type=int, default=900, help="pairs per sequence (15 per s)")
-    ap.add_argument("--out", type=Path, default=Path("bench-results/tracking.json"))
     ap.add_argument("--no-bytetrack", action="store_true")
     ap.add_argument("--crocea", action="store_true",
                     help="also score the real fish tracks (realdata 08) with made detections")
@@ -545,6 +567,8 @@ def main() -> None:
     ap.add_argument("--live-seeds", type=lambda t: [int(x) for x in t.split(",")],
                     default=list(LIVE_SEEDS), help="comma-separated held-out seeds")
     args = ap.parse_args()
+    if args.quick:
+        args.frames, args.live_frames = 150, 60
     trackers: dict[str, Callable[[list[MotRow]], list[MotRow]]] = {
         "trapflow": run_trapflow(TrackerConfig()),
         "trapflow-relink": run_trapflow(TrackerConfig(), relink=RelinkConfig()),
@@ -552,7 +576,7 @@ def main() -> None:
     import importlib.util
 
     if importlib.util.find_spec("trackers") is None:
-        print("trackers is not installed: no ByteTrack rows")
+        h.log("tracking", "trackers is not installed: no ByteTrack rows")
         args.no_bytetrack = True
     if not args.no_bytetrack:
         trackers["bytetrack"] = lambda d: run_bytetrack(d, tuned=False)
@@ -569,42 +593,43 @@ def main() -> None:
                      "false_per_pair": FALSE_PER_PAIR},
         "tracker_config": repr(TrackerConfig()), "relink_config": repr(RelinkConfig()),
         "splits": {}}
+    tables: list[h.Result] = []
     for split, seeds in splits.items():
         seqs = [make_sequence(s, args.frames) for s in seeds]
         res = evaluate(seqs, trackers)
         report["splits"][split] = {"seeds": list(seeds), "results": res}  # type: ignore[index]
-        print(table(f"{split} seeds {list(seeds)}, {args.frames} pairs each", res))
+        tables.append(result(f"{split} seeds {list(seeds)}, {args.frames} pairs each", res))
         if args.max_n:
             mx = synth_max_n(seqs)
             report["splits"][split]["max_n"] = mx  # type: ignore[index]
-            for rate, per_seq in mx.items():
-                for name, m in per_seq.items():
-                    print(f"MaxN {rate:6} {name:16} " + " ".join(
-                        f"{k}={sorted(v.items())}" for k, v in m.items()))
+            tables.append(max_n_result(f"MaxN, {split} seeds", mx))
     if args.scorer_check:
         check = scorer_check(score)
         report["scorer_check"] = check
-        print("scorer check (TUD, a published tracker's output):" if check
-              else "scorer check: realdata 08b not found")
-        for seq, m in check.items():
-            print(f"  {seq}: {m}")
+        tables.append(h.Result("tracking", "Scorer check (TUD, a published tracker's output)",
+                               notes=[f"{seq}: {m}" for seq, m in check.items()]
+                               or ["realdata 08b not found"]))
     if args.crocea:
         seqs_real = crocea_sequences(**({"seqs": args.crocea_seqs} if args.crocea_seqs
                                         else {}))
         if not seqs_real:
-            print("crocea: realdata 08 not found")
+            tables.append(h.Result("tracking", "Crocea", notes=["realdata 08 not found"]))
         else:
             real = evaluate_real(seqs_real, args.crocea_fps, not args.no_bytetrack)
             report["crocea"] = real
-            print(real_table(f"crocea at {args.crocea_fps:g} fps (HOTA/IDF1/IDSW)", real))
+            tables += real_results(f"crocea at {args.crocea_fps:g} fps", real)
     if args.live:
         live = live_results(args.live_seeds, args.live_frames, trackers)
         report["live"] = live
-        print(table(f"live runs, seeds {args.live_seeds}, {args.live_frames} pairs each, "
-                    f"pairs seen {live['pairs_seen']}", live["results"]))  # type: ignore[arg-type]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=1) + "\n")
-    print(f"wrote {args.out}")
+        tables.append(result(f"live runs, seeds {args.live_seeds}, {args.live_frames} pairs "
+                             f"each, pairs seen {live['pairs_seen']}",
+                             live["results"]))  # type: ignore[arg-type]
+    if tables:
+        tables[0].data = report
+    else:
+        tables = [h.Result("tracking", data=report)]
+    h.write(args.out, "tracking", tables)
+    print(h.markdown(tables))
 
 
 if __name__ == "__main__":

@@ -97,7 +97,7 @@ def test_a_moving_rigs_tracks_take_vos_poses(tmp_path: Path, run_dir: Path,
                                               spawn: Callable[..., Pipeline]) -> None:
     """With a VO pool in the run, the normalizer hands VO's poses to the trackers: every
     track's speed is over the ground (the rig's own motion removed), none against the rig.
-    Speed accuracy against the truth: scripts/bench_speed.py."""
+    Speed accuracy against the truth: benchmarks/speed.py."""
     data = tmp_path / "synth"
     subprocess.run([sys.executable, "-m", "trapflow", "dataset", "synth", str(data),
                     "--frames", str(FRAMES), "--seed", str(SEED), "--moving", "--rate", "10",

@@ -4,7 +4,7 @@ MALLOC_TRIM_THRESHOLD_, and with its idle work (profiler, ticks, monitors) less 
 Regression (issue 27, batch that scales): Dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536 in
 every worker, and glibc then hands back and faults in again the pages of each image-sized
 buffer: a worker spent 17.3 ms of CPU a pair where the plain loop spent 13.2
-(scripts/bench_process.py, 640x360).
+(benchmarks/process.py, 640x360).
 """
 
 from __future__ import annotations

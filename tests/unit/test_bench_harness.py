@@ -5,6 +5,7 @@ a real child that burns CPU."""
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -12,6 +13,11 @@ from pathlib import Path
 import pytest
 
 from benchmarks import harness as h
+
+REPO = Path(__file__).resolve().parents[2]
+BENCHES = REPO / "benchmarks"
+# Modules of the package that are not benches: the harness, and parts other benches import.
+NOT_BENCHES = {"__init__", "harness", "gate_pipeline", "tracking_realdata", "tune_tracking"}
 
 
 def test_median_and_range_of_an_odd_count() -> None:
@@ -148,3 +154,26 @@ def test_tree_cpu_of_a_process_gone_is_zero() -> None:
     p = subprocess.Popen([sys.executable, "-c", "pass"])
     p.wait(timeout=20)
     assert h.tree_cpu(p.pid) == 0.0
+
+
+def test_every_bench_runs_on_the_harness() -> None:
+    """A bench takes the harness's options, writes through it, reads CPU only through it,
+    runs as `python -m benchmarks.NAME`, and puts nothing on sys.path."""
+    benches = sorted(p for p in BENCHES.glob("*.py") if p.stem not in NOT_BENCHES)
+    assert len(benches) >= 19
+    for path in benches:
+        text = path.read_text(encoding="utf-8")
+        assert "h.options(" in text and "h.write(" in text, path.name
+        assert 'if __name__ == "__main__":' in text, path.name
+    for path in BENCHES.glob("*.py"):
+        text = path.read_text(encoding="utf-8")
+        assert "sys.path" not in text, path.name
+        assert path.stem == "harness" or ".cpu_times(" not in text, path.name
+
+
+def test_bench_sh_runs_modules_that_exist() -> None:
+    text = (REPO / "scripts" / "bench.sh").read_text(encoding="utf-8")
+    modules = set(re.findall(r"-m benchmarks\.(\w+)", text))
+    assert len(modules) >= 17
+    assert all((BENCHES / f"{m}.py").is_file() for m in modules), modules
+    assert "scripts/bench_" not in text

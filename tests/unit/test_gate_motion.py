@@ -118,7 +118,7 @@ def test_lamp_shift_relearns_the_background() -> None:
 def test_opencv_methods_see_the_crab_come(method: str) -> None:
     """OpenCV's subtractors share the clean-up; how long they keep seeing a walking crab
     (MOG2 learns it into its background within 3 pairs at alpha 0.05) and what snow does
-    to them is compared by scripts/bench_gate.py, not pinned here."""
+    to them is compared by benchmarks/gate.py, not pinned here."""
     cfg = MotionConfig(method=method)
     assert all(r.motion for r in run("crab walks", WARM + 2, cfg)[WARM:])
 

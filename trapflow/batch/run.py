@@ -116,7 +116,7 @@ def worker_environ() -> dict[str, Any]:
     back). With it glibc gives back and faults in again the pages of every image-sized
     buffer a pair allocates: 17.3 against 14.8 ms of worker CPU a pair at 640x360
     (mono, stereo, tags; the plain loop 13.2), 2 workers 1.47x then 1.72x the plain loop
-    (scripts/bench_process.py --pairs 480 --size 640x360 --chunk 16, same machine, quiet).
+    (benchmarks/process.py --pairs 480 --size 640x360 --chunk 16, same machine, quiet).
     A worker here holds a chunk's pairs at a time, so its memory stays bounded without it."""
     _distributed()  # registers the distributed.* defaults in dask's config
     config = importlib.import_module("dask").config

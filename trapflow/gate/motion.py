@@ -25,7 +25,7 @@ Box = tuple[int, int, int, int]
 
 @dataclass(frozen=True)
 class MotionConfig:
-    """How the detector models the background; defaults chosen by scripts/bench_gate.py."""
+    """How the detector models the background; defaults chosen by benchmarks/gate.py."""
 
     method: str = "average"
     """average (running mean and variance per pixel), mog2 or knn (OpenCV's subtractors)."""

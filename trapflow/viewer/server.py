@@ -41,7 +41,7 @@ log = logging.getLogger(__name__)
 
 PUMP_S = 0.05  # tap drain period while a page is open: 20 wake-ups a second
 # With no page open: fewer wake-ups and status less often (node states for /metrics).
-# Measured on the default pipeline (scripts/bench_viewer.py): the idle viewer used 0.67 %
+# Measured on the default pipeline (benchmarks/viewer.py): the idle viewer used 0.67 %
 # of a core at 0.05 s, 0.50 % at 0.1 s, 0.37 % at 0.25 s. A result's latency in /metrics
 # is taken when its line is drained, so with no page open it reads up to this much late.
 PUMP_IDLE_S = 0.2

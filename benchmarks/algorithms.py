@@ -157,15 +157,17 @@ def _detector_variants(rig: StereoRig, params: dict[str, Any], n: int,
     return out
 
 
-def _variants_table(v: dict[str, Any], size: str) -> str:
-    lines = [f"Detector variants at {size}, one process, CPU ms per pair (median of "
-             f"{v['pairs']} pairs x {v['repeats']}, each pair through every case in turn):",
-             "", "| case | median ms | mean ms |", "|---|---:|---:|"]
+def _variants(v: dict[str, Any], size: str) -> list[h.Result]:
+    """The detector's cases at one size, and their ratios in the same run."""
+    cases = h.Result("algorithms", f"Detector variants at {size}", key="case", notes=[
+        f"One process, CPU ms per pair (median of {v['pairs']} "
+        f"pairs x {v['repeats']}, each pair through every case in turn)."])
     for k, m in v["ms_median"].items():
-        lines.append(f"| {k} | {m:.2f} | {v['ms_mean'][k]:.2f} |")
-    lines += ["", "| ratio, same run | |", "|---|---:|"]
-    lines += [f"| {k} | {r:.2f}x |" for k, r in v["ratios"].items()]
-    return "\n".join(lines)
+        cases.add(k, median=h.Figure(m, "ms"), mean=h.Figure(v["ms_mean"][k], "ms"))
+    ratios = h.Result("algorithms", key="ratio, same run")
+    for k, r in v["ratios"].items():
+        ratios.add(k, **{"x": h.Figure(round(r, 4))})
+    return [cases, ratios]
 
 
 def _detector_only(out: Path, pairs: int) -> None:
@@ -174,9 +176,8 @@ def _detector_only(out: Path, pairs: int) -> None:
         variants = {f"{w}x{ht}": _detector_variants(StereoRig.from_fov(w, ht, 70.0, 0.12),
                                                     params["mono"], pairs, 3)
                     for w, ht in ((1280, 720), (1920, 1080))}
-    md = "\n\n".join(_variants_table(v, k) for k, v in variants.items())
-    results = [h.Result("detector_variants", data={"detector_variants": variants,
-                                                   "models": origin}, notes=[md.strip()])]
+    results = [t for k, v in variants.items() for t in _variants(v, k)]
+    results[0].data = {"detector_variants": variants, "models": origin}
     h.write(out, "detector_variants", results)
     print(h.markdown(results))
 
@@ -249,17 +250,14 @@ def _drift(
     }
 
 
-def _table(rows: list[tuple[str, str, dict[str, float]]]) -> str:
-    lines = [
-        "| algorithm | run | analysed frames | mean ms | p95 ms | pairs/s |",
-        "|---|---|---:|---:|---:|---:|",
-    ]
+def _table(rows: list[tuple[str, str, dict[str, float]]]) -> h.Result:
+    t = h.Result("algorithms", "Algorithms: process() per pair", key="algorithm, run")
     for name, run, r in rows:
-        lines.append(
-            f"| {name} | {run} | {r['frames']} | {r['mean_ms']:.1f} | "
-            f"{r['p95_ms']:.1f} | {r['pairs_per_s']:.1f} |"
-        )
-    return "\n".join(lines)
+        t.add(f"{name}, {run}", **{"analysed frames": h.Figure(r["frames"]),
+                                   "mean": h.Figure(r["mean_ms"], "ms", digits=1),
+                                   "p95": h.Figure(r["p95_ms"], "ms", digits=1),
+                                   "pairs/s": h.Figure(r["pairs_per_s"], digits=1)})
+    return t
 
 
 def main() -> None:
@@ -317,16 +315,15 @@ def main() -> None:
         else "flat testkit floor"
     )
     seg_m = ", ".join(f"{v:g}" for v in drift["segments_m"])
-    md = (
-        f"{_table(rows)}\n\nModels: {', '.join(f'{k}: {v}' for k, v in origin.items())}. "
-        "One OpenCV / onnxruntime thread per process; frames of the moving synthetic world.\n\n"
+    main_t = _table(rows)
+    main_t.data = report
+    main_t.notes = [
+        f"Models: {', '.join(f'{k}: {v}' for k, v in origin.items())}. One OpenCV / "
+        "onnxruntime thread per process; frames of the moving synthetic world.",
         f"VO drift over a {drift['path_m']:.1f} m path of the {where} ({drift['pairs']} pairs "
         f"at 1280x720, {drift['ok']} ok): {drift['segment_drift_pct']:.3f} % (KITTI-style "
-        f"segment metric, segments of {seg_m} m), {drift['end_drift_pct']:.3f} % at the end.\n"
-    )
-    md += "".join(f"\n{_variants_table(v, k)}\n" for k, v in variants.items())
-    # The tables are still this bench's own text (a note of one result).
-    results = [h.Result("algorithms", data=report, notes=[md.strip()])]
+        f"segment metric, segments of {seg_m} m), {drift['end_drift_pct']:.3f} % at the end."]
+    results = [main_t, *(t for k, v in variants.items() for t in _variants(v, k))]
     h.write(out, "algorithms", results)
     print(h.markdown(results))
 

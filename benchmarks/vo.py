@@ -193,32 +193,31 @@ def _drift(mods: dict[str, ModuleType]) -> dict[str, Any]:
     return out
 
 
-def _markdown(r: dict[str, Any]) -> str:
+def results(r: dict[str, Any]) -> list[h.Result]:
+    """CPU per stage of each plugin, and drift on the conformance scene when it ran."""
     names = list(r["plugins"])
     cpu = r["cpu"]
-    head = " | ".join(f"{n} ms" for n in names)
-    lines = [f"## Stereo VO CPU per pair, 1280x720 synthetic world ({cpu['pairs']} pairs, one "
-             f"OpenCV thread, each pair through both plugins in turn)", "",
-             f"| stage | {head} |", "|---|" + "---:|" * len(names)]
+    t = h.Result("vo", f"Stereo VO CPU per pair, 1280x720 synthetic world ({cpu['pairs']} "
+                 "pairs, one OpenCV thread, each pair through both plugins in turn)",
+                 key="stage", data=r)
     for s in ORDER:
-        lines.append(f"| {s} | " + " | ".join(f"{cpu[n]['stages_ms'][s]:.2f}" for n in names)
-                     + " |")
-    lines.append("| **total** | " + " | ".join(f"**{cpu[n]['ms_per_pair']:.2f}**" for n in names)
-                 + " |")
+        t.add(s, **{n: h.Figure(cpu[n]["stages_ms"][s], "ms") for n in names})
+    t.add("**total**", **{n: h.Figure(f"**{cpu[n]['ms_per_pair']:.2f}**", "ms") for n in names})
     if "before" in names:
         ratio = cpu["now"]["ms_per_pair"] / cpu["before"]["ms_per_pair"]
-        lines += ["", f"now / before: **{ratio:.2f}x** (before = {r['before_rev']})"]
+        t.notes.append(f"now / before: **{ratio:.2f}x** (before = {r['before_rev']})")
     if not r["drift"]:
-        return "\n".join(lines) + "\n"
-    lines += ["", "Drift on tests/conformance/test_vo_scene.py (752x480) and CPU ms per pair there "
-              "(each pair through both plugins in turn):",
-              "", "| sequence | plugin | drift % | deg/m | ms/pair |", "|---|---|---:|---:|---:|"]
+        return [t]
+    d = h.Result("vo", key="sequence, plugin", notes=[
+        "Drift on tests/conformance/test_vo_scene.py (752x480) and CPU ms per pair there "
+        "(each pair through both plugins in turn)."])
     for seq, by in r["drift"].items():
         for n in names:
-            d = by[n]
-            lines.append(f"| {seq} | {n} | {d['drift_pct']:.3f} | {d['drift_deg_per_m']:.4f} | "
-                         f"{d['ms_per_pair']:.2f} |")
-    return "\n".join(lines) + "\n"
+            x = by[n]
+            d.add(f"{seq}, {n}", drift=h.Figure(x["drift_pct"], "%", digits=3),
+                  **{"drift per metre": h.Figure(x["drift_deg_per_m"], "deg/m", digits=4),
+                     "CPU": h.Figure(x["ms_per_pair"], "ms/pair")})
+    return [t, d]
 
 
 def main() -> None:
@@ -241,10 +240,9 @@ def main() -> None:
         report: dict[str, Any] = {"plugins": list(mods), "before_rev": args.before,
                                   "cpu": _cpu(mods, rig, frames)}
         report["drift"] = {} if args.no_drift else _drift(mods)
-    # The tables are still this bench's own text (a note of one result).
-    results = [h.Result("vo", data=report, notes=[_markdown(report).strip()])]
-    h.write(args.out, "vo", results)
-    print(h.markdown(results))
+    tables = results(report)
+    h.write(args.out, "vo", tables)
+    print(h.markdown(tables))
 
 
 if __name__ == "__main__":

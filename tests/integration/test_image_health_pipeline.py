@@ -14,6 +14,7 @@ import pytest
 
 from tests.builders import small_source
 from tests.conftest import REPO, Pipeline, only_pools, poll_for, write_config
+from trapflow.cli.status_text import format_status
 
 pytestmark = pytest.mark.slow  # starts a whole pipeline
 
@@ -70,6 +71,7 @@ def test_fouling_is_flagged_and_reaches_the_surface(spawn, run_dir: Path,
     st = p.status()
     assert st is not None and st["stats"]["image"]["state"] == "fouled"
     assert st["stats"]["image"]["changes"] == 1
+    assert "image health: fouled; sharpness " in format_status(st)  # `trapflow status`
     code, _, err = p.stop(signal.SIGINT)
     assert code == 0, err
     ledger = json.loads((run_dir / "ledger.json").read_text())

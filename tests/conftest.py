@@ -27,6 +27,19 @@ REPO = Path(__file__).resolve().parents[1]
 os.environ.setdefault("TRAPFLOW_VIEWER_TOKEN", secrets.token_urlsafe(24))
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """Ctrl-C reaches what the tests start. A suite run in the background of a shell
+    (`cmd &`) inherits SIGINT and SIGQUIT ignored, and so did every process it started:
+    Python keeps an ignored SIGINT ignored, so `trapflow view` and `trapflow record` never
+    saw the SIGINT their tests send, and those tests failed only in such runs (SigIgn
+    0x1001007 in the view's /proc status). Restored here, in each test process; an exec'd
+    child then starts with the default disposition, as from a terminal."""
+    for signo, handler in ((signal.SIGINT, signal.default_int_handler),
+                           (signal.SIGQUIT, signal.SIG_DFL)):
+        if signal.getsignal(signo) == signal.SIG_IGN:
+            signal.signal(signo, handler)
+
+
 def poll_for(predicate: Callable[[], Any], timeout: float, interval: float = 0.05,
              what: str = "condition") -> Any:
     """Call predicate until it returns something truthy; fail after timeout."""

@@ -105,11 +105,6 @@ def signal_masks(pid: int) -> str:
 
 
 @pytest.mark.timeout(150)
-@pytest.mark.xfail(strict=False, reason=(
-    "open defect (2026-11-29): in the full suite on 2 cores, three runs in a row, `trapflow "
-    "view` did not leave within 30 s of Ctrl-C (its stderr: only its address); alone, beside "
-    "the viewer tests, after in-process Dask clusters and under CPU load it leaves at once. "
-    "Cause not found yet: see the closing note of 2026-11-29"))
 def test_view_attaches_to_a_running_pipeline(spawn, run_dir: Path, started_procs) -> None:
     p: Pipeline = spawn(["--size", "320x240"], run_dir)
     p.wait_active(90)

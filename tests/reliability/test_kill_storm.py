@@ -37,10 +37,8 @@ def _pids(p: Pipeline) -> dict[str, int]:
     """Node name -> pid of this test's own pipeline: the supervisor's children, by the
     process title every node sets (trapflow:<name>)."""
     out: dict[str, int] = {}
-    for k in p.track():
+    for k in p.track():  # the nodes are the fork server's children (a level below)
         try:
-            if k.ppid() != p.proc.pid:
-                continue
             title = " ".join(k.cmdline())
         except psutil.NoSuchProcess:
             continue

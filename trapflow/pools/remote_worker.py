@@ -9,7 +9,6 @@ DEALER: Hello (answered by a Welcome), then Ready, jobs as bytes, Alive, as on o
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
 import os
 import signal
 import tempfile
@@ -27,6 +26,7 @@ from trapflow.calibration.camera import StereoRig
 from trapflow.config import schema as configmod
 from trapflow.errors import ConfigError, ProtocolError, StartupError
 from trapflow.pools.worker import WorkerNode
+from trapflow.runtime import forkserver
 from trapflow.runtime.lifecycle import RECYCLE_EXITS
 from trapflow.runtime.logchannel import LogListener
 from trapflow.runtime.node import JoinSpec, NodeSpec, node_main
@@ -162,7 +162,7 @@ class RemotePool:
         self.join_timeout_s = join_timeout_s
         self.announce = announce
         self.stopping = False
-        self.mp = mp.get_context("spawn")
+        self.mp = forkserver.node_context()
         self.procs = [_Proc(i) for i in range(count)]
 
     def run(self) -> int:
@@ -183,6 +183,7 @@ class RemotePool:
             self._supervise(cfg, rig)
         finally:
             self._stop_all()
+            forkserver.stop()  # the worker processes' server: nothing of this run outlives it
             listener.stop()  # its thread's socket is in the context: stop it first
             ctx.destroy(linger=0)
         return 0

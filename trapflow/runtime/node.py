@@ -24,6 +24,7 @@ import zmq
 
 from trapflow.calibration.camera import StereoRig
 from trapflow.config.schema import Config
+from trapflow.runtime import forkserver
 from trapflow.runtime.lifecycle import Lifecycle
 from trapflow.runtime.logchannel import LogSender
 from trapflow.wire import messages
@@ -233,8 +234,10 @@ def freeze_heap() -> None:
 def node_main(spec: NodeSpec, parent_pid: int) -> None:
     """Entry point of every spawned node process."""
     _die_with_parent()
-    if os.getppid() != parent_pid:  # the supervisor died before prctl took effect
+    forkserver.detach()  # the server leaves with the supervisor, and we with the server
+    if os.getppid() != forkserver.expected_parent(parent_pid):  # it died before prctl took effect
         os._exit(EXIT_CRASHED)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # the fork server ignores it
     _set_title(f"trapflow:{spec.name}")
     faulthandler.enable()
     root = logging.getLogger()

@@ -11,7 +11,6 @@ what it reports (status, status line, ledger.json) is trapflow.supervisor.report
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
 import os
 import secrets
 import signal
@@ -31,7 +30,7 @@ from trapflow.config.schema import Config
 from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError, unreachable
 from trapflow.power.cpu import CpuMeter
 from trapflow.power.schedule import WindowClock
-from trapflow.runtime import sdnotify
+from trapflow.runtime import forkserver, sdnotify
 from trapflow.runtime.lifecycle import RECYCLE_EXITS
 from trapflow.runtime.node import NodeSpec, node_main
 from trapflow.runtime.ratelog import RateLimitedLog, wire
@@ -122,7 +121,7 @@ class Supervisor:
         self.window = window  # the schedule's recording window: the run stops at its end
         self.window_ended = False
         self.out = out or sys.stdout
-        self.mp = mp.get_context("spawn")
+        self.mp = forkserver.node_context()
         self.children: list[Child] = []
         # The decisions (filled by boot()); the ladder's readings are the sensors' below.
         self.core = SupervisorState((), _budget(cfg),
@@ -251,21 +250,26 @@ class Supervisor:
             self.notifier.ready(f"running in {self.run_dir}")
             self._supervise()
         finally:
-            if not self.window_ended:  # between windows the service goes on (waits up)
-                self.notifier.stopping()
-            if self.children:
-                self._stop_all()
-                self._judge()
-                self.report.print_totals()
-            if self.run_log is not None:  # its thread's socket is in the context: first
-                self.run_log.stop()
-            self.ctx.destroy(linger=0)
-            if self.ring is not None:
-                self.ring.close()  # unlinks the segment: nothing left in /dev/shm
-            if not any(c.alive() for c in self.children):
-                clear_run_dir(self.run_dir)  # sockets and lock: nothing runs here any more
-            lock.close()
+            self._end(lock)
         return self.exit_code
+
+    def _end(self, lock: IO[str]) -> None:
+        """Stop every node, judge and total the run, and leave nothing of it behind."""
+        if not self.window_ended:  # between windows the service goes on (waits up)
+            self.notifier.stopping()
+        if self.children:
+            self._stop_all()
+            self._judge()
+            self.report.print_totals()
+        if self.run_log is not None:  # its thread's socket is in the context: first
+            self.run_log.stop()
+        self.ctx.destroy(linger=0)
+        if self.ring is not None:
+            self.ring.close()  # unlinks the segment: nothing left in /dev/shm
+        if not any(c.alive() for c in self.children):
+            forkserver.stop()  # the nodes' server: it would leave with us, now instead
+            clear_run_dir(self.run_dir)  # sockets and lock: nothing runs here any more
+        lock.close()
 
     def _install_signals(self) -> None:
         def _stop(signo: int, _frame: Any) -> None:

@@ -15,10 +15,6 @@ pytestmark = pytest.mark.slow  # starts whole pipelines
 
 
 @pytest.mark.timeout(90)
-@pytest.mark.xfail(strict=False, reason=(
-    "open defect (2026-11-29): in the full suite on 2 cores, 2 runs of 3, the first "
-    "event folder held no image (0 pairs); alone and beside other pipeline tests it holds "
-    "its pre- and post-roll. Cause not found yet: see the closing note of 2026-11-29"))
 def test_trigger_keeps_preroll_and_postroll_pairs(spawn, run_dir: Path) -> None:
     cfg = write_config(run_dir.parent / "events.yaml", {
         "source": small_source(10.0),

@@ -95,3 +95,19 @@ def test_disabled_never_fires(tmp_path: Path) -> None:
     cap = EventCapture(msgspec.structs.replace(CFG, enabled=False), tmp_path)
     run(cap, 20, {5: crab(5)})
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_trigger_before_any_pair_keeps_the_post_roll_from_the_first_pair(
+        tmp_path: Path) -> None:
+    """Regression: a result that reached the events node before any pair (its image tap
+    connected later than its results tap on a loaded machine) opened an event ending at
+    time 0 + post_s, which the first pair closed, empty: the run's first event folder held
+    no image (seen in full-suite runs). Its post-roll now counts from the first pair."""
+    cap = EventCapture(CFG, tmp_path)
+    assert cap.on_result(crab(3))
+    for seq in range(3, 12):
+        cap.on_pair(*pair(seq))
+    cap.close()
+    (ev,) = sorted(tmp_path.iterdir())
+    assert saved(ev) == [3, 4, 5]  # the first pair and 0.2 s after it at 10 Hz
+    assert json.loads((ev / "event.json").read_text())["pairs"] == 3

@@ -42,8 +42,10 @@ def fires(rule: TriggerRule, obj: dict[str, Any]) -> dict[str, Any] | None:
 
 
 class _Event:
-    def __init__(self, folder: Path, end_ns: int) -> None:
+    def __init__(self, folder: Path, end_ns: int | None) -> None:
         self.folder = folder
+        # None: triggered before any pair reached this node (its tap connected late on a
+        # loaded machine); the post-roll counts from the first pair that comes.
         self.end_ns = end_ns
         self.seqs: set[int] = set()
         self.results = 0
@@ -71,6 +73,8 @@ class EventCapture:
         ev = self._event
         if ev is None:
             return
+        if ev.end_ns is None:
+            ev.end_ns = header.t_mono_ns + int(self.cfg.post_s * 1e9)
         if header.t_mono_ns > ev.end_ns:
             self._close()
         else:
@@ -85,17 +89,20 @@ class EventCapture:
             return False
         seq = body.get("seq")
         t = next((h.t_mono_ns for h, _, _ in self._ring if h.seq == seq), self._latest_ns)
-        end = t + int(self.cfg.post_s * 1e9)
+        # No pair seen yet: its time is unknown (0 made an event that closed, empty, at the
+        # first pair: a run's first event folder held no image).
+        end = t + int(self.cfg.post_s * 1e9) if self._ring else None
         ev = self._event
         if ev is None:
-            ev = self._open(t, seq)
-        ev.end_ns = max(ev.end_ns, end)
+            ev = self._open(t, seq, end)
+        if end is not None:
+            ev.end_ns = end if ev.end_ns is None else max(ev.end_ns, end)
         with open(ev.folder / "results.jsonl", "a", encoding="utf-8") as fh:
             fh.write(json.dumps(obj, separators=(",", ":")) + "\n")
         ev.results += 1
         return True
 
-    def _open(self, t_ns: int, seq: object) -> _Event:
+    def _open(self, t_ns: int, seq: object, end_ns: int | None) -> _Event:
         self._enforce_quota()
         stamp = time.strftime("%Y%m%d-%H%M%S")
         folder = self.out / f"{stamp}-seq{seq if isinstance(seq, int) else 'x'}"
@@ -103,7 +110,7 @@ class EventCapture:
         while folder.exists():
             folder = folder.with_name(f"{folder.name}-{n}")
             n += 1
-        ev = _Event(folder, t_ns)
+        ev = _Event(folder, end_ns)
         start = t_ns - int(self.cfg.pre_s * 1e9)
         for header, left, right in self._ring:
             if header.t_mono_ns >= start:

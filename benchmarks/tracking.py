@@ -212,7 +212,7 @@ def run_bytetrack(dets: list[MotRow], tuned: bool, fps: float = FPS) -> list[Mot
 
     kw = dict(track_activation_threshold=0.5, high_conf_det_threshold=0.5,
               minimum_iou_threshold=0.2, lost_track_buffer=45) if tuned else {}
-    tracker = ByteTrackTracker(frame_rate=fps, **kw)  # type: ignore[arg-type]
+    tracker = ByteTrackTracker(frame_rate=fps, **kw)  # type: ignore[arg-type,unused-ignore]  # typed only where the package is installed
     frames: dict[int, list[MotRow]] = {}
     for r in dets:
         frames.setdefault(r.frame, []).append(r)

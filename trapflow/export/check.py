@@ -33,14 +33,26 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from msgspec import UNSET
+
 from trapflow.export.run_files import (
     Jsonl,
     first_line_at,
     label_s,
+    read_counts,
     read_json,
     read_jsonl,
+    read_results,
+    read_tracks,
     results_from,
     written,
+)
+from trapflow.wire.result_lines import (
+    CountsLine,
+    MonoIRLine,
+    ResultItem,
+    ResultLine,
+    TrackLine,
 )
 
 # Result times are written to the millisecond, tracks' and counts' to 3 decimals.
@@ -59,42 +71,35 @@ def _secs(t_s: float) -> str:
 class _Run:
     """What the checks need of the run's files."""
 
-    results: Jsonl
-    tracks: Jsonl
-    counts: Jsonl
+    results: Jsonl[ResultLine]
+    tracks: Jsonl[TrackLine]
+    counts: Jsonl[CountsLine]
     ledger: dict[str, Any] | None
     seqs: dict[str, set[int]] = field(default_factory=dict)  # kind -> distinct seqs
     # Detection lines with a track: (line number, seq, time, label, track id).
     tracked: list[tuple[int, int, float, str, int]] = field(default_factory=list)
-    by_id: dict[int, tuple[int, dict[str, Any]]] = field(default_factory=dict)
+    by_id: dict[int, tuple[int, TrackLine]] = field(default_factory=dict)
 
 
 def _load(run_dir: Path, results_file: str, tracks_file: str, counts_file: str,
           out: list[str]) -> _Run:
-    run = _Run(read_jsonl(run_dir / results_file), read_jsonl(run_dir / tracks_file, "track"),
-               read_jsonl(run_dir / counts_file, "counts"), read_json(run_dir / "ledger.json"))
-    for f in (run.results, run.tracks, run.counts):
-        out += [f"{f.name} line {n}: not a line of the run (no JSON object of one kind)"
-                for n in f.bad]
+    run = _Run(read_results(run_dir / results_file), read_tracks(run_dir / tracks_file),
+               read_counts(run_dir / counts_file), read_json(run_dir / "ledger.json"))
+    files: tuple[Jsonl[Any], ...] = (run.results, run.tracks, run.counts)
+    for f in files:
+        out += [f"{f.why[n]} (not a line of the run)" for n in f.bad]
         if f.cut is not None:
             out.append(f"{f.cut_text()}: it holds no whole line there")
     if not run.results.exists:
         out.append(f"{results_file}: missing; a finished run always leaves it")
-    for n, obj in run.results.items:
-        (kind, body), = obj.items()
-        if not isinstance(body, dict) or not isinstance(body.get("seq"), int):
-            out.append(f"{run.results.name} line {n}: {kind} has no seq")
-            continue
-        run.seqs.setdefault(kind, set()).add(body["seq"])
-        tid, t = body.get("track"), label_s(body.get("timestamp"))
-        if isinstance(tid, int) and not isinstance(tid, bool) and t is not None:
-            run.tracked.append((n, body["seq"], t, str(body.get("label", "")), tid))
+    for n, (kind, item) in run.results.items:
+        run.seqs.setdefault(kind, set()).add(item.seq)
+        t = label_s(item.timestamp)
+        if isinstance(item, MonoIRLine) and isinstance(item.track, int) and t is not None:
+            run.tracked.append((n, item.seq, t, item.label, item.track))
     for n, body in run.tracks.items:
-        tid = body.get("id")
-        if not isinstance(tid, int) or not all(
-                isinstance(body.get(k), (int, float)) for k in ("first_s", "last_s")):
-            out.append(f"{run.tracks.name} line {n}: a track without id, first_s or last_s")
-        elif tid in run.by_id:
+        tid = body.id
+        if tid in run.by_id:
             out.append(f"{run.tracks.name} line {n}: track {tid} again (first at line "
                        f"{run.by_id[tid][0]})")
         else:
@@ -141,19 +146,19 @@ def _tracks(run: _Run, out: list[str]) -> None:
                        f"{tname}")
             continue
         n, t = run.by_id[tid]
-        label = str(t.get("label", ""))
+        label = t.label
         said = Counter(lb for _n, _s, _t, lb, _i in of)
-        unseen = max(0, int(t.get("pairs", 0) or 0) - len(of))  # boxes before its id
+        unseen = max(0, t.pairs - len(of))  # boxes before its id
         top, most = said.most_common(1)[0]
         if top != label and most > said.get(label, 0) + unseen:
             out.append(f"{tname} line {n}: track {tid} is {label}, but {said.get(label, 0)} "
                        f"of its {len(of)} lines in {name} say {label} and {most} say {top}")
-        tol = TIME_TOL_S + SLEW * (t["last_s"] - t["first_s"])
-        outside = [x for x in of if not t["first_s"] - tol <= x[2] <= t["last_s"] + tol]
+        tol = TIME_TOL_S + SLEW * (t.last_s - t.first_s)
+        outside = [x for x in of if not t.first_s - tol <= x[2] <= t.last_s + tol]
         if outside:
             x = outside[0]
             out.append(f"{name} line {x[0]}: track {tid} at {x[2]:.3f}, outside its span "
-                       f"{t['first_s']:.3f}-{t['last_s']:.3f} in {tname} line {n}"
+                       f"{t.first_s:.3f}-{t.last_s:.3f} in {tname} line {n}"
                        f"{f' ({len(outside)} lines)' if len(outside) > 1 else ''}")
 
 
@@ -168,13 +173,8 @@ def _interval(starts: list[tuple[float, float, int]], t: float) -> int | None:
 
 def _counts(run: _Run, out: list[str]) -> None:
     """Visits and MaxN per interval and label against the tracks and their lines."""
-    spans = []
-    for n, c in run.counts.items:
-        if isinstance(c.get("start_s"), (int, float)) and isinstance(c.get("end_s"),
-                                                                      (int, float)):
-            spans.append((float(c["start_s"]), float(c["end_s"]), n))
-    spans.sort()
-    labels = {tid: str(t.get("label", "")) for tid, (_n, t) in run.by_id.items()}
+    spans = sorted((c.start_s, c.end_s, n) for n, c in run.counts.items)
+    labels = {tid: t.label for tid, (_n, t) in run.by_id.items()}
     first: dict[int, float] = {}  # track -> the first time a line carries its id
     # A pair is its seq and capture time: a run directory started again numbers its pairs
     # from 0 again, so one seq may be two pairs of results.jsonl.
@@ -184,7 +184,7 @@ def _counts(run: _Run, out: list[str]) -> None:
         at.setdefault((seq, t), set()).add(tid)
     visits: Counter[tuple[int, str]] = Counter()
     for tid, (n, track) in sorted(run.by_id.items()):
-        seen = first.get(tid, float(track["first_s"]))
+        seen = first.get(tid, track.first_s)
         i = _interval(spans, seen)
         if i is None:
             out.append(f"{run.tracks.name} line {n}: track {tid} first seen at {seen:.3f}, "
@@ -200,16 +200,15 @@ def _counts(run: _Run, out: list[str]) -> None:
             max_n[(i, lb)] = max(max_n.get((i, lb), 0), k)
     written = {n: c for n, c in run.counts.items}
     for i, (start, _end, n) in enumerate(spans):
-        rows = {str(r.get("label")): r for r in written[n].get("labels") or []
-                if isinstance(r, dict)}
+        rows = {r.label: (r.visits, r.max_n) for r in written[n].labels}
         implied = {lb for (j, lb) in (*visits, *max_n) if j == i}
         for lb in sorted(set(rows) | implied):
-            row = rows.get(lb, {})
-            for key, want in (("visits", visits.get((i, lb), 0)),
-                              ("max_n", max_n.get((i, lb), 0))):
-                if row.get(key, 0) != want:
+            row = rows.get(lb, (0, 0))
+            for key, have, want in (("visits", row[0], visits.get((i, lb), 0)),
+                                    ("max_n", row[1], max_n.get((i, lb), 0))):
+                if have != want:
                     out.append(f"{run.counts.name} line {n} ({_secs(start)}): {lb} {key} "
-                               f"{row.get(key, 0)}, the tracks imply {want}")
+                               f"{have}, the tracks imply {want}")
 
 
 def _surface(run: _Run, path: Path, out: list[str]) -> None:
@@ -222,18 +221,16 @@ def _surface(run: _Run, path: Path, out: list[str]) -> None:
     out += [f"{name} line {n}: not a record" for n in got.bad]
     if got.cut is not None:
         out.append(f"{name} line {got.cut}: cut mid-way")
-    results: dict[tuple[str, int], list[dict[str, Any]]] = {}
-    for _n, obj in run.results.items:
-        (kind, body), = obj.items()
-        if isinstance(body, dict) and isinstance(body.get("seq"), int):
-            results.setdefault((kind, body["seq"]), []).append(body)
-    counts = {_secs(c["start_s"]): c for _n, c in run.counts.items
-              if isinstance(c.get("start_s"), (int, float))}
-    labels = {str(t.get("label", "")) for _n, t in run.by_id.values()}
+    results: dict[tuple[str, int], list[ResultItem]] = {}
+    for _n, (kind, item) in run.results.items:
+        results.setdefault((kind, item.seq), []).append(item)
+    counts = {_secs(c.start_s): c for _n, c in run.counts.items}
+    labels = {t.label for _n, t in run.by_id.values()}
     def result(n: int, kind: str, body: dict[str, Any], within: str = "") -> None:
+        # The surface's record is the modem's (link_record), its keys compared to the line's.
         mine = results.get((kind, body.get("seq", -1)), [])
         keys = [k for k in ("timestamp", "label", "track") if k in body]
-        if not any(all(b.get(k) == body[k] for k in keys) for b in mine):
+        if not any(all(getattr(b, k, UNSET) == body[k] for k in keys) for b in mine):
             out.append(f"{name} line {n}: {within}{kind} seq {body.get('seq')} "
                        f"({', '.join(f'{k} {body[k]}' for k in keys)}) is no line of "
                        f"{run.results.name}")
@@ -250,21 +247,21 @@ def _surface(run: _Run, path: Path, out: list[str]) -> None:
                     if bkind in run.seqs and isinstance(bbody, dict):
                         result(n, bkind, bbody, "an aggregate's best ")
         elif kind == "track":
-            _n, t = run.by_id.get(body.get("id", -1), (0, {}))
-            box = (t.get("label"), _secs(t["first_s"]) if t else None)
+            had = run.by_id.get(body.get("id", -1))
+            box = (had[1].label, _secs(had[1].first_s)) if had else (None, None)
             if box != (body.get("label"), body.get("start")):
                 out.append(f"{name} line {n}: track {body.get('id')} {body.get('label')} from "
                            f"{body.get('start')}, {run.tracks.name} has "
-                           f"{'no such track' if not t else f'{box[0]} from {box[1]}'}")
+                           f"{'no such track' if not had else f'{box[0]} from {box[1]}'}")
         elif kind == "counts":
             c = counts.get(body.get("start", ""))
-            def per(rows: Any) -> dict[str, tuple[Any, Any]]:
-                return {r.get("label"): (r.get("visits"), r.get("max_n")) for r in rows or []}
-            if c is None or c.get("pairs") != body.get("pairs") or per(
-                    c.get("labels")) != per(body.get("labels")):
+            sent = {r.get("label"): (r.get("visits"), r.get("max_n"))
+                    for r in body.get("labels") or []}
+            if c is None or c.pairs != body.get("pairs") or sent != {
+                    r.label: (r.visits, r.max_n) for r in c.labels}:
                 out.append(f"{name} line {n}: counts from {body.get('start')} (pairs "
                            f"{body.get('pairs')}) differ from {run.counts.name}'s "
-                           f"{'none' if c is None else c.get('pairs')}")
+                           f"{'none' if c is None else c.pairs}")
         elif kind in ("new_label", "new_max_n") and body.get("label") not in labels:
             out.append(f"{name} line {n}: {kind} {body.get('label')}, a label no track of "
                        f"{run.tracks.name} has")

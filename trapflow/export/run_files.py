@@ -11,13 +11,24 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 from trapflow.errors import TrapflowError
-from trapflow.normalizer.result_json import line_pool
 from trapflow.supervisor.setup import LOCK_FILE, supervisor_alive
+from trapflow.wire.result_lines import (
+    CountsLine,
+    LineError,
+    MonoIRLine,
+    OtherKind,
+    ResultLine,
+    TrackLine,
+    decode_counts,
+    decode_result,
+    decode_track,
+)
 
 
 class RunInUse(TrapflowError):
@@ -36,18 +47,23 @@ def finished_run(run_dir: Path, what: str) -> None:
                        "holds it); run this once it has ended")
 
 
+T = TypeVar("T")
+
+
 @dataclass
-class Jsonl:
-    """One JSON-lines file: its objects of one kind with their line numbers (from 1), lines
-    that are not such an object, and the cut last line, if any."""
+class Jsonl(Generic[T]):
+    """One JSON-lines file: its lines of one kind, decoded, with their line numbers (from
+    1), lines that are not such a line (and what was wrong with each), and the cut last
+    line, if any."""
 
     name: str
     exists: bool = False
-    items: list[tuple[int, dict[str, Any]]] = field(default_factory=list)
-    bad: list[int] = field(default_factory=list)  # whole lines that do not parse
+    items: list[tuple[int, T]] = field(default_factory=list)
+    bad: list[int] = field(default_factory=list)  # whole lines that do not decode
+    why: dict[int, str] = field(default_factory=dict)  # bad line -> what was wrong
     cut: int | None = None  # the line number of a last line cut mid-way (no newline)
 
-    def bodies(self) -> list[dict[str, Any]]:
+    def bodies(self) -> list[T]:
         return [body for _n, body in self.items]
 
     def cut_text(self) -> str:
@@ -55,11 +71,11 @@ class Jsonl:
         return f"{self.name} line {self.cut} is cut mid-way" if self.cut is not None else ""
 
 
-def read_jsonl(path: Path, kind: str | None = None) -> Jsonl:
-    """A JSON-lines file read line by line: with `kind`, the objects `{kind: {...}}` (their
-    bodies); without, every one-key object `{kind: {...}}` whole. A last line without its
-    newline that does not parse is the cut, not a bad line."""
-    out = Jsonl(path.name)
+def _read(path: Path, decode: Callable[[bytes, str], T]) -> Jsonl[T]:
+    """A JSON-lines file decoded line by line (`decode` raises LineError naming the line;
+    OtherKind for a line of another kind, passed by). A last line without its newline that
+    is not JSON is the cut, not a bad line."""
+    out: Jsonl[T] = Jsonl(path.name)
     try:
         raw = path.read_bytes()
     except FileNotFoundError:
@@ -70,18 +86,52 @@ def read_jsonl(path: Path, kind: str | None = None) -> Jsonl:
         if not line.strip():
             continue
         try:
-            obj = json.loads(line)
-            ok = isinstance(obj, dict) and len(obj) == 1
-            body = obj.get(kind) if kind is not None and ok else obj
-        except ValueError:
-            ok, body = False, None
-        if ok and isinstance(body, dict):
-            out.items.append((n, body))
-        elif n == len(lines):  # no newline after it: written in part
-            out.cut = n
-        elif kind is None or not ok:
-            out.bad.append(n)
+            out.items.append((n, decode(line, f"{path.name} line {n}")))
+        except OtherKind:
+            continue
+        except LineError as exc:
+            if n == len(lines) and not _is_json(line):  # no newline after it: written in part
+                out.cut = n
+            else:
+                out.bad.append(n)
+                out.why[n] = str(exc)
     return out
+
+
+def _is_json(line: bytes) -> bool:
+    try:
+        json.loads(line)
+    except ValueError:
+        return False
+    return True
+
+
+def _record(line: bytes, where: str) -> dict[str, Any]:
+    obj = json.loads(line) if _is_json(line) else None
+    if not isinstance(obj, dict) or len(obj) != 1:
+        raise LineError(f"{where}: expected a JSON object of one kind")
+    return obj
+
+
+def read_jsonl(path: Path) -> Jsonl[dict[str, Any]]:
+    """A JSON-lines file of records `{kind: {...}}` other than the run's own lines (a
+    surface file: the modem's records), each whole."""
+    return _read(path, _record)
+
+
+def read_results(path: Path) -> Jsonl[ResultLine]:
+    """results.jsonl, each line typed (trapflow.wire.result_lines)."""
+    return _read(path, decode_result)
+
+
+def read_tracks(path: Path) -> Jsonl[TrackLine]:
+    """tracks.jsonl, each line's track typed."""
+    return _read(path, decode_track)
+
+
+def read_counts(path: Path) -> Jsonl[CountsLine]:
+    """counts.jsonl, each line's interval typed."""
+    return _read(path, decode_counts)
 
 
 def read_json(path: Path) -> dict[str, Any] | None:
@@ -119,7 +169,7 @@ def first_line_at(path: Path, offset: int) -> int:
         return 1
 
 
-def written(results: Jsonl, ledger: dict[str, Any], first_line: int = 1) -> Written:
+def written(results: Jsonl[ResultLine], ledger: dict[str, Any], first_line: int = 1) -> Written:
     """Each line credited to the pool it names (`pool`, results.jsonl v3); a line of a run
     from before lines named their pool, to the one pool whose `kinds` in ledger.json list its
     kind. Lines before `first_line` are earlier starts' in a reused run directory."""
@@ -133,11 +183,11 @@ def written(results: Jsonl, ledger: dict[str, Any], first_line: int = 1) -> Writ
         else:
             listed = False
     out = Written(pools={name: set() for name in pools}, first_line=first_line)
-    for n, obj in results.items:
-        (kind, body), = obj.items()
-        if n < first_line or not isinstance(body, dict) or not isinstance(body.get("seq"), int):
+    for n, line in results.items:
+        if n < first_line:
             continue
-        pool = line_pool(body)
+        kind, body = line
+        pool = line.pool
         if pool is not None:
             key = pool if pool in out.pools else f"pool {pool}"
         elif not listed:  # neither the lines nor the ledger say which pool: not compared
@@ -147,7 +197,7 @@ def written(results: Jsonl, ledger: dict[str, Any], first_line: int = 1) -> Writ
             who = makers.get(kind, [])
             key = who[0] if len(who) == 1 else kind
         (out.pools if key in out.pools else out.unclaimed).setdefault(key, set()).add(
-            body["seq"])
+            body.seq)
         if key in out.pools:
             out.kinds.setdefault(key, set()).add(kind)
     return out
@@ -165,19 +215,16 @@ def damage(run_dir: Path, results_file: str = "results.jsonl",
     line each; empty for a whole run. Found: a last line cut mid-way; results.jsonl
     holding fewer results than ledger.json counts for a pool, or ending before the tracks
     do (cut at a line's end); tracks that detection lines carry missing from tracks.jsonl."""
-    results, tracks = read_jsonl(run_dir / results_file), read_jsonl(run_dir / tracks_file,
-                                                                      "track")
+    results, tracks = read_results(run_dir / results_file), read_tracks(run_dir / tracks_file)
     out: list[str] = []
     if results.cut is not None:
         out.append(f"{results.cut_text()}: that line's result is left out")
     carried: set[int] = set()
     last = ""  # the latest result time ("YYYY-MM-DD HH:MM:SS.mmm" sorts as time)
-    for _n, obj in results.items:
-        (_kind, body), = obj.items()
-        if isinstance(body, dict) and isinstance(body.get("seq"), int):
-            last = max(last, str(body.get("timestamp", "")))
-            if isinstance(body.get("track"), int):
-                carried.add(body["track"])
+    for _n, (_kind, body) in results.items:
+        last = max(last, body.timestamp)
+        if isinstance(body, MonoIRLine) and isinstance(body.track, int):
+            carried.add(body.track)
     ledger = read_json(run_dir / "ledger.json") or {}
     got = written(results, ledger, first_line_at(run_dir / results_file,
                                                  results_from(ledger)))
@@ -192,14 +239,13 @@ def damage(run_dir: Path, results_file: str = "results.jsonl",
         return out
     if tracks.cut is not None:
         out.append(f"{tracks.cut_text()}: the track it held is left out")
-    have_ids = {b.get("id") for b in tracks.bodies()}
+    have_ids = {b.id for b in tracks.bodies()}
     if missing := sorted(carried - have_ids):
         out.append(f"{tracks.name} lacks {_ids(missing)}, which lines of {results.name} "
                    "carry: their observations are left out")
     end = label_s(last)
     if end is not None:
-        after = sorted(b["id"] for b in tracks.bodies() if isinstance(b.get("id"), int)
-                       and isinstance(b.get("last_s"), (int, float)) and b["last_s"] > end + 1)
+        after = sorted(b.id for b in tracks.bodies() if b.last_s > end + 1)
         if after:
             out.append(f"{results.name} ends at {last}, before {_ids(after)} end: the boxes, "
                        "best frames and blanks after it are left out")

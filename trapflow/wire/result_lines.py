@@ -33,6 +33,10 @@ class LineError(ProtocolError):
     """A line that is not a line of its file: which line, and what was wrong."""
 
 
+class OtherKind(LineError):
+    """A whole line of another kind than the file's (a reader may pass it by)."""
+
+
 # Keys every result kind carries, with one meaning.
 Timestamp = Annotated[str, _doc("always", "string, UTC",
                                 "capture time of the pair, `YYYY-MM-DD HH:MM:SS.mmm`")]
@@ -341,7 +345,7 @@ def decode_track(line: bytes | str, where: str = "tracks.jsonl line") -> TrackLi
     """One tracks.jsonl line's track; LineError naming `where` otherwise."""
     kind, raw = _one(line, where)
     if kind != TRACK_KEY:
-        raise LineError(f"{where}: expected a {TRACK_KEY} line, got {kind}")
+        raise OtherKind(f"{where}: expected a {TRACK_KEY} line, got {kind}")
     try:
         return _track.decode(raw)
     except (msgspec.ValidationError, msgspec.DecodeError) as exc:
@@ -352,7 +356,7 @@ def decode_counts(line: bytes | str, where: str = "counts.jsonl line") -> Counts
     """One counts.jsonl line's interval; LineError naming `where` otherwise."""
     kind, raw = _one(line, where)
     if kind != COUNTS_KEY:
-        raise LineError(f"{where}: expected a {COUNTS_KEY} line, got {kind}")
+        raise OtherKind(f"{where}: expected a {COUNTS_KEY} line, got {kind}")
     try:
         return _counts.decode(raw)
     except (msgspec.ValidationError, msgspec.DecodeError) as exc:

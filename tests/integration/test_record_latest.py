@@ -37,7 +37,7 @@ def test_record_of_runs_latest_waits_for_the_pipeline_that_starts(run_dir: Path)
         p for p in (str(REPO), os.environ.get("PYTHONPATH", "")) if p)}
     start = subprocess.Popen(
         [sys.executable, "-m", "trapflow", "start", "--config", str(cfg), "--size", "160x120",
-         "--rate", "10", "--duration", "30"],
+         "--rate", "10", "--duration", "8"],
         cwd=work, env=env, start_new_session=True, stdout=subprocess.PIPE,
         stderr=subprocess.PIPE, text=True)
     try:

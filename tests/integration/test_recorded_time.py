@@ -93,4 +93,11 @@ def test_process_and_replay_label_results_with_the_recorded_capture_times(
     same = [seq for i, seq in enumerate(seqs) if seq in live and live[seq] == want[i]]
     both = [seq for seq in seqs if seq in live]
     assert both and len(same) == len(both), [(s, live[s]) for s in both if s not in same]
+    # One command says the same: both re-analyses tell the live run's story.
+    for other in (work / "replayed", work / "processed" / "field.mcap"):
+        res = subprocess.run(
+            [sys.executable, "-m", "trapflow", "check", str(run_dir), "--config", str(cfg),
+             "--against", str(other)], cwd=REPO, capture_output=True, text=True, timeout=60)
+        assert res.returncode == 0, res.stdout + res.stderr
+        assert f"of the {len(stamps)} pairs" in res.stderr and "tells its story" in res.stdout
 

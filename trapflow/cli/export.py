@@ -180,10 +180,17 @@ def camtrapdp(run_dir: Path, out: Path, meta: Path | None, latitude: float | Non
 @click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
               help="The run's YAML config (results, observe file names; default: built-in "
                    "defaults).")
-def check(run_dir: Path, surface: Path | None, config_path: str | None) -> None:
+@click.option("--against", type=click.Path(exists=True, path_type=Path), default=None,
+              help="A re-analysis of the run's pairs (a `trapflow replay` run directory, a "
+                   "`trapflow process` output folder, or its results.jsonl): its pairs must "
+                   "carry the live capture times, its labels the live ones where the model "
+                   "is the same.")
+def check(run_dir: Path, surface: Path | None, config_path: str | None,
+          against: Path | None) -> None:
     """Say whether a finished run's files agree: ledger.json against results.jsonl, the
-    track ids of results.jsonl against tracks.jsonl, counts.jsonl against the tracks, and a
-    surface file against them all. One line per disagreement; exit 1 when there is one."""
+    track ids of results.jsonl against tracks.jsonl, counts.jsonl against the tracks, a
+    surface file against them all, and a re-analysis of its pairs against its results.
+    One line per disagreement; exit 1 when there is one."""
     from trapflow.config.schema import load
     from trapflow.errors import ConfigError
     from trapflow.export.check import check_run
@@ -197,11 +204,20 @@ def check(run_dir: Path, surface: Path | None, config_path: str | None) -> None:
     problems = check_run(run_dir, results_file=cfg.normalizer.results_file,
                          tracks_file=cfg.observe.tracks_file,
                          counts_file=cfg.observe.counts_file, surface=surface)
+    if against is not None:
+        from trapflow.export.against import check_against, results_path
+
+        more, summary = check_against(run_dir / cfg.normalizer.results_file,
+                                      results_path(against))
+        problems += more
+        for line in summary:
+            click.echo(f"against: {line}", err=True)
     for line in problems:
         click.echo(line)
     if problems:
         raise failed(f"check: {len(problems)} disagreements in {run_dir}")
-    click.echo(f"{run_dir}: its files agree")
+    click.echo(f"{run_dir}: its files agree" + (f", and {against} tells its story"
+                                                  if against is not None else ""))
 
 
 COMMANDS = (report, export, check)

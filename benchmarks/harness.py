@@ -92,6 +92,15 @@ def per_call(fn: Callable[[], Any], calls: int,
 # --- CPU of a process tree ----------------------------------------------------------------
 
 
+def pace(t0: float, n: int, rate: float | None) -> None:
+    """Sleep until the n-th send of a source paced at `rate` per second from monotonic t0
+    is due (at once when `rate` is None or 0: as fast as it goes)."""
+    if rate:
+        wait = t0 + n / rate - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+
+
 def tree_cpu(pid: int, *, children: bool = True) -> float:
     """User + system CPU seconds of process pid and its descendants, living and reaped.
 

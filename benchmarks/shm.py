@@ -90,12 +90,8 @@ def shm_ring(kind: str, seconds: float, rate: float | None, tmp: Path) -> dict[s
         time.sleep(0.3)
         c0 = h.tree_cpu(os.getpid())  # this process and its consumer
         n, full, t0 = 0, 0, time.monotonic()
-        period = 1.0 / rate if rate else 0.0
-        while (now := time.monotonic()) - t0 < seconds:
-            if rate:
-                wait = t0 + n * period - now
-                if wait > 0:
-                    time.sleep(wait)
+        while time.monotonic() - t0 < seconds:
+            h.pace(t0, n, rate)
             while link.recv() is not None:  # the consumer's frees
                 pass
             hdr = header(n, kind)  # stamped before the write: the ring is the transport

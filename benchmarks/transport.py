@@ -114,12 +114,8 @@ def raw_pyzmq(kind: str, seconds: float, rate: float | None, tmp: Path) -> dict[
     time.sleep(0.3)
     c0 = h.tree_cpu(os.getpid())  # this process and its consumer
     n, t0 = 0, time.monotonic()
-    period = 1.0 / rate if rate else 0.0
-    while (now := time.monotonic()) - t0 < seconds:
-        if rate:
-            wait = t0 + n * period - now
-            if wait > 0:
-                time.sleep(wait)
+    while time.monotonic() - t0 < seconds:
+        h.pace(t0, n, rate)
         push.send_multipart([header(n, kind), left, right], copy=False)
         n += 1
     push.send(b"end")

@@ -229,6 +229,15 @@ def test_a_wall_clock_step_changes_only_timestamps(
     assert all(u >= 0 for u in uptimes) and uptimes == sorted(uptimes), uptimes
     assert uptimes[-1] - uptimes[0] <= elapsed + 5, (uptimes, elapsed)
 
+    # Each step said once in the log and kept in the run's timeline.
+    ledger = json.loads((run_dir / "ledger.json").read_text())
+    assert ledger["supervision"]["clock_steps"] == 2, ledger["supervision"]
+    steps = [e["reason"] for e in ledger["supervision"]["timeline"] if e["kind"] == "clock_step"]
+    assert len(steps) == 2 and steps[0].startswith("the wall clock stepped by -3")
+    assert steps[1].startswith("the wall clock stepped by +86"), steps
+    log_text = (run_dir / "trapflow.log").read_text()
+    assert log_text.count("the wall clock stepped by") == 2, log_text[-2000:]
+
     # The run's own duration is the monotonic one.
     run = json.loads((run_dir / "run.json").read_text())
     assert elapsed - 5 <= run["duration_s"] <= elapsed + 30, (run["duration_s"], elapsed)

@@ -167,7 +167,7 @@ class Event:
 
     t: float
     node: str
-    kind: str  # "gave_up", "retry", "capped", "control", "level", "recycled"
+    kind: str  # "gave_up", "retry", "capped", "control", "level", "recycled", "clock_step"
     reason: str
 
 

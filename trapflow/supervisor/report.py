@@ -196,6 +196,7 @@ class Report:
         counts = core.counts()
         return {"gave_up": counts["gave_up"], "retries": counts["retry"],
                 "capped": counts["capped"], "control": counts["control"],
+                "clock_steps": core.clock_steps,
                 "recycled": {p: dict(by) for p, by in core.recycled.items()},
                 "pools": core.pools.pool_view(), "ladder": core.pools.ladder_view(),
                 "timeline": [{"t_s": round(e.t - self.t0, 1), "node": e.node,

@@ -31,6 +31,7 @@ from trapflow.errors import EXIT_FAILURE, EXIT_OK, ProtocolError, StartupError, 
 from trapflow.power.cpu import CpuMeter
 from trapflow.power.schedule import WindowClock
 from trapflow.runtime import forkserver, sdnotify
+from trapflow.runtime.clock_step import ClockSteps
 from trapflow.runtime.lifecycle import RECYCLE_EXITS
 from trapflow.runtime.node import NodeSpec, node_main
 from trapflow.runtime.ratelog import RateLimitedLog, wire
@@ -145,6 +146,7 @@ class Supervisor:
         self.notifier = sdnotify.Notifier()  # READY/WATCHDOG/STATUS under systemd, else no-op
         self.ratelog = RateLimitedLog(log)  # warnings about messages from sockets
         self.cpu = CpuMeter()  # CPU per role: the energy estimate in ledger.json
+        self.clock_steps = ClockSteps()  # wall-clock steps, said once each
         # status reply, status line, ledger.json, totals
         self.report = Report(cfg, run_dir, self.out, self.t0, self.core, self.ledger_model,
                              self.report_snapshot)
@@ -336,12 +338,21 @@ class Supervisor:
                 break
             if now >= next_status:
                 next_status = now + 1.0
+                self._watch_clock(now)
                 self.report.read_results()
                 self.cpu.sample((c.spec.pool or c.spec.role, c.proc.pid if c.proc else None)
                                 for c in self.children)
                 self.report.status_line()
                 self._notify_systemd()
                 self.broker.reconcile(self.core.pools, self.stats)
+
+    def _watch_clock(self, now: float) -> None:
+        """A wall-clock step: said once, and kept in the run's timeline (ledger.json)."""
+        step = self.clock_steps.observe(time.time(), now)
+        if step is not None:
+            log.warning("the wall clock stepped by %+.1f s: timestamps from here on are on "
+                        "the new clock (durations and time-outs are not affected)", step)
+            self.core.clock_stepped(now, step)
 
     def _outbox(self) -> int | None:
         """Records waiting for the modem, as the modem node last counted (None: no modem)."""

@@ -58,6 +58,7 @@ class SupervisorState:
         self.timeline: deque[Event] = deque(maxlen=MAX_TIMELINE)
         self._counts = {"gave_up": 0, "retry": 0, "capped": 0, "control": 0, "level": 0,
                         "recycled": 0}
+        self.clock_steps = 0  # wall-clock steps seen (trapflow.runtime.clock_step)
         self.stopping = False
         self.pools = PoolControl(self.nodes, self._note, lambda: self.stopping, ladder)
         # Workers recycled per pool, by why (rss, jobs).
@@ -214,6 +215,12 @@ class SupervisorState:
     def _note(self, now: float, name: str, kind: str, reason: str) -> None:
         self.timeline.append(Event(now, name, kind, reason))
         self._counts[kind] += 1
+
+    def clock_stepped(self, now: float, step_s: float) -> None:
+        """The wall clock stepped (trapflow.runtime.clock_step): into the timeline."""
+        self.timeline.append(Event(now, "clock", "clock_step",
+                                   f"the wall clock stepped by {step_s:+.1f} s"))
+        self.clock_steps += 1
 
     def counts(self) -> dict[str, int]:
         """Give-ups, retries, capped restarts, control changes and recycles over the run

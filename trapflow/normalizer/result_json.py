@@ -93,12 +93,6 @@ def link_record(obj: dict[str, Any]) -> dict[str, Any]:
             else item for kind, item in obj.items()}
 
 
-def line_pool(item: dict[str, Any]) -> str | None:
-    """The pool a line's body names, or None (a line of v2 or before)."""
-    pool = item.get(POOL_KEY)
-    return pool if isinstance(pool, str) else None
-
-
 def _items(res: messages.Result, decimals: int) -> list[dict[str, Any]]:
     base: dict[str, Any] = {"timestamp": timestamp(res.t_wall_ns), "seq": res.seq}
     b = res.body

@@ -91,6 +91,9 @@ def test_tap_and_status_attach_then_the_supervisor_killed_leaves_no_orphans(
 
     jpgs = sorted(saved.glob("*_left.jpg"))
     assert len(jpgs) == 2 and cv2.imread(str(jpgs[0])).shape == (240, 320, 3)
+    # The nodes' fork server listens beside the run's sockets, not in a folder of the
+    # system's temporary directory that a kill -9 would leave behind.
+    assert [f for f in run_dir.iterdir() if f.name.startswith("listener-") and f.is_socket()]
     # Last, the supervisor killed (kill -9): no node outlives it.
     kids = p.track()
     p.proc.kill()

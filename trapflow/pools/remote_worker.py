@@ -162,7 +162,7 @@ class RemotePool:
         self.join_timeout_s = join_timeout_s
         self.announce = announce
         self.stopping = False
-        self.mp = forkserver.node_context()
+        self.mp = forkserver.node_context(run_dir)
         self.procs = [_Proc(i) for i in range(count)]
 
     def run(self) -> int:

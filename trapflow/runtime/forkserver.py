@@ -25,14 +25,27 @@ import multiprocessing as mp
 import os
 import sys
 from multiprocessing import context, forkserver
+from pathlib import Path
+
+from trapflow.wire.endpoints import MAX_IPC_PATH
 
 PRELOAD = "trapflow.runtime.forkserver_preload"
+LISTENER_NAME = len("/listener-12345678")  # the server's socket file in its folder
 
 
-def node_context() -> context.ForkServerContext:
-    """The multiprocessing context nodes are started in (its server preloads PRELOAD)."""
+def node_context(run_dir: Path | None = None) -> context.ForkServerContext:
+    """The multiprocessing context nodes are started in (its server preloads PRELOAD).
+
+    The server listens on a socket file; multiprocessing puts it in a `pymp-*` folder of
+    the system's temporary directory, which a kill -9 of the supervisor would leave behind.
+    Given the run directory (and the name fits a socket path there), it goes beside the
+    run's other sockets instead, which an orderly end removes and the next start in the
+    directory replaces (trapflow.supervisor.setup.clear_run_dir)."""
     ctx = mp.get_context("forkserver")
     ctx.set_forkserver_preload([PRELOAD])
+    if run_dir is not None and len(str(run_dir.resolve())) + LISTENER_NAME <= MAX_IPC_PATH:
+        # multiprocessing.util.get_temp_dir reads this before it makes a folder of its own
+        mp.current_process()._config["tempdir"] = str(run_dir.resolve())  # type: ignore[attr-defined]
     return ctx
 
 

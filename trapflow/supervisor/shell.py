@@ -122,7 +122,7 @@ class Supervisor:
         self.window = window  # the schedule's recording window: the run stops at its end
         self.window_ended = False
         self.out = out or sys.stdout
-        self.mp = forkserver.node_context()
+        self.mp = forkserver.node_context(run_dir)
         self.children: list[Child] = []
         # The decisions (filled by boot()); the ladder's readings are the sensors' below.
         self.core = SupervisorState((), _budget(cfg),

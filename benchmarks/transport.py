@@ -19,6 +19,8 @@ import statistics
 import sys
 import tempfile
 import time
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
 from pathlib import Path
 from typing import Any
 
@@ -100,16 +102,23 @@ def _raw_consumer(endpoint: str, conn: Any) -> None:
     ctx.destroy(linger=0)
 
 
-def raw_pyzmq(kind: str, seconds: float, rate: float | None, tmp: Path) -> dict[str, Any]:
-    left, right = make_payload(kind)
-    endpoint = f"ipc://{tmp}/raw-{kind}-{rate}.sock"
-    ctx = zmq.Context()
+def _raw_link(ctx: zmq.Context[Any], endpoint: str
+              ) -> tuple[zmq.Socket[Any], Connection, BaseProcess]:
+    """A PUSH bound at endpoint and its raw consumer process, started (it says when it is
+    ready, then its counts, over the pipe returned)."""
     push = ctx.socket(zmq.PUSH)
     push.setsockopt(zmq.SNDHWM, WINDOW // 2)
     push.bind(endpoint)
     here, there = mp.Pipe()
     proc = mp.get_context("spawn").Process(target=_raw_consumer, args=(endpoint, there))
     proc.start()
+    return push, here, proc
+
+
+def raw_pyzmq(kind: str, seconds: float, rate: float | None, tmp: Path) -> dict[str, Any]:
+    left, right = make_payload(kind)
+    ctx = zmq.Context()
+    push, here, proc = _raw_link(ctx, f"ipc://{tmp}/raw-{kind}-{rate}.sock")
     here.recv()
     time.sleep(0.3)
     c0 = h.tree_cpu(os.getpid())  # this process and its consumer
@@ -135,13 +144,7 @@ def raw_pyzmq_fanout(seconds: float, tmp: Path, consumers: int = 3) -> dict[str,
     ctx = zmq.Context()
     pushes, procs, pipes = [], [], []
     for i in range(consumers):
-        endpoint = f"ipc://{tmp}/fan-{i}.sock"
-        push = ctx.socket(zmq.PUSH)
-        push.setsockopt(zmq.SNDHWM, WINDOW // 2)
-        push.bind(endpoint)
-        here, there = mp.Pipe()
-        proc = mp.get_context("spawn").Process(target=_raw_consumer, args=(endpoint, there))
-        proc.start()
+        push, here, proc = _raw_link(ctx, f"ipc://{tmp}/fan-{i}.sock")
         pushes.append(push)
         procs.append(proc)
         pipes.append(here)
